@@ -1,0 +1,486 @@
+"""Camera model: pinhole with OpenCV's plumb-bob distortion (SPEC §3, paper Eq. 1–3).
+
+Conventions (SPEC §2): camera frame x right, y down, z forward; millimetres;
+pixel (0, 0) is the centre of the top-left pixel.  Distortion is
+``(k1, k2, p1, p2, k3)``; for normalised undistorted ``(x, y)``, ``r² = x² + y²``::
+
+    x_d = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²)
+    y_d = y (1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2 y²) + 2 p2 x y
+    [u, v, 1]ᵀ = K [x_d, y_d, 1]ᵀ
+
+Camera files: our JSON, ROS ``camera_info`` YAML, OpenCV FileStorage YAML/XML.
+
+>>> import numpy as np
+>>> cam = Camera(K=[[1000, 0, 640], [0, 1000, 480], [0, 0, 1]], dist=[-0.3, 0.1, 0.001, 0.001, 0], width=1280, height=960)
+>>> uv = cam.project(np.array([[10.0, -5.0, 400.0]]))
+>>> bool(np.allclose(cam.undistort_points(uv, normalized=True), [[10 / 400, -5 / 400]], atol=1e-12))
+True
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import LightplaneError
+
+__all__ = ["Camera", "as_points"]
+
+
+def as_points(x: Any, dim: int, name: str) -> np.ndarray:
+    """Check and convert an array of points to ``(N, dim)`` float64 (a single point is accepted)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 1 and a.shape[0] == dim:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise LightplaneError(f"{name} must have shape (N, {dim}), got {np.shape(x)}")
+    return a
+
+
+def _tight_criteria():
+    import cv2
+
+    return (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A calibrated camera.
+
+    Attributes
+    ----------
+    K : (3, 3) float64
+        Intrinsic matrix ``[[fu, 0, u0], [0, fv, v0], [0, 0, 1]]`` in pixels (zero skew).
+    dist : (5,) float64
+        ``(k1, k2, p1, p2, k3)``, OpenCV's plumb bob.
+    width, height : int
+        Image size in pixels.
+    rms_px : float or None
+        Reprojection RMS of the calibration that produced it, if known.
+    meta : dict
+        Free-form provenance (where it came from); not used in computations.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    width: int
+    height: int
+    rms_px: float | None = None
+    meta: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise LightplaneError(f"K must be a finite 3x3 matrix, got {np.shape(self.K)}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise LightplaneError(f"K: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+        if abs(K[2, 2] - 1) > 1e-9 or np.any(np.abs(K[2, :2]) > 1e-12) or abs(K[1, 0]) > 1e-12:
+            raise LightplaneError("K: last row must be [0, 0, 1] and K[1, 0] zero")
+        d = np.asarray(self.dist, dtype=np.float64).ravel()
+        if d.size == 4:
+            d = np.append(d, 0.0)
+        if d.size > 5:
+            if np.any(d[5:] != 0):
+                raise LightplaneError(
+                    f"dist: only the 5-coefficient plumb-bob model (k1, k2, p1, p2, k3) is supported, "
+                    f"got {d.size} coefficients with non-zero extras"
+                )
+            d = d[:5]
+        if d.size != 5 or not np.all(np.isfinite(d)):
+            raise LightplaneError(f"dist must hold 4 or 5 finite coefficients (k1, k2, p1, p2[, k3]), got {d.size}")
+        try:
+            w, h = int(self.width), int(self.height)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"width/height must be integers, got {self.width!r}, {self.height!r}") from None
+        if w <= 0 or h <= 0:
+            raise LightplaneError(f"width and height must be positive, got {w}x{h}")
+        K.setflags(write=False)
+        d.setflags(write=False)
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", d)
+        object.__setattr__(self, "width", w)
+        object.__setattr__(self, "height", h)
+        if self.rms_px is not None:
+            object.__setattr__(self, "rms_px", float(self.rms_px))
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def skew(self) -> float:
+        return float(self.K[0, 1])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.width, self.height
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0))
+
+    def pinhole(self) -> "Camera":
+        """The same camera without distortion."""
+        return Camera(self.K, np.zeros(5), self.width, self.height, self.rms_px, dict(self.meta))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        return (
+            np.array_equal(self.K, other.K)
+            and np.array_equal(self.dist, other.dist)
+            and self.width == other.width
+            and self.height == other.height
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"Camera({self.width}x{self.height}, fx={self.fx:.3f}, fy={self.fy:.3f}, "
+            f"cx={self.cx:.3f}, cy={self.cy:.3f}, dist={np.array2string(self.dist, precision=5)})"
+        )
+
+    # ------------------------------------------------------------- projection
+    def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """Apply the distortion to normalised undistorted ``(N, 2)`` coordinates (SPEC §3)."""
+        xy = as_points(xy, 2, "xy")
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.column_stack([xd, yd])
+
+    def normalized_to_pixels(self, xy: np.ndarray, *, distort: bool = True) -> np.ndarray:
+        """Normalised ``(N, 2)`` coordinates (undistorted) to pixels, distorted unless ``distort=False``."""
+        xy = as_points(xy, 2, "xy")
+        if distort:
+            xy = self.distort_normalized(xy)
+        K = self.K
+        return np.column_stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]])
+
+    def pixels_to_normalized_linear(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels to normalised coordinates by K⁻¹ only (no distortion handling)."""
+        uv = as_points(uv, 2, "uv")
+        K = self.K
+        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return np.column_stack([x, y])
+
+    def project(self, p_cam: np.ndarray, *, distort: bool = True) -> np.ndarray:
+        """Project ``(N, 3)`` camera-frame points (mm) to ``(N, 2)`` pixels.
+
+        Points on or behind the camera plane (z ≤ 0) give NaN.
+        """
+        p = as_points(p_cam, 3, "p_cam")
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = p[:, :2] / z[:, None]
+        xy[~(z > 0)] = np.nan
+        return self.normalized_to_pixels(xy, distort=distort)
+
+    def undistort_points(self, uv: np.ndarray, *, normalized: bool = False) -> np.ndarray:
+        """Remove lens distortion from ``(N, 2)`` pixel coordinates.
+
+        Returns undistorted pixels (``K`` applied again) or, with ``normalized=True``,
+        normalised coordinates ``(x, y)`` such that the ray is ``(x, y, 1)``.
+        OpenCV's iterative undistortion (tight criteria) gives the start; a few
+        Newton steps on the exact model (SPEC §3) take it to ~1e-12 px, even with
+        strong distortion where the fixed-point iteration is slow.
+        """
+        uv = as_points(uv, 2, "uv")
+        if not self.has_distortion:
+            xy = self.pixels_to_normalized_linear(uv)
+        else:
+            xy = self._undistort_normalized(uv)
+        return xy if normalized else self.normalized_to_pixels(xy, distort=False)
+
+    def _undistort_normalized(self, uv: np.ndarray) -> np.ndarray:
+        import cv2
+
+        out = np.full(uv.shape, np.nan)
+        good = np.all(np.isfinite(uv), axis=1)
+        if not np.any(good):
+            return out
+        src = np.ascontiguousarray(uv[good]).reshape(-1, 1, 2)
+        crit = _tight_criteria()
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+            xy0 = cv2.undistortPointsIter(src, self.K, self.dist, None, None, crit)
+        else:  # OpenCV 5 takes the criteria in undistortPoints itself
+            xy0 = cv2.undistortPoints(src, self.K, self.dist, None, None, crit)
+        xy = xy0.reshape(-1, 2).astype(np.float64)
+        target = self.pixels_to_normalized_linear(uv[good])
+        xy = self._newton_undistort(xy, target)
+        out[good] = xy
+        return out
+
+    def _newton_undistort(self, xy: np.ndarray, target: np.ndarray, iters: int = 20) -> np.ndarray:
+        """Solve distort(xy) = target by Newton's method, starting from ``xy``."""
+        k1, k2, p1, p2, k3 = self.dist
+        for _ in range(iters):
+            x, y = xy[:, 0], xy[:, 1]
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+            fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - target[:, 0]
+            fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - target[:, 1]
+            j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+            j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+            j21 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+            j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+            det = j11 * j22 - j12 * j21
+            dx = (j22 * fx - j12 * fy) / det
+            dy = (-j21 * fx + j11 * fy) / det
+            xy = xy - np.column_stack([dx, dy])
+            if np.nanmax(np.abs(np.concatenate([dx, dy]))) < 1e-15:
+                break
+        return xy
+
+    def rays(self, uv: np.ndarray, *, unit: bool = False) -> np.ndarray:
+        """Camera-frame rays ``(N, 3)`` through distorted pixels ``uv``.
+
+        By default ``(x, y, 1)`` (the point at depth z = 1 mm); ``unit=True`` normalises.
+        """
+        xy = self.undistort_points(uv, normalized=True)
+        r = np.column_stack([xy, np.ones(len(xy))])
+        if unit:
+            r /= np.linalg.norm(r, axis=1, keepdims=True)
+        return r
+
+    def undistort_image(self, img: np.ndarray, *, interpolation: int | None = None) -> np.ndarray:
+        """Resample an image as seen by the same camera without distortion (same K)."""
+        import cv2
+
+        if interpolation is None:
+            interpolation = cv2.INTER_LINEAR
+        h, w = img.shape[:2]
+        map1, map2 = cv2.initUndistortRectifyMap(self.K, self.dist, None, self.K, (w, h), cv2.CV_32FC1)
+        return cv2.remap(img, map1, map2, interpolation)
+
+    def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Boolean mask of ``(N, 2)`` pixels inside the image (pixel centres 0..W-1)."""
+        uv = as_points(uv, 2, "uv")
+        return (
+            (uv[:, 0] >= -0.5 + margin)
+            & (uv[:, 0] <= self.width - 0.5 - margin)
+            & (uv[:, 1] >= -0.5 + margin)
+            & (uv[:, 1] <= self.height - 0.5 - margin)
+        )
+
+    def check_image(self, img: np.ndarray, name: str = "image") -> None:
+        """Raise if an image's size differs from the camera's (a wrong camera file)."""
+        h, w = img.shape[:2]
+        if (w, h) != (self.width, self.height):
+            raise LightplaneError(
+                f"{name} is {w}x{h} px but the camera is calibrated for {self.width}x{self.height} px (wrong camera file?)"
+            )
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict:
+        d = {
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+        }
+        if self.rms_px is not None:
+            d["rms_px"] = self.rms_px
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
+        """From our JSON layout ``{"width", "height", "K", "dist", "rms_px"?}``."""
+        for key in ("width", "height", "K", "dist"):
+            if key not in d:
+                raise LightplaneError(f"{source}: missing field '{key}'")
+        try:
+            K = np.asarray(d["K"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"{source}: field 'K' is not a 3x3 matrix of numbers") from None
+        if K.shape != (3, 3):
+            raise LightplaneError(f"{source}: field 'K' must be 3x3, got shape {K.shape}")
+        try:
+            dist = np.asarray(d["dist"], dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise LightplaneError(f"{source}: field 'dist' is not a list of numbers") from None
+        try:
+            return cls(K, dist, d["width"], d["height"], d.get("rms_px"), meta={"source": source})
+        except LightplaneError as e:
+            raise LightplaneError(f"{source}: {e}") from None
+
+    def save_json(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
+        """Write our JSON camera file atomically (``extra`` keys, e.g. provenance, are added)."""
+        from .io import write_json
+
+        d = self.to_dict()
+        if extra:
+            d.update(extra)
+        return write_json(path, d, force=force)
+
+    def ros_yaml_text(self, camera_name: str = "camera") -> str:
+        """ROS ``camera_info`` YAML text (plumb_bob, identity R, P = [K | 0])."""
+        import yaml
+
+        P = np.hstack([self.K, np.zeros((3, 1))])
+        doc = {
+            "image_width": self.width,
+            "image_height": self.height,
+            "camera_name": camera_name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in self.K.ravel()]},
+            "distortion_model": "plumb_bob",
+            "distortion_coefficients": {"rows": 1, "cols": 5, "data": [float(v) for v in self.dist]},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in np.eye(3).ravel()]},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": [float(v) for v in P.ravel()]},
+        }
+        return yaml.safe_dump(doc, sort_keys=False)
+
+    def save_ros_yaml(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        from .io import atomic_write
+
+        return atomic_write(path, self.ros_yaml_text(), force=force)
+
+    def save_opencv(self, path: str | os.PathLike, *, force: bool = False) -> Path:
+        """Write an OpenCV FileStorage file (``.yaml``/``.yml`` or ``.xml`` by suffix)."""
+        import cv2
+
+        from .io import atomic_write
+
+        def writer(tmp: str) -> None:
+            fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+            fs.write("image_width", self.width)
+            fs.write("image_height", self.height)
+            fs.write("camera_matrix", self.K)
+            fs.write("distortion_coefficients", self.dist.reshape(1, 5))
+            fs.release()
+
+        if Path(path).suffix.lower() not in (".yaml", ".yml", ".xml"):
+            raise LightplaneError(f"{path}: OpenCV camera files must end in .yaml, .yml or .xml")
+        return atomic_write(path, writer, force=force)
+
+    def save(self, path: str | os.PathLike, *, force: bool = False, fmt: str | None = None) -> Path:
+        """Save by format: ``json`` (default for .json), ``ros`` or ``opencv`` (.xml)."""
+        suffix = Path(path).suffix.lower()
+        fmt = fmt or ("json" if suffix == ".json" else "opencv" if suffix == ".xml" else "ros")
+        if fmt == "json":
+            return self.save_json(path, force=force)
+        if fmt == "ros":
+            return self.save_ros_yaml(path, force=force)
+        if fmt == "opencv":
+            return self.save_opencv(path, force=force)
+        raise LightplaneError(f"unknown camera file format {fmt!r} (json, ros, opencv)")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Camera":
+        """Read a camera file: our JSON, ROS ``camera_info`` YAML, or OpenCV FileStorage YAML/XML.
+
+        The format is recognised from the content.  A missing file, a corrupt one, or
+        a missing/invalid field raises :class:`LightplaneError` naming the file and field.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise LightplaneError(f"{p}: no such camera file")
+        try:
+            text = p.read_text()
+        except UnicodeDecodeError:
+            raise LightplaneError(f"{p}: not a text camera file (JSON, YAML or XML expected)") from None
+        head = text.lstrip()[:64]
+        if head.startswith("{"):
+            from .io import read_json
+
+            return cls.from_dict(read_json(p, "camera file"), source=str(p))
+        if head.startswith("<") or head.startswith("%YAML"):
+            return cls._load_opencv(p)
+        return cls._load_ros(p, text)
+
+    @classmethod
+    def _load_ros(cls, p: Path, text: str) -> "Camera":
+        import yaml
+
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise LightplaneError(f"{p}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(doc, dict):
+            raise LightplaneError(f"{p}: not a camera file (expected a YAML mapping or JSON object)")
+
+        def matrix(key: str, n: int | None) -> np.ndarray:
+            if key not in doc:
+                raise LightplaneError(f"{p}: missing field '{key}'")
+            node = doc[key]
+            data = node.get("data") if isinstance(node, dict) else node
+            try:
+                a = np.asarray(data, dtype=np.float64).ravel()
+            except (TypeError, ValueError):
+                raise LightplaneError(f"{p}: field '{key}' is not a list of numbers") from None
+            if n is not None and a.size != n:
+                raise LightplaneError(f"{p}: field '{key}' must hold {n} numbers, got {a.size}")
+            return a
+
+        K = matrix("camera_matrix", 9).reshape(3, 3)
+        dist = matrix("distortion_coefficients", None)
+        model = doc.get("distortion_model", "plumb_bob")
+        if model not in ("plumb_bob", "rational_polynomial"):
+            raise LightplaneError(f"{p}: distortion_model '{model}' is not supported (plumb_bob expected)")
+        for key in ("image_width", "image_height"):
+            if key not in doc:
+                raise LightplaneError(f"{p}: missing field '{key}'")
+        try:
+            return cls(K, dist, doc["image_width"], doc["image_height"], meta={"source": str(p), "format": "ros"})
+        except LightplaneError as e:
+            raise LightplaneError(f"{p}: {e}") from None
+
+    @classmethod
+    def _load_opencv(cls, p: Path) -> "Camera":
+        import cv2
+
+        try:
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+        except cv2.error as e:
+            raise LightplaneError(f"{p}: not a valid OpenCV FileStorage file ({str(e).strip().splitlines()[-1]})") from None
+        if not fs.isOpened():
+            raise LightplaneError(f"{p}: cannot be opened as an OpenCV FileStorage file")
+        try:
+            def mat(key: str) -> np.ndarray:
+                node = fs.getNode(key)
+                if node.empty():
+                    raise LightplaneError(f"{p}: missing field '{key}'")
+                m = node.mat()
+                if m is None:
+                    raise LightplaneError(f"{p}: field '{key}' is not a matrix")
+                return np.asarray(m, dtype=np.float64)
+
+            def integer(key: str) -> int:
+                node = fs.getNode(key)
+                if node.empty():
+                    raise LightplaneError(f"{p}: missing field '{key}'")
+                return int(node.real())
+
+            K = mat("camera_matrix")
+            if K.shape != (3, 3):
+                raise LightplaneError(f"{p}: field 'camera_matrix' must be 3x3, got {K.shape}")
+            dist = mat("distortion_coefficients").ravel()
+            w, h = integer("image_width"), integer("image_height")
+        finally:
+            fs.release()
+        try:
+            return cls(K, dist, w, h, meta={"source": str(p), "format": "opencv"})
+        except LightplaneError as e:
+            raise LightplaneError(f"{p}: {e}") from None

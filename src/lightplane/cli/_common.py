@@ -1,0 +1,61 @@
+"""Shared plumbing of the subcommands: the Typer app, error handling, console."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable, TypeVar
+
+import typer
+from rich.console import Console
+
+from ..errors import LightplaneError
+
+app = typer.Typer(
+    name="lightplane",
+    help="Line-structured-light calibration (single circular target, Wang & Li 2022) and 3D measurement.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+F = TypeVar("F", bound=Callable)
+
+
+def fail(message: str, code: int = 2) -> None:
+    """One clear line on stderr, then exit with ``code`` (2: bad input)."""
+    print(f"lightplane: error: {message}", file=sys.stderr)
+    raise typer.Exit(code)
+
+
+def handles_errors(fn: F) -> F:
+    """Turn LightplaneError / missing files into one stderr line and exit 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except LightplaneError as e:
+            fail(str(e))
+        except FileNotFoundError as e:
+            fail(f"{e.filename}: no such file")
+        except PermissionError as e:
+            fail(f"{e.filename}: permission denied")
+        except KeyboardInterrupt:
+            fail("interrupted", code=130)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def parse_board(text: str) -> tuple[int, int]:
+    """'COLSxROWS' (inner corners) -> (cols, rows)."""
+    try:
+        cols, rows = (int(t) for t in text.lower().split("x"))
+    except ValueError:
+        raise LightplaneError(f"--board must look like COLSxROWS (inner corners), e.g. 9x6; got {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise LightplaneError(f"--board needs at least 2x2 inner corners, got {text!r}")
+    return cols, rows
