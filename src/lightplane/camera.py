@@ -225,7 +225,7 @@ class Camera:
         if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
             xy0 = cv2.undistortPointsIter(src, self.K, self.dist, np.eye(3), np.eye(3), crit)
         else:  # OpenCV 5 takes the criteria in undistortPoints itself
-            xy0 = cv2.undistortPoints(src, self.K, self.dist, np.eye(3), np.eye(3), crit)
+            xy0 = cv2.undistortPoints(src, self.K, self.dist, None, np.eye(3), np.eye(3), crit)
         xy = xy0.reshape(-1, 2).astype(np.float64)
         target = self.pixels_to_normalized_linear(uv[good])
         xy = self._newton_undistort(xy, target)
