@@ -1,0 +1,1 @@
+"""Baseline methods lightplane is compared with (Zhou's planar-target method)."""
