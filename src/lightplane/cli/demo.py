@@ -1,11 +1,22 @@
-"""`lightplane demo` (not implemented yet: its issue is open)."""
+"""``lightplane demo``: run the whole chain on an embedded synthetic data set."""
 
 from __future__ import annotations
 
-from ._common import app, fail
+from pathlib import Path
+
+import typer
+
+from ._common import app, console, handles_errors
 
 
-@app.command("demo", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-def demo() -> None:
-    """Not implemented yet."""
-    fail("'demo' is not implemented yet")
+@app.command("demo")
+@handles_errors
+def demo_cmd(
+    out: Path = typer.Option(Path("demo-out"), "--out", help="Folder for the data set, results and report."),
+    force: bool = typer.Option(False, "--force", help="Replace the files of an earlier demo in that folder."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic data set."),
+) -> None:
+    """Render a synthetic data set and run every stage of lightplane on it."""
+    from ..demo import run_demo
+
+    run_demo(out, force=force, seed=seed, console=console)
