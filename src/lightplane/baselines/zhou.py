@@ -1,0 +1,324 @@
+"""Zhou's planar-target light-plane calibration (paper ref. [14]; SPEC §8), the baseline.
+
+Per image, a chessboard with the laser stripe across it: the board pose
+``T_cam_board`` comes from its corners (``cv2.findChessboardCornersSB`` and a
+distortion-aware ``cv2.solvePnP``); stripe centres inside the board are
+back-projected and intersected with the board plane, which gives 3D points of
+the light plane.  With two or more board poses the points span the plane, and
+one plane is fitted to all of them by total least squares.
+
+The covariance returned is the one of the least-squares fit from the residual
+scatter (points treated as independent with isotropic error along the normal).
+It does not see board-pose errors, which are shared by all points of one image,
+so it is optimistic when only a few poses are used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..camera import Camera, as_points
+from ..errors import LightplaneError
+from ..plane import LightPlane
+
+__all__ = [
+    "BoardPose",
+    "find_board_pose",
+    "board_polygon_mask",
+    "stripe_points_on_board",
+    "fit_plane",
+    "ZhouCalibration",
+    "plane_from_board_stripes",
+    "board_views_and_stripes",
+    "calibrate_plane_board",
+]
+
+
+@dataclass(frozen=True)
+class BoardPose:
+    """A chessboard found in one image and its pose.
+
+    Attributes
+    ----------
+    corners_uv : (cols·rows, 2) float, inner corners, distorted px, OpenCV order.
+    R_cam_board : (3, 3) float, board → camera rotation.
+    t_cam_board : (3,) float, board origin in the camera frame, mm.
+    reprojection_rms_px : float, RMS corner reprojection error of the pose.
+    name : str, where it came from.
+    """
+
+    corners_uv: np.ndarray
+    R_cam_board: np.ndarray
+    t_cam_board: np.ndarray
+    reprojection_rms_px: float
+    name: str = ""
+
+    @property
+    def normal_cam(self) -> np.ndarray:
+        """Board plane normal (board z axis) in the camera frame."""
+        return self.R_cam_board[:, 2]
+
+    def to_dict(self) -> dict:
+        import cv2
+
+        rvec, _ = cv2.Rodrigues(self.R_cam_board)
+        return {"name": self.name, "rvec": rvec.ravel().tolist(), "t_cam_board_mm": self.t_cam_board.tolist(),
+                "reprojection_rms_px": self.reprojection_rms_px}
+
+
+def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, int], square_mm: float,
+                      name: str = "") -> BoardPose:
+    """Board pose from its detected corners: ``cv2.solvePnP`` with the camera's distortion, then LM refinement."""
+    import cv2
+
+    from ..intrinsics import board_points
+
+    obj = board_points(tuple(board), square_mm)
+    uv = as_points(corners_uv, 2, "corners_uv")
+    if len(uv) != len(obj):
+        raise LightplaneError(f"{name or 'corners_uv'}: {len(uv)} corners, board {board[0]}x{board[1]} needs {len(obj)}")
+    ok, rvec, tvec = cv2.solvePnP(obj, uv, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise LightplaneError(f"{name or 'board'}: solvePnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, uv, camera.K, camera.dist, rvec, tvec)
+    R, _ = cv2.Rodrigues(rvec)
+    t = tvec.ravel().astype(np.float64)
+    res = camera.project(obj @ R.T + t) - uv
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    return BoardPose(uv, R, t, rms, name)
+
+
+def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], square_mm: float, *,
+                    name: str = "image") -> BoardPose:
+    """Find the chessboard (inner corners ``board = (cols, rows)``) and solve its pose.
+
+    Raises LightplaneError naming the image when the board is not found.
+    """
+    from ..intrinsics import find_board
+
+    camera.check_image(image, name)
+    corners = find_board(image, tuple(board))
+    if corners is None:
+        raise LightplaneError(f"{name}: chessboard with {board[0]}x{board[1]} inner corners not found")
+    return pose_from_corners(camera, corners, board, square_mm, name)
+
+
+def board_polygon_mask(camera: Camera, pose: BoardPose, board: tuple[int, int], square_mm: float, *,
+                       margin_squares: float = 0.5, samples_per_edge: int = 20) -> np.ndarray:
+    """uint8 mask (H, W) of the board area: the inner-corner rectangle grown by ``margin_squares``.
+
+    The outline is sampled along each edge and projected with distortion, so it
+    follows curved edges.  0.5 square keeps to the printed squares of any board.
+    """
+    import cv2
+
+    cols, rows = board
+    m = margin_squares
+    x0, x1, y0, y1 = -m, cols - 1 + m, -m, rows - 1 + m
+    t = np.linspace(0.0, 1.0, samples_per_edge, endpoint=False)
+    edges = [np.column_stack([x0 + (x1 - x0) * t, np.full_like(t, y0)]),
+             np.column_stack([np.full_like(t, x1), y0 + (y1 - y0) * t]),
+             np.column_stack([x1 - (x1 - x0) * t, np.full_like(t, y1)]),
+             np.column_stack([np.full_like(t, x0), y1 - (y1 - y0) * t])]
+    xy = np.vstack(edges) * square_mm
+    p_cam = np.column_stack([xy, np.zeros(len(xy))]) @ pose.R_cam_board.T + pose.t_cam_board
+    uv = camera.project(p_cam)
+    mask = np.zeros((camera.height, camera.width), np.uint8)
+    if np.all(np.isfinite(uv)):
+        cv2.fillPoly(mask, [np.round(uv).astype(np.int32).reshape(-1, 1, 2)], 255)
+    return mask
+
+
+def stripe_points_on_board(camera: Camera, pose: BoardPose, stripe_uv: np.ndarray) -> np.ndarray:
+    """Back-project stripe centres (distorted px, ``(N, 2)``) onto the board plane → ``(N, 3)`` mm, camera frame.
+
+    The board plane is ``n·X = n·t`` with ``n`` the board z axis and ``t`` its
+    origin; the ray ``s (x, y, 1)`` meets it at ``s = n·t / n·(x, y, 1)``.
+    """
+    uv = as_points(stripe_uv, 2, "stripe_uv")
+    xy = camera.undistort_points(uv, normalized=True)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    n = pose.normal_cam
+    den = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n @ pose.t_cam_board) / den
+    s[~(s > 0) | (np.abs(den) < 1e-9)] = np.nan
+    return rays * s[:, None]
+
+
+def fit_plane(points_mm: np.ndarray, *, meta: dict | None = None) -> LightPlane:
+    """Total-least-squares plane through ``(N, 3)`` points (mm) with its 4x4 covariance.
+
+    The normal is the scatter matrix's smallest eigenvector.  With residual
+    variance ``σ² = Σr² / (N − 3)`` and the other eigenpairs ``(λ_k, e_k)``,
+    first-order perturbation gives ``Cov(n) = σ² Σ_k e_k e_kᵀ / λ_k``; with the
+    centroid ``c``, ``d = −n·c`` so ``Cov(n, d) = −Cov(n) c`` and
+    ``Var(d) = cᵀ Cov(n) c + σ² / N``.
+
+    >>> rng = np.random.default_rng(1)
+    >>> p = np.column_stack([rng.uniform(-50, 50, (100, 2)), np.full(100, 300.0)])
+    >>> fit_plane(p)
+    LightPlane(+0.000000 x +0.000000 y +1.000000 z -300.0000 = 0)
+    """
+    p = as_points(points_mm, 3, "points_mm")
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) < 3:
+        raise LightplaneError(f"a plane fit needs at least 3 points, got {len(p)}")
+    c = p.mean(axis=0)
+    q = p - c
+    _, sv, vt = np.linalg.svd(q, full_matrices=False)
+    lam = sv**2
+    if lam[1] <= 1e-12 * max(lam[0], 1e-300):
+        raise LightplaneError("the points are collinear: they do not determine a plane (need two or more board poses)")
+    n = vt[2]
+    d = -float(n @ c)
+    r = q @ n
+    dof = max(len(p) - 3, 1)
+    sigma2 = float(r @ r) / dof
+    cov_n = sigma2 * (np.outer(vt[0], vt[0]) / lam[0] + np.outer(vt[1], vt[1]) / lam[1])
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = cov_n
+    cov[:3, 3] = cov[3, :3] = -cov_n @ c
+    cov[3, 3] = float(c @ cov_n @ c) + sigma2 / len(p)
+    info = {"n_points": int(len(p)), "residual_rms_mm": float(np.sqrt(np.mean(r**2)))}
+    return LightPlane(n, d, cov, meta={**info, **(meta or {})})
+
+
+@dataclass(frozen=True)
+class ZhouCalibration:
+    """Result of Zhou's planar-target calibration.
+
+    Attributes
+    ----------
+    plane : LightPlane with covariance; ``meta`` holds method "zhou" and per-image diagnostics.
+    points_cam_mm : (N, 3) the stripe points on the boards, camera frame.
+    view_index : (N,) int, which pose each point comes from.
+    poses : tuple of BoardPose.
+    residual_mm : (N,) signed distance of each point from the fitted plane.
+    """
+
+    plane: LightPlane
+    points_cam_mm: np.ndarray
+    view_index: np.ndarray
+    poses: tuple
+    residual_mm: np.ndarray = field(repr=False)
+
+    @property
+    def residual_rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.residual_mm**2)))
+
+
+def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes_uv: Sequence[np.ndarray], *,
+                             min_points_per_view: int = 10, meta: dict | None = None) -> ZhouCalibration:
+    """Zhou's method from board poses and stripe centres (distorted px, on each board).
+
+    Raises LightplaneError with fewer than two usable poses (one board plane
+    only gives a line of the light plane) or when the points are collinear.
+    """
+    if len(poses) != len(stripes_uv):
+        raise LightplaneError(f"{len(poses)} board poses but {len(stripes_uv)} stripe point sets")
+    pts, idx, diag = [], [], []
+    for k, (pose, uv) in enumerate(zip(poses, stripes_uv)):
+        p = stripe_points_on_board(camera, pose, uv) if len(uv) else np.zeros((0, 3))
+        p = p[np.all(np.isfinite(p), axis=1)]
+        used = len(p) >= min_points_per_view
+        diag.append({**pose.to_dict(), "n_stripe_points": int(len(p)), "used": bool(used)})
+        if used:
+            pts.append(p)
+            idx.append(np.full(len(p), k))
+    if len(pts) < 2:
+        raise LightplaneError(f"Zhou's method needs the stripe on at least 2 board poses, got {len(pts)} "
+                              f"(of {len(poses)} images with a board; each needs ≥ {min_points_per_view} stripe points)")
+    P, I = np.vstack(pts), np.concatenate(idx)
+    plane = fit_plane(P)
+    res = plane.signed_distance(P)
+    for k, dg in enumerate(diag):
+        sel = I == k
+        dg["residual_rms_mm"] = float(np.sqrt(np.mean(res[sel] ** 2))) if sel.any() else None
+    m = {**plane.meta, "method": "zhou", "images": diag, **(meta or {})}
+    plane = LightPlane(plane.normal, plane.d, plane.covariance, meta=m)
+    return ZhouCalibration(plane, P, I, tuple(poses), res)
+
+
+def _stripe_in_mask(image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
+                    width_px: float | None, channel: str | None) -> np.ndarray:
+    """Stripe centres (distorted px) inside ``mask``, after subtracting the laser-off frame."""
+    from ..io import to_gray_float
+    from ..stripe import extract_stripe
+
+    img = image
+    if background is not None:
+        if background.shape != image.shape:
+            raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
+        img = np.clip(to_gray_float(image, channel) - to_gray_float(background, channel), 0, None)
+        channel = None
+    sp = extract_stripe(img, width_px=width_px, mask=mask, channel=channel)
+    uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv):
+        ij = np.clip(np.round(uv).astype(int), 0, [mask.shape[1] - 1, mask.shape[0] - 1])
+        uv = uv[mask[ij[:, 1], ij[:, 0]] > 0]
+    return uv
+
+
+def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, board: tuple[int, int],
+                            square_mm: float, background_images: Sequence[np.ndarray] | None = None,
+                            image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
+                            channel: str | None = None, progress: Callable[[int], None] | None = None):
+    """Board pose and on-board stripe centres for each image → (poses, stripes_uv, names).
+
+    The board is looked for in the laser-off frame when one is given (the stripe
+    cannot disturb the corners there), else in the image itself.  Raises
+    LightplaneError naming the image where the board is not found.
+    """
+    names = list(image_names) if image_names is not None else [f"image {i}" for i in range(len(images))]
+    if len(names) != len(images):
+        raise LightplaneError(f"{len(images)} images but {len(names)} names")
+    if background_images is not None and len(background_images) not in (1, len(images)):
+        raise LightplaneError(f"give one background image, or one per image ({len(images)}); "
+                              f"got {len(background_images)}")
+    poses, stripes = [], []
+    for k, img in enumerate(images):
+        bg = None
+        if background_images is not None:
+            bg = background_images[k if len(background_images) > 1 else 0]
+        pose = find_board_pose(bg if bg is not None and len(background_images) > 1 else img, camera, board,
+                               square_mm, name=names[k])
+        mask = board_polygon_mask(camera, pose, board, square_mm)
+        stripes.append(_stripe_in_mask(img, mask, bg, stripe_width_px, channel))
+        poses.append(pose)
+        if progress is not None:
+            progress(k)
+    return poses, stripes, names
+
+
+def calibrate_plane_board(images: Sequence[np.ndarray], camera: Camera, board: tuple[int, int], square_mm: float, *,
+                          background_images: Sequence[np.ndarray] | None = None,
+                          image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
+                          channel: str | None = None, min_points_per_view: int = 10,
+                          progress: Callable[[int], None] | None = None) -> ZhouCalibration:
+    """Zhou's planar-target light-plane calibration from chessboard images with the stripe.
+
+    Parameters
+    ----------
+    images : laser-on images (gray or BGR arrays), the board in a different pose in each.
+    camera : the calibrated camera.
+    board : (cols, rows) inner corners.  square_mm : square size (mm).
+    background_images : laser-off frames, one per image (same pose) or one for all;
+        subtracted before stripe extraction (and used to find the board when one per image).
+    stripe_width_px, channel : passed to :func:`lightplane.stripe.extract_stripe`.
+
+    Returns
+    -------
+    ZhouCalibration; its ``plane`` has the fit covariance and ``meta["images"]``
+    per-image diagnostics (pose, stripe points used, residual RMS).
+    """
+    if len(images) < 2:
+        raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(images)}")
+    poses, stripes, _ = board_views_and_stripes(
+        images, camera, board=board, square_mm=square_mm, background_images=background_images,
+        image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, progress=progress)
+    return plane_from_board_stripes(camera, poses, stripes, min_points_per_view=min_points_per_view,
+                                    meta={"board": list(board), "square_mm": float(square_mm)})
