@@ -211,7 +211,7 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
         lines = [grid[:, i] for i in range(cols)]
         across = grid[:, 1:] - grid[:, :-1]
     spacing_across = float(np.median(np.linalg.norm(across.reshape(-1, 2), axis=1)))
-    half_window = 0.5 * spacing_across if window_px is None else float(window_px)
+    half_window = 1.5 * spacing_across if window_px is None else float(window_px)
     pts, uvs, idx, angles, counts = [], [], [], [], []
     for li, line in enumerate(lines):
         m, t = _fit_line(line)
@@ -286,7 +286,10 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], st
         and last corner of the line; "all" — a least-squares 1D homography through
         every corner of the line (the same map, less sensitive to corner noise).
     window_px : half-width of the band around a corner line in which stripe points
-        are used (default: half the spacing between corner lines).
+        are used (default: 1.5 times the spacing between corner lines).  The stripe
+        on a flat board is straight in undistorted pixels, so a wide band costs
+        nothing and bridges the dark squares on either side of a corner line, where
+        the stripe is faint.
     min_angle_deg : crossings flatter than this are skipped (ill-conditioned).
     min_stripe_points : fewest stripe points for one crossing.
 

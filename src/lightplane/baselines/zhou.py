@@ -107,11 +107,12 @@ def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], s
 
 
 def board_polygon_mask(camera: Camera, pose: BoardPose, board: tuple[int, int], square_mm: float, *,
-                       margin_squares: float = 0.5, samples_per_edge: int = 20) -> np.ndarray:
+                       margin_squares: float = 0.9, samples_per_edge: int = 20) -> np.ndarray:
     """uint8 mask (H, W) of the board area: the inner-corner rectangle grown by ``margin_squares``.
 
     The outline is sampled along each edge and projected with distortion, so it
-    follows curved edges.  0.5 square keeps to the printed squares of any board.
+    follows curved edges.  The outer squares reach one square beyond the inner
+    corners, so 0.9 square keeps to the printed squares of any chessboard.
     """
     import cv2
 

@@ -1,11 +1,114 @@
-"""`lightplane evaluate` (not implemented yet: its issue is open)."""
+"""``lightplane evaluate``: cross-ratio accuracy check of light planes on a chessboard (paper §4.3, Table 2)."""
 
 from __future__ import annotations
 
-from ._common import app, fail
+import csv
+import io
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from ..errors import LightplaneError
+from ..io import atomic_write, check_output, dumps_json, provenance
+from ._common import app, console, handles_errors, parse_board
+from .calibrate_plane_board import read_images
 
 
-@app.command("evaluate", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-def evaluate() -> None:
-    """Not implemented yet."""
-    fail("'evaluate' is not implemented yet")
+def _labels(paths: List[Path]) -> list[str]:
+    stems = [p.stem for p in paths]
+    return stems if len(set(stems)) == len(stems) else [str(p) for p in paths]
+
+
+@app.command("evaluate")
+@handles_errors
+def evaluate_cmd(
+    images: List[str] = typer.Argument(..., help="Laser-on chessboard images (files, folders, globs)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
+    plane: List[Path] = typer.Option(..., "--plane", help="Light-plane JSON file to evaluate (repeat to compare)."),
+    board: str = typer.Option(..., "--board", help="Inner corners, COLSxROWS (e.g. 9x6)."),
+    square: float = typer.Option(..., "--square", help="Square size in mm."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write per plane its pairs (dt, dm, delta, mm) and RMS."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", help="Write the table as CSV (mm)."),
+    background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames: one per image or one for all."),
+    lines: str = typer.Option("auto", "--lines", help="Corner lines the stripe crosses: rows, columns or auto."),
+    corners_used: str = typer.Option("all", "--corners", help="'three' (the paper's A, B, C) or 'all' corners per line."),
+    stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
+    channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
+    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
+) -> None:
+    """Compare light planes by the cross-ratio on a chessboard: ideal vs measured distances (paper Table 2)."""
+    from ..camera import Camera
+    from ..evaluate import evaluate_images
+    from ..plane import LightPlane
+
+    cols, rows = parse_board(board)
+    if not square > 0:
+        raise LightplaneError(f"--square must be positive, got {square} mm")
+    for out in (json_out, csv_out):
+        if out is not None:
+            check_output(out, force)
+    if json_out is not None and csv_out is not None and json_out.resolve() == csv_out.resolve():
+        raise LightplaneError("--json and --csv must be different files")
+    cam = Camera.load(camera)
+    planes = [LightPlane.load(p) for p in plane]
+    labels = _labels(plane)
+    files, imgs = read_images(images, "images", rotate)
+    bg_files, bgs = read_images(background, "background images", rotate) if background else ([], None)
+    if bgs is not None and len(bgs) not in (1, len(imgs)):
+        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(imgs)}), got {len(bgs)}")
+
+    with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("images", total=len(imgs))
+        ev = evaluate_images(imgs, cam, planes, board=(cols, rows), square_mm=square, background_images=bgs,
+                             labels=labels, image_names=[str(f) for f in files], stripe_width_px=stripe_width,
+                             channel=channel, lines=lines, corners_used=corners_used,
+                             progress=lambda i: bar.update(task, completed=i + 1))
+
+    t = Table(title="Cross-ratio evaluation (paper Table 2 layout; mm)", show_edge=False)
+    t.add_column("No.", justify="right")
+    t.add_column("image")
+    t.add_column("pair", justify="right")
+    t.add_column("dt (mm)", justify="right")
+    for lab in labels:
+        t.add_column(f"dm {lab} (mm)", justify="right")
+    for lab in labels:
+        t.add_column(f"Δ {lab} (mm)", justify="right")
+    for k, (i, j) in enumerate(ev.pairs):
+        t.add_row(str(k + 1), Path(files[ev.view_index[i]]).name, f"{i + 1}–{j + 1}", f"{ev.errors[0].dt_mm[k]:.3f}",
+                  *[f"{e.dm_mm[k]:.3f}" for e in ev.errors], *[f"{e.delta_mm[k]:+.3f}" for e in ev.errors])
+    t.add_section()
+    t.add_row("RMS", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.3f}" for e in ev.errors])
+    console.print(t)
+    console.print(f"{len(ev.ideal_board_mm)} stripe crossings in {len(set(ev.view_index.tolist()))} of {len(files)} "
+                  f"images, {len(ev.pairs)} pairs (each image's first crossing with the others)")
+    for lab, e, pe in zip(labels, ev.errors, ev.point_error_mm):
+        console.print(f"{lab}: RMS Δ {e.rms_mm:.4f} mm, max |Δ| {e.max_abs_mm:.4f} mm; 3D point error vs the "
+                      f"board pose: RMS {float((pe**2).mean() ** 0.5):.4f} mm")
+
+    opts = {"board": f"{cols}x{rows}", "square_mm": square, "lines": lines, "corners": corners_used,
+            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate, "camera": str(camera),
+            "background": [str(f) for f in bg_files]}
+    if json_out is not None:
+        d = ev.to_dict()
+        d["planes"] = {str(p): d["planes"][lab] for p, lab in zip(plane, labels)}
+        d["images"] = [str(f) for f in files]
+        d["units"] = "mm"
+        d["provenance"] = provenance([*files, *plane], opts)
+        atomic_write(json_out, dumps_json(d), force=force)
+        console.print(f"wrote {json_out}")
+    if csv_out is not None:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["no", "image", "i", "j", "dt_mm", *[f"dm_mm[{lab}]" for lab in labels],
+                    *[f"delta_mm[{lab}]" for lab in labels]])
+        for k, (i, j) in enumerate(ev.pairs):
+            w.writerow([k + 1, files[ev.view_index[i]], i + 1, j + 1, f"{ev.errors[0].dt_mm[k]:.6f}",
+                        *[f"{e.dm_mm[k]:.6f}" for e in ev.errors], *[f"{e.delta_mm[k]:.6f}" for e in ev.errors]])
+        w.writerow(["rms", "", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.6f}" for e in ev.errors]])
+        atomic_write(csv_out, buf.getvalue(), force=force)
+        console.print(f"wrote {csv_out}")
