@@ -1,0 +1,148 @@
+"""Image preparation, gradients and sub-pixel edge sampling along an ellipse's normals.
+
+Shared by detection (verification, final refit) and :func:`refine_ellipse`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import LightplaneError
+from .model import Ellipse
+
+__all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points"]
+
+
+def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Gray float32 image (H, W) from gray or BGR/BGRA input, any integer or float dtype.
+
+    NaN/inf are replaced by 0.  Raises LightplaneError for arrays that are not images.
+    """
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        if img.dtype in (np.uint8, np.uint16, np.float32):
+            g = cv2.cvtColor(np.ascontiguousarray(img[:, :, :3]), cv2.COLOR_BGR2GRAY).astype(np.float32)
+        else:
+            f = img[:, :, :3].astype(np.float32)
+            g = 0.114 * f[:, :, 0] + 0.587 * f[:, :, 1] + 0.299 * f[:, :, 2]
+    elif img.ndim == 2:
+        if img.dtype == bool:
+            img = img.astype(np.uint8) * 255
+        if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+            raise LightplaneError(f"{name} must be a numeric array, got dtype {img.dtype}")
+        g = img.astype(np.float32)
+    else:
+        raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {img.shape}")
+    if not np.all(np.isfinite(g)):
+        g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.ascontiguousarray(g)
+
+
+def to_uint8(gray: np.ndarray) -> np.ndarray:
+    """8-bit version of a float gray image: kept as is if within [0, 255] integers, else
+    stretched between the 0.1 and 99.9 percentiles (16-bit, float input)."""
+    lo, hi = float(gray.min()), float(gray.max())
+    if lo >= 0 and hi <= 255 and hi > 1.0:
+        return gray.astype(np.uint8)
+    sample = gray[:: max(1, gray.shape[0] // 256), :: max(1, gray.shape[1] // 256)]
+    p0, p1 = np.percentile(sample, [0.1, 99.9])
+    if p1 <= p0:
+        p0, p1 = lo, hi
+    if p1 <= p0:
+        return np.zeros(gray.shape, np.uint8)
+    return np.clip((gray - p0) * (255.0 / (p1 - p0)), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Gradients:
+    """Smoothed image gradients (float32 (H, W) each), derivative per pixel (central difference)."""
+
+    gx: np.ndarray
+    gy: np.ndarray
+    mag: np.ndarray
+
+
+def gradients(gray: np.ndarray, sigma_px: float = 1.0) -> Gradients:
+    """Gaussian pre-smoothing (``sigma_px``, 0 for none) then central-difference gradients."""
+    import cv2
+
+    g = gray
+    if sigma_px > 0:
+        g = cv2.GaussianBlur(gray, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    kx = np.array([[-0.5, 0.0, 0.5]], np.float32)
+    gx = cv2.filter2D(g, cv2.CV_32F, kx, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.filter2D(g, cv2.CV_32F, kx.T, borderType=cv2.BORDER_REFLECT)
+    return Gradients(gx, gy, cv2.magnitude(gx, gy))
+
+
+def _remap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    import cv2
+
+    mu = np.ascontiguousarray(u, dtype=np.float32)
+    mv = np.ascontiguousarray(v, dtype=np.float32)
+    shp = mu.shape
+    out = cv2.remap(img, mu.reshape(-1, 1) if mu.ndim == 1 else mu, mv.reshape(-1, 1) if mv.ndim == 1 else mv,
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.reshape(shp)
+
+
+def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
+                       polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel edge points along the ellipse normals.
+
+    At ``n`` equally spaced parametric angles the gradient (bilinear, ``cv2.remap``) is
+    sampled along the normal in ``[-band_px, band_px]`` every ``step_px``; its component
+    along the normal (signed by ``polarity``: +1 interior brighter, -1 darker, 0 either,
+    chosen by the majority) is maximised and the peak located to sub-sample accuracy by a
+    Gaussian (log-parabola) fit through the three samples around it.  Samples whose peak
+    is weak (< ``min_mag``), on the band's border, or whose gradient direction differs from
+    the normal by more than ``max_angle_rad`` are dropped.
+
+    Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude)``.
+    """
+    n = int(max(n, 8))
+    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    p = ellipse.points_at(t)
+    nrm = ellipse.normals_at(t)  # outward
+    k = int(math.ceil(band_px / step_px))
+    offs = np.arange(-k, k + 1) * step_px
+    U = p[:, 0:1] + offs[None, :] * nrm[:, 0:1]
+    V = p[:, 1:2] + offs[None, :] * nrm[:, 1:2]
+    gx = _remap(grad.gx, U, V)
+    gy = _remap(grad.gy, U, V)
+    proj = gx * nrm[:, 0:1] + gy * nrm[:, 1:2]  # >0: brighter outside (dark interior)
+    if polarity == 0:
+        s = np.sum(np.max(proj, axis=1)) - np.sum(np.max(-proj, axis=1))
+        polarity = -1 if s >= 0 else 1
+    prof = proj * (-polarity)  # positive peak expected
+    j = np.argmax(prof, axis=1)
+    rows = np.arange(n)
+    ok = (j > 0) & (j < len(offs) - 1)
+    jj = np.clip(j, 1, len(offs) - 2)
+    y0, y1, y2 = prof[rows, jj - 1], prof[rows, jj], prof[rows, jj + 1]
+    ok &= (y1 > min_mag) & (y1 > 0)
+    # Gaussian fit through three samples (parabola of the logarithm); fall back to a parabola.
+    tiny = 1e-6 * np.maximum(y1, 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l0, l1, l2 = np.log(np.maximum(y0, tiny)), np.log(np.maximum(y1, tiny)), np.log(np.maximum(y2, tiny))
+        den = l0 - 2 * l1 + l2
+        dg = 0.5 * (l0 - l2) / den
+        dp = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)
+    use_g = (y0 > 0) & (y2 > 0) & (den < 0)
+    delta = np.where(use_g, dg, dp)
+    ok &= np.isfinite(delta) & (np.abs(delta) <= 0.5 + 1e-9)
+    gxx, gyy = gx[rows, jj], gy[rows, jj]
+    gm = np.hypot(gxx, gyy)
+    cosang = (-polarity) * (gxx * nrm[:, 0] + gyy * nrm[:, 1]) / np.maximum(gm, 1e-12)
+    ok &= cosang >= math.cos(max_angle_rad)
+    off = offs[jj] + np.where(np.isfinite(delta), delta, 0.0) * step_px
+    uv = p + off[:, None] * nrm
+    return uv[ok], t[ok], y1[ok]
