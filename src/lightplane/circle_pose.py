@@ -188,6 +188,9 @@ def fit_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
     if not s > 0:
         raise LightplaneError(f"{name}: all points coincide")
     q = q / s
+    sv = np.linalg.svd(q, compute_uv=False)
+    if sv[1] < 1e-3 * sv[0]:
+        raise LightplaneError(f"{name}: the points are (nearly) collinear, not an ellipse")
     x, y = q[:, 0], q[:, 1]
     D1 = np.column_stack([x * x, x * y, y * y])
     D2 = np.column_stack([x, y, np.ones_like(x)])
