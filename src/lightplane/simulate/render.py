@@ -1,0 +1,744 @@
+"""Synthetic images with exact ground truth: circle-target, chessboard and scan scenes.
+
+The scenes use lightplane's default sensor (SPEC §9,
+:mod:`lightplane.simulate.geometry`) unless a camera and plane are given.  Images
+are made by supersampled ray casting through the *distorted* camera
+(:mod:`lightplane.simulate.render_core`: ``4 x 4`` stratified jittered samples per
+pixel, ``16 x 16`` on material edges), then a Gaussian PSF, vignetting, shot noise
+(Poisson, via a gain in electrons per grey level) and read noise, and 8-bit
+quantisation with saturation.
+
+Difficulty levels (:data:`DIFFICULTIES`):
+
+- ``clean``: PSF σ 0.6 px, no speckle, no vignetting, low noise;
+- ``realistic``: laser speckle (multiplicative, spatially correlated modulation of
+  the sheet), mild defocus (PSF σ 0.9 px), vignetting, realistic noise, and
+  exposure varying by ±15 % between images;
+- ``hard``: as realistic, plus 2–4 clutter ellipses and rectangles, the stripe partly
+  saturated on every other image, and one image whose stripe misses the disc
+  (``usable: false`` in the truth).
+
+Every dataset is a :class:`Dataset` (images, camera, truth dict) that saves PNGs,
+``camera.json`` and ``truth.json``; the truth holds everything needed to check a
+result exactly (plane; target poses, rim conics in undistorted pixels and chord
+endpoints; board poses ``T_cam_board``; scan surfaces and motion).
+
+>>> ds = render_circle_dataset(n=1, seed=0, difficulty="clean")   # doctest: +SKIP
+>>> ds.images[0].shape, ds.truth["images"][0]["usable"]             # doctest: +SKIP
+((960, 1280), True)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import LightplaneError
+from ..plane import LightPlane
+from . import render_core as rc
+from .geometry import TargetPlacement, default_camera, default_plane, sample_placements
+
+__all__ = [
+    "DIFFICULTIES",
+    "Imaging",
+    "Dataset",
+    "laser_source",
+    "render_circle_image",
+    "render_circle_dataset",
+    "render_chessboard_dataset",
+    "render_scan_dataset",
+    "sample_board_poses",
+    "board_corners",
+]
+
+DIFFICULTIES = ("clean", "realistic", "hard")
+POLARITIES = ("light", "dark")
+SCAN_KINDS = ("sphere", "step", "plane")
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """Image-formation settings of one difficulty level.
+
+    psf_sigma_px: Gaussian PSF (px); vignetting: relative fall-off at the image corner
+    (``1 - vignetting · (r / r_corner)²``); speckle: contrast of the sheet's modulation;
+    speckle_corr_mm: its correlation length on the surface; gain_e_per_dn: electrons per
+    grey level (shot noise); read_noise_dn: Gaussian read noise (grey levels);
+    exposure_jitter: relative random spread of ambient and laser power between images;
+    sheet_sigma_mm: the light sheet's Gaussian half-thickness σ (mm).
+    """
+
+    psf_sigma_px: float
+    vignetting: float
+    speckle: float
+    speckle_corr_mm: float
+    gain_e_per_dn: float
+    read_noise_dn: float
+    exposure_jitter: float
+    sheet_sigma_mm: float = 0.35
+
+
+_IMAGING = {
+    "clean": Imaging(0.6, 0.0, 0.0, 0.1, 200.0, 0.3, 0.0),
+    "realistic": Imaging(0.9, 0.25, 0.5, 0.1, 40.0, 1.0, 0.15),
+    "hard": Imaging(0.9, 0.25, 0.5, 0.1, 40.0, 1.2, 0.15),
+}
+
+# Scene brightness (grey levels per unit albedo): ambient light and laser power at 450 mm.
+_LIGHT = {"disc": 0.76, "background": 0.12, "ambient": 150.0, "laser": 150.0}
+_DARK = {"board": 0.8, "disc": 0.15, "background": 0.1, "ambient": 140.0, "laser": 140.0}
+
+
+def _check_choice(value: str, choices: tuple[str, ...], name: str) -> str:
+    if value not in choices:
+        raise LightplaneError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+    return value
+
+
+def _check_n(n: int, name: str = "n") -> int:
+    try:
+        n_int = int(n)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"{name} must be an integer >= 1, got {n!r}") from None
+    if n_int < 1 or n_int != n:
+        raise LightplaneError(f"{name} must be an integer >= 1, got {n!r}")
+    return n_int
+
+
+def laser_source(plane: LightPlane) -> np.ndarray:
+    """Where the laser sits: the plane's crossing of the camera's x or y axis (mm).
+
+    The axis with the larger normal component is used, so the source is beside the
+    camera (default sensor: x ≈ -210 mm; the paper's: y ≈ 150 mm).
+    """
+    n, d = plane.normal, plane.d
+    k = 0 if abs(n[0]) >= abs(n[1]) else 1
+    if abs(n[k]) < 1e-9:
+        raise LightplaneError("the light plane is parallel to both image axes: no laser position beside the camera")
+    p = np.zeros(3)
+    p[k] = -d / n[k]
+    return p
+
+
+def _laser_row(plane: LightPlane, imaging: Imaging, power: float, rng: np.random.Generator) -> np.ndarray:
+    return rc.make_laser(
+        plane.normal, plane.d, laser_source(plane), power=power, sigma_mm=imaging.sheet_sigma_mm,
+        speckle=imaging.speckle, corr_mm=imaging.speckle_corr_mm, seed=int(rng.integers(0, 2**31 - 1)),
+    )
+
+
+def _finish(radiance: np.ndarray, camera: Camera, imaging: Imaging, rng: np.random.Generator | None,
+            noise: bool = True) -> np.ndarray:
+    """Vignetting, PSF, shot and read noise, 8-bit quantisation with saturation."""
+    import cv2
+
+    img = radiance
+    if imaging.vignetting > 0:
+        v, u = np.mgrid[0:camera.height, 0:camera.width]
+        r2 = (u - camera.cx) ** 2 + (v - camera.cy) ** 2
+        corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1], [camera.width - 1, camera.height - 1]])
+        r2max = float(np.max((corners[:, 0] - camera.cx) ** 2 + (corners[:, 1] - camera.cy) ** 2))
+        img = img * (1.0 - imaging.vignetting * r2 / r2max)
+    if imaging.psf_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma_px, borderType=cv2.BORDER_REFLECT)
+    if noise:
+        if rng is None:
+            raise LightplaneError("noise needs an rng")
+        g = imaging.gain_e_per_dn
+        img = rng.poisson(np.clip(img, 0, None) * g) / g + rng.normal(0.0, imaging.read_noise_dn, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _basis_from_normal(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ref = np.zeros(3)
+    ref[int(np.argmin(np.abs(n)))] = 1.0
+    e1 = np.cross(ref, n)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+# ----------------------------------------------------------------------------- circle
+@dataclass(frozen=True)
+class _CircleExtras:
+    clutter: list = field(default_factory=list)
+    saturate: bool = False
+    background_z_mm: float = 0.0
+
+
+def _backproject_to_plane(camera: Camera, uv: np.ndarray, n: np.ndarray, p0: np.ndarray) -> np.ndarray:
+    ray = camera.rays(np.atleast_2d(uv))[0]
+    return ray * (n @ p0) / (n @ ray)
+
+
+def _sample_clutter(camera: Camera, placement: TargetPlacement, rng: np.random.Generator, surface_n: np.ndarray,
+                    surface_p: np.ndarray, polarity: str) -> list[dict]:
+    """2–4 ellipses and rectangles on the surface behind/around the disc, kept clear of its image."""
+    rim_uv = camera.project(placement.rim_points(72))
+    c_uv = rim_uv.mean(axis=0)
+    r_uv = float(np.max(np.linalg.norm(rim_uv - c_uv, axis=1)))
+    out: list[dict] = []
+    want = int(rng.integers(2, 5))
+    e1, e2 = _basis_from_normal(surface_n)
+    for _ in range(500):
+        if len(out) == want:
+            break
+        uv = rng.uniform([0, 0], [camera.width - 1, camera.height - 1])
+        kind = "ellipse" if rng.random() < 0.5 else "rectangle"
+        a, b = (rng.uniform(6, 25), rng.uniform(6, 25)) if kind == "ellipse" else (rng.uniform(8, 30), rng.uniform(8, 30))
+        p = _backproject_to_plane(camera, uv, surface_n, surface_p)
+        size_px = np.hypot(a, b) * camera.fx / p[2]
+        if np.linalg.norm(uv - c_uv) < r_uv + size_px + 40:
+            continue
+        if any(np.linalg.norm(uv - np.asarray(c["center_px"])) < size_px + c["size_px"] for c in out):
+            continue
+        ang = rng.uniform(0, np.pi)
+        ax1 = np.cos(ang) * e1 + np.sin(ang) * e2
+        ax2 = np.cross(surface_n, ax1)
+        albedo = rng.uniform(0.45, 0.9) if polarity == "light" else rng.uniform(0.08, 0.3)
+        out.append({"kind": kind, "center_mm": p, "axis1": ax1, "axis2": ax2, "half_sizes_mm": [a, b],
+                    "albedo": albedo, "center_px": uv, "size_px": size_px})
+    return out
+
+
+def _circle_patches(placement: TargetPlacement, polarity: str, background_z_mm: float, clutter: list[dict]) -> np.ndarray:
+    R = placement.basis()
+    r = placement.radius_mm
+    rows = []
+    if polarity == "light":
+        rows.append(rc.make_patch(placement.center, R[:, 0], R[:, 1], shape=rc.SHAPE_ELLIPSE, region=(r, r, 0, 0),
+                                  albedo=_LIGHT["disc"], layer=1))
+        rows.append(rc.make_patch([0, 0, background_z_mm], [1, 0, 0], [0, 1, 0], albedo=_LIGHT["background"]))
+    else:
+        half = 2.6 * r
+        rows.append(rc.make_patch(placement.center, R[:, 0], R[:, 1], shape=rc.SHAPE_ELLIPSE, region=(r, r, 0, 0),
+                                  albedo=_DARK["disc"], layer=2))
+        rows.append(rc.make_patch(placement.center, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT,
+                                  region=(-half, half, -half, half), albedo=_DARK["board"], layer=0))
+        rows.append(rc.make_patch([0, 0, background_z_mm], [1, 0, 0], [0, 1, 0], albedo=_DARK["background"]))
+    for c in clutter:
+        a, b = c["half_sizes_mm"]
+        if c["kind"] == "ellipse":
+            rows.append(rc.make_patch(c["center_mm"], c["axis1"], c["axis2"], shape=rc.SHAPE_ELLIPSE,
+                                      region=(a, b, 0, 0), albedo=c["albedo"], layer=1))
+        else:
+            rows.append(rc.make_patch(c["center_mm"], c["axis1"], c["axis2"], shape=rc.SHAPE_RECT,
+                                      region=(-a, a, -b, b), albedo=c["albedo"], layer=1))
+    return np.array(rows)
+
+
+def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
+                   difficulty: str, polarity: str, *, noise: bool = True, saturate: bool = False,
+                   clutter: bool | None = None, samples: int = 4, edge_samples: int = 16) -> tuple[np.ndarray, dict]:
+    imaging = _IMAGING[difficulty]
+    levels = _LIGHT if polarity == "light" else _DARK
+    bg_z = float(placement.center[2] + rng.uniform(80.0, 150.0))
+    if clutter is None:
+        clutter = difficulty == "hard"
+    items: list[dict] = []
+    if clutter:
+        if polarity == "light":
+            items = _sample_clutter(camera, placement, rng, np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, bg_z]), polarity)
+        else:
+            # printed marks on the board, a hair in front of its plane
+            items = _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity)
+    jit = imaging.exposure_jitter
+    ambient = levels["ambient"] * (1.0 + rng.uniform(-jit, jit))
+    power = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0)
+    patches = _circle_patches(placement, polarity, bg_z, items)
+    laser = _laser_row(plane, imaging, power, rng)
+    salt = int(rng.integers(0, 2**31 - 1))
+    rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
+                             samples=samples, edge_samples=edge_samples, salt=salt)
+    img = _finish(rad, camera, imaging, rng, noise=noise)
+    info = {
+        "background_plane": {"normal": [0.0, 0.0, -1.0], "d": bg_z},
+        "ambient_dn": ambient,
+        "laser_power_dn": power,
+        "saturated_stripe": bool(saturate),
+        "clutter": [{k: v for k, v in c.items() if k not in ("size_px",)} for c in items],
+    }
+    return img, info
+
+
+def render_circle_image(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
+                        difficulty: str = "realistic", polarity: str = "light", *, noise: bool = True,
+                        saturate: bool = False, clutter: bool | None = None, samples: int = 4,
+                        edge_samples: int = 16) -> np.ndarray:
+    """Render one image ``(H, W) uint8`` of a circular target crossed by the laser stripe.
+
+    ``polarity="light"``: a light disc in front of a dark background plane (80–150 mm
+    behind it); ``"dark"``: a dark printed disc on a light square board (the target's
+    plane).  The stripe lights every surface it meets (the disc shadows the
+    background).  ``noise=False`` leaves out shot and read noise (quantisation stays):
+    for self-consistency checks.  ``saturate`` raises the laser power 3.5x so the
+    stripe saturates on bright surfaces; ``clutter`` (default: only for ``hard``) adds
+    2–4 ellipses and rectangles.  ``samples``/``edge_samples``: S x S samples per pixel
+    (>= 4) and F x F on material edges.
+    """
+    _check_choice(difficulty, DIFFICULTIES, "difficulty")
+    _check_choice(polarity, POLARITIES, "polarity")
+    if int(samples) < 4:
+        raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
+    img, _ = _render_circle(camera, plane, placement, rng, difficulty, polarity, noise=noise, saturate=saturate,
+                            clutter=clutter, samples=samples, edge_samples=edge_samples)
+    return img
+
+
+# ----------------------------------------------------------------------------- dataset
+@dataclass(frozen=True, eq=False)
+class Dataset:
+    """Rendered images with their ground truth.
+
+    images: list of ``(H, W)`` uint8 arrays; names: file names (PNG) in the same order;
+    camera: the camera that rendered them (distorted); truth: JSON-ready dict.
+    """
+
+    images: list
+    names: list
+    camera: Camera
+    truth: dict
+
+    def __post_init__(self) -> None:
+        if len(self.images) != len(self.names):
+            raise LightplaneError("Dataset: images and names differ in length")
+
+    def save(self, out_dir: str | os.PathLike, force: bool = False) -> list[Path]:
+        """Write the PNGs, ``camera.json`` and ``truth.json`` into ``out_dir``.
+
+        The folder is created if its parent exists.  Every target is checked before
+        anything is written: an existing file without ``force``, or an unwritable folder,
+        raises :class:`LightplaneError` and nothing is written.  Each file is written
+        atomically (temporary file, then rename).
+        """
+        import cv2
+
+        from ..io import atomic_write, provenance, write_json
+
+        out = Path(out_dir)
+        if out.exists() and not out.is_dir():
+            raise LightplaneError(f"{out}: exists and is not a folder")
+        parent = out if out.exists() else out.parent
+        if not out.exists() and not parent.is_dir():
+            raise LightplaneError(f"{out}: its parent folder {parent} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise LightplaneError(f"{parent}: folder is not writable")
+        files = [out / n for n in self.names] + [out / "camera.json", out / "truth.json"]
+        if not force:
+            existing = [str(f) for f in files if f.exists()]
+            if existing:
+                raise LightplaneError(f"{existing[0]}: already exists (use --force to overwrite)"
+                                      + (f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""))
+        try:
+            out.mkdir(exist_ok=True)
+        except OSError as e:
+            raise LightplaneError(f"{out}: cannot create folder ({e.strerror})") from None
+        written: list[Path] = []
+        for name, img in zip(self.names, self.images):
+            ok, buf = cv2.imencode(".png", img)
+            if not ok:
+                raise LightplaneError(f"{name}: PNG encoding failed")
+            written.append(atomic_write(out / name, buf.tobytes(), force=force))
+        written.append(self.camera.save_json(out / "camera.json", force=force))
+        truth = dict(self.truth)
+        truth["provenance"] = provenance([], truth.get("options", {}))
+        written.append(write_json(out / "truth.json", truth, force=force))
+        return written
+
+
+def _placement_truth(camera: Camera, plane: LightPlane, tp: TargetPlacement) -> dict:
+    chord = tp.chord(plane)
+    rim = tp.rim_points(360)
+    uv = camera.project(rim)
+    return {
+        "center_mm": tp.center,
+        "normal": tp.normal,
+        "diameter_mm": tp.diameter_mm,
+        "conic_undistorted_px": tp.conic(camera),
+        "chord_mm": chord,
+        "chord_length_mm": None if chord is None else float(np.linalg.norm(chord[1] - chord[0])),
+        "rim_bbox_px": [float(uv[:, 0].min()), float(uv[:, 1].min()), float(uv[:, 0].max()), float(uv[:, 1].max())],
+    }
+
+
+def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, margin_px: float = 20.0) -> TargetPlacement | None:
+    """Shift a placement along the light plane's normal until the stripe misses it (still in view)."""
+    for extra in (8.0, 15.0, 25.0):
+        for sign in (1.0, -1.0):
+            c = tp.center + sign * (tp.radius_mm + extra) * plane.normal
+            moved = TargetPlacement(c, tp.normal, tp.diameter_mm)
+            if moved.chord(plane) is not None:
+                continue
+            uv = camera.project(moved.rim_points(72))
+            if np.all(np.isfinite(uv)) and np.all(camera.in_image(uv, margin=margin_px)):
+                return moved
+    return None
+
+
+def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realistic", polarity: str = "light",
+                          camera: Camera | None = None, plane: LightPlane | None = None, diameter_mm: float = 50.0,
+                          *, noise: bool = True, progress=None) -> Dataset:
+    """``n`` images of a circular target (SPEC §9 placements) crossed by the stripe.
+
+    Truth (``Dataset.truth``): ``plane``; per image ``file``, ``target`` (centre and
+    normal in mm, camera frame; rim conic in undistorted px; chord endpoints in mm),
+    ``usable`` and ``reason``, and scene details (background plane, clutter, exposure).
+    ``hard``: one image (chosen by the seed) has the target shifted off the sheet:
+    ``usable: false``, ``reason: "stripe misses the target"``; every other image has
+    the stripe 3.5x too bright (partly saturated).  ``progress``: optional callable
+    ``progress(i, n)`` after each image.
+    """
+    n = _check_n(n)
+    _check_choice(difficulty, DIFFICULTIES, "difficulty")
+    _check_choice(polarity, POLARITIES, "polarity")
+    camera = default_camera() if camera is None else camera
+    plane = default_plane() if plane is None else plane
+    rng = np.random.default_rng(seed)
+    placements = sample_placements(n, rng, camera=camera, plane=plane, diameter_mm=diameter_mm)
+    miss_index = -1
+    if difficulty == "hard":
+        miss_index = int(rng.integers(0, n))
+        moved = None
+        for _ in range(50):
+            moved = _missing_placement(camera, plane, placements[miss_index])
+            if moved is not None:
+                break
+            placements[miss_index] = sample_placements(1, rng, camera=camera, plane=plane, diameter_mm=diameter_mm)[0]
+        if moved is None:
+            raise LightplaneError("render_circle_dataset: could not place a target off the light sheet")
+        placements[miss_index] = moved
+    images, names, per_image = [], [], []
+    for i, tp in enumerate(placements):
+        img_rng = np.random.default_rng([seed, i])
+        saturate = difficulty == "hard" and i % 2 == 1 and i != miss_index
+        img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate)
+        name = f"circle_{i:03d}.png"
+        entry = {"file": name, "target": _placement_truth(camera, plane, tp)}
+        if i == miss_index:
+            entry.update(usable=False, reason="stripe misses the target")
+        else:
+            entry.update(usable=True, reason="")
+        entry["scene"] = info
+        images.append(img)
+        names.append(name)
+        per_image.append(entry)
+        if progress is not None:
+            progress(i + 1, n)
+    truth = {
+        "scene": "circle",
+        "units": "mm; pixels (OpenCV convention, pixel centre (0, 0)); conics in undistorted pixels",
+        "frame": "camera",
+        "plane": plane.to_dict(),
+        "laser_source_mm": laser_source(plane),
+        "difficulty": difficulty,
+        "polarity": polarity,
+        "imaging": _IMAGING[difficulty].__dict__,
+        "seed": seed,
+        "options": {"n": n, "seed": seed, "difficulty": difficulty, "polarity": polarity, "diameter_mm": diameter_mm},
+        "images": per_image,
+    }
+    return Dataset(images, names, camera, truth)
+
+
+# ----------------------------------------------------------------------------- chessboard
+def board_corners(board: tuple[int, int], square_mm: float) -> np.ndarray:
+    """``(cols*rows, 3)`` inner corners in the board frame (mm), row by row (OpenCV's order)."""
+    cols, rows = board
+    j, i = np.mgrid[0:rows, 0:cols]
+    return np.column_stack([i.ravel() * square_mm, j.ravel() * square_mm, np.zeros(cols * rows)])
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * angle)[0]
+
+
+def _board_outline(board: tuple[int, int], square_mm: float, margin_mm: float) -> np.ndarray:
+    cols, rows = board
+    u0, u1 = -square_mm - margin_mm, cols * square_mm + margin_mm
+    v0, v1 = -square_mm - margin_mm, rows * square_mm + margin_mm
+    return np.array([u0, u1, v0, v1])
+
+
+def _board_stripe(plane: LightPlane, R: np.ndarray, t: np.ndarray, board: tuple[int, int],
+                  square_mm: float) -> np.ndarray | None:
+    """Endpoints (mm, camera frame) of the plane's line across the board's inner-corner area, or None."""
+    cols, rows = board
+    n_b = R.T @ plane.normal  # plane in board coordinates: n_b · q + (n·t + d) = 0
+    s = float(plane.normal @ t + plane.d)
+    g = n_b[:2]
+    if np.hypot(*g) < 1e-9:
+        return None
+    # clip the line g·q = -s to the rectangle [0, (cols-1) sq] x [0, (rows-1) sq]
+    umax, vmax = (cols - 1) * square_mm, (rows - 1) * square_mm
+    pts = []
+    if abs(g[1]) > 1e-12:
+        for u in (0.0, umax):
+            v = (-s - g[0] * u) / g[1]
+            if 0 <= v <= vmax:
+                pts.append((u, v))
+    if abs(g[0]) > 1e-12:
+        for v in (0.0, vmax):
+            u = (-s - g[1] * v) / g[0]
+            if 0 <= u <= umax:
+                pts.append((u, v))
+    if len(pts) < 2:
+        return None
+    pts = np.array(pts)
+    dmat = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    a, b = np.unravel_index(np.argmax(dmat), dmat.shape)
+    q = np.array([[*pts[a], 0.0], [*pts[b], 0.0]])
+    return q @ R.T + t
+
+
+def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | None = None,
+                       board: tuple[int, int] = (9, 6), square_mm: float = 8.0,
+                       distance_mm: tuple[float, float] = (330.0, 560.0), tilt_deg: tuple[float, float] = (10.0, 45.0),
+                       plane: LightPlane | None = None, min_stripe_frac: float = 0.5,
+                       margin_px: float = 15.0, max_tries: int = 20000) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random chessboard poses ``(R_cam_board (3, 3), t_cam_board (3,) mm)``, whole board in view.
+
+    The board (inner corners ``board = (cols, rows)``, plus a white margin of one
+    square) faces the camera, tilted by ``tilt_deg`` about a random in-plane axis and
+    turned by up to ±30° about its normal.  With ``plane``, only poses where the
+    stripe crosses the inner-corner area over at least ``min_stripe_frac`` of the
+    board's width (or height) are kept.
+    """
+    camera = default_camera() if camera is None else camera
+    cols, rows = board
+    u0, u1, v0, v1 = _board_outline(board, square_mm, square_mm)
+    outline = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
+    centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
+    out = []
+    for _ in range(max_tries):
+        if len(out) == n:
+            break
+        uv = rng.uniform([0.3 * camera.width, 0.3 * camera.height], [0.7 * camera.width, 0.7 * camera.height])
+        ray = camera.rays(uv[None])[0]
+        dist = rng.uniform(*distance_mm)
+        C = ray / np.linalg.norm(ray) * dist
+        phi = rng.uniform(0, 2 * np.pi)
+        tilt = np.deg2rad(rng.uniform(*tilt_deg))
+        spin = np.deg2rad(rng.uniform(-30, 30))
+        R = _rotation([np.cos(phi), np.sin(phi), 0.0], tilt) @ _rotation([0, 0, 1.0], spin)
+        t = C - R @ centre_b
+        corners_cam = outline @ R.T + t
+        if np.any(corners_cam[:, 2] <= 50):
+            continue
+        # board must face the camera: its z axis points away from the camera
+        if R[:, 2] @ C <= 0:
+            continue
+        uvc = camera.project(corners_cam)
+        if not (np.all(np.isfinite(uvc)) and np.all(camera.in_image(uvc, margin=margin_px))):
+            continue
+        if plane is not None:
+            seg = _board_stripe(plane, R, t, board, square_mm)
+            if seg is None:
+                continue
+            if np.linalg.norm(seg[1] - seg[0]) < min_stripe_frac * (min(cols, rows) - 1) * square_mm:
+                continue
+        out.append((R, t))
+    if len(out) < n:
+        raise LightplaneError(f"sample_board_poses: could only place {len(out)} of {n} boards in view "
+                              f"(board {cols}x{rows}, square {square_mm} mm, distance {distance_mm} mm)")
+    return out
+
+
+def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int] = (9, 6), square_mm: float = 8.0,
+                              with_stripe: bool = False, *, laser_off: bool = False, difficulty: str = "clean",
+                              camera: Camera | None = None, plane: LightPlane | None = None, noise: bool = True,
+                              samples: int = 4, edge_samples: int = 16, progress=None) -> Dataset:
+    """``n`` views of a chessboard (``board`` inner corners ``(cols, rows)``, ``square_mm``).
+
+    The board: ``(cols + 1) x (rows + 1)`` squares, the first one dark, a white margin of
+    one square, in the board frame of OpenCV (inner corners at ``(i, j, 0) * square``,
+    z away from the camera).  ``with_stripe``: the laser is on and every board is posed
+    so the stripe crosses its corners (for Zhou's method and the cross-ratio check,
+    SPEC §8); ``laser_off`` adds, for each view, a companion image of the same pose with
+    the laser off (``board_XXX_off.png``).
+    Truth per view: ``T_cam_board`` (``R``, ``t`` mm), the corners projected (distorted and
+    undistorted px), and with the stripe the 3-D segment of the plane across the corner area.
+    """
+    n = _check_n(n)
+    _check_choice(difficulty, DIFFICULTIES, "difficulty")
+    cols, rows = int(board[0]), int(board[1])
+    if cols < 2 or rows < 2:
+        raise LightplaneError(f"board needs at least 2x2 inner corners, got {board}")
+    if not square_mm > 0:
+        raise LightplaneError(f"square_mm must be positive, got {square_mm}")
+    camera = default_camera() if camera is None else camera
+    plane = default_plane() if plane is None else plane
+    imaging = _IMAGING[difficulty]
+    rng = np.random.default_rng(seed)
+    poses = sample_board_poses(n, rng, camera=camera, board=(cols, rows), square_mm=square_mm,
+                               plane=plane if with_stripe else None)
+    obj = board_corners((cols, rows), square_mm)
+    u0, u1, v0, v1 = _board_outline((cols, rows), square_mm, square_mm)
+    images, names, views = [], [], []
+    for i, (R, t) in enumerate(poses):
+        img_rng = np.random.default_rng([seed, i])
+        patch = rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=0.85,
+                              layer=1, checker=(square_mm, cols + 1, rows + 1, 0.06))
+        bg_z = float(t[2] + 250.0)
+        bg = rc.make_patch([0, 0, bg_z], [1, 0, 0], [0, 1, 0], albedo=0.25)
+        patches = np.array([patch, bg])
+        jit = imaging.exposure_jitter
+        ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
+        power = 100.0 * (1.0 + img_rng.uniform(-jit, jit))
+        variants = [("", power if with_stripe else 0.0)]
+        if laser_off and with_stripe:
+            variants.append(("_off", 0.0))
+        entry = {"T_cam_board": {"R": R, "t": t}, "corners_px": camera.project(obj @ R.T + t),
+                 "corners_undistorted_px": camera.project(obj @ R.T + t, distort=False),
+                 "ambient_dn": ambient}
+        salt = int(img_rng.integers(0, 2**31 - 1))
+        for suffix, pw in variants:
+            laser = _laser_row(plane, imaging, pw, img_rng)
+            rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
+                                     samples=samples, edge_samples=edge_samples, salt=salt)
+            img = _finish(rad, camera, imaging, img_rng, noise=noise)
+            name = f"board_{i:03d}{suffix}.png"
+            images.append(img)
+            names.append(name)
+            entry["file" if suffix == "" else "file_laser_off"] = name
+        if with_stripe:
+            entry["laser_power_dn"] = power
+            entry["stripe_on_board_mm"] = _board_stripe(plane, R, t, (cols, rows), square_mm)
+        views.append(entry)
+        if progress is not None:
+            progress(i + 1, n)
+    truth = {
+        "scene": "chessboard",
+        "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
+        "frame": "camera",
+        "board": {"inner_corners": [cols, rows], "square_mm": square_mm, "squares": [cols + 1, rows + 1],
+                  "first_square": "dark", "margin_mm": square_mm,
+                  "corners_board_mm": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)"},
+        "plane": plane.to_dict() if with_stripe else None,
+        "laser_source_mm": laser_source(plane) if with_stripe else None,
+        "with_stripe": bool(with_stripe),
+        "difficulty": difficulty,
+        "imaging": imaging.__dict__,
+        "seed": seed,
+        "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
+                    "with_stripe": with_stripe, "laser_off": laser_off, "difficulty": difficulty},
+        "views": views,
+    }
+    return Dataset(images, names, camera, truth)
+
+
+# ----------------------------------------------------------------------------- scans
+_SCAN_DEFAULTS = {"sphere": (41, 1.5), "step": (21, 2.0), "plane": (21, 2.0)}
+
+
+def _scan_objects(kind: str, offset: np.ndarray, plane: LightPlane) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Patches, spheres and truth surfaces of the scanned object displaced by ``offset`` (mm)."""
+    spheres = np.zeros((0, rc.SPHERE_COLS))
+    patches = []
+    surfaces: dict
+    if kind == "sphere":
+        c = np.array([0.0, 0.0, 470.0]) + offset
+        spheres = np.array([rc.make_sphere(c, 25.4, 0.7)])
+        surfaces = {"sphere": {"center_mm": c, "radius_mm": 25.4}}
+    elif kind == "step":
+        # gauge step: base and top faces parallel, 10.000 mm apart, facing the camera tilted 20 deg about x
+        Rg = _rotation([1.0, 0, 0], np.deg2rad(20.0))
+        e1, e2, n_away = Rg[:, 0], Rg[:, 1], Rg[:, 2]
+        p_base = np.array([0.0, 0.0, 480.0]) + offset
+        p_top = p_base - 10.0 * n_away  # 10 mm towards the camera
+        patches.append(rc.make_patch(p_base, e1, e2, shape=rc.SHAPE_RECT, region=(-40, 0, -45, 45), albedo=0.6))
+        patches.append(rc.make_patch(p_top, e1, e2, shape=rc.SHAPE_RECT, region=(0, 40, -45, 45), albedo=0.6))
+        patches.append(rc.make_patch(p_base, e2, -n_away, shape=rc.SHAPE_RECT, region=(-45, 45, 0, 10), albedo=0.6))
+        n_cam = -n_away
+        surfaces = {
+            "base": {"normal": n_cam, "d": float(-n_cam @ p_base), "point_mm": p_base},
+            "top": {"normal": n_cam, "d": float(-n_cam @ p_top), "point_mm": p_top},
+            "separation_mm": 10.0,
+            "in_plane_axes": [e1, e2],
+            "base_region_uv_mm": [-40, 0, -45, 45],
+            "top_region_uv_mm": [0, 40, -45, 45],
+        }
+    else:
+        Rg = _rotation([0.3, 1.0, 0] / np.linalg.norm([0.3, 1.0, 0]), np.deg2rad(30.0))
+        e1, e2, n_away = Rg[:, 0], Rg[:, 1], Rg[:, 2]
+        p0 = np.array([0.0, 0.0, 470.0]) + offset
+        patches.append(rc.make_patch(p0, e1, e2, shape=rc.SHAPE_RECT, region=(-70, 70, -70, 70), albedo=0.6))
+        n_cam = -n_away
+        surfaces = {"plane": {"normal": n_cam, "d": float(-n_cam @ p0), "point_mm": p0}}
+    # the table behind everything (static)
+    patches.append(rc.make_patch([0, 0, 600.0], [1, 0, 0], [0, 1, 0], albedo=0.3))
+    surfaces["background"] = {"normal": [0.0, 0.0, -1.0], "d": 600.0}
+    return np.array(patches), spheres, surfaces
+
+
+def render_scan_dataset(kind: str = "sphere", n_frames: int | None = None, step_mm: float | None = None,
+                        direction=None, seed: int = 0, *, difficulty: str = "realistic", camera: Camera | None = None,
+                        plane: LightPlane | None = None, noise: bool = True, progress=None) -> Dataset:
+    """Frames of a linear scan: an object moved through the light sheet in known steps.
+
+    ``kind``: ``sphere`` (radius 25.4 mm), ``step`` (gauge: two parallel faces 10.000 mm
+    apart, and the riser between them) or ``plane`` (tilted 30°).  The object moves by
+    ``step_mm`` per frame along ``direction`` (unit; default: the light plane's normal
+    projected on the image plane, i.e. across the sheet), centred so that the middle
+    frame sits on the sheet.  The scene is dark apart from weak ambient light: the
+    stripe is what a scan sees; it also lights the static table (z = 600 mm).
+    Truth: ``motion`` (direction, step, per-frame offsets) and per frame the surfaces.
+    """
+    _check_choice(kind, SCAN_KINDS, "kind")
+    _check_choice(difficulty, DIFFICULTIES, "difficulty")
+    d_n, d_s = _SCAN_DEFAULTS[kind]
+    n_frames = _check_n(d_n if n_frames is None else n_frames, "n_frames")
+    step_mm = float(d_s if step_mm is None else step_mm)
+    if not (np.isfinite(step_mm) and step_mm > 0):
+        raise LightplaneError(f"step_mm must be positive, got {step_mm}")
+    camera = default_camera() if camera is None else camera
+    plane = default_plane() if plane is None else plane
+    if direction is None:
+        direction = np.array([plane.normal[0], plane.normal[1], 0.0])
+        if np.linalg.norm(direction) < 1e-9:
+            direction = np.array([1.0, 0.0, 0.0])
+    direction = np.asarray(direction, dtype=np.float64).ravel()
+    if direction.shape != (3,) or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) < 1e-12:
+        raise LightplaneError(f"direction must be 3 finite numbers, not all zero; got {direction}")
+    direction = direction / np.linalg.norm(direction)
+    # centre the path so that the object's reference point crosses the sheet mid-scan
+    _, _, s0 = _scan_objects(kind, np.zeros(3), plane)
+    ref = {"sphere": lambda s: s["sphere"]["center_mm"], "step": lambda s: s["base"]["point_mm"],
+           "plane": lambda s: s["plane"]["point_mm"]}[kind](s0)
+    rate = float(plane.normal @ direction)
+    shift = -float(plane.signed_distance(ref)[0]) / rate if abs(rate) > 1e-6 else 0.0
+    offsets = [(shift + (k - (n_frames - 1) / 2) * step_mm) * direction for k in range(n_frames)]
+    imaging = _IMAGING[difficulty]
+    images, names, frames = [], [], []
+    for k, off in enumerate(offsets):
+        img_rng = np.random.default_rng([seed, k])
+        patches, spheres, surfaces = _scan_objects(kind, off, plane)
+        laser = _laser_row(plane, imaging, 220.0, img_rng)
+        salt = int(img_rng.integers(0, 2**31 - 1))
+        rad = rc.render_radiance(camera, patches, spheres, laser, 4.0, salt=salt)
+        images.append(_finish(rad, camera, imaging, img_rng, noise=noise))
+        name = f"scan_{k:03d}.png"
+        names.append(name)
+        frames.append({"file": name, "offset_mm": off, "surfaces": surfaces})
+        if progress is not None:
+            progress(k + 1, n_frames)
+    truth = {
+        "scene": "scan",
+        "kind": kind,
+        "units": "mm; pixels (OpenCV convention)",
+        "frame": "camera",
+        "plane": plane.to_dict(),
+        "laser_source_mm": laser_source(plane),
+        "motion": {"direction": direction, "step_mm": step_mm, "n_frames": n_frames,
+                   "offsets_mm": [float(shift + (k - (n_frames - 1) / 2) * step_mm) for k in range(n_frames)]},
+        "difficulty": difficulty,
+        "imaging": imaging.__dict__,
+        "seed": seed,
+        "options": {"kind": kind, "n_frames": n_frames, "step_mm": step_mm, "seed": seed, "difficulty": difficulty},
+        "frames": frames,
+    }
+    return Dataset(images, names, camera, truth)
