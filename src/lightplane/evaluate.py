@@ -226,11 +226,10 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
         if np.count_nonzero(near) < min_stripe_points or not (h[near].min() < 0 < h[near].max()):
             continue
         q = np.column_stack([s[near], h[near]])
-        for _ in range(2):  # fit the (locally straight) stripe, drop stray points once
+        for _ in range(4):  # fit the (locally straight) stripe, drop points beyond 3 robust sigma
             qm, qd = _fit_line(q)
             res = np.abs((q - qm) @ np.array([-qd[1], qd[0]]))
-            sig = 1.4826 * np.median(res)
-            keep = res <= max(3.0 * sig, 0.5)
+            keep = res <= max(3.0 * 1.4826 * np.median(res), 0.05)
             if keep.all() or np.count_nonzero(keep) < min_stripe_points:
                 break
             q = q[keep]

@@ -33,6 +33,7 @@ __all__ = [
     "ZhouCalibration",
     "plane_from_board_stripes",
     "board_views_and_stripes",
+    "straight_stripe_inliers",
     "calibrate_plane_board",
 ]
 
@@ -244,23 +245,83 @@ def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes
     return ZhouCalibration(plane, P, I, tuple(poses), res)
 
 
-def _stripe_in_mask(image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
-                    width_px: float | None, channel: str | None) -> np.ndarray:
-    """Stripe centres (distorted px) inside ``mask``, after subtracting the laser-off frame."""
+def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_tol_px: float = 0.05,
+                            iterations: int = 300, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Which stripe points lie on the dominant straight line (RANSAC), ``(N,)`` bool.
+
+    The light plane meets a flat board in a 3D line, whose image in *undistorted*
+    pixels is straight; points off it (Steger responses at square edges, glints)
+    are dropped; so are points biased where the stripe crosses a reflectance edge
+    (a square's border), by tightening the band to three robust standard
+    deviations of the inliers' residuals (never below ``min_tol_px``).
+    ``tol_px``: RANSAC band, distance from the line, undistorted px.
+    """
+    uv = as_points(uv_undist, 2, "uv_undist")
+    n = len(uv)
+    if n < 2:
+        return np.zeros(n, bool)
+    rng = np.random.default_rng(0) if rng is None else rng
+    i = rng.integers(0, n, iterations)
+    j = rng.integers(0, n, iterations)
+    d = uv[j] - uv[i]
+    ln = np.linalg.norm(d, axis=1)
+    ok = ln > 1e-6
+    if not ok.any():
+        return np.zeros(n, bool)
+    nrm = np.column_stack([-d[ok, 1], d[ok, 0]]) / ln[ok, None]
+    dist = np.abs(nrm @ uv.T - np.sum(nrm * uv[i[ok]], axis=1)[:, None])  # (K, N)
+    best = np.argmax((dist < tol_px).sum(axis=1))
+    inl = dist[best] < tol_px
+    for it in range(5):  # refine on the inliers (total least squares), then tighten to 3 robust sigma
+        if inl.sum() < 3:
+            break
+        m = uv[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(uv[inl] - m, full_matrices=False)
+        r = np.abs((uv - m) @ vt[1])
+        tol = tol_px if it == 0 else min(tol_px, max(3.0 * 1.4826 * float(np.median(r[inl])), min_tol_px))
+        new = r < tol
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return inl
+
+
+def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
+                    width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None) -> np.ndarray:
+    """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
+    subtracting the laser-off frame."""
     from ..io import to_gray_float
     from ..stripe import extract_stripe
 
-    img = image
+    import cv2
+
     if background is not None:
         if background.shape != image.shape:
             raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
         img = np.clip(to_gray_float(image, channel) - to_gray_float(background, channel), 0, None)
-        channel = None
-    sp = extract_stripe(img, width_px=width_px, mask=mask, channel=channel)
+    else:
+        # No laser-off frame: the white squares, touching corner to corner, are bright
+        # ridges too.  A white top-hat narrower than a square removes them and keeps
+        # the (much narrower) stripe.
+        img = to_gray_float(image, channel)
+        if corners_uv is not None:
+            spacing = float(np.median(np.linalg.norm(np.diff(corners_uv.reshape(-1, 2), axis=0), axis=1)))
+            k = int(max(5, round(0.35 * spacing))) | 1
+            img = cv2.morphologyEx(img, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    channel = None
+    sp = extract_stripe(img, width_px=width_px, mask=mask > 0, channel=channel)
     uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
     if len(uv):
         ij = np.clip(np.round(uv).astype(int), 0, [mask.shape[1] - 1, mask.shape[0] - 1])
         uv = uv[mask[ij[:, 1], ij[:, 0]] > 0]
+    if len(uv) and corners_uv is not None:
+        # X-junction responses at the corners line up along the corner rows: drop them
+        grid = corners_uv.reshape(-1, 2)
+        spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=0), axis=1)))
+        d2 = ((uv[:, None, :] - grid[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        uv = uv[d2 > (0.2 * spacing) ** 2]
+    if len(uv):
+        uv = uv[straight_stripe_inliers(camera.undistort_points(uv))]
     return uv
 
 
@@ -288,7 +349,7 @@ def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, boa
         pose = find_board_pose(bg if bg is not None and len(background_images) > 1 else img, camera, board,
                                square_mm, name=names[k])
         mask = board_polygon_mask(camera, pose, board, square_mm)
-        stripes.append(_stripe_in_mask(img, mask, bg, stripe_width_px, channel))
+        stripes.append(_stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv))
         poses.append(pose)
         if progress is not None:
             progress(k)
