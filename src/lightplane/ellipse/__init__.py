@@ -1,8 +1,18 @@
-"""Ellipse detection (arc-support line segments) and sub-pixel refinement (SPEC §5.1)."""
+"""Ellipse detection (arc-support line segments) and sub-pixel refinement (SPEC §5.1).
+
+- :class:`Ellipse` — the project's one ellipse type (centre, a >= b, angle, conic).
+- :func:`detect_ellipses` — arc-support-segment detector (Lu et al. 2020, RALS).
+- :func:`refine_ellipse` — sub-pixel edge points, Halir–Flusser + geometric fit,
+  optionally in undistorted pixels.
+- :func:`select_target` — the ellipse of the circular target the laser stripe crosses.
+"""
 
 from .detect import detect_ellipses
-from .metrics import ellipse_iou, match_ellipses, read_ellipse_labels
-from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric
+from .metrics import MatchCounts, ellipse_iou, match_ellipses, read_ellipse_labels
+from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
+from .refine import RefinedEllipse, fit_conic_robust, refine_ellipse
+from .synthetic import render_ellipses
 
-__all__ = ["Ellipse", "detect_ellipses", "ellipse_iou", "match_ellipses", "read_ellipse_labels",
-           "fit_ellipse_direct", "fit_ellipse_geometric"]
+__all__ = ["Ellipse", "detect_ellipses", "refine_ellipse", "RefinedEllipse", "fit_conic_robust",
+           "ellipse_iou", "match_ellipses", "read_ellipse_labels", "MatchCounts",
+           "fit_ellipse_direct", "fit_ellipse_geometric", "sampson_distance", "render_ellipses"]

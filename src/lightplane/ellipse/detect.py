@@ -38,8 +38,8 @@ import math
 import numpy as np
 
 from ..errors import LightplaneError
-from .edges import Gradients, gradients, normal_edge_points, prepare_gray, to_uint8
-from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
+from .edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
+from .model import Ellipse, fit_ellipse_direct
 
 __all__ = ["detect_ellipses", "arc_support_segments", "arc_groups"]
 
@@ -103,9 +103,11 @@ def arc_groups(segs: np.ndarray, *, max_turn_rad: float = math.radians(60),
     Segment j follows segment i when j's head is within ``gap`` of i's tail (continuity,
     ``gap = clip(0.5 min(len_i, len_j), 2, 8)`` px) and the direction turns by an angle in
     ``[min_turn_rad, max_turn_rad]`` with the sign of the group (convexity).  Each
-    segment has at most one successor and one predecessor (the nearest).
+    segment has at most one successor and one predecessor (the nearest link wins).
     Returns a list of ``(segment indices in order, sign)``; sign +1: interior brighter.
     """
+    from scipy.spatial import cKDTree
+
     n = len(segs)
     if n < 2:
         return []
@@ -113,34 +115,34 @@ def arc_groups(segs: np.ndarray, *, max_turn_rad: float = math.radians(60),
     d = tail - head
     ln = np.hypot(d[:, 0], d[:, 1])
     d = d / ln[:, None]
-    gap = np.hypot(tail[:, None, 0] - head[None, :, 0], tail[:, None, 1] - head[None, :, 1])  # (i tail, j head)
-    tol = np.clip(0.5 * np.minimum(ln[:, None], ln[None, :]), 2.0, 8.0)
-    cross = d[:, None, 0] * d[None, :, 1] - d[:, None, 1] * d[None, :, 0]
-    dot = d[:, None, 0] * d[None, :, 0] + d[:, None, 1] * d[None, :, 1]
+    pairs = cKDTree(tail).query_ball_tree(cKDTree(head), 8.0)
+    ii = np.repeat(np.arange(n), [len(p) for p in pairs])
+    jj = np.fromiter((j for p in pairs for j in p), dtype=int, count=len(ii))
+    keep = ii != jj
+    ii, jj = ii[keep], jj[keep]
+    gap = np.hypot(*(tail[ii] - head[jj]).T)
+    tol = np.clip(0.5 * np.minimum(ln[ii], ln[jj]), 2.0, 8.0)
+    cross = d[ii, 0] * d[jj, 1] - d[ii, 1] * d[jj, 0]
+    dot = np.sum(d[ii] * d[jj], axis=1)
     turn = np.arctan2(cross, dot)
-    near = (gap <= tol)
-    np.fill_diagonal(near, False)
+    near = gap <= tol
     groups: list[tuple[np.ndarray, int]] = []
     for sign in (1, -1):
         ok = near & (sign * turn >= min_turn_rad) & (sign * turn <= max_turn_rad)
-        cost = np.where(ok, gap, np.inf)
-        succ = np.argmin(cost, axis=1)
-        succ[~np.isfinite(cost[np.arange(n), succ])] = -1
-        # keep each successor's nearest predecessor only
-        pred = np.full(n, -1)
-        best = np.full(n, np.inf)
-        for i in np.argsort(cost[np.arange(n), np.maximum(succ, 0)]):
-            j = succ[i]
-            if j >= 0 and pred[j] < 0:
-                pred[j] = i
-                best[j] = cost[i, j]
+        oi, oj, og = ii[ok], jj[ok], gap[ok]
         succ = np.full(n, -1)
-        for j in range(n):
-            if pred[j] >= 0:
-                succ[pred[j]] = j
+        pred = np.full(n, -1)
+        for k in np.argsort(og, kind="stable"):  # nearest links first
+            i, j = oi[k], oj[k]
+            if succ[i] < 0 and pred[j] < 0:
+                succ[i] = j
+                pred[j] = i
         seen = np.zeros(n, bool)
-        starts = [i for i in range(n) if pred[i] < 0 and succ[i] >= 0]
-        for s0 in starts:
+        starts = [i for i in np.nonzero((pred < 0) & (succ >= 0))[0]]
+        loops = [i for i in np.nonzero((pred >= 0) & (succ >= 0))[0]]
+        for s0 in starts + loops:  # closed loops (every member has a predecessor): cut anywhere
+            if seen[s0]:
+                continue
             chain = [s0]
             seen[s0] = True
             j = succ[s0]
@@ -148,19 +150,8 @@ def arc_groups(segs: np.ndarray, *, max_turn_rad: float = math.radians(60),
                 chain.append(j)
                 seen[j] = True
                 j = succ[j]
-            groups.append((np.array(chain), sign))
-        # closed loops (every member has a predecessor): cut anywhere
-        for i in range(n):
-            if not seen[i] and succ[i] >= 0:
-                chain = [i]
-                seen[i] = True
-                j = succ[i]
-                while j >= 0 and not seen[j]:
-                    chain.append(j)
-                    seen[j] = True
-                    j = succ[j]
-                if len(chain) >= 2:
-                    groups.append((np.array(chain), sign))
+            if len(chain) >= 2:
+                groups.append((np.array(chain), sign))
     return groups
 
 
@@ -203,29 +194,55 @@ class _Group:
         del d0, d1
 
 
-def _fit_candidate(pts: np.ndarray, min_axis_px: float, max_axis_px: float) -> Ellipse | None:
-    C = fit_ellipse_direct(pts)
-    if C is None:
+def _params_from_rect(rect) -> tuple[float, float, float, float, float] | None:
+    """(cx, cy, a, b, angle) with a >= b from OpenCV's RotatedRect, None if degenerate."""
+    (cx, cy), (w, h), ang = rect
+    a, b, th = 0.5 * w, 0.5 * h, math.radians(ang)
+    if b > a:
+        a, b, th = b, a, th + math.pi / 2
+    if not (b > 0 and math.isfinite(a) and math.isfinite(cx) and math.isfinite(cy)):
         return None
+    return (cx, cy, a, b, th % math.pi)
+
+
+def _param_distance(p, uv: np.ndarray) -> np.ndarray:
+    """Sampson distance (px) of points ``uv`` (N, 2) to the ellipse ``p = (cx, cy, a, b, angle)``."""
+    cx, cy, a, b, th = p[:5]
+    c, s = math.cos(th), math.sin(th)
+    d0, d1 = uv[:, 0] - cx, uv[:, 1] - cy
+    x, y = c * d0 + s * d1, -s * d0 + c * d1
+    f = x * x / (a * a) + y * y / (b * b) - 1.0
+    g = 2.0 * np.sqrt(x * x / a ** 4 + y * y / b ** 4)
+    return f / np.maximum(g, 1e-12)
+
+
+def _fit_candidate(pts: np.ndarray, min_axis_px: float, max_axis_px: float):
+    """Direct least-squares ellipse (cv2.fitEllipseDirect, Fitzgibbon's constraint) on
+    candidate points, as ``(cx, cy, a, b, angle)``, or None outside the size limits."""
+    import cv2
+
     try:
-        e = Ellipse.from_conic(C)
-    except LightplaneError:
+        p = _params_from_rect(cv2.fitEllipseDirect(pts.astype(np.float32)))
+    except cv2.error:
         return None
-    if not (min_axis_px <= e.b and e.a <= max_axis_px and e.b >= 0.08 * e.a):
+    if p is None:
         return None
-    return e
+    a, b = p[2], p[3]
+    if not (min_axis_px <= b and a <= max_axis_px and b >= 0.08 * a):
+        return None
+    return p
 
 
 def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], *, min_axis_px: float,
-                        max_axis_px: float, polarity: int, shape: tuple[int, int]) -> list[tuple[Ellipse, int]]:
+                        max_axis_px: float, polarity: int, shape: tuple[int, int]) -> list[tuple]:
     G = [_Group(segs, idx, s) for idx, s in groups if polarity == 0 or s == polarity]
-    cands: list[tuple[Ellipse, int]] = []
+    cands: list[tuple] = []  # (cx, cy, a, b, angle, sign)
     # local: salient groups
     for g in G:
         if g.span >= math.radians(70) and len(g.pts) >= 6:
             e = _fit_candidate(g.pts, min_axis_px, max_axis_px)
-            if e is not None and np.mean(np.abs(sampson_distance(e.conic, g.pts))) < 1.0:
-                cands.append((e, g.sign))
+            if e is not None and np.mean(np.abs(_param_distance(e, g.pts))) < 1.0:
+                cands.append((*e, g.sign))
     # global: pairs of groups under polarity and region conditions
     m = len(G)
     if m >= 2:
@@ -282,11 +299,11 @@ def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], 
             if e is None:
                 continue
             # adaptive inlier criterion: both groups must lie on the fitted ellipse
-            di = np.abs(sampson_distance(e.conic, G[i].pts))
-            dj = np.abs(sampson_distance(e.conic, G[j].pts))
-            thr = max(1.0, 0.03 * e.b)
+            di = np.abs(_param_distance(e, G[i].pts))
+            dj = np.abs(_param_distance(e, G[j].pts))
+            thr = max(1.0, 0.03 * e[3])
             if np.mean(di < thr) >= 0.8 and np.mean(dj < thr) >= 0.8:
-                cands.append((e, G[i].sign))
+                cands.append((*e, G[i].sign))
     return cands
 
 
@@ -295,12 +312,12 @@ def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], 
 # --------------------------------------------------------------------------
 
 def _contour_candidates(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: float,
-                        polarity: int) -> list[tuple[Ellipse, int]]:
+                        polarity: int) -> list[tuple]:
     import cv2
 
     h, w = gray8.shape
     blur = cv2.GaussianBlur(gray8, (0, 0), 0.8)
-    out: list[tuple[Ellipse, int]] = []
+    out: list[tuple] = []
     block = int(min(max(2 * max_axis_px, 31), 2 * (min(h, w) // 2) - 1)) | 1
     block = max(block, 3)
     for sign in (-1, 1):
@@ -320,19 +337,19 @@ def _contour_candidates(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: f
             if ha <= 0 or area / ha < 0.85:
                 continue
             try:
-                e = Ellipse.from_cv_rotated_rect(cv2.fitEllipse(c))
-            except (LightplaneError, cv2.error):
+                e = _params_from_rect(cv2.fitEllipse(c))
+            except cv2.error:
                 continue
-            if not (min_axis_px <= e.b + 0.5 and e.a <= max_axis_px and e.b >= 0.08 * e.a):
+            if e is None:
                 continue
+            cx, cy, ea, eb, th = e
             # pixel-centre contour lies half a pixel inside the foreground
-            try:
-                e = Ellipse.from_params(e.centre, e.a + 0.5, e.b + 0.5, e.angle)
-            except LightplaneError:
+            ea, eb = ea + 0.5, eb + 0.5
+            if not (min_axis_px <= eb and ea <= max_axis_px and eb >= 0.08 * ea):
                 continue
-            if abs(area + 0.5 * len(c) - e.area) > 0.25 * e.area:
+            if abs(area + 0.5 * len(c) - math.pi * ea * eb) > 0.25 * math.pi * ea * eb:
                 continue
-            out.append((e, sign))
+            out.append((cx, cy, ea, eb, th, sign))
     return out
 
 
@@ -382,78 +399,108 @@ def _centre_cluster(cen: np.ndarray, tol: np.ndarray) -> np.ndarray:
     return labels
 
 
-def cluster_candidates(cands: list[tuple[Ellipse, int]]) -> list[tuple[Ellipse, int]]:
-    """Merge duplicate candidates: centres, then orientations, then semi-axes (Lu §III-D)."""
+def cluster_candidates(cands: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
+    """Merge duplicate candidates ``(cx, cy, a, b, angle, sign)``: centres, then
+    orientations, then semi-axes (Lu §III-D), each level a leader clustering.
+
+    Returns ``(P (K, 5) cx, cy, a, b, angle; S (K,) signs)``, one row per cluster
+    (medians of centres and semi-axes, circular mean of the doubled angle).
+    """
     if not cands:
-        return []
-    E = [c[0] for c in cands]
-    S = np.array([c[1] for c in cands])
-    cen = np.array([e.centre for e in E])
-    ab = np.array([[e.a, e.b] for e in E])
-    ang = np.array([e.angle for e in E])
+        return np.zeros((0, 5)), np.zeros(0, int)
+    P = np.asarray(cands, dtype=np.float64)
+    S = P[:, 5].astype(int)
+    cen = P[:, :2]
+    ab = P[:, 2:4]
+    ang = P[:, 4]
     order = np.argsort(-ab[:, 1])
-    out: list[tuple[Ellipse, int]] = []
+    out: list[tuple] = []
     lab_c = _centre_cluster(cen[order], np.maximum(1.0, 0.1 * ab[order, 1]))
-    for c in np.unique(lab_c):
-        mc = order[lab_c == c]
+    members = np.split(order[np.argsort(lab_c, kind="stable")], np.cumsum(np.bincount(lab_c))[:-1])
+    for mc in members:
+        if len(mc) == 1:
+            i = mc[0]
+            out.append((*P[i, :5], S[i]))
+            continue
         for s in np.unique(S[mc]):
             ms = mc[S[mc] == s]
             roundish = ab[ms, 1] / ab[ms, 0] > 0.9
             # orientation is meaningless for near-circles: give them a wide tolerance
             tol_o = np.where(roundish, math.pi, math.radians(10))
             lab_o = _leader_cluster(ang[ms][:, None], tol_o[:, None], circular=math.pi)
-            for o in np.unique(lab_o):
+            for o in range(lab_o.max() + 1):
                 mo = ms[lab_o == o]
                 lab_a = _leader_cluster(ab[mo], np.maximum(1.0, 0.1 * ab[mo]))
-                for q in np.unique(lab_a):
+                for q in range(lab_a.max() + 1):
                     mq = mo[lab_a == q]
+                    if len(mq) == 1:
+                        out.append((*P[mq[0], :5], s))
+                        continue
                     cc = np.median(cen[mq], axis=0)
                     aa, bb = np.median(ab[mq], axis=0)
-                    # circular mean of the doubled angle
                     an = 0.5 * math.atan2(np.mean(np.sin(2 * ang[mq])), np.mean(np.cos(2 * ang[mq])))
-                    try:
-                        out.append((Ellipse.from_params(cc, aa, bb, an), int(s)))
-                    except LightplaneError:
-                        pass
-    return out
+                    out.append((cc[0], cc[1], aa, bb, an % math.pi, s))
+    R = np.array(out, dtype=np.float64)
+    return R[:, :5], R[:, 5].astype(int)
 
 
 # --------------------------------------------------------------------------
 # 5. verification
 # --------------------------------------------------------------------------
 
-def _support(grad: Gradients, edges: np.ndarray, e: Ellipse, sign: int, *, n_bins: int = 36,
-             max_angle_rad: float = math.radians(22.5)) -> tuple[float, float, int]:
-    """(inlier ratio, angular coverage, polarity) of ellipse ``e`` against the edge map.
+def _samples(P: np.ndarray, max_n: int = 720) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points on K ellipses ``P`` (K, >=5: cx, cy, a, b, angle), about one per px of perimeter.
 
-    A sample on the ellipse is an inlier when an edge pixel lies within 1 px along the
-    normal and its gradient is within ``max_angle_rad`` of the normal, with the polarity.
+    Returns ``(p (M, 2), outward normals (M, 2), owner (M,), t (M,), counts (K,))``.
     """
+    a, b = P[:, 2], P[:, 3]
+    h = ((a - b) / (a + b)) ** 2
+    per = math.pi * (a + b) * (1 + 3 * h / (10 + np.sqrt(4 - 3 * h)))
+    cnt = np.clip(np.rint(per), 24, max_n).astype(int)
+    owner = np.repeat(np.arange(len(P)), cnt)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    t = 2 * math.pi * (np.arange(owner.size) - start[owner]) / cnt[owner]
+    cx, cy, aa, bb, th = (P[owner, i] for i in range(5))
+    c, s = np.cos(th), np.sin(th)
+    x, y = aa * np.cos(t), bb * np.sin(t)
+    p = np.column_stack([cx + c * x - s * y, cy + s * x + c * y])
+    nx, ny = bb * np.cos(t), aa * np.sin(t)
+    nr = np.column_stack([c * nx - s * ny, s * nx + c * ny])
+    nr /= np.linalg.norm(nr, axis=1, keepdims=True)
+    return p, nr, owner, t, cnt
+
+
+def _support_batch(grad: Gradients, edges: np.ndarray, P: np.ndarray, S: np.ndarray, *, n_bins: int = 36,
+                   max_angle_rad: float = math.radians(22.5)) -> tuple[np.ndarray, np.ndarray]:
+    """Edge support of K ellipses (Lu §III-E): ``(inlier ratio (K,), angular coverage (K,))``.
+
+    A sample on the ellipse is an inlier when an edge pixel (Canny) lies within 1.4 px
+    along the normal and its gradient is within ``max_angle_rad`` of the normal with the
+    ellipse's polarity ``S`` (+1 interior brighter: gradient inward).  Coverage is the
+    fraction of ``n_bins`` equal parametric-angle sectors holding an inlier.
+    """
+    K = len(P)
+    if K == 0:
+        return np.zeros(0), np.zeros(0)
     h, w = edges.shape
-    n = int(min(max(24, round(e.perimeter)), 720))
-    t = np.linspace(0, 2 * math.pi, n, endpoint=False)
-    p = e.points_at(t)
-    nr = e.normals_at(t)
+    p, nr, owner, t, cnt = _samples(P)
+    pol = S[owner].astype(np.float64)
     cosmax = math.cos(max_angle_rad)
-    inl_pos = np.zeros(n, bool)
-    inl_neg = np.zeros(n, bool)
+    inl = np.zeros(len(p), bool)
     for off in (0.0, -0.7, 0.7, -1.4, 1.4):
         q = p + off * nr
         iu = np.rint(q[:, 0]).astype(int)
         iv = np.rint(q[:, 1]).astype(int)
         inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
         iu, iv = np.clip(iu, 0, w - 1), np.clip(iv, 0, h - 1)
-        ed = edges[iv, iu] & inside
         gx, gy = grad.gx[iv, iu], grad.gy[iv, iu]
-        c = (gx * nr[:, 0] + gy * nr[:, 1]) / np.maximum(np.hypot(gx, gy), 1e-9)
-        inl_neg |= ed & (c >= cosmax)  # gradient outward: interior darker
-        inl_pos |= ed & (c <= -cosmax)
-    if sign == 0:
-        sign = -1 if inl_neg.sum() >= inl_pos.sum() else 1
-    inl = inl_neg if sign < 0 else inl_pos
-    bins = (np.arange(n) * n_bins) // n
-    cov = np.unique(bins[inl]).size / n_bins
-    return float(inl.mean()), float(cov), sign
+        c = -pol * (gx * nr[:, 0] + gy * nr[:, 1]) / np.maximum(np.hypot(gx, gy), 1e-9)
+        inl |= edges[iv, iu] & inside & (c >= cosmax)
+    ratio = np.bincount(owner, weights=inl, minlength=K) / cnt
+    bins = np.minimum((t * (n_bins / (2 * math.pi))).astype(int), n_bins - 1)
+    occupied = np.unique(owner[inl] * n_bins + bins[inl])
+    cov = np.bincount(occupied // n_bins, minlength=K) / n_bins
+    return ratio, cov
 
 
 def _edge_map(gray8: np.ndarray) -> np.ndarray:
@@ -462,25 +509,40 @@ def _edge_map(gray8: np.ndarray) -> np.ndarray:
     return cv2.Canny(cv2.GaussianBlur(gray8, (0, 0), 1.0), 20, 50, L2gradient=True) > 0
 
 
-def _refit(grad: Gradients, e: Ellipse, sign: int, min_mag: float) -> Ellipse | None:
-    """Refit a candidate on sub-pixel edge points along its normals (one or two passes)."""
-    for band in (min(3.0, max(1.5, 0.25 * e.b)), 1.5):
-        n = int(min(max(24, round(e.perimeter)), 720))
-        uv, _, _ = normal_edge_points(grad, e, n=n, band_px=band, step_px=0.5, polarity=sign,
-                                      min_mag=min_mag, max_angle_rad=math.radians(30))
-        if len(uv) < max(8, 0.4 * n):
-            return None
-        C = fit_ellipse_direct(uv)
-        if C is None:
-            return None
-        try:
-            e2 = Ellipse.from_conic(C)
-        except LightplaneError:
-            return None
-        if abs(e2.a - e.a) > max(2.0, 0.3 * e.a) or np.hypot(*(e2.centre - e.centre)) > max(2.0, 0.3 * e.b):
-            return None
-        e = e2
-    return e
+def _refit_batch(grad: Gradients, P: np.ndarray, S: np.ndarray, min_mag: float) -> tuple[np.ndarray, np.ndarray]:
+    """Refit K candidates on sub-pixel edge points along their normals (two passes, the
+    second with a narrower band).  Returns ``(P_new (K, 5), ok (K,))``."""
+    import cv2
+
+    P = P[:, :5].copy()
+    valid = np.ones(len(P), bool)
+    for second in (False, True):
+        idx = np.nonzero(valid)[0]
+        if idx.size == 0:
+            break
+        Q = P[idx]
+        p, nr, owner, _, cnt = _samples(Q)
+        band = 1.5 if second else np.clip(0.25 * Q[owner, 3], 1.5, 3.0)
+        uv, ok, _ = edge_peaks_along_normals(grad, p, nr, S[idx][owner], band_px=band, step_px=0.5,
+                                             min_mag=min_mag, max_angle_rad=math.radians(30))
+        nok = np.bincount(owner, weights=ok, minlength=len(idx))
+        bounds = np.concatenate([[0], np.cumsum(cnt)])
+        for k, i in enumerate(idx):
+            if nok[k] < max(8, 0.4 * cnt[k]):
+                valid[i] = False
+                continue
+            sl = slice(bounds[k], bounds[k + 1])
+            pts = uv[sl][ok[sl]].astype(np.float32)
+            try:
+                q = _params_from_rect(cv2.fitEllipseDirect(pts))
+            except cv2.error:
+                q = None
+            if q is None or abs(q[2] - Q[k, 2]) > max(2.0, 0.3 * Q[k, 2]) \
+                    or math.hypot(q[0] - Q[k, 0], q[1] - Q[k, 1]) > max(2.0, 0.3 * Q[k, 3]):
+                valid[i] = False
+                continue
+            P[i] = q
+    return P, valid
 
 
 def _iou_approx(e1: Ellipse, e2: Ellipse, n: int = 24) -> float:
@@ -549,15 +611,19 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     edges = _edge_map(gray8)
     grad_fine = gradients(g8f, 0.7)
     found: list[Ellipse] = []
-    for e, s in clusters:
-        e2 = _refit(grad_fine, e, s, min_mag=3.0)
-        if e2 is None or not (min_axis_px <= e2.b and e2.a <= max_axis_px):
-            continue
-        ratio, cov, s2 = _support(grad, edges, e2, s)
-        if ratio < min_inlier_ratio or cov < min_coverage:
-            continue
-        found.append(Ellipse.from_params(e2.centre, e2.a, e2.b, e2.angle, score=ratio * cov,
-                                         inlier_ratio=ratio, coverage=cov, polarity=s2))
+    P0, S0 = clusters
+    if len(P0):
+        P1, ok = _refit_batch(grad_fine, P0, S0, min_mag=3.0)
+        ok &= (P1[:, 3] >= min_axis_px) & (P1[:, 2] <= max_axis_px)
+        P1, S1 = P1[ok], S0[ok]
+        ratio, cov = _support_batch(grad, edges, P1, S1)
+        for k in np.nonzero((ratio >= min_inlier_ratio) & (cov >= min_coverage))[0]:
+            try:
+                found.append(Ellipse.from_params(P1[k, :2], P1[k, 2], P1[k, 3], P1[k, 4],
+                                                 score=float(ratio[k] * cov[k]), inlier_ratio=float(ratio[k]),
+                                                 coverage=float(cov[k]), polarity=int(S1[k])))
+            except LightplaneError:
+                continue
     # final non-maximum suppression: duplicates that survived clustering
     found.sort(key=lambda e: (-e.score, -e.a))
     kept: list[Ellipse] = []

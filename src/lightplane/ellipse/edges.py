@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import LightplaneError
 from .model import Ellipse
 
-__all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points"]
+__all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "edge_peaks_along_normals"]
 
 
 def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
@@ -83,55 +83,57 @@ def gradients(gray: np.ndarray, sigma_px: float = 1.0) -> Gradients:
 
 
 def _remap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at (u, v) (any equal shapes), 0 outside the image."""
     import cv2
 
-    mu = np.ascontiguousarray(u, dtype=np.float32)
-    mv = np.ascontiguousarray(v, dtype=np.float32)
-    shp = mu.shape
-    out = cv2.remap(img, mu.reshape(-1, 1) if mu.ndim == 1 else mu, mv.reshape(-1, 1) if mv.ndim == 1 else mv,
-                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return out.reshape(shp)
+    shp = np.shape(u)
+    mu = np.asarray(u, dtype=np.float32).ravel()
+    mv = np.asarray(v, dtype=np.float32).ravel()
+    m = mu.size
+    if m == 0:
+        return np.zeros(shp, np.float32)
+    cols = 1024
+    rows = -(-m // cols)
+    pad = rows * cols - m
+    mu = np.concatenate([mu, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
+    mv = np.concatenate([mv, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
+    out = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.ravel()[:m].reshape(shp)
 
 
-def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
-                       polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel edge points along the ellipse normals.
+def edge_peaks_along_normals(grad: Gradients, p: np.ndarray, nrm: np.ndarray, polarity: np.ndarray, *,
+                             band_px: np.ndarray | float, step_px: float = 0.5, min_mag: float = 0.0,
+                             max_angle_rad: float = math.radians(30)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel gradient peaks along given normals (vectorised over samples).
 
-    At ``n`` equally spaced parametric angles the gradient (bilinear, ``cv2.remap``) is
-    sampled along the normal in ``[-band_px, band_px]`` every ``step_px``; its component
-    along the normal (signed by ``polarity``: +1 interior brighter, -1 darker, 0 either,
-    chosen by the majority) is maximised and the peak located to sub-sample accuracy by a
-    Gaussian (log-parabola) fit through the three samples around it.  Samples whose peak
-    is weak (< ``min_mag``), on the band's border, or whose gradient direction differs from
-    the normal by more than ``max_angle_rad`` are dropped.
-
-    Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude)``.
+    ``p`` (N, 2) px sample points, ``nrm`` (N, 2) outward unit normals, ``polarity`` (N,)
+    of +1 (interior brighter) or -1 (darker), ``band_px`` scalar or (N,).  The gradient
+    (bilinear, ``cv2.remap``) is sampled along the normal every ``step_px`` within the band;
+    its component along the normal, signed by polarity, is maximised and the peak located
+    by a Gaussian (log-parabola) fit through the three samples around it (parabola when a
+    sample is not positive).  Returns ``(uv (N, 2), ok (N,), peak (N,))``: a sample is not
+    ok when its peak is on the band's border, weaker than ``min_mag`` or its gradient
+    direction is more than ``max_angle_rad`` off the normal.
     """
-    n = int(max(n, 8))
-    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
-    p = ellipse.points_at(t)
-    nrm = ellipse.normals_at(t)  # outward
-    k = int(math.ceil(band_px / step_px))
+    n = len(p)
+    band = np.broadcast_to(np.asarray(band_px, dtype=np.float64), (n,))
+    k = int(math.ceil(float(np.max(band)) / step_px)) if n else 1
     offs = np.arange(-k, k + 1) * step_px
     U = p[:, 0:1] + offs[None, :] * nrm[:, 0:1]
     V = p[:, 1:2] + offs[None, :] * nrm[:, 1:2]
     gx = _remap(grad.gx, U, V)
     gy = _remap(grad.gy, U, V)
-    proj = gx * nrm[:, 0:1] + gy * nrm[:, 1:2]  # >0: brighter outside (dark interior)
-    if polarity == 0:
-        s = np.sum(np.max(proj, axis=1)) - np.sum(np.max(-proj, axis=1))
-        polarity = -1 if s >= 0 else 1
-    prof = proj * (-polarity)  # positive peak expected
+    pol = np.asarray(polarity, dtype=np.float64).reshape(-1, 1)
+    prof = -pol * (gx * nrm[:, 0:1] + gy * nrm[:, 1:2])  # positive peak expected
+    prof = np.where(np.abs(offs)[None, :] <= band[:, None] + 1e-9, prof, -np.inf)
     j = np.argmax(prof, axis=1)
     rows = np.arange(n)
-    ok = (j > 0) & (j < len(offs) - 1)
     jj = np.clip(j, 1, len(offs) - 2)
     y0, y1, y2 = prof[rows, jj - 1], prof[rows, jj], prof[rows, jj + 1]
+    ok = (j > 0) & (j < len(offs) - 1) & np.isfinite(y0) & np.isfinite(y2)
     ok &= (y1 > min_mag) & (y1 > 0)
-    # Gaussian fit through three samples (parabola of the logarithm); fall back to a parabola.
-    tiny = 1e-6 * np.maximum(y1, 1e-12)
     with np.errstate(divide="ignore", invalid="ignore"):
+        tiny = 1e-6 * np.maximum(y1, 1e-12)
         l0, l1, l2 = np.log(np.maximum(y0, tiny)), np.log(np.maximum(y1, tiny)), np.log(np.maximum(y2, tiny))
         den = l0 - 2 * l1 + l2
         dg = 0.5 * (l0 - l2) / den
@@ -141,8 +143,30 @@ def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: fl
     ok &= np.isfinite(delta) & (np.abs(delta) <= 0.5 + 1e-9)
     gxx, gyy = gx[rows, jj], gy[rows, jj]
     gm = np.hypot(gxx, gyy)
-    cosang = (-polarity) * (gxx * nrm[:, 0] + gyy * nrm[:, 1]) / np.maximum(gm, 1e-12)
+    cosang = -pol[:, 0] * (gxx * nrm[:, 0] + gyy * nrm[:, 1]) / np.maximum(gm, 1e-12)
     ok &= cosang >= math.cos(max_angle_rad)
     off = offs[jj] + np.where(np.isfinite(delta), delta, 0.0) * step_px
     uv = p + off[:, None] * nrm
-    return uv[ok], t[ok], y1[ok]
+    return uv, ok, y1
+
+
+def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
+                       polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel edge points along the normals of ``ellipse`` at ``n`` equally spaced
+    parametric angles (see :func:`edge_peaks_along_normals`); ``polarity`` 0 picks the
+    sign with the stronger total response.
+
+    Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude)``.
+    """
+    n = int(max(n, 8))
+    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    p = ellipse.points_at(t)
+    nrm = ellipse.normals_at(t)  # outward
+    if polarity == 0:
+        _, ok_d, pk_d = edge_peaks_along_normals(grad, p, nrm, np.full(n, -1.0), band_px=band_px, step_px=step_px)
+        _, ok_l, pk_l = edge_peaks_along_normals(grad, p, nrm, np.full(n, 1.0), band_px=band_px, step_px=step_px)
+        polarity = -1 if np.sum(pk_d[ok_d]) >= np.sum(pk_l[ok_l]) else 1
+    uv, ok, pk = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
+                                          step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad)
+    return uv[ok], t[ok], pk[ok]
