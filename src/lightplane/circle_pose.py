@@ -188,13 +188,13 @@ def fit_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
     if not s > 0:
         raise LightplaneError(f"{name}: all points coincide")
     q = q / s
-    sv = np.linalg.svd(q, compute_uv=False)
-    if sv[1] < 1e-3 * sv[0]:
+    ev = np.linalg.eigvalsh(q.T @ q)  # squared singular values, ascending
+    if ev[0] < 1e-6 * ev[1]:
         raise LightplaneError(f"{name}: the points are (nearly) collinear, not an ellipse")
     x, y = q[:, 0], q[:, 1]
-    D1 = np.column_stack([x * x, x * y, y * y])
-    D2 = np.column_stack([x, y, np.ones_like(x)])
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+    S = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
+    S1, S2, S3 = S[:3, :3], S[:3, 3:], S[3:, 3:]
     try:
         T = -np.linalg.solve(S3, S2.T)
     except np.linalg.LinAlgError:

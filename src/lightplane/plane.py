@@ -390,8 +390,8 @@ def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tu
     inl = np.ones(len(p), dtype=bool)
     for _ in range(iterations + 1):
         c = p[inl].mean(axis=0)
-        _, _, Vt = np.linalg.svd(p[inl] - c, full_matrices=False)
-        nrm = Vt[-1]
+        q = p[inl] - c
+        nrm = np.linalg.eigh(q.T @ q)[1][:, 0]  # direction of least spread
         r = np.abs((p - c) @ nrm)
         mad = 1.4826 * np.median(r[inl])
         new = r <= max(k_mad * mad, 1e-9 * (1.0 + np.abs(c).max()))
@@ -485,7 +485,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     raise: the placement is returned with ``usable=False`` and the reason.
     ``rim_xy``/``stripe_xy``: the points already undistorted (normalised), if at hand.
     """
-    from .circle_pose import circle_poses, conic_residuals_px, fit_conic
+    from .circle_pose import circle_poses, fit_conic
 
     name = f"placement {index}"
     rim = as_points(rim_uv, 2, f"{name}: rim points")
@@ -502,7 +502,9 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     if not np.all(np.isfinite(rim_und)):
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
     conic = fit_conic(rim_und, name=f"{name}: rim points")
-    res = conic_residuals_px(conic, rim_und)
+    xh = np.column_stack([rim_und, np.ones(len(rim_und))])
+    Cx = xh @ conic
+    res = np.sum(Cx * xh, axis=1) / (2.0 * np.hypot(Cx[:, 0], Cx[:, 1]))  # Sampson distance, px
     rim_rms = float(np.sqrt(np.mean(res**2)))
     if not np.isfinite(rim_rms) or rim_rms > max_rim_rms_px:
         raise LightplaneError(
@@ -621,11 +623,6 @@ def _fit_assignment(cands, idx, choice, sigma_px, weighted=True):
     return n, d
 
 
-def _normalised_cost(cands, idx, choice, n, d, sigma_px) -> float:
-    return float(sum(_msd(cands[i].chords[k], n, d) / _tau(cands[i], k, sigma_px) ** 2 for i, k in zip(idx, choice)))
-
-
-# ----------------------------------------------------------------------- global
 @_dataclass(frozen=True)
 class _GlobalOutcome:
     normal: np.ndarray
@@ -637,72 +634,116 @@ class _GlobalOutcome:
     evaluated: int
 
 
-def _enumerate_costs(cands, idx, sigma_px, ref):
-    """Normalised cost J of every assignment (2^n), rows = bit patterns (bit j -> idx[j] uses chord 1)."""
-    n = len(idx)
-    mom = np.zeros((n, 2, 10))
-    for j, i in enumerate(idx):
-        for k in (0, 1):
-            ch = cands[i].chords[k]
-            mom[j, k] = _moments(ch, 1.0 / (len(ch) * _tau(cands[i], k, sigma_px) ** 2), ref)
-    bits = ((np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1).astype(np.float64)
-    M = mom[:, 0].sum(axis=0) + bits @ (mom[:, 1] - mom[:, 0])
-    return _cost_from_moments(M)
+class _ChordMoments:
+    """Weighted moments of every candidate chord, about a common reference point.
+
+    Chord (j, k) (j-th placement of ``idx``, candidate k) has point weights
+    ``w = 1 / (K tau²)``, so its weighted sum of squared distances to a plane is its
+    normalised cost ``msd / tau²``.  Every plane fit and cost of the global search is
+    computed from these (10,) vectors, never from the points again.
+    """
+
+    def __init__(self, cands, idx, sigma_px):
+        self.idx = list(idx)
+        self.ref = np.mean([cands[i].chords[0].mean(axis=0) for i in self.idx], axis=0)  # conditioning
+        self.mom = np.zeros((len(self.idx), 2, 10))
+        for j, i in enumerate(self.idx):
+            for k in (0, 1):
+                ch = cands[i].chords[k]
+                self.mom[j, k] = _moments(ch, 1.0 / (len(ch) * _tau(cands[i], k, sigma_px) ** 2), self.ref)
+
+    def total(self, bits: np.ndarray) -> np.ndarray:
+        """Summed moments (..., 10) for assignments ``bits`` (..., n) in {0, 1}."""
+        m = self.mom
+        return m[:, 0].sum(axis=0) + np.asarray(bits, dtype=np.float64) @ (m[:, 1] - m[:, 0])
+
+    def plane(self, bits) -> tuple[np.ndarray, float]:
+        """Weighted LS plane ``(normal, d)`` (camera frame) of an assignment."""
+        M = self.total(bits)
+        c = M[1:4] / M[0]
+        S = np.zeros((3, 3))
+        S[np.triu_indices(3)] = M[4:]
+        S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
+        n = np.linalg.eigh(S)[1][:, 0]
+        return n, -float(n @ (c + self.ref))
+
+    def chord_costs(self, n: np.ndarray, d: float) -> np.ndarray:
+        """(n, 2) normalised cost ``msd/tau²`` of every candidate chord w.r.t. the plane ``(n, d)``."""
+        dr = d + float(n @ self.ref)  # the plane in reference coordinates
+        iu = np.triu_indices(3)
+        nn = np.outer(n, n)
+        nn = (2.0 * nn - np.diag(np.diag(nn)))[iu]  # coefficients of the upper-triangle entries
+        m = self.mom
+        return m[..., 4:] @ nn + 2.0 * dr * (m[..., 1:4] @ n) + dr * dr * m[..., 0]
 
 
 def _solve_global(cands, idx, sigma_px, *, max_exhaustive: int = 16, rng=None, n_samples: int = 400) -> _GlobalOutcome:
+    """Order-independent choice of one chord per placement (SPEC §7, beyond the paper).
+
+    Minimises ``J = Σ_i msd_i / tau_i²`` (the weighted plane-fit cost of the chosen
+    chords; tau from the module's noise model) over all 2^n choices: exhaustively
+    (one vectorised pass over the moment sums; closed-form 3x3 eigenvalue) up to
+    ``max_exhaustive`` placements, beyond that by sampling pairs of chords, assigning
+    every placement its closer chord and refitting (twice).  A placement whose flip
+    raises J by no more than κ² is "undecided" (both chords fit) and left out.  The
+    ambiguity record compares the best and the runner-up assignment over the decided
+    placements.
+    """
     idx = list(idx)
     n = len(idx)
-    ref = np.mean([cands[i].chords[0].mean(axis=0) for i in idx], axis=0)  # conditioning of the moments
+    cm = _ChordMoments(cands, idx, sigma_px)
     kappa2 = _KAPPA**2
     if n <= max_exhaustive:
-        J = _enumerate_costs(cands, idx, sigma_px, ref)
+        bits_all = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
+        J = _cost_from_moments(cm.total(bits_all))
         best = int(np.argmin(J))
-        choice = {i: (best >> j) & 1 for j, i in enumerate(idx)}
+        bits = bits_all[best]
         flip = {i: float(J[best ^ (1 << j)] - J[best]) for j, i in enumerate(idx)}
         evaluated = len(J)
     else:
-        choice, evaluated = _sample_assignment(cands, idx, sigma_px, rng, n_samples)
-        n_, d_ = _fit_assignment(cands, idx, [choice[i] for i in idx], sigma_px)
-        J0 = _normalised_cost(cands, idx, [choice[i] for i in idx], n_, d_, sigma_px)
-        flip = {}
-        for i in idx:
-            alt = [choice[j] if j != i else 1 - choice[j] for j in idx]
-            na, da = _fit_assignment(cands, idx, alt, sigma_px)
-            flip[i] = _normalised_cost(cands, idx, alt, na, da, sigma_px) - J0
+        bits, evaluated = _sample_assignment(cm, rng, n_samples)
+        J0 = float(_cost_from_moments(cm.total(bits)))
+        flips = np.tile(bits, (n, 1))
+        flips[np.arange(n), np.arange(n)] ^= 1
+        Jf = _cost_from_moments(cm.total(flips))
+        flip = {i: float(Jf[j] - J0) for j, i in enumerate(idx)}
+    choice = {i: int(bits[j]) for j, i in enumerate(idx)}
     decided = {i: flip[i] > kappa2 for i in idx}
-    dec = [i for i in idx if decided[i]]
-    ch_dec = [choice[i] for i in dec]
-    if len(dec) >= 3:
-        normal, d = _fit_assignment(cands, dec, ch_dec, sigma_px)
+    dec_pos = [j for j, i in enumerate(idx) if decided[i]]
+    if len(dec_pos) >= 3:
+        cm_dec = _ChordMoments(cands, [idx[j] for j in dec_pos], sigma_px)
+        normal, d = cm_dec.plane(bits[dec_pos])
     else:
-        normal, d = _fit_assignment(cands, idx, [choice[i] for i in idx], sigma_px)
+        cm_dec = None
+        normal, d = cm.plane(bits)
     # ambiguity over the decided placements: best vs runner-up assignment
-    if len(dec) == n and n <= max_exhaustive:
-        order = np.argsort(J)
-        b1, b2 = float(J[order[0]]), float(J[order[1]]) if len(J) > 1 else np.inf
-    elif 1 <= len(dec) <= max_exhaustive:
-        Jd = _enumerate_costs(cands, dec, sigma_px, ref)
-        order = np.argsort(Jd)
-        b1 = float(Jd[order[0]])
-        b2 = float(Jd[order[1]]) if len(Jd) > 1 else np.inf
+    if len(dec_pos) == n and n <= max_exhaustive:
+        b1 = float(J[best])
+        b2 = float(np.partition(J, 1)[1]) if len(J) > 1 else float("inf")
+    elif cm_dec is not None and len(dec_pos) <= max_exhaustive:
+        nd = len(dec_pos)
+        Jd = _cost_from_moments(cm_dec.total((np.arange(2**nd)[:, None] >> np.arange(nd)[None, :]) & 1))
+        part = np.partition(Jd, 1)
+        b1, b2 = float(part[0]), float(part[1])
         evaluated += len(Jd)
-    elif len(dec) > max_exhaustive:
-        b1 = _normalised_cost(cands, dec, ch_dec, normal, d, sigma_px)
-        b2 = b1 + min(flip[i] for i in dec)
+    elif cm_dec is not None:
+        b1 = float(_cost_from_moments(cm_dec.total(bits[dec_pos])))
+        b2 = b1 + min(flip[idx[j]] for j in dec_pos)
     else:
-        b1, b2 = np.nan, np.nan
+        b1, b2 = float("nan"), float("nan")
     sep = bool(np.isfinite(b2) and (b2 - b1) > kappa2)
-    ratio = b2 / b1 if b1 > 0 else np.inf
+    ratio = b2 / b1 if b1 > 0 else float("inf")
     msg = (f"best normalised cost {b1:.3g}, runner-up {b2:.3g} (ratio {ratio:.3g}); "
            + ("clearly separated" if sep else f"NOT clearly separated (difference {b2 - b1:.3g} <= {kappa2:g})"))
     return _GlobalOutcome(normal, d, choice, decided, flip, Ambiguity(b1, b2, float(ratio), sep, msg), evaluated)
 
 
-def _sample_assignment(cands, idx, sigma_px, rng, n_samples):
-    """Beyond exhaustive search: planes from pairs of chords, greedy assignment, refit (twice); best cost."""
+def _sample_assignment(cm: _ChordMoments, rng, n_samples: int) -> tuple[np.ndarray, int]:
+    """Beyond exhaustive search: planes from pairs of chords, each placement assigned its
+    closer chord, refit, reassigned (twice); the lowest-cost assignment."""
     rng = np.random.default_rng(0) if rng is None else rng
-    pairs = [(a, b) for ai, a in enumerate(idx) for b in idx[ai + 1:]]
+    n = len(cm.idx)
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
     if len(pairs) * 4 > n_samples:
         sel = rng.choice(len(pairs), size=max(n_samples // 4, 1), replace=False)
         pairs = [pairs[s] for s in sel]
@@ -710,15 +751,23 @@ def _sample_assignment(cands, idx, sigma_px, rng, n_samples):
     for a, b in pairs:
         for ka in (0, 1):
             for kb in (0, 1):
-                n_, d_ = _fit_assignment(cands, [a, b], [ka, kb], sigma_px)
-                for _ in range(2):
-                    ch = [int(np.argmin([_msd(cands[i].chords[k], n_, d_) / _tau(cands[i], k, sigma_px) ** 2
-                                         for k in (0, 1)])) for i in idx]
-                    n_, d_ = _fit_assignment(cands, idx, ch, sigma_px)
-                J = _normalised_cost(cands, idx, ch, n_, d_, sigma_px)
+                sub = np.zeros(n, dtype=np.int64)
+                sub[a], sub[b] = ka, kb
+                # plane of the pair alone: moments of the two chords only
+                M = cm.mom[a, ka] + cm.mom[b, kb]
+                c = M[1:4] / M[0]
+                S = np.zeros((3, 3))
+                S[np.triu_indices(3)] = M[4:]
+                S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
+                nrm = np.linalg.eigh(S)[1][:, 0]
+                d = -float(nrm @ (c + cm.ref))
+                for _ in range(3):
+                    bits = np.argmin(cm.chord_costs(nrm, d), axis=1)
+                    nrm, d = cm.plane(bits)
+                J = float(_cost_from_moments(cm.total(bits)))
                 evaluated += 1
                 if J < best_J:
-                    best, best_J = dict(zip(idx, ch)), J
+                    best, best_J = bits.copy(), J
     return best, evaluated
 
 
