@@ -1,0 +1,609 @@
+"""Numba kernels behind :mod:`lightplane.stripe` (and their small numpy helpers).
+
+Conventions used by every kernel here:
+
+- Profile kernels work on a "sample-major" array ``A[s, l]``: ``l`` indexes the
+  *lines* (one centre per line: image columns for ``axis="columns"``) and ``s``
+  the samples along a line (rows).  ``axis="rows"`` is handled by the caller
+  passing the transposed image, so the kernels scan memory in order.
+- Derivative kernels are *correlation* kernels ``w[i]``, ``i = -R..R``, of the
+  Gaussian integrated over each pixel (Steger 1998 §3.1 uses the same
+  pixel-integrated kernels): ``r^(k)(x) = sum_i w_k[i] f[x + i]``.
+- Indices outside the image are clamped (replicated border), identically in the
+  numba and numpy code paths so both give the same numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = ["gaussian_derivative_kernels"]
+
+# status codes of a profile line (kept in StripeProfile.status)
+OK = 0
+NO_PEAK = 1       # nothing above min_peak
+NOT_RIDGE = 2     # Hessian not negative across the line (no bright ridge)
+NO_CROSSING = 3   # first derivative does not change sign near the peak
+TOO_WIDE = 4      # FWHM above max_width (glare, blooming) or no half-level crossing
+ALONG_LINE = 5    # the stripe runs along the scan line (normal nearly across it)
+EDGE = 6          # centre closer than the kernel radius to the first/last sample
+
+
+@lru_cache(maxsize=64)
+def _kernels_cached(sigma_milli: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    sigma = sigma_milli / 1000.0
+    R = int(math.ceil(3.5 * sigma))
+    i = np.arange(-R, R + 1, dtype=np.float64)
+    s2 = math.sqrt(2.0)
+    erf = np.vectorize(math.erf)
+
+    def Phi(x):
+        return 0.5 * (1.0 + erf(x / (s2 * sigma)))
+
+    def phi(x):
+        return np.exp(-0.5 * (x / sigma) ** 2) / (math.sqrt(2.0 * math.pi) * sigma)
+
+    def dphi(x):
+        return -x / sigma**2 * phi(x)
+
+    w0 = Phi(i + 0.5) - Phi(i - 0.5)
+    w1 = phi(i - 0.5) - phi(i + 0.5)
+    w2 = dphi(i + 0.5) - dphi(i - 0.5)
+    # Normalise the truncated kernels so that they are exact on polynomials:
+    # sum w0 = 1, sum i w1 = 1, sum w2 = 0 and sum i^2 w2 / 2 = 1.
+    w0 /= w0.sum()
+    w1 /= np.sum(i * w1)
+    w2 -= w2.mean()
+    w2 /= np.sum(i * i * w2) / 2.0
+    for w in (w0, w1, w2):
+        w.setflags(write=False)
+    return w0, w1, w2
+
+
+def gaussian_derivative_kernels(sigma_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Correlation kernels (value, first, second derivative) of a pixel-integrated Gaussian.
+
+    Returns three read-only float64 arrays of length ``2R + 1``, ``R = ceil(3.5 sigma)``;
+    ``w1`` is odd (``sum i w1[i] = 1``), ``w2`` even (``sum i^2 w2[i] / 2 = 1``).
+    ``sigma_px`` is rounded to 0.001 px (kernels are cached).
+    """
+    return _kernels_cached(int(round(float(sigma_px) * 1000.0)))
+
+
+def edge_kernels(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
+    """Kernels truncated symmetrically to radius k = 0..R, renormalised: (R+1, 3, 2R+1).
+
+    Row k holds (value, first, second derivative) kernels non-zero on |i| <= k with
+    the moment conditions of :func:`gaussian_derivative_kernels`; for k = 0 the
+    derivative kernels are zero (no information across lines).
+    """
+    R = (w0.size - 1) // 2
+    i = np.arange(-R, R + 1, dtype=np.float64)
+    out = np.zeros((R + 1, 3, 2 * R + 1))
+    for k in range(R + 1):
+        m = np.abs(i) <= k
+        a = np.where(m, w0, 0.0)
+        out[k, 0] = a / a.sum()
+        if k >= 1:
+            b = np.where(m, w1, 0.0)
+            out[k, 1] = b / np.sum(i * b)
+            c = np.where(m, w2, 0.0)
+            c[m] -= c[m].mean()
+            out[k, 2] = c / (np.sum(i * i * c) / 2.0)
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# small scalar helpers (shared by the 2-D and profile kernels)
+
+@njit(cache=True, inline="always")
+def _hermite_root(g0, d0, g1, d1):
+    """Root in [0, 1] of the cubic Hermite interpolant (values g, slopes d) with g0*g1 <= 0."""
+    if g0 == 0.0:
+        return 0.0
+    if g1 == 0.0:
+        return 1.0
+    lo = 0.0
+    hi = 1.0
+    glo = g0
+    for _ in range(40):
+        t = 0.5 * (lo + hi)
+        t2 = t * t
+        t3 = t2 * t
+        h = (2.0 * t3 - 3.0 * t2 + 1.0) * g0 + (t3 - 2.0 * t2 + t) * d0 + (-2.0 * t3 + 3.0 * t2) * g1 + (t3 - t2) * d1
+        if (h > 0.0) == (glo > 0.0):
+            lo = t
+            glo = h
+        else:
+            hi = t
+    return 0.5 * (lo + hi)
+
+
+@njit(cache=True, inline="always")
+def _ridge_normal(ruu, ruv, rvv):
+    """Most negative Hessian eigenvalue and its unit eigenvector (n_u, n_v), n_v >= 0."""
+    half_tr = 0.5 * (ruu + rvv)
+    half_df = 0.5 * (ruu - rvv)
+    root = math.sqrt(half_df * half_df + ruv * ruv)
+    lam = half_tr - root
+    # eigenvector of [[ruu, ruv], [ruv, rvv]] for lam, from the better-conditioned row
+    if half_df > 0.0:
+        nu = ruv
+        nv = -half_df - root      # lam - ruu
+    else:
+        nu = half_df - root       # lam - rvv
+        nv = ruv
+    nrm = math.sqrt(nu * nu + nv * nv)
+    if nrm == 0.0:
+        return lam, 1.0, 0.0
+    nu /= nrm
+    nv /= nrm
+    if nv < 0.0 or (nv == 0.0 and nu < 0.0):
+        nu = -nu
+        nv = -nv
+    return lam, nu, nv
+
+
+# ----------------------------------------------------------------------------------------
+# profile kernels (A[s, l], lines = columns of A)
+
+@njit(cache=True, parallel=True)
+def profile_candidates(A, sep, p1, v1, p2, v2):
+    """Per line the highest sample (p1, v1; first of equals) and the highest one farther than ``sep`` from it (p2, v2).
+
+    Two passes over ``A`` in memory order (rows of ``A``), parallel over blocks of
+    lines.  ``p2 = -1`` where there is no second candidate.
+    """
+    S, L = A.shape
+    nblk = (L + 127) // 128
+    for b in prange(nblk):
+        l0 = b * 128
+        l1 = min(L, l0 + 128)
+        for l in range(l0, l1):
+            p1[l] = -1
+            p2[l] = -1
+            v1[l] = -np.inf
+            v2[l] = -np.inf
+        for s in range(S):
+            for l in range(l0, l1):
+                x = float(A[s, l])
+                if x > v1[l]:
+                    v1[l] = x
+                    p1[l] = s
+        for s in range(S):
+            for l in range(l0, l1):
+                x = float(A[s, l])
+                if x > v2[l] and abs(s - p1[l]) > sep:
+                    v2[l] = x
+                    p2[l] = s
+
+
+@njit(cache=True)
+def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
+    """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
+    L = p1.shape[0]
+    out = p1.copy()
+    buf = np.empty(2 * half_window + 1, dtype=np.float64)
+    for l in range(L):
+        if p2[l] < 0 or v2[l] < min_peak:
+            continue
+        n = 0
+        for k in range(max(0, l - half_window), min(L, l + half_window + 1)):
+            if k != l and v1[k] >= min_peak:
+                buf[n] = p1[k]
+                n += 1
+        if n < 2:
+            continue
+        ref = np.median(buf[:n])
+        if abs(p1[l] - ref) > tol and abs(p2[l] - ref) <= tol:
+            out[l] = p2[l]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _clamp(i, n):
+    if i < 0:
+        return 0
+    if i >= n:
+        return n - 1
+    return i
+
+
+@njit(cache=True)
+def _fwhm_line(A, l, c, half, min_peak):
+    """Raw full width at half level along line ``l`` around sample ``c``.
+
+    Returns (fwhm_samples, left, right, peak, background); fwhm NaN when a side
+    never drops below the half level within ``half`` samples or the contrast is
+    below ``min_peak``.
+    """
+    S = A.shape[0]
+    # centre index: the highest of c-1, c, c+1
+    k0 = c
+    best = float(A[_clamp(c, S), l])
+    for k in (c - 1, c + 1):
+        x = float(A[_clamp(k, S), l])
+        if x > best:
+            best = x
+            k0 = k
+    bg = best
+    for k in range(c - half, c + half + 1):
+        x = float(A[_clamp(k, S), l])
+        if x < bg:
+            bg = x
+    if best - bg < min_peak:
+        return np.nan, np.nan, np.nan, best, bg
+    level = bg + 0.5 * (best - bg)
+    right = np.nan
+    prev = best
+    for k in range(k0 + 1, k0 + half + 1):
+        x = float(A[_clamp(k, S), l])
+        if x < level:
+            right = (k - 1) + (prev - level) / (prev - x)
+            break
+        prev = x
+    left = np.nan
+    prev = best
+    for k in range(k0 - 1, k0 - half - 1, -1):
+        x = float(A[_clamp(k, S), l])
+        if x < level:
+            left = (k + 1) - (prev - level) / (prev - x)
+            break
+        prev = x
+    return right - left, left, right, best, bg
+
+
+@njit(cache=True, parallel=True)
+def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
+    """Raw FWHM (samples) at the candidate ``p1`` of each line in ``lines``."""
+    for j in prange(lines.shape[0]):
+        l = lines[j]
+        if p1[l] < 0:
+            out[j] = np.nan
+            continue
+        out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
+
+
+@njit(cache=True, parallel=True)
+def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                    centre, normal, strength, intensity, width, status):
+    """Sub-pixel ridge centre per line at the candidate sample ``pos[l]``.
+
+    1. peak: argmax of the line smoothed with ``w0`` within ``pos ± qpeak``;
+    2. the five Gaussian derivatives at that sample and its two neighbours, from
+       a local (2R+1) x (2R+3) patch (no full-image filtering);
+    3. normal ``n`` = Hessian eigenvector of the most negative eigenvalue at the
+       peak (Steger); ``g = n . grad r`` at the three samples, its slope along the
+       line ``n . (H e_s)``; the zero crossing of ``g`` bracketed next to the peak
+       is found on the cubic Hermite interpolant (exact to O(h^4), unlike
+       Steger's one-step Newton ``t`` whose error grows like t^3);
+    4. raw FWHM along the line, times ``|n_s|`` (width across the stripe).
+
+    ``xw`` (R+1, 3, 2R+1): across-line kernels truncated symmetrically to radius
+    ``k`` (row ``k``; see :func:`edge_kernels`), used for the lines within R of
+    the first/last line so the smoothing stays symmetric about the line.
+
+    Outputs per line: ``centre`` (sample coordinate, NaN if invalid), ``normal``
+    (L, 2) as (n_l, n_s), ``strength`` = -lambda, ``intensity`` = smoothed value
+    at the peak, ``width`` (px across the stripe), ``status`` (codes above).
+    """
+    S, L = A.shape
+    R = (w0.shape[0] - 1) // 2
+    for l in prange(L):
+        centre[l] = np.nan
+        normal[l, 0] = np.nan
+        normal[l, 1] = np.nan
+        strength[l] = np.nan
+        intensity[l] = np.nan
+        width[l] = np.nan
+        p = pos[l]
+        if p < 0:
+            status[l] = NO_PEAK
+            continue
+        # 1. smoothed peak along the line
+        c = p
+        ybest = -np.inf
+        for s in range(p - qpeak, p + qpeak + 1):
+            if s < 0 or s >= S:
+                continue
+            y = 0.0
+            for i in range(-R, R + 1):
+                y += w0[i + R] * float(A[_clamp(s + i, S), l])
+            if y > ybest:
+                ybest = y
+                c = s
+        if c - 1 - R < 0 or c + 1 + R > S - 1:
+            status[l] = EDGE
+            continue
+        # 2. derivatives at c-1, c, c+1 (index m = 0, 1, 2)
+        rl = np.zeros(3)
+        rs = np.zeros(3)
+        rll = np.zeros(3)
+        rls = np.zeros(3)
+        rss = np.zeros(3)
+        r0c = 0.0
+        li = np.int64(l)
+        re = min(np.int64(R), li, np.int64(L) - 1 - li)
+        for j in range(-re, re + 1):
+            lj = l + j
+            a0j = xw[re, 0, j + R]
+            a1j = xw[re, 1, j + R]
+            a2j = xw[re, 2, j + R]
+            for m in range(3):
+                s0 = c - 1 + m
+                b0 = 0.0
+                b1 = 0.0
+                b2 = 0.0
+                for i in range(-R, R + 1):
+                    x = float(A[_clamp(s0 + i, S), lj])
+                    b0 += w0[i + R] * x
+                    b1 += w1[i + R] * x
+                    b2 += w2[i + R] * x
+                rs[m] += a0j * b1
+                rss[m] += a0j * b2
+                rl[m] += a1j * b0
+                rll[m] += a2j * b0
+                rls[m] += a1j * b1
+                if m == 1:
+                    r0c += a0j * b0
+        intensity[l] = r0c
+        lam, nl, ns = _ridge_normal(rll[1], rls[1], rss[1])
+        normal[l, 0] = nl
+        normal[l, 1] = ns
+        strength[l] = -lam
+        fw, left, right, best, bg = _fwhm_line(A, l, c, half, 0.0)
+        if best - bg < min_peak:
+            status[l] = NO_PEAK
+            continue
+        if lam >= 0.0:
+            status[l] = NOT_RIDGE
+            continue
+        if abs(ns) < min_cos:
+            status[l] = ALONG_LINE
+            continue
+        # 3. zero crossing of g = n . grad r along the line
+        g0 = nl * rl[0] + ns * rs[0]
+        g1 = nl * rl[1] + ns * rs[1]
+        g2 = nl * rl[2] + ns * rs[2]
+        d0 = nl * rls[0] + ns * rss[0]
+        d1 = nl * rls[1] + ns * rss[1]
+        d2 = nl * rls[2] + ns * rss[2]
+        if g1 == 0.0:
+            cc = float(c)
+        else:
+            lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
+            hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+            if lo_ok and hi_ok:
+                # both sides bracket a root (should not happen on a ridge): take the nearer
+                t_lo = _hermite_root(g0, d0, g1, d1)
+                t_hi = _hermite_root(g1, d1, g2, d2)
+                cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
+            elif lo_ok:
+                cc = c - 1 + _hermite_root(g0, d0, g1, d1)
+            elif hi_ok:
+                cc = c + _hermite_root(g1, d1, g2, d2)
+            else:
+                status[l] = NO_CROSSING
+                continue
+        # 4. width across the stripe
+        if not (fw == fw) or fw * ns > max_width:
+            width[l] = fw * ns
+            status[l] = TOO_WIDE
+            continue
+        width[l] = fw * ns
+        centre[l] = cc
+        status[l] = OK
+
+
+# ----------------------------------------------------------------------------------------
+# 2-D kernels (full derivative images)
+
+@njit(cache=True, parallel=True)
+def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
+    """Steger points of bright lines from the five derivative images (H, W).
+
+    For every pixel p with ridge strength ``-lambda >= low``: normal n from the
+    Hessian; ``g = n . grad r`` sampled at p and its neighbours p ± e along the
+    image axis closer to n (column if |n_v| >= |n_u|, else row); the zero of ``g``
+    on the cubic Hermite interpolant of (g, dg/de) is the centre, kept by the
+    pixel whose half-open cell [-0.5, 0.5) along e contains it, so each crossing
+    of a grid line by the centre line gives exactly one point.  Outputs: sub-pixel
+    (u, v) in ``su, sv``, normal in ``sn_u, sn_v``, strength in ``sstr`` (0 where no
+    point).
+    """
+    H, W = ru.shape
+    for v in prange(H):
+        for u in range(W):
+            sstr[v, u] = 0.0
+            a = float(ruu[v, u])
+            b = float(ruv[v, u])
+            cq = float(rvv[v, u])
+            # quick reject before the square root
+            if 0.5 * (a + cq) - math.sqrt(0.25 * (a - cq) * (a - cq) + b * b) > -low:
+                continue
+            lam, nu, nv = _ridge_normal(a, b, cq)
+            vert = abs(nv) >= abs(nu)
+            if vert:
+                if v == 0 or v == H - 1:
+                    continue
+                gm = nu * ru[v - 1, u] + nv * rv[v - 1, u]
+                g0 = nu * ru[v, u] + nv * rv[v, u]
+                gp = nu * ru[v + 1, u] + nv * rv[v + 1, u]
+                dm = nu * ruv[v - 1, u] + nv * rvv[v - 1, u]
+                d0 = nu * b + nv * cq
+                dp = nu * ruv[v + 1, u] + nv * rvv[v + 1, u]
+            else:
+                if u == 0 or u == W - 1:
+                    continue
+                gm = nu * ru[v, u - 1] + nv * rv[v, u - 1]
+                g0 = nu * ru[v, u] + nv * rv[v, u]
+                gp = nu * ru[v, u + 1] + nv * rv[v, u + 1]
+                dm = nu * ruu[v, u - 1] + nv * ruv[v, u - 1]
+                d0 = nu * a + nv * b
+                dp = nu * ruu[v, u + 1] + nv * ruv[v, u + 1]
+            t = 2.0
+            if g0 == 0.0:
+                t = 0.0
+            elif (g0 > 0.0) != (gp > 0.0):
+                t = _hermite_root(g0, d0, gp, dp)
+                if t >= 0.5:
+                    t = 2.0
+            if t == 2.0 and (gm > 0.0) != (g0 > 0.0):
+                t = _hermite_root(gm, dm, g0, d0) - 1.0
+                if t < -0.5:
+                    t = 2.0
+            if t == 2.0:
+                continue
+            if vert:
+                su[v, u] = u
+                sv[v, u] = v + t
+            else:
+                su[v, u] = u + t
+                sv[v, u] = v
+            sn_u[v, u] = nu
+            sn_v[v, u] = nv
+            sstr[v, u] = -lam
+
+
+@njit(cache=True)
+def _bilinear(img, x, y):
+    H, W = img.shape
+    if x < 0.0:
+        x = 0.0
+    if y < 0.0:
+        y = 0.0
+    if x > W - 1:
+        x = W - 1.0
+    if y > H - 1:
+        y = H - 1.0
+    x0 = min(int(x), W - 2) if W > 1 else 0
+    y0 = min(int(y), H - 2) if H > 1 else 0
+    fx = x - x0
+    fy = y - y0
+    x1 = min(x0 + 1, W - 1)
+    y1 = min(y0 + 1, H - 1)
+    return ((1 - fx) * (1 - fy) * img[y0, x0] + fx * (1 - fy) * img[y0, x1]
+            + (1 - fx) * fy * img[y1, x0] + fx * fy * img[y1, x1])
+
+
+@njit(cache=True, parallel=True)
+def normal_profiles(img, uv, nrm, reach, step, out_width, out_bg):
+    """FWHM (px) across the stripe at each point, sampling ``img`` bilinearly along the normal.
+
+    ``out_bg[:, 0]`` / ``[:, 1]``: background (minimum) on the ``-n`` / ``+n`` side
+    within ``reach`` px; ``out_width`` NaN when a side never falls to half level.
+    """
+    N = uv.shape[0]
+    nstep = int(reach / step)
+    for k in prange(N):
+        x = uv[k, 0]
+        y = uv[k, 1]
+        nx = nrm[k, 0]
+        ny = nrm[k, 1]
+        peak = _bilinear(img, x, y)
+        bgs = np.empty(2)
+        for side in range(2):
+            sg = 1.0 if side == 1 else -1.0
+            bg = peak
+            for j in range(1, nstep + 1):
+                val = _bilinear(img, x + sg * j * step * nx, y + sg * j * step * ny)
+                if val < bg:
+                    bg = val
+            bgs[side] = bg
+        out_bg[k, 0] = bgs[0]
+        out_bg[k, 1] = bgs[1]
+        tot = 0.0
+        ok = True
+        for side in range(2):
+            sg = 1.0 if side == 1 else -1.0
+            level = bgs[side] + 0.5 * (peak - bgs[side])
+            prev = peak
+            found = False
+            for j in range(1, nstep + 1):
+                val = _bilinear(img, x + sg * j * step * nx, y + sg * j * step * ny)
+                if val < level:
+                    tot += step * (j - 1) + step * (prev - level) / (prev - val)
+                    found = True
+                    break
+                prev = val
+            if not found:
+                ok = False
+        out_width[k] = tot if ok else np.nan
+
+
+@njit(cache=True)
+def link_points(index_map, pu, pv, su, sv, order, curve, max_gap):
+    """Order points into chains; index_map (H, W) holds point ids (-1: none), pu/pv their pixels.
+
+    Chains start at end points (at most one 8-neighbour) and walk to the nearest
+    unvisited 8-neighbour (sub-pixel distance); whatever remains (closed loops)
+    starts anywhere.  Writes the visiting order into ``order`` and a chain id per
+    point into ``curve`` (indexed by point id); returns the number of chains.
+    """
+    H, W = index_map.shape
+    N = order.shape[0]
+    visited = np.zeros(N, dtype=np.bool_)
+    nnb = np.zeros(N, dtype=np.int64)
+    for k in range(N):
+        u = pu[k]
+        v = pv[k]
+        for dv in range(-1, 2):
+            for du in range(-1, 2):
+                if du == 0 and dv == 0:
+                    continue
+                uu = u + du
+                vv = v + dv
+                if 0 <= uu < W and 0 <= vv < H and index_map[vv, uu] >= 0:
+                    nnb[k] += 1
+    n_out = 0
+    n_curves = 0
+    for pass_ in range(2):
+        for k0 in range(N):
+            if visited[k0]:
+                continue
+            if pass_ == 0 and nnb[k0] > 1:
+                continue
+            k = k0
+            while True:
+                visited[k] = True
+                order[n_out] = k
+                curve[k] = n_curves
+                n_out += 1
+                best = -1
+                bestd = max_gap * max_gap
+                u = pu[k]
+                v = pv[k]
+                for dv in range(-1, 2):
+                    for du in range(-1, 2):
+                        uu = u + du
+                        vv = v + dv
+                        if 0 <= uu < W and 0 <= vv < H:
+                            j = index_map[vv, uu]
+                            if j >= 0 and not visited[j]:
+                                ddu = su[vv, uu] - su[v, u]
+                                ddv = sv[vv, uu] - sv[v, u]
+                                d = ddu * ddu + ddv * ddv
+                                if d <= bestd:
+                                    bestd = d
+                                    best = j
+                if best < 0:
+                    break
+                k = best
+            n_curves += 1
+    return n_curves
+
+
+@lru_cache(maxsize=64)
+def _edge_cached(sigma_milli: int) -> np.ndarray:
+    out = edge_kernels(*_kernels_cached(sigma_milli))
+    out.setflags(write=False)
+    return out
+
+
+def edge_kernels_cached(sigma_px: float) -> np.ndarray:
+    """:func:`edge_kernels` of :func:`gaussian_derivative_kernels` (cached)."""
+    return _edge_cached(int(round(float(sigma_px) * 1000.0)))
