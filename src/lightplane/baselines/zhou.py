@@ -314,14 +314,20 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     if len(uv):
         ij = np.clip(np.round(uv).astype(int), 0, [mask.shape[1] - 1, mask.shape[0] - 1])
         uv = uv[mask[ij[:, 1], ij[:, 0]] > 0]
-    if len(uv) and corners_uv is not None:
-        # X-junction responses at the corners line up along the corner rows: drop them
+    spacing = None
+    if corners_uv is not None:
         grid = corners_uv.reshape(-1, 2)
         spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=0), axis=1)))
+    if len(uv) and spacing is not None:
+        # X-junction responses at the corners line up along the corner rows: drop them
         d2 = ((uv[:, None, :] - grid[None, :, :]) ** 2).sum(axis=2).min(axis=1)
         uv = uv[d2 > (0.2 * spacing) ** 2]
     if len(uv):
         uv = uv[straight_stripe_inliers(camera.undistort_points(uv))]
+    # a stripe across the board gives about one centre per pixel over several squares;
+    # fewer than one square's worth of points on a line is clutter, not the laser
+    if spacing is not None and len(uv) < spacing:
+        uv = uv[:0]
     return uv
 
 

@@ -26,6 +26,14 @@ def read_images(items: List[str], what: str, rotate: int) -> tuple[list[Path], l
     return files, [read_image(f, rotate_deg=rotate) for f in files]
 
 
+def check_background(files: list[Path], bg_files: list[Path]) -> None:
+    """An option takes one value: ``--background a.png b.png`` would make b.png a laser image."""
+    both = sorted(set(map(Path.resolve, files)) & set(map(Path.resolve, bg_files)))
+    if both:
+        raise LightplaneError(f"{both[0]} is both a laser image and a --background frame (give --background once per "
+                              "file, or one folder or quoted glob)")
+
+
 @app.command("calibrate-plane-board")
 @handles_errors
 def calibrate_plane_board_cmd(
@@ -34,8 +42,8 @@ def calibrate_plane_board_cmd(
     board: str = typer.Option(..., "--board", help="Inner corners, COLSxROWS (e.g. 9x6)."),
     square: float = typer.Option(..., "--square", help="Square size in mm."),
     output: Path = typer.Option(..., "-o", "--output", help="Light-plane JSON file to write."),
-    background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames: one per image "
-                                                   "(same order) or one for all; subtracted before stripe extraction."),
+    background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; "
+                                                   "repeat the option): one per image, same order, or one for all."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
@@ -54,6 +62,7 @@ def calibrate_plane_board_cmd(
     if len(files) < 2:
         raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(files)}")
     bg_files, bgs = read_images(background, "background images", rotate) if background else ([], None)
+    check_background(files, bg_files)
     if bgs is not None and len(bgs) not in (1, len(imgs)):
         raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(imgs)}), got {len(bgs)}")
 

@@ -14,7 +14,7 @@ from rich.table import Table
 from ..errors import LightplaneError
 from ..io import atomic_write, check_output, dumps_json, provenance
 from ._common import app, console, handles_errors, parse_board
-from .calibrate_plane_board import read_images
+from .calibrate_plane_board import check_background, read_images
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -32,7 +32,7 @@ def evaluate_cmd(
     square: float = typer.Option(..., "--square", help="Square size in mm."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write per plane its pairs (dt, dm, delta, mm) and RMS."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", help="Write the table as CSV (mm)."),
-    background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames: one per image or one for all."),
+    background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; repeat the option): one per image or one for all."),
     lines: str = typer.Option("auto", "--lines", help="Corner lines the stripe crosses: rows, columns or auto."),
     corners_used: str = typer.Option("all", "--corners", help="'three' (the paper's A, B, C) or 'all' corners per line."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
@@ -58,6 +58,7 @@ def evaluate_cmd(
     labels = _labels(plane)
     files, imgs = read_images(images, "images", rotate)
     bg_files, bgs = read_images(background, "background images", rotate) if background else ([], None)
+    check_background(files, bg_files)
     if bgs is not None and len(bgs) not in (1, len(imgs)):
         raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(imgs)}), got {len(bgs)}")
 
