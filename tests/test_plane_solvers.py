@@ -284,3 +284,35 @@ def test_placements_too_alike_are_an_error():
     obs = [synthetic_observations(cam, plane, p) for p in ps]
     with pytest.raises(LightplaneError, match="too alike|ambigu"):
         calibrate_plane_from_points(cam, 50.0, [o[0] for o in obs], [o[1] for o in obs], method="global")
+
+
+def test_two_placements_for_the_paper_study():
+    """The paper's §3 runs use 2 placements: allowed with min_placements=2; strict=False always answers."""
+    rng = np.random.default_rng(113)
+    cam, plane = paper_camera(), paper_plane()
+    for _ in range(10):
+        _, _, ps, rims, stripes = _scene(2, rng, camera=cam, plane=plane, distance_mm=PAPER_DISTANCE_MM)
+        with pytest.raises(LightplaneError, match="at least 3"):
+            calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global")
+        for method in ("paper", "global"):
+            res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method, min_placements=2, strict=False)
+            # noise-free: two generic chords are coplanar only for the true pair
+            assert _angle(res.plane, plane) < 1e-9 and abs(res.plane.d - plane.d) < 1e-8
+            assert _true_candidates_chosen(res, ps, 1e-6)
+
+
+def test_non_strict_keeps_undecided_placements_with_a_warning():
+    """A face-on disc: its two poses coincide, so both chords fit; strict drops it, non-strict keeps it."""
+    rng = np.random.default_rng(114)
+    cam, plane = default_camera(), default_plane()
+    ps = sample_placements(4, rng)
+    p = plane.point_on_axis() + np.array([0.0, 30.0, 0.0])
+    ps.append(TargetPlacement(p, -p / np.linalg.norm(p), 50.0))  # seen exactly face-on
+    obs = [synthetic_observations(cam, plane, q, sigma_px=0.1, rng=rng) for q in ps]
+    rims, stripes = [o[0] for o in obs], [o[1] for o in obs]
+    strict = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global")
+    assert not strict.placements[4].used and "both chords fit" in strict.placements[4].reason
+    loose = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global", strict=False)
+    assert loose.placements[4].used and "undecided" in loose.placements[4].reason
+    assert any("undecided" in w for w in loose.warnings)
+    assert _angle(loose.plane, plane) < np.deg2rad(0.05)

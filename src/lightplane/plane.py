@@ -632,6 +632,8 @@ class _GlobalOutcome:
     flip_cost: dict         # placement index -> ΔJ of flipping it
     ambiguity: Ambiguity
     evaluated: int
+    normal_all: np.ndarray  # plane of the best assignment over all placements, undecided included
+    d_all: float
 
 
 class _ChordMoments:
@@ -710,7 +712,10 @@ def _solve_global(cands, idx, sigma_px, *, max_exhaustive: int = 16, rng=None, n
     choice = {i: int(bits[j]) for j, i in enumerate(idx)}
     decided = {i: flip[i] > kappa2 for i in idx}
     dec_pos = [j for j, i in enumerate(idx) if decided[i]]
-    if len(dec_pos) >= 3:
+    if len(dec_pos) == n:
+        cm_dec = cm
+        normal, d = cm.plane(bits)
+    elif len(dec_pos) >= 3:
         cm_dec = _ChordMoments(cands, [idx[j] for j in dec_pos], sigma_px)
         normal, d = cm_dec.plane(bits[dec_pos])
     else:
@@ -735,7 +740,9 @@ def _solve_global(cands, idx, sigma_px, *, max_exhaustive: int = 16, rng=None, n
     ratio = b2 / b1 if b1 > 0 else float("inf")
     msg = (f"best normalised cost {b1:.3g}, runner-up {b2:.3g} (ratio {ratio:.3g}); "
            + ("clearly separated" if sep else f"NOT clearly separated (difference {b2 - b1:.3g} <= {kappa2:g})"))
-    return _GlobalOutcome(normal, d, choice, decided, flip, Ambiguity(b1, b2, float(ratio), sep, msg), evaluated)
+    n_all, d_all = cm.plane(bits)
+    return _GlobalOutcome(normal, d, choice, decided, flip, Ambiguity(b1, b2, float(ratio), sep, msg), evaluated,
+                          n_all, d_all)
 
 
 def _sample_assignment(cm: _ChordMoments, rng, n_samples: int) -> tuple[np.ndarray, int]:
@@ -779,6 +786,7 @@ class _PaperOutcome:
     choice: dict      # placement index -> candidate (used placements)
     reasons: dict     # placement index -> reason (all usable placements)
     processed: int
+    notes: tuple = ()
 
 
 def _lies_on(cands, i, k, n, d, tau_plane2, sigma_px) -> bool:
@@ -791,7 +799,7 @@ def _plane_tau2(cands, support, sigma_px) -> float:
     return 2.0 / sum(1.0 / _tau(cands[i], k, sigma_px) ** 2 for i, k in support)
 
 
-def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3) -> _PaperOutcome:
+def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool = True) -> _PaperOutcome:
     """Paper §2.2.3 in input order.
 
     Initial determination: the first two usable placements give four chords; a pair
@@ -806,14 +814,20 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3) -> _PaperOut
     placement (one chord fits: added and refit; both or neither: rejected with that
     reason), stopping when ``‖Δ(a, b, c, d)‖ / ‖(a, b, c, d)‖ < 0.1 %`` (the paper's
     rule) or the placements run out.  Plain (unweighted) least squares, as the paper.
+
+    ``strict=False`` (simulation studies): instead of giving up, the lowest-cost pair
+    is taken when no pair is coplanar, and the best-supported, lowest-cost candidate
+    when several different ones survive; ``notes`` says so.
     """
     idx = list(idx)
     reasons: dict = {}
+    notes: list = []
     if len(idx) < 2:
         raise LightplaneError("paper method: fewer than 2 usable placements")
     first = idx[0]
     rest = idx[1:]
-    cand_planes: list = []  # each: dict(n, d, support=[(i,k)], pending=[i])
+    cand_planes: list = []  # each: dict(n, d, support=[(i,k)], pending=[i], cost)
+    best_pair = None
     while rest and not cand_planes:
         second = rest.pop(0)
         for k1 in (0, 1):
@@ -821,9 +835,17 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3) -> _PaperOut
                 sup = [(first, k1), (second, k2)]
                 n_, d_ = _fit_assignment(cands, [first, second], [k1, k2], sigma_px, weighted=False)
                 J = sum(_msd(cands[i].chords[k], n_, d_) / _tau(cands[i], k, sigma_px) ** 2 for i, k in sup)
+                cp = {"n": n_, "d": d_, "support": sup, "pending": [], "cost": J}
                 if J <= _KAPPA**2:
-                    cand_planes.append({"n": n_, "d": d_, "support": sup, "pending": []})
+                    cand_planes.append(cp)
+                if best_pair is None or J < best_pair["cost"]:
+                    best_pair = cp
         if not cand_planes:
+            if not strict:
+                cand_planes = [best_pair]
+                notes.append(f"no coplanar pair of chords (best normalised cost {best_pair['cost']:.3g} > "
+                             f"{_KAPPA**2:g}); the lowest-cost pair was taken")
+                break
             reasons[second] = f"rejected: no chord coplanar with a chord of placement {first}"
     if not cand_planes:
         raise LightplaneError(f"paper method: no chord of any placement is coplanar with a chord of placement {first}")
@@ -847,10 +869,28 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3) -> _PaperOut
         else:
             reasons[i] = "rejected: neither chord lies on any candidate plane"
     if len(cand_planes) > 1:
-        raise LightplaneError(
-            f"paper method: {len(cand_planes)} candidate light planes remain after all placements: "
-            "the placements cannot resolve the ambiguity (add placements with different tilts)"
-        )
+        # Several survive.  They are the same plane in practice when each one's support
+        # chords lie on the best-supported one (e.g. a face-on first placement whose two
+        # chords nearly coincide); otherwise the ambiguity is real.
+        cand_planes.sort(key=lambda cp: -len(cp["support"]))
+        best = cand_planes[0]
+        t2 = _plane_tau2(cands, best["support"], sigma_px)
+        for other in cand_planes[1:]:
+            if not all(_lies_on(cands, i, k, best["n"], best["d"], t2, sigma_px) for i, k in other["support"]):
+                if not strict:
+                    top = [cp for cp in cand_planes if len(cp["support"]) == len(best["support"])]
+                    for cp in top:
+                        cp["cost"] = sum(_msd(cands[i].chords[k], cp["n"], cp["d"]) / _tau(cands[i], k, sigma_px) ** 2
+                                         for i, k in cp["support"])
+                    best = min(top, key=lambda cp: cp["cost"])
+                    notes.append(f"{len(cand_planes)} different candidate planes remained; the best-supported, "
+                                 "lowest-cost one was taken (ambiguous)")
+                    break
+                raise LightplaneError(
+                    f"paper method: {len(cand_planes)} different candidate light planes remain after all placements: "
+                    "the placements cannot resolve the ambiguity (add placements with different tilts)"
+                )
+        cand_planes = [best]
     cp = cand_planes[0]
     support = list(cp["support"])
     n_, d_ = cp["n"], cp["d"]
@@ -888,14 +928,15 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3) -> _PaperOut
     choice = dict(support)
     for i, _ in support:
         reasons.setdefault(i, "used")
-    return _PaperOutcome(n_, d_, choice, reasons, processed)
+    return _PaperOutcome(n_, d_, choice, reasons, processed, tuple(notes))
 
 
 # ------------------------------------------------------------------ public entry
 def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.ndarray], stripes: Sequence[np.ndarray],
                                 method: str = "ml", *, sigma_px: float | None = None, min_stripe_points: int = 10,
                                 max_rim_rms_px: float = 3.0, min_normal_spread_deg: float = 5.0,
-                                max_exhaustive: int = 16, rng: np.random.Generator | None = None) -> PlaneCalibration:
+                                max_exhaustive: int = 16, min_placements: int = 3, strict: bool = True,
+                                rng: np.random.Generator | None = None) -> PlaneCalibration:
     """Calibrate the light plane from rim and stripe points of a circular target (paper §2.2, SPEC §7).
 
     Parameters
@@ -924,6 +965,19 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     min_normal_spread_deg : float
         The chosen target normals must spread by more than this (max pairwise angle),
         or the two-fold ambiguity cannot be resolved.
+    max_exhaustive : int
+        ``global``: exhaustive search up to this many placements, sampling beyond.
+    min_placements : int
+        Fewest usable placements accepted (default 3; >= 2).  Two are what the paper's
+        §3 study uses: then only the coplanarity of the true pair of chords resolves
+        the ambiguity, with no independent check.
+    strict : bool
+        True (default): undecided placements (both chords fit) are left out, an
+        unresolvable ambiguity or placements too alike raise.  False (for simulation
+        studies, e.g. the paper's two-placement runs): always return the lowest-cost
+        answer, undecided placements included, with warnings saying what was ambiguous.
+    rng : numpy Generator, optional
+        For the sampling beyond ``max_exhaustive`` placements (default: seed 0).
 
     Returns
     -------
@@ -950,8 +1004,11 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     rims, stripes = list(rims), list(stripes)
     if len(rims) != len(stripes):
         raise LightplaneError(f"rims and stripes must have one entry per placement, got {len(rims)} and {len(stripes)}")
-    if len(rims) < 3:
-        raise LightplaneError(f"need at least 3 placements, got {len(rims)}")
+    if int(min_placements) < 2:
+        raise LightplaneError(f"min_placements must be >= 2, got {min_placements}")
+    min_placements = int(min_placements)
+    if len(rims) < min_placements:
+        raise LightplaneError(f"need at least {min_placements} placements, got {len(rims)}")
     if sigma_px is not None and not (np.isfinite(sigma_px) and sigma_px >= 0):
         raise LightplaneError(f"sigma_px must be >= 0, got {sigma_px}")
     r = 0.5 * diameter
@@ -973,34 +1030,41 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     sigma = float(sigma_px) if sigma_px is not None else sigma_est
     usable = [c.index for c in cands if c.usable]
     warnings: list[str] = []
-    if len(usable) < 3:
+    if len(usable) < min_placements:
         why = "; ".join(f"placement {c.index}: {c.reason}" for c in cands if not c.usable)
-        raise LightplaneError(f"only {len(usable)} usable placements, need at least 3 ({why})")
+        raise LightplaneError(f"only {len(usable)} usable placements, need at least {min_placements} ({why})")
 
     reasons: dict = {c.index: c.reason for c in cands if not c.usable}
     ambiguity = None
     if method == "paper":
-        out = _solve_paper(cands, usable, sigma)
+        out = _solve_paper(cands, usable, sigma, strict=strict)
         normal, d, choice, iterations = out.normal, out.d, out.choice, out.processed
         reasons.update(out.reasons)
+        warnings.extend(out.notes)
     else:
         g = _solve_global(cands, usable, sigma, max_exhaustive=max_exhaustive, rng=rng)
         normal, d, iterations, ambiguity = g.normal, g.d, g.evaluated, g.ambiguity
-        choice = {i: g.choice[i] for i in usable if g.decided[i]}
+        choice = {i: g.choice[i] for i in usable if g.decided[i] or not strict}
         for i in usable:
-            reasons[i] = ("used" if g.decided[i] else
-                          f"rejected: both chords fit the plane (flipping it costs {g.flip_cost[i]:.3g} <= {_KAPPA**2:g})")
+            why = f"both chords fit the plane (flipping it costs {g.flip_cost[i]:.3g} <= {_KAPPA**2:g})"
+            reasons[i] = "used" if g.decided[i] else (f"rejected: {why}" if strict else f"used, undecided: {why}")
+        if not strict and not all(g.decided[i] for i in usable):
+            normal, d = g.normal_all, g.d_all
+            warnings.append("undecided placements kept (strict=False): "
+                            + ", ".join(str(i) for i in usable if not g.decided[i]))
         if not ambiguity.separated:
             warnings.append("ambiguous choice of chords: " + ambiguity.message)
     used = sorted(choice)
-    if len(used) < 3:
+    if len(used) < min_placements:
         raise LightplaneError(
             f"only {len(used)} placements could be used ({'; '.join(f'placement {i}: {reasons[i]}' for i in reasons)}), "
-            "need at least 3"
+            f"need at least {min_placements}"
         )
     normals = np.array([cands[i].poses[choice[i]].normal for i in used])
     spread = float(np.degrees(np.arccos(np.clip(np.min(normals @ normals.T), -1.0, 1.0))))
-    if spread <= min_normal_spread_deg:
+    if spread <= min_normal_spread_deg and not strict:
+        warnings.append(f"placements too alike: all target normals within {spread:.2f} deg of each other")
+    elif spread <= min_normal_spread_deg:
         raise LightplaneError(
             f"placements too alike: all target normals within {spread:.2f} deg of each other "
             f"(need > {min_normal_spread_deg} deg to resolve the two-fold pose ambiguity); tilt the target differently"
