@@ -72,16 +72,17 @@ def _ellipse_check(E: np.ndarray, name: str) -> None:
     coordinates, or the conditioned frame of :func:`fit_conic`), normalised to
     Frobenius norm 1.  Ellipse: the 2x2 block is definite; real: the value at the
     centre has the opposite sign of the block's trace; non-degenerate: the three
-    eigenvalues are not tiny.
+    eigenvalues are not tiny (``|det| >= 1e-13``).
     """
     A = E[:2, :2]
     det2 = float(np.linalg.det(A))
     if det2 <= 1e-12 * float(np.sum(A * A)):
         raise LightplaneError(f"{name} is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2:.3g})")
-    lam = np.linalg.eigvalsh(E)
-    if np.min(np.abs(lam)) < 1e-12 * np.max(np.abs(lam)):
-        raise LightplaneError(f"{name} is a degenerate conic (eigenvalues {lam})")
-    centre_val = float(np.linalg.det(E)) / det2  # E33 - bᵀ A⁻¹ b
+    det3 = float(np.linalg.det(E))
+    # |det| = |λ1 λ2 λ3| <= min |λ| for Frobenius norm 1: a tiny det flags a (near) zero eigenvalue
+    if abs(det3) < 1e-13:
+        raise LightplaneError(f"{name} is a degenerate conic (det {det3:.3g})")
+    centre_val = det3 / det2  # E33 - bᵀ A⁻¹ b
     if centre_val * np.trace(A) >= 0:
         raise LightplaneError(f"{name} is an imaginary ellipse (no real points)")
 

@@ -393,7 +393,8 @@ def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tu
         q = p[inl] - c
         nrm = np.linalg.eigh(q.T @ q)[1][:, 0]  # direction of least spread
         r = np.abs((p - c) @ nrm)
-        mad = 1.4826 * np.median(r[inl])
+        ri = r[inl]
+        mad = 1.4826 * np.partition(ri, len(ri) // 2)[len(ri) // 2]  # median (upper middle), cheaply
         new = r <= max(k_mad * mad, 1e-9 * (1.0 + np.abs(c).max()))
         if new.sum() < 2 or np.array_equal(new, inl):
             break
