@@ -1,11 +1,106 @@
-"""`lightplane render` (not implemented yet: its issue is open)."""
+"""``lightplane render``: synthetic images with exact ground truth (circle, chessboard, scan)."""
 
 from __future__ import annotations
 
-from ._common import app, fail
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from ..errors import LightplaneError
+from ._common import app, console, handles_errors, parse_board
+
+SCENES = ("circle", "chessboard", "scan")
 
 
-@app.command("render", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-def render() -> None:
-    """Not implemented yet."""
-    fail("'render' is not implemented yet")
+@app.command("render")
+@handles_errors
+def render_cmd(
+    scene: str = typer.Argument(..., help="What to render: circle, chessboard or scan."),
+    out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
+    n: Optional[int] = typer.Option(None, "--n", help="Number of images (scan: frames). Default: 12 circle, "
+                                    "15 chessboard, 41 sphere / 21 step or plane frames."),
+    seed: int = typer.Option(0, "--seed", help="Random seed: same seed, same bytes."),
+    difficulty: Optional[str] = typer.Option(None, "--difficulty", help="clean, realistic or hard "
+                                             "(default: realistic; clean for chessboards)."),
+    polarity: str = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
+                                 "printed disc on a light board."),
+    diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
+    board: str = typer.Option("9x6", "--board", help="chessboard: inner corners COLSxROWS."),
+    square: float = typer.Option(8.0, "--square", help="chessboard: square size in mm."),
+    stripe: bool = typer.Option(False, "--stripe", help="chessboard: laser on, stripe crossing every board."),
+    laser_off: bool = typer.Option(False, "--laser-off", help="chessboard with --stripe: also a laser-off image "
+                                   "of every pose."),
+    kind: str = typer.Option("sphere", "--kind", help="scan: sphere (radius 25.4 mm), step (10.000 mm gauge) "
+                             "or plane (tilted)."),
+    step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
+                                         "2.0 step/plane)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing files."),
+) -> None:
+    """Render synthetic images with exact ground truth (PNG images, camera.json, truth.json)."""
+    from ..simulate.render import (
+        DIFFICULTIES,
+        POLARITIES,
+        SCAN_KINDS,
+        check_output_dir,
+        render_chessboard_dataset,
+        render_circle_dataset,
+        render_scan_dataset,
+    )
+
+    if scene not in SCENES:
+        raise LightplaneError(f"unknown scene {scene!r}: choose circle, chessboard or scan")
+    if n is not None and n < 1:
+        raise LightplaneError(f"--n must be at least 1, got {n}")
+    if difficulty is not None and difficulty not in DIFFICULTIES:
+        raise LightplaneError(f"--difficulty must be clean, realistic or hard; got {difficulty!r}")
+    if polarity not in POLARITIES:
+        raise LightplaneError(f"--polarity must be light or dark; got {polarity!r}")
+    if scene == "scan" and kind not in SCAN_KINDS:
+        raise LightplaneError(f"--kind must be sphere, step or plane; got {kind!r}")
+    if not diameter > 0:
+        raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
+    if not square > 0:
+        raise LightplaneError(f"--square must be positive, got {square} mm")
+    if step is not None and not step > 0:
+        raise LightplaneError(f"--step must be positive, got {step} mm")
+    cols_rows = parse_board(board)
+    # fail before the long render: the folder must be writable and hold no result files
+    check_output_dir(out, ["camera.json", "truth.json"], force)
+
+    t0 = time.perf_counter()
+    with Progress(TextColumn(f"rendering {scene}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("render", total=n)
+
+        def progress(i: int, total: int) -> None:
+            bar.update(task, completed=i, total=total)
+
+        if scene == "circle":
+            ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",
+                                       polarity=polarity, diameter_mm=diameter, progress=progress)
+        elif scene == "chessboard":
+            ds = render_chessboard_dataset(n=15 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
+                                           with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
+                                           progress=progress)
+        else:
+            ds = render_scan_dataset(kind=kind, n_frames=n, step_mm=step, seed=seed,
+                                     difficulty=difficulty or "realistic", progress=progress)
+    elapsed = time.perf_counter() - t0
+    ds.save(out, force=force)
+    cam = ds.camera
+    console.print(f"rendered {len(ds.images)} {scene} image(s) of {cam.width}x{cam.height} px in {elapsed:.1f} s "
+                  f"(seed {seed}, difficulty {ds.truth.get('difficulty')})")
+    if scene == "circle":
+        bad = [e["file"] for e in ds.truth["images"] if not e["usable"]]
+        console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
+                      f"{len(ds.images) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
+    elif scene == "chessboard":
+        console.print(f"board {cols_rows[0]}x{cols_rows[1]} inner corners, square {square:g} mm"
+                      + (", laser stripe on" if stripe else ""))
+    else:
+        m = ds.truth["motion"]
+        console.print(f"scan of a {kind}: {m['n_frames']} frames, {m['step_mm']:g} mm per frame")
+    console.print(f"wrote {out}/ (images, camera.json, truth.json)")

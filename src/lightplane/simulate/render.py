@@ -51,6 +51,7 @@ __all__ = [
     "render_circle_dataset",
     "render_chessboard_dataset",
     "render_scan_dataset",
+    "check_output_dir",
     "sample_board_poses",
     "board_corners",
 ]
@@ -318,20 +319,7 @@ class Dataset:
 
         from ..io import atomic_write, provenance, write_json
 
-        out = Path(out_dir)
-        if out.exists() and not out.is_dir():
-            raise LightplaneError(f"{out}: exists and is not a folder")
-        parent = out if out.exists() else out.parent
-        if not out.exists() and not parent.is_dir():
-            raise LightplaneError(f"{out}: its parent folder {parent} does not exist")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise LightplaneError(f"{parent}: folder is not writable")
-        files = [out / n for n in self.names] + [out / "camera.json", out / "truth.json"]
-        if not force:
-            existing = [str(f) for f in files if f.exists()]
-            if existing:
-                raise LightplaneError(f"{existing[0]}: already exists (use --force to overwrite)"
-                                      + (f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""))
+        out = check_output_dir(out_dir, list(self.names) + ["camera.json", "truth.json"], force)
         try:
             out.mkdir(exist_ok=True)
         except OSError as e:
@@ -347,6 +335,35 @@ class Dataset:
         truth["provenance"] = provenance([], truth.get("options", {}))
         written.append(write_json(out / "truth.json", truth, force=force))
         return written
+
+
+def check_output_dir(out_dir: str | os.PathLike, names: list[str], force: bool = False) -> Path:
+    """Check that ``names`` can be written into ``out_dir`` (created later if its parent exists).
+
+    Raises :class:`LightplaneError` for a folder that is a file, has no parent, is not
+    writable, or already holds one of the files (unless ``force``).
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise LightplaneError(f"{out}: exists and is not a folder")
+    parent = out if out.exists() else out.parent
+    if not out.exists() and not parent.is_dir():
+        raise LightplaneError(f"{out}: its parent folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise LightplaneError(f"{parent}: folder is not writable")
+    try:  # the real test (permissions can lie: read-only mounts, /proc, root)
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=".lightplane-probe-"):
+            pass
+    except OSError as e:
+        raise LightplaneError(f"{parent}: folder is not writable ({e.strerror})") from None
+    if not force:
+        existing = [str(out / n) for n in names if (out / n).exists()]
+        if existing:
+            raise LightplaneError(f"{existing[0]}: already exists (use --force to overwrite)"
+                                  + (f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""))
+    return out
 
 
 def _placement_truth(camera: Camera, plane: LightPlane, tp: TargetPlacement) -> dict:
@@ -581,14 +598,14 @@ def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int]
     images, names, views = [], [], []
     for i, (R, t) in enumerate(poses):
         img_rng = np.random.default_rng([seed, i])
-        patch = rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=0.85,
+        patch = rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=0.86,
                               layer=1, checker=(square_mm, cols + 1, rows + 1, 0.06))
         bg_z = float(t[2] + 250.0)
         bg = rc.make_patch([0, 0, bg_z], [1, 0, 0], [0, 1, 0], albedo=0.25)
         patches = np.array([patch, bg])
         jit = imaging.exposure_jitter
         ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
-        power = 100.0 * (1.0 + img_rng.uniform(-jit, jit))
+        power = 180.0 * (1.0 + img_rng.uniform(-jit, jit))
         variants = [("", power if with_stripe else 0.0)]
         if laser_off and with_stripe:
             variants.append(("_off", 0.0))

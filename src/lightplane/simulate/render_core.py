@@ -337,21 +337,34 @@ def _shade(patches, spheres, laser, ambient, x, y):
 
 
 @nb.njit(parallel=True, **_jit)
-def probe_corners(fx, fy, cx, cy, dist, width, height, patches, spheres, laser, ambient):
+def undistort_grid(fx, fy, cx, cy, dist, width, height, offset):
+    """Normalised undistorted ``(x, y)`` of the pixel positions ``(j + offset, i + offset)``,
+    ``i < height, j < width``: ``(height, width, 2)`` float64 (Newton, SPEC §3)."""
+    out = np.empty((height, width, 2))
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in nb.prange(height):
+        for j in range(width):
+            xd = (j + offset - cx) / fx
+            yd = (i + offset - cy) / fy
+            x, y = _undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3, 50)
+            out[i, j, 0] = x
+            out[i, j, 1] = y
+    return out
+
+
+@nb.njit(parallel=True, **_jit)
+def probe_corners(corner_xy, patches, spheres, laser, ambient):
     """Material id and signed distance to the light plane (mm) seen at every pixel corner.
 
-    Returns ``(mat (H+1, W+1) int64, dist (H+1, W+1) float64)``; corner (i, j) is at
-    pixel position ``(j - 0.5, i - 0.5)``.
+    ``corner_xy``: ``(H+1, W+1, 2)`` rays of the corners (corner (i, j) is at pixel
+    position ``(j - 0.5, i - 0.5)``).  Returns ``(mat (H+1, W+1) int64, dist (H+1, W+1))``.
     """
-    mat = np.empty((height + 1, width + 1), dtype=np.int64)
-    dst = np.empty((height + 1, width + 1))
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for i in nb.prange(height + 1):
-        for j in range(width + 1):
-            xd = (j - 0.5 - cx) / fx
-            yd = (i - 0.5 - cy) / fy
-            x, y = _undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3, 40)
-            r, m, d = _shade(patches, spheres, laser, ambient, x, y)
+    h1, w1 = corner_xy.shape[0], corner_xy.shape[1]
+    mat = np.empty((h1, w1), dtype=np.int64)
+    dst = np.empty((h1, w1))
+    for i in nb.prange(h1):
+        for j in range(w1):
+            r, m, d = _shade(patches, spheres, laser, ambient, corner_xy[i, j, 0], corner_xy[i, j, 1])
             mat[i, j] = m
             dst[i, j] = d
     return mat, dst
@@ -382,16 +395,16 @@ def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, l
 
 
 @nb.njit(parallel=True, **_jit)
-def render_modes(fx, fy, cx, cy, dist, width, height, patches, spheres, laser, ambient, mode, S, F, salt):
+def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt):
     """Integrate every pixel by its mode: 0 uniform (one sample is the exact mean), 1 S x S
     samples (upgraded to F x F if they see several materials), 2 F x F samples."""
+    height, width = mode.shape
     img = np.zeros((height, width))
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for v in nb.prange(height):
         for u in range(width):
-            xd0 = (u - cx) / fx
-            yd0 = (v - cy) / fy
-            x0, y0 = _undistort(xd0, yd0, xd0, yd0, k1, k2, p1, p2, k3, 40)
+            x0 = centre_xy[v, u, 0]
+            y0 = centre_xy[v, u, 1]
             md = mode[v, u]
             if md == 0:
                 r, mat, d = _shade(patches, spheres, laser, ambient, x0, y0)
@@ -407,6 +420,24 @@ def render_modes(fx, fy, cx, cy, dist, width, height, patches, spheres, laser, a
                             F, salt)
             img[v, u] = r
     return img
+
+
+_RAY_MAPS: dict = {}
+
+
+def _ray_maps(camera) -> tuple[np.ndarray, np.ndarray]:
+    """Cached rays (normalised undistorted x, y) of the pixel centres ``(H, W, 2)`` and
+    corners ``(H+1, W+1, 2)`` of a camera (one entry per distinct camera, at most 4)."""
+    key = (camera.K.tobytes(), camera.dist.tobytes(), camera.width, camera.height)
+    if key not in _RAY_MAPS:
+        if len(_RAY_MAPS) >= 4:
+            _RAY_MAPS.pop(next(iter(_RAY_MAPS)))
+        d = np.ascontiguousarray(camera.dist, dtype=np.float64)
+        args = (camera.fx, camera.fy, camera.cx, camera.cy, d)
+        centre = undistort_grid(*args, camera.width, camera.height, 0.0)
+        corner = undistort_grid(*args, camera.width + 1, camera.height + 1, -0.5)
+        _RAY_MAPS[key] = (centre, corner)
+    return _RAY_MAPS[key]
 
 
 def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.ndarray, ambient: float, *,
@@ -429,8 +460,8 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     laser = np.ascontiguousarray(laser, dtype=np.float64)
     dist = np.ascontiguousarray(camera.dist, dtype=np.float64)
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    w, h = camera.width, camera.height
-    mat, dst = probe_corners(fx, fy, cx, cy, dist, w, h, patches, spheres, laser, float(ambient))
+    centre_xy, corner_xy = _ray_maps(camera)
+    mat, dst = probe_corners(corner_xy, patches, spheres, laser, float(ambient))
     # a pixel is on an edge when its four corners disagree
     edge = ((mat[:-1, :-1] != mat[:-1, 1:]) | (mat[:-1, :-1] != mat[1:, :-1]) | (mat[:-1, :-1] != mat[1:, 1:]))
     # near the sheet: a corner within 8 sigma of it, or corners on both sides of it
@@ -441,9 +472,12 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
            | (sgn[:-1, :-1] != sgn[:-1, 1:]) | (sgn[:-1, :-1] != sgn[1:, :-1]) | (sgn[:-1, :-1] != sgn[1:, 1:]))
     if laser[7] <= 0:
         lit[:] = False
+    # edge pixels get F x F samples; their neighbours S x S, raised to F x F if their samples
+    # see an edge after all (a curved edge clipping a pixel between its corners)
     kernel = np.ones((3, 3), np.uint8)
-    mode = np.maximum(cv2.dilate(lit.astype(np.uint8), kernel), 2 * cv2.dilate(edge.astype(np.uint8), kernel))
+    edge8 = edge.astype(np.uint8)
+    mode = np.maximum(cv2.dilate(np.maximum(lit.astype(np.uint8), edge8), kernel), 2 * edge8)
     mode = np.ascontiguousarray(mode.astype(np.uint8))
-    img = render_modes(fx, fy, cx, cy, dist, w, h, patches, spheres, laser, float(ambient), mode, int(samples),
+    img = render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, float(ambient), mode, int(samples),
                        int(max(edge_samples, samples)), int(salt))
     return (img, mode) if return_modes else img
