@@ -98,11 +98,11 @@ def test_profile_accuracy_straight(width, profile, theta):
     assert abs(np.median(prof.width[prof.valid]) - width) <= 0.1 * width + 0.3
 
 
-@pytest.mark.parametrize("width", [3, 9])
+@pytest.mark.parametrize("width", [3, 9, 15])
 def test_profile_accuracy_curved(width):
-    """A gently curved stripe (radius 2000 px; curvature bias sigma^2 / 2r < 0.002 px)."""
+    """A curved stripe (radius 300 px; uncorrected curvature bias up to 0.03 px)."""
     rng = np.random.default_rng(7 + width)
-    dist = circle(203.7, 2090.4, 2000.0)
+    dist = circle(203.7, 390.4, 300.0)
     img = render((200, 400), dist, width, rng=rng)
     prof = extract_profile(img, width_px=width)
     assert prof.valid.mean() >= 0.99
@@ -260,17 +260,19 @@ def test_stripe_accuracy_every_orientation(width):
     assert np.sqrt(np.mean(e**2)) <= RMS_MAX
 
 
-@pytest.mark.parametrize("width", [3, 9])
+@pytest.mark.parametrize("width", [3, 5, 9])
 def test_stripe_accuracy_curved(width):
-    """Closed circle (every orientation) of radius 600 px, partly in view."""
+    """Closed circle (every orientation) of radius 70 px (uncorrected bias up to 0.05 px)."""
     rng = np.random.default_rng(300 + width)
-    dist = circle(100.3, 640.2, 600.0)
-    img = render((160, 200), dist, width, rng=rng)
+    dist = circle(100.3, 80.2, 70.0)
+    img = render((170, 210), dist, width, rng=rng)
     sp = extract_stripe(img, width_px=width)
     assert sp.n_curves == 1
     e = errors(dist, sp.uv)
     assert np.sqrt(np.mean(e**2)) <= RMS_MAX
     assert abs(e.mean()) <= BIAS_MAX
+    raw = errors(dist, extract_stripe(img, width_px=width, correct_curvature=False).uv)
+    assert raw.mean() < -0.5 * sp.sigma_px**2 / (2 * 70.0)   # the correction did something
 
 
 def test_stripe_full_circle_is_one_ordered_curve():
@@ -282,9 +284,8 @@ def test_stripe_full_circle_is_one_ordered_curve():
     step = np.linalg.norm(np.diff(sp.uv, axis=0), axis=1)
     assert np.all(step < 2.0)
     assert len(sp) >= 0.9 * 2 * np.pi * 50 / 1.2
-    # curvature bias of Gaussian smoothing is inwards, about sigma^2 / (2 r)
     e = errors(dist, sp.uv)
-    assert np.sqrt(np.mean(e**2)) < 0.05
+    assert np.sqrt(np.mean(e**2)) <= RMS_MAX
 
 
 def test_stripe_mask_and_degenerate():

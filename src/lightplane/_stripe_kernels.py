@@ -577,19 +577,25 @@ def link_points(index_map, pu, pv, su, sv, order, curve, max_gap):
                 bestd = max_gap * max_gap
                 u = pu[k]
                 v = pv[k]
-                for dv in range(-1, 2):
-                    for du in range(-1, 2):
-                        uu = u + du
-                        vv = v + dv
-                        if 0 <= uu < W and 0 <= vv < H:
-                            j = index_map[vv, uu]
-                            if j >= 0 and not visited[j]:
-                                ddu = su[vv, uu] - su[v, u]
-                                ddv = sv[vv, uu] - sv[v, u]
-                                d = ddu * ddu + ddv * ddv
-                                if d <= bestd:
-                                    bestd = d
-                                    best = j
+                # 8-neighbours first; bridge one missing pixel (5 x 5) only when none
+                for rad in range(1, 3):
+                    for dv in range(-rad, rad + 1):
+                        for du in range(-rad, rad + 1):
+                            if max(abs(du), abs(dv)) != rad:
+                                continue
+                            uu = u + du
+                            vv = v + dv
+                            if 0 <= uu < W and 0 <= vv < H:
+                                j = index_map[vv, uu]
+                                if j >= 0 and not visited[j]:
+                                    ddu = su[vv, uu] - su[v, u]
+                                    ddv = sv[vv, uu] - sv[v, u]
+                                    d = ddu * ddu + ddv * ddv
+                                    if d <= bestd:
+                                        bestd = d
+                                        best = j
+                    if best >= 0:
+                        break
                 if best < 0:
                     break
                 k = best

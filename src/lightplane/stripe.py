@@ -33,6 +33,16 @@ solve the cubic Hermite interpolant of ``g`` and its slope ``n . H e`` there
 so each crossing is reported once; the Hessian still decides where a ridge is, its
 normal and its strength, as in Steger's method.
 
+Curvature
+---------
+Smoothing a ridge that curves with radius ``rho`` moves its maximum inwards by
+``sigma^2 / (2 rho)`` (heat equation to first order: ``r = P + (sigma^2/2) P'/rho``);
+0.04 px for a 9 px stripe of radius 80 px.  Both functions remove it by default
+(``correct_curvature``), with the curvature measured on the linked centres
+(sagitta of the chord ``+-4 sigma`` along the curve) and ``sigma^2 + 1/12``
+(the pixel's own variance); what remains is below 0.005 px for radii >= 40 px
+in the tests.
+
 Bias of asymmetric stripes (Steger 1998, "An unbiased detector of curvilinear
 structures", IEEE TPAMI 20(2), §4)
 ----------------------------------------------------------------------------
@@ -312,7 +322,7 @@ def _profile_numba(A, w0, w1, w2, params):
 def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float | None = None,
                     channel: str | None = None, roi=None, min_peak: float | None = None,
                     max_width_px: float | None = None, sigma_px: float | None = None,
-                    continuity: bool = True, min_cos: float = 0.3,
+                    continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
                     backend: str = "numba") -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
@@ -339,6 +349,9 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     sigma_px : Gaussian scale; default :func:`sigma_for_width`.
     min_cos : lines where the stripe normal makes ``|n . line direction| < min_cos``
         are invalid (the stripe runs along them).
+    correct_curvature : remove the inward shift of curved stripes (see
+        :func:`extract_stripe`), curvature from the centres ``4 sigma`` lines away
+        (only where both are valid).
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
 
     Returns
@@ -401,6 +414,9 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         uv[:, 1] = np.where(valid, lines, np.nan)
         nrm[:, 0] = normal[:, 1]
         nrm[:, 1] = normal[:, 0]
+    if correct_curvature:
+        uv = _profile_curvature(uv, nrm, valid, sigma, max(5, int(math.ceil(4.0 * sigma))),
+                                1 if axis == "columns" else 0)
     return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
                          normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
                          width_px=float(w))
@@ -439,7 +455,8 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
                    channel: str | None = None, sigma_px: float | None = None,
                    low: float | None = None, high: float | None = None,
                    min_contrast: float | None = None, min_length: int = 5,
-                   border_px: int | None = None, correct_asymmetry: bool = False) -> StripePoints:
+                   border_px: int | None = None, correct_asymmetry: bool = False,
+                   correct_curvature: bool = True) -> StripePoints:
     """Centre points of all bright lines (Steger's method), linked into ordered curves.
 
     Five Gaussian-derivative images (``cv2.sepFilter2D``, pixel-integrated Gaussian
@@ -466,6 +483,8 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
         replicated border biases the derivatives; default ``ceil(2 sigma)``.
     correct_asymmetry : remove the bar-model bias of stripes on asymmetric
         backgrounds (module docstring).
+    correct_curvature : remove the inward shift ``sigma^2 kappa / 2`` of curved
+        stripes (module docstring), ``kappa`` from the linked curve.
 
     Returns
     -------
@@ -537,7 +556,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     index_map.ravel()[pix] = np.arange(N)
     order = np.empty(N, np.int64)
     curve = np.empty(N, np.int64)
-    K.link_points(index_map, pu, pv, su, sv, order, curve, 2.0)
+    K.link_points(index_map, pu, pv, su, sv, order, curve, 2.9)
     uv = np.column_stack([su.ravel()[pix], sv.ravel()[pix]]).astype(np.float64)[order]
     nrm = np.column_stack([snu.ravel()[pix], snv.ravel()[pix]]).astype(np.float64)[order]
     st = st[order].astype(np.float64)
@@ -554,8 +573,74 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     K.normal_profiles(gray, uv, nrm, 1.5 * w + 3.0 + 2.0 * sigma, 0.25, width, bg)
     if correct_asymmetry:
         uv = _correct_asymmetry(gray, uv, nrm, width, bg, sigma)
+    if correct_curvature:
+        uv = _correct_curvature(uv, nrm, cid, sigma)
     return StripePoints(uv=uv, normals=nrm, strength=st, width=width, curve_id=cid.astype(np.int64),
                         sigma_px=float(sigma), meta=meta)
+
+
+CURVATURE_SIGMA2_EXTRA = 1.0 / 12.0
+
+
+def _curvature_vectors(uv: np.ndarray, starts: np.ndarray, ends: np.ndarray, m: int) -> np.ndarray:
+    """Curvature vector (towards the centre of curvature, length kappa, 1/px) of ordered curves.
+
+    From the sagitta of the chord between the points ``m`` before and after:
+    ``kappa_vec = 8 ((a + c) / 2 - b) / |c - a|^2``; points within ``m`` of a curve's
+    end take the value of the nearest point that has both neighbours; curves with
+    fewer than ``2 m + 1`` points get 0.
+    """
+    N = uv.shape[0]
+    out = np.zeros((N, 2))
+    idx = np.arange(N)
+    for s0, e0 in zip(starts, ends):
+        n = e0 - s0
+        if n < 2 * m + 1:
+            continue
+        j = np.clip(idx[s0:e0], s0 + m, e0 - 1 - m)
+        a, b, c = uv[j - m], uv[j], uv[j + m]
+        L2 = np.sum((c - a) ** 2, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kv = 8.0 * (0.5 * (a + c) - b) / L2[:, None]
+        out[s0:e0] = np.where(np.isfinite(kv), kv, 0.0)
+    return out
+
+
+def _profile_curvature(uv, nrm, valid, sigma, m, k):
+    """:func:`_correct_curvature` for a profile: neighbours ``m`` lines before and after.
+
+    The shift ``delta`` along the normal is applied along the line (coordinate ``k``,
+    ``delta / n_k``), so the centre stays on its column (row).
+    """
+    L = uv.shape[0]
+    if L < 2 * m + 1:
+        return uv
+    i = np.arange(m, L - m)
+    ok = valid[i] & valid[i - m] & valid[i + m]
+    a, b, c = uv[i - m], uv[i], uv[i + m]
+    L2 = np.sum((c - a) ** 2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kn = np.sum(8.0 * (0.5 * (a + c) - b) * nrm[i], axis=1) / L2
+    kn = np.where(ok & np.isfinite(kn), kn, 0.0)
+    out = uv.copy()
+    out[i, k] -= 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA) * kn / nrm[i, k]
+    return out
+
+
+def _correct_curvature(uv, nrm, cid, sigma):
+    """Undo the inward shift ``(sigma^2 + 1/12) kappa / 2`` of Gaussian smoothing on curved lines.
+
+    Smoothing a curved ridge of radius ``rho`` (heat equation to first order:
+    ``r = P + (sigma^2 / 2) P' / rho``) moves its maximum ``sigma^2 / (2 rho)``
+    towards the centre of curvature; 1/12 px^2 is the pixel's own variance.
+    """
+    change = np.flatnonzero(np.diff(cid)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [cid.size]])
+    m = max(5, int(math.ceil(4.0 * sigma)))
+    kv = _curvature_vectors(uv, starts, ends, m)
+    shift = 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA) * np.sum(kv * nrm, axis=1)
+    return uv - shift[:, None] * nrm
 
 
 def _correct_asymmetry(gray, uv, nrm, width, bg, sigma):
