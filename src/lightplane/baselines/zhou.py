@@ -304,6 +304,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
         # ridges too.  A white top-hat narrower than a square removes them and keeps
         # the (much narrower) stripe.
         img = to_gray_float(image, channel)
+        raw = img
         if corners_uv is not None:
             spacing = float(np.median(np.linalg.norm(np.diff(corners_uv.reshape(-1, 2), axis=0), axis=1)))
             k = int(max(5, round(0.35 * spacing))) | 1
@@ -313,7 +314,14 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
     if len(uv):
         ij = np.clip(np.round(uv).astype(int), 0, [mask.shape[1] - 1, mask.shape[0] - 1])
-        uv = uv[mask[ij[:, 1], ij[:, 0]] > 0]
+        keep = mask[ij[:, 1], ij[:, 0]] > 0
+        if background is None:
+            # without a laser-off frame, trust only centres brighter than the white squares
+            # (the 90th percentile of the board area): square corners survive the top-hat, and
+            # centres on dark squares sit next to reflectance edges that bias them
+            white = float(np.percentile(raw[mask > 0], 90))
+            keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
+        uv = uv[keep]
     spacing = None
     if corners_uv is not None:
         grid = corners_uv.reshape(-1, 2)

@@ -70,21 +70,22 @@ def evaluate_cmd(
                              channel=channel, lines=lines, corners_used=corners_used,
                              progress=lambda i: bar.update(task, completed=i + 1))
 
-    t = Table(title="Cross-ratio evaluation (paper Table 2 layout; mm)", show_edge=False)
-    t.add_column("No.", justify="right")
-    t.add_column("image")
-    t.add_column("pair", justify="right")
-    t.add_column("dt (mm)", justify="right")
-    for lab in labels:
-        t.add_column(f"dm {lab} (mm)", justify="right")
-    for lab in labels:
-        t.add_column(f"Δ {lab} (mm)", justify="right")
+    # the paper's Table 2: dm1, dm2, ... and Δ(dt, dm1), ... ; short headers keep it within 80 columns
+    t = Table(title="Cross-ratio evaluation, paper Table 2 layout (all distances in mm)", show_edge=False)
+    for c in ("No.", "image", "pair", "dt"):
+        t.add_column(c, justify="left" if c == "image" else "right")
+    for k in range(len(labels)):
+        t.add_column(f"dm{k + 1}", justify="right")
+    for k in range(len(labels)):
+        t.add_column(f"Δ{k + 1}", justify="right")
     for k, (i, j) in enumerate(ev.pairs):
-        t.add_row(str(k + 1), Path(files[ev.view_index[i]]).name, f"{i + 1}–{j + 1}", f"{ev.errors[0].dt_mm[k]:.3f}",
+        t.add_row(str(k + 1), Path(files[ev.view_index[i]]).stem, f"{i + 1}-{j + 1}", f"{ev.errors[0].dt_mm[k]:.3f}",
                   *[f"{e.dm_mm[k]:.3f}" for e in ev.errors], *[f"{e.delta_mm[k]:+.3f}" for e in ev.errors])
     t.add_section()
     t.add_row("RMS", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.3f}" for e in ev.errors])
     console.print(t)
+    for k, (lab, p) in enumerate(zip(labels, plane)):
+        console.print(f"  dm{k + 1}, Δ{k + 1} = dt - dm{k + 1}: {p}")
     console.print(f"{len(ev.ideal_board_mm)} stripe crossings in {len(set(ev.view_index.tolist()))} of {len(files)} "
                   f"images, {len(ev.pairs)} pairs (each image's first crossing with the others)")
     for lab, e, pe in zip(labels, ev.errors, ev.point_error_mm):
