@@ -184,6 +184,9 @@ class _Problem:
         self.rim_A = _pixel_jacobian_inv_t(camera, rxy)
         self.st_A = _pixel_jacobian_inv_t(camera, sxy)
         self.m_rim = len(rxy)
+        rb = np.cumsum([0] + [len(a) for a in rims])
+        sb = np.cumsum([0] + [len(a) for a in stripes])
+        self.slices = [(rb[i], rb[i + 1], sb[i], sb[i + 1]) for i in range(n)]  # rows per placement
         self.m = len(rxy) + len(sxy)
         self.p = 3 + 5 * n
         # tangent bases at the start values
@@ -237,7 +240,8 @@ class _Problem:
         r = np.concatenate([r_rim, r_st])
         J = None
         if want_jac:
-            J = np.zeros((self.m, self.p))
+            # block-local Jacobian: rim rows depend on their pose only (5 columns),
+            # stripe rows on the plane (3) and their pose (5)
             # rim: dr = (df − r dG) / G, dG = 2 ũᵀ dq, ũ = Aᵀ g2 / |g2|
             u2 = np.einsum("ikj,ik->ij", self.rim_A, g2) / gn[:, None]
             ut = np.column_stack([u2, np.zeros(len(u2))])
@@ -254,23 +258,18 @@ class _Problem:
             dr_dC = (df_dC - (r_rim * 2)[:, None] * uq_dC) / G[:, None]
             dr_dN = (df_dN - (r_rim * 2)[:, None] * uq_dN) / G[:, None]
             dr_db = np.einsum("ij,ijk->ik", dr_dN, dN[self.rim_idx])
-            rows = np.arange(self.m_rim)[:, None]
-            cols = 3 + 5 * self.rim_idx[:, None] + np.arange(5)[None, :]
-            J[rows, cols] = np.column_stack([dr_dC, dr_db])
+            J_rim = np.column_stack([dr_dC, dr_db])
             # stripe: dr = zᵀ dm, z = (x̃ − r ṽ) / Gs, ṽ = Aᵀ gm / Gs
             v2 = np.einsum("ikj,ik->ij", self.st_A, gm) / Gs[:, None]
             vt = np.column_stack([v2, np.zeros(len(v2))])
             z = (xs - r_st[:, None] * vt) / Gs[:, None]
             zn = z @ nvec
             J_n = h[:, None] * z  # dm/dn = h I
-            rs = np.arange(self.m_rim, self.m)
-            J[rs, 0:2] = J_n @ dn
-            J[rs, 2] = -np.einsum("ij,ij->i", z, Ns)  # dm/dd = −N
+            J_st_plane = np.column_stack([J_n @ dn, -np.einsum("ij,ij->i", z, Ns)])  # dm/dd = −N
             dr_dN_s = -zn[:, None] * Cs - d * z  # dm/dN = −n Cᵀ − d I
             dr_dC_s = -zn[:, None] * Ns  # dm/dC = −n Nᵀ
             dr_db_s = np.einsum("ij,ijk->ik", dr_dN_s, dN[self.st_idx])
-            cols = 3 + 5 * self.st_idx[:, None] + np.arange(5)[None, :]
-            J[rs[:, None], cols] = np.column_stack([dr_dC_s, dr_db_s])
+            J = (J_rim, J_st_plane, np.column_stack([dr_dC_s, dr_db_s]))
         self._cache_x = x.copy()
         self._cache_r = r
         self._cache_J = J
@@ -279,12 +278,40 @@ class _Problem:
     def residuals(self, x):
         return self.evaluate(x, want_jac=False)[0]
 
-    def jacobian(self, x):
-        return self.evaluate(x, want_jac=True)[1]
+    def dense_jacobian(self, x) -> np.ndarray:
+        """(m, p) Jacobian as a dense matrix (for checks; the solver uses the blocks)."""
+        J_rim, J_sp, J_spose = self.evaluate(x, want_jac=True)[1]
+        J = np.zeros((self.m, self.p))
+        J[np.arange(self.m_rim)[:, None], 3 + 5 * self.rim_idx[:, None] + np.arange(5)] = J_rim
+        rs = np.arange(self.m_rim, self.m)
+        J[rs, :3] = J_sp
+        J[rs[:, None], 3 + 5 * self.st_idx[:, None] + np.arange(5)] = J_spose
+        return J
 
-    def covariance(self, J: np.ndarray, sigma: float) -> np.ndarray:
-        """``sigma² (JᵀJ)⁻¹`` over the minimal parameters (Jacobi-scaled for conditioning)."""
-        H = J.T @ J
+    def normal_equations(self, r: np.ndarray, Jb) -> tuple[np.ndarray, np.ndarray]:
+        """``(JᵀJ, Jᵀr)`` from the block-local Jacobian, placement by placement.
+
+        Avoids the dense (m, p) product (mostly zeros; and multi-threaded BLAS on a
+        tall matrix is slow on a busy machine).
+        """
+        J_rim, J_sp, J_spose = Jb
+        r_rim, r_st = r[: self.m_rim], r[self.m_rim:]
+        H = np.zeros((self.p, self.p))
+        g = np.zeros(self.p)
+        H[:3, :3] = J_sp.T @ J_sp
+        g[:3] = J_sp.T @ r_st
+        for i, (a, b, c, e) in enumerate(self.slices):
+            sl = slice(3 + 5 * i, 8 + 5 * i)
+            Jr, Jp, Jq = J_rim[a:b], J_sp[c:e], J_spose[c:e]
+            H[sl, sl] = Jr.T @ Jr + Jq.T @ Jq
+            H[:3, sl] = Jp.T @ Jq
+            H[sl, :3] = H[:3, sl].T
+            g[sl] = Jr.T @ r_rim[a:b] + Jq.T @ r_st[c:e]
+        return H, g
+
+    @staticmethod
+    def covariance(H: np.ndarray, sigma: float) -> np.ndarray:
+        """``sigma² (JᵀJ)⁻¹`` over the minimal parameters from ``H = JᵀJ`` (Jacobi-scaled)."""
         scale = np.sqrt(np.diag(H))
         if np.any(scale == 0):
             raise LightplaneError("refine_ml: a parameter is not constrained by any point (degenerate geometry)")
@@ -314,8 +341,7 @@ def _levenberg_marquardt(prob: "_Problem", x0: np.ndarray, max_iter: int = 100) 
     lam = 1e-4
     nfev = 1
     for _ in range(max_iter):
-        H = J.T @ J
-        g = J.T @ r
+        H, g = prob.normal_equations(r, J)
         dH = np.diag(H).copy()
         dH[dH == 0] = 1.0
         for _attempt in range(12):
@@ -417,10 +443,10 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     if prob.m <= prob.p:
         raise LightplaneError(f"refine_ml: {prob.m} points cannot determine {prob.p} parameters")
     x, nfev, converged = _levenberg_marquardt(prob, prob.x0, max_iter=max_iter)
-    r, J = prob.evaluate(x, want_jac=True)
+    r, Jb = prob.evaluate(x, want_jac=True)
     dof = prob.m - prob.p
     sigma = float(np.sqrt(np.sum(r**2) / dof))
-    cov = prob.covariance(J, sigma if sigma > 0 else 0.0)
+    cov = prob.covariance(prob.normal_equations(r, Jb)[0], sigma)
     nvec, dn, d, C, N, dN = prob.unpack(x)
     G = plane_param_jacobian(dn)
     cov4 = G @ cov[:3, :3] @ G.T
@@ -515,8 +541,8 @@ def crlb(camera: Camera, radius_mm: float, placements_true: Sequence[Any], plane
     rims = [o[0] for o in observations]
     stripes = [o[1] for o in observations]
     prob = _Problem(camera, radius_mm, rims, stripes, plane_true, list(placements_true))
-    _, J = prob.evaluate(prob.x0, want_jac=True)
-    cov = prob.covariance(J, 1.0) * sigma_px**2
+    r, Jb = prob.evaluate(prob.x0, want_jac=True)
+    cov = prob.covariance(prob.normal_equations(r, Jb)[0], 1.0) * sigma_px**2
     _, dn, *_ = prob.unpack(prob.x0)
     G = plane_param_jacobian(dn)
     return G @ cov[:3, :3] @ G.T
