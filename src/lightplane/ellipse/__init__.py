@@ -12,7 +12,9 @@ from .metrics import MatchCounts, ellipse_iou, match_ellipses, read_ellipse_labe
 from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
 from .refine import RefinedEllipse, fit_conic_robust, refine_ellipse
 from .synthetic import render_ellipses
+from .target import StripeCrossing, TargetSelection, expected_axis_range_px, select_target, stripe_crossing
 
 __all__ = ["Ellipse", "detect_ellipses", "refine_ellipse", "RefinedEllipse", "fit_conic_robust",
            "ellipse_iou", "match_ellipses", "read_ellipse_labels", "MatchCounts",
-           "fit_ellipse_direct", "fit_ellipse_geometric", "sampson_distance", "render_ellipses"]
+           "fit_ellipse_direct", "fit_ellipse_geometric", "sampson_distance", "render_ellipses",
+           "select_target", "TargetSelection", "stripe_crossing", "StripeCrossing", "expected_axis_range_px"]

@@ -146,7 +146,12 @@ def arc_groups(segs: np.ndarray, *, max_turn_rad: float = math.radians(60),
             chain = [s0]
             seen[s0] = True
             j = succ[s0]
+            total = 0.0
             while j >= 0 and not seen[j]:
+                # a convex closed curve turns by 2 pi: a chain that turns further has left it
+                total += abs(math.atan2(d[chain[-1], 0] * d[j, 1] - d[chain[-1], 1] * d[j, 0], d[chain[-1]] @ d[j]))
+                if total > 2 * math.pi:
+                    break
                 chain.append(j)
                 seen[j] = True
                 j = succ[j]
@@ -241,8 +246,14 @@ def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], 
     for g in G:
         if g.span >= math.radians(70) and len(g.pts) >= 6:
             e = _fit_candidate(g.pts, min_axis_px, max_axis_px)
-            if e is not None and np.mean(np.abs(_param_distance(e, g.pts))) < 1.0:
-                cands.append((*e, g.sign))
+            if e is not None:
+                r = np.abs(_param_distance(e, g.pts))
+                if np.mean(r) >= 1.0:  # one robust pass: drop stray points (e.g. a stripe's edge)
+                    keep = r < max(1.5, 2 * np.median(r))
+                    e = _fit_candidate(g.pts[keep], min_axis_px, max_axis_px) if keep.mean() >= 0.7 else None
+                    r = np.abs(_param_distance(e, g.pts[keep])) if e is not None else None
+                if e is not None and np.mean(r) < 1.0:
+                    cands.append((*e, g.sign))
     # global: pairs of groups under polarity and region conditions
     m = len(G)
     if m >= 2:
@@ -561,27 +572,60 @@ def _iou_approx(e1: Ellipse, e2: Ellipse, n: int = 24) -> float:
 # public entry point
 # --------------------------------------------------------------------------
 
+def _detect_arrays(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: float, pol: int,
+                   min_inlier_ratio: float, min_coverage: float, use_contours: bool,
+                   lsd_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Stages 1–5 on one 8-bit image: ``(P (K, 5), S (K,), inlier ratio (K,), coverage (K,))``."""
+    grad = gradients(gray8.astype(np.float32), 0.8, with_magnitude=False)
+    segs = arc_support_segments(gray8, grad, lsd_scale=lsd_scale)
+    groups = arc_groups(segs)
+    cands = _initial_candidates(segs, groups, min_axis_px=min_axis_px, max_axis_px=max_axis_px,
+                                polarity=pol, shape=gray8.shape)
+    if use_contours:
+        cands += _contour_candidates(gray8, min_axis_px=min_axis_px, max_axis_px=max_axis_px, polarity=pol)
+    P0, S0 = cluster_candidates(cands)
+    empty = (np.zeros((0, 5)), np.zeros(0, int), np.zeros(0), np.zeros(0))
+    if len(P0) == 0:
+        return empty
+    P1, ok = _refit_batch(grad, P0, S0, min_mag=3.0)
+    ok &= (P1[:, 3] >= min_axis_px) & (P1[:, 2] <= max_axis_px)
+    P1, S1 = P1[ok], S0[ok]
+    if len(P1) == 0:
+        return empty
+    ratio, cov = _support_batch(grad, _edge_map(gray8), P1, S1)
+    good = (ratio >= min_inlier_ratio) & (cov >= min_coverage)
+    return P1[good], S1[good], ratio[good], cov[good]
+
+
 def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px: float | None = None,
                     max_count: int | None = None, polarity: str | int | None = None,
                     min_inlier_ratio: float = 0.7, min_coverage: float = 0.7,
-                    use_contours: bool = True, lsd_scale: float | None = None) -> list[Ellipse]:
+                    use_contours: bool | None = None, downscale: int | None = None,
+                    lsd_scale: float = 0.8) -> list[Ellipse]:
     """Detect ellipses in a gray or colour, 8-/16-bit/float image (SPEC §5.1, RALS).
 
     Parameters
     ----------
     image : (H, W) or (H, W, 3) array.
-    min_axis_px, max_axis_px : range of the semi-axes (px); ``max_axis_px`` defaults to
-        half the image's smaller side.
+    min_axis_px, max_axis_px : range of the semi-axes (px), the minor one >= ``min_axis_px``;
+        ``max_axis_px`` defaults to half the image's smaller side.
     max_count : keep at most this many (best scores first).
     polarity : ``"dark"`` (interior darker than the surround), ``"light"``, or None (both).
     min_inlier_ratio, min_coverage : verification thresholds (Lu §III-E).
-    use_contours : add adaptive-threshold contour candidates (small ellipses).
-    lsd_scale : LSD's image scale (default 0.8; 0.5 when ``min_axis_px >= 15`` for speed).
+    use_contours : add adaptive-threshold contour candidates; default: only when
+        ``min_axis_px < 12`` (LSD misses ellipses a few pixels across).
+    downscale : run the pipeline on an image reduced by this integer factor (area
+        averaging) and scale the ellipses back; default ``2**floor(log2(min_axis_px / 10))``
+        clipped to [1, 4] — large targets need no full-resolution search, and
+        :func:`refine_ellipse` does the metrology at full resolution.
+    lsd_scale : LSD's own image scale (OpenCV default 0.8).
 
     Returns a list of :class:`Ellipse` sorted by decreasing score (inlier ratio x
     coverage); empty for blank, noise-only or tiny images.  Each ellipse carries the
-    polarity it was verified with.
+    polarity it was verified with (+1 interior brighter, -1 darker).
     """
+    import cv2
+
     if polarity not in _POLARITY:
         raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")
     pol = _POLARITY[polarity]
@@ -592,38 +636,35 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     if max_axis_px is None:
         max_axis_px = 0.5 * min(h, w)
     min_axis_px = max(float(min_axis_px), 1.0)
-    if max_axis_px < min_axis_px:
+    if not (math.isfinite(min_axis_px) and max_axis_px >= min_axis_px):
         raise LightplaneError(f"max_axis_px ({max_axis_px}) must be >= min_axis_px ({min_axis_px})")
+    if use_contours is None:
+        use_contours = min_axis_px < 12
+    if downscale is None:
+        downscale = int(2 ** np.clip(math.floor(math.log2(max(min_axis_px / 10.0, 1.0))), 0, 2))
+    f = max(int(downscale), 1)
+    if min(h, w) // f < 16:
+        f = 1
     gray8 = to_uint8(gray)
     if int(gray8.max()) - int(gray8.min()) < 8:
         return []
-    g8f = gray8.astype(np.float32)
-    grad = gradients(g8f, 1.0)
-    if lsd_scale is None:
-        lsd_scale = 0.5 if min_axis_px >= 15 else 0.8
-    segs = arc_support_segments(gray8, grad, lsd_scale=lsd_scale)
-    groups = arc_groups(segs)
-    cands = _initial_candidates(segs, groups, min_axis_px=min_axis_px, max_axis_px=max_axis_px,
-                                polarity=pol, shape=(h, w))
-    if use_contours:
-        cands += _contour_candidates(gray8, min_axis_px=min_axis_px, max_axis_px=max_axis_px, polarity=pol)
-    clusters = cluster_candidates(cands)
-    edges = _edge_map(gray8)
-    grad_fine = gradients(g8f, 0.7)
+    if f > 1:
+        gray8 = cv2.resize(gray8, (w // f, h // f), interpolation=cv2.INTER_AREA)
+    P, S, ratio, cov = _detect_arrays(gray8, min_axis_px=min_axis_px / f, max_axis_px=max_axis_px / f, pol=pol,
+                                      min_inlier_ratio=min_inlier_ratio, min_coverage=min_coverage,
+                                      use_contours=use_contours, lsd_scale=lsd_scale)
+    if f > 1:  # pixel centres: u_full = f * (u_small + 0.5) - 0.5
+        P = P.copy()
+        P[:, :2] = f * (P[:, :2] + 0.5) - 0.5
+        P[:, 2:4] *= f
     found: list[Ellipse] = []
-    P0, S0 = clusters
-    if len(P0):
-        P1, ok = _refit_batch(grad_fine, P0, S0, min_mag=3.0)
-        ok &= (P1[:, 3] >= min_axis_px) & (P1[:, 2] <= max_axis_px)
-        P1, S1 = P1[ok], S0[ok]
-        ratio, cov = _support_batch(grad, edges, P1, S1)
-        for k in np.nonzero((ratio >= min_inlier_ratio) & (cov >= min_coverage))[0]:
-            try:
-                found.append(Ellipse.from_params(P1[k, :2], P1[k, 2], P1[k, 3], P1[k, 4],
-                                                 score=float(ratio[k] * cov[k]), inlier_ratio=float(ratio[k]),
-                                                 coverage=float(cov[k]), polarity=int(S1[k])))
-            except LightplaneError:
-                continue
+    for k in range(len(P)):
+        try:
+            found.append(Ellipse.from_params(P[k, :2], P[k, 2], P[k, 3], P[k, 4],
+                                             score=float(ratio[k] * cov[k]), inlier_ratio=float(ratio[k]),
+                                             coverage=float(cov[k]), polarity=int(S[k])))
+        except LightplaneError:
+            continue
     # final non-maximum suppression: duplicates that survived clustering
     found.sort(key=lambda e: (-e.score, -e.a))
     kept: list[Ellipse] = []

@@ -66,10 +66,10 @@ class Gradients:
 
     gx: np.ndarray
     gy: np.ndarray
-    mag: np.ndarray
+    mag: np.ndarray | None
 
 
-def gradients(gray: np.ndarray, sigma_px: float = 1.0) -> Gradients:
+def gradients(gray: np.ndarray, sigma_px: float = 1.0, *, with_magnitude: bool = True) -> Gradients:
     """Gaussian pre-smoothing (``sigma_px``, 0 for none) then central-difference gradients."""
     import cv2
 
@@ -79,7 +79,7 @@ def gradients(gray: np.ndarray, sigma_px: float = 1.0) -> Gradients:
     kx = np.array([[-0.5, 0.0, 0.5]], np.float32)
     gx = cv2.filter2D(g, cv2.CV_32F, kx, borderType=cv2.BORDER_REFLECT)
     gy = cv2.filter2D(g, cv2.CV_32F, kx.T, borderType=cv2.BORDER_REFLECT)
-    return Gradients(gx, gy, cv2.magnitude(gx, gy))
+    return Gradients(gx, gy, cv2.magnitude(gx, gy) if with_magnitude else None)
 
 
 def _remap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
