@@ -62,7 +62,7 @@ def simulate_cmd(
 
     for f, res in results.items():
         spec = res.factor
-        t = Table(title=f"{f}: RMS normal angle error (deg) [failed trials]", show_edge=False)
+        t = Table(title=f"{f}: RMS normal angle error (deg), failed trials in brackets", show_edge=False)
         t.add_column(spec.label)
         for m in ("paper", "global", "ml", "crlb"):
             t.add_column("Cramér–Rao bound" if m == "crlb" else m, justify="right")
@@ -72,7 +72,7 @@ def simulate_cmd(
                 row = next(r for r in res.rows if r["level"] == level and r["method"] == m)
                 txt = f"{row['angle_deg']:.3g}"
                 if m != "crlb" and row["failed"]:
-                    txt += f" [{row['failed']}]"
+                    txt += f" \\[{row['failed']}]"
                 cells.append(txt)
             t.add_row(f"{level:g}", *cells)
         console.print(t)

@@ -13,7 +13,8 @@ Factors (the paper's ranges):
 - ``noise``: sigma 0–1 px in steps of 0.1, D = 50 mm, 2 placements;
 - ``diameter``: D = 10–70 mm in steps of 10, sigma 0.6 px, 2 placements.
 
-For every level and trial, fresh random placements (seeded per level and trial, so
+For every trial, random placements (the same at every level of a factor, so the curves
+show the factor's effect rather than fresh geometry; noise drawn per level and trial;
 results do not depend on the order of evaluation) are calibrated with the ``paper``,
 ``global`` and ``ml`` methods of :func:`lightplane.plane.calibrate_plane_from_points`
 (``min_placements=2, strict=False``: the paper's two-placement runs resolve the
@@ -148,7 +149,9 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     trials : int
         Random trials per level (fresh placements and noise each).
     seed : int
-        Trial ``t`` of level ``k`` uses ``default_rng([seed, factor index, k, t])``.
+        Trial ``t`` draws its placements from ``default_rng([seed, factor index, t])``
+        (the same at every level: common random numbers) and its noise from
+        ``default_rng([seed, factor index, t, k + 1])`` at level ``k``.
     n_rim, n_stripe : int
         Points per placement on the rim and on the stripe.
     camera, plane
@@ -181,9 +184,14 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
         failed = {m: 0 for m in methods}
         bounds = []
         for t in range(int(trials)):
-            rng = np.random.default_rng([int(seed), f_index, k, t])
-            placements = sample_placements(n_pl, rng, camera=camera, plane=plane, diameter_mm=diam,
-                                           distance_mm=PAPER_DISTANCE_MM)
+            # common random numbers: trial t draws its placements from the same stream at
+            # every level (the first n of them for the placements factor), so the curves
+            # show the factor's effect, not a fresh draw of geometry at each level
+            rng_geo = np.random.default_rng([int(seed), f_index, t])
+            rng = np.random.default_rng([int(seed), f_index, t, k + 1])
+            n_draw = max(spec.levels) if spec.variable == "n_placements" else n_pl
+            placements = sample_placements(n_draw, rng_geo, camera=camera, plane=plane, diameter_mm=diam,
+                                           distance_mm=PAPER_DISTANCE_MM)[:n_pl]
             obs = [synthetic_observations(camera, plane, p, n_rim=n_rim, n_stripe=n_stripe, sigma_px=sigma, rng=rng)
                    for p in placements]
             rims = [o[0] for o in obs]
