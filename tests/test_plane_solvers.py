@@ -316,3 +316,17 @@ def test_non_strict_keeps_undecided_placements_with_a_warning():
     assert loose.placements[4].used and "undecided" in loose.placements[4].reason
     assert any("undecided" in w for w in loose.warnings)
     assert _angle(loose.plane, plane) < np.deg2rad(0.05)
+
+
+def test_paper_stopping_rule_and_reasons():
+    rng = np.random.default_rng(115)
+    cam, plane, ps, rims, stripes = _scene(10, rng, sigma_px=0.1)
+    res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="paper")
+    used = [p for p in res.placements if p.used]
+    assert 3 <= len(used) < 10  # the 0.1 % rule stops early: ||Δ(a,b,c,d)|| is dominated by d (~190 mm)
+    assert all("converged" in p.reason for p in res.placements if not p.used)
+    every = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="paper", paper_rel_change=0.0)
+    assert every.n_used == 10 and every.iterations == 10
+    assert _true_candidates_chosen(every, ps, 1.0)
+    # more chords, better plane (on average; here with 10 vs few placements)
+    assert _angle(every.plane, plane) < np.deg2rad(0.05)
