@@ -100,11 +100,13 @@ def clean_pinhole_render():
     plane = default_plane()
     tp = sample_placements(1, np.random.default_rng(5), camera=cam, plane=plane)[0]
     img = render_circle_image(cam, plane, tp, np.random.default_rng(1), "clean", "light", noise=False)
-    return cam, plane, tp, img
+    # the same scene, laser off: the stripe's light (wide where the sheet grazes a surface) off the rim
+    dark = render_circle_image(cam, plane, tp, np.random.default_rng(1), "clean", "light", noise=False, laser=False)
+    return cam, plane, tp, img, dark
 
 
 def test_disc_edge_on_truth_conic(clean_pinhole_render):
-    cam, plane, tp, img = clean_pinhole_render
+    cam, plane, tp, _, img = clean_pinhole_render
     C = _conic_from_truth(cam, tp)
     # the conic recomputed here agrees with the one the truth file stores
     assert np.allclose(np.abs(C), np.abs(tp.conic(cam)), atol=1e-12)
@@ -116,8 +118,41 @@ def test_disc_edge_on_truth_conic(clean_pinhole_render):
 
 
 def test_stripe_ridge_on_truth_chord(clean_pinhole_render):
-    cam, plane, tp, img = clean_pinhole_render
+    cam, plane, tp, img, _ = clean_pinhole_render
     res = _stripe_residuals(img, cam, plane, tp, tp.chord(plane))
     print("stripe points", res.size, "rms", np.sqrt(np.mean(res**2)), "mean", res.mean(), "max", np.abs(res).max())
     assert res.size > 100
+    assert np.sqrt(np.mean(res**2)) <= 0.03
+
+
+def test_disc_edge_through_distorted_camera():
+    """Same probe on a render through the distorted camera: edge points lie on the distorted rim."""
+    cam = default_camera()
+    plane = default_plane()
+    tp = sample_placements(1, np.random.default_rng(11), camera=cam, plane=plane)[0]
+    img = render_circle_image(cam, plane, tp, np.random.default_rng(2), "clean", "light", noise=False, laser=False)
+    I = img.astype(np.float64)
+    rim = cam.project(tp.rim_points(40000))  # dense distorted rim polyline (segments ~0.04 px)
+    chord = tp.chord(plane)
+    stripe_uv = cam.project(chord[0] + np.linspace(0, 1, 200)[:, None] * (chord[1] - chord[0]))
+    res = []
+    nxt = np.roll(rim, -1, axis=0)
+    for v in range(int(rim[:, 1].min()) + 1, int(rim[:, 1].max())):
+        k = np.nonzero((rim[:, 1] - v) * (nxt[:, 1] - v) < 0)[0]
+        for i in k:
+            a, b = rim[i], nxt[i]
+            ue = a[0] + (v - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+            tangent = (b - a) / np.linalg.norm(b - a)
+            n_u = abs(tangent[1])  # |u component of the normal|
+            if n_u < 0.8 or np.min(np.hypot(*(stripe_uv - [ue, v]).T)) < 25:
+                continue
+            u0, u1 = int(round(ue)) - 5, int(round(ue)) + 5
+            left, right = I[v, u0 - 4:u0], I[v, u1 + 1:u1 + 5]
+            if np.ptp(left) > 0 or np.ptp(right) > 0:
+                continue
+            xe = u0 - 0.5 + np.sum((I[v, u0:u1 + 1] - right[0]) / (left[0] - right[0]))
+            res.append((xe - ue) * n_u)
+    res = np.array(res)
+    print("distorted edge points", res.size, "rms", np.sqrt(np.mean(res**2)), "mean", res.mean(), "max", np.abs(res).max())
+    assert res.size > 200
     assert np.sqrt(np.mean(res**2)) <= 0.03

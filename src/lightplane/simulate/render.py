@@ -233,7 +233,8 @@ def _circle_patches(placement: TargetPlacement, polarity: str, background_z_mm: 
 
 def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
                    difficulty: str, polarity: str, *, noise: bool = True, saturate: bool = False,
-                   clutter: bool | None = None, samples: int = 4, edge_samples: int = 16) -> tuple[np.ndarray, dict]:
+                   clutter: bool | None = None, laser: bool = True, samples: int = 4,
+                   edge_samples: int = 16) -> tuple[np.ndarray, dict]:
     imaging = _IMAGING[difficulty]
     levels = _LIGHT if polarity == "light" else _DARK
     bg_z = float(placement.center[2] + rng.uniform(80.0, 150.0))
@@ -248,11 +249,11 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
             items = _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity)
     jit = imaging.exposure_jitter
     ambient = levels["ambient"] * (1.0 + rng.uniform(-jit, jit))
-    power = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0)
+    power = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
     patches = _circle_patches(placement, polarity, bg_z, items)
-    laser = _laser_row(plane, imaging, power, rng)
+    laser_row = _laser_row(plane, imaging, power, rng)
     salt = int(rng.integers(0, 2**31 - 1))
-    rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
+    rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser_row, ambient,
                              samples=samples, edge_samples=edge_samples, salt=salt)
     img = _finish(rad, camera, imaging, rng, noise=noise)
     info = {
@@ -267,8 +268,8 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
 
 def render_circle_image(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
                         difficulty: str = "realistic", polarity: str = "light", *, noise: bool = True,
-                        saturate: bool = False, clutter: bool | None = None, samples: int = 4,
-                        edge_samples: int = 16) -> np.ndarray:
+                        saturate: bool = False, clutter: bool | None = None, laser: bool = True,
+                        samples: int = 4, edge_samples: int = 16) -> np.ndarray:
     """Render one image ``(H, W) uint8`` of a circular target crossed by the laser stripe.
 
     ``polarity="light"``: a light disc in front of a dark background plane (80–150 mm
@@ -277,7 +278,8 @@ def render_circle_image(camera: Camera, plane: LightPlane, placement: TargetPlac
     background).  ``noise=False`` leaves out shot and read noise (quantisation stays):
     for self-consistency checks.  ``saturate`` raises the laser power 3.5x so the
     stripe saturates on bright surfaces; ``clutter`` (default: only for ``hard``) adds
-    2–4 ellipses and rectangles.  ``samples``/``edge_samples``: S x S samples per pixel
+    2–4 ellipses and rectangles; ``laser=False`` renders the same scene with the laser
+    off (same random draws).  ``samples``/``edge_samples``: S x S samples per pixel
     (>= 4) and F x F on material edges.
     """
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
@@ -285,7 +287,7 @@ def render_circle_image(camera: Camera, plane: LightPlane, placement: TargetPlac
     if int(samples) < 4:
         raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
     img, _ = _render_circle(camera, plane, placement, rng, difficulty, polarity, noise=noise, saturate=saturate,
-                            clutter=clutter, samples=samples, edge_samples=edge_samples)
+                            clutter=clutter, laser=laser, samples=samples, edge_samples=edge_samples)
     return img
 
 
