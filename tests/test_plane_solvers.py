@@ -226,7 +226,13 @@ def test_bad_input_errors_name_the_problem():
         calibrate_plane_from_points(cam, 50.0, rims, stripes, method="magic")
     r = list(rims)
     r[1] = np.zeros((0, 2))
-    with pytest.raises(LightplaneError, match="placement 1"):
+    with pytest.raises(LightplaneError, match="placement 1: no rim points"):
+        calibrate_plane_from_points(cam, 50.0, r, stripes, method="global")
+    r[1] = []
+    with pytest.raises(LightplaneError, match="placement 1: no rim points"):
+        calibrate_plane_from_points(cam, 50.0, r, stripes, method="global")
+    r[1] = rims[1][:4]
+    with pytest.raises(LightplaneError, match="placement 1: needs at least 5 rim points"):
         calibrate_plane_from_points(cam, 50.0, r, stripes, method="global")
     r = [a.copy() for a in rims]
     r[2][5, 0] = np.nan
@@ -266,7 +272,7 @@ def test_too_few_usable_placements_names_them():
     cam, plane, ps, rims, stripes = _good()
     s = list(stripes)
     s[0] = s[0][:3]
-    s[2] = np.zeros((0, 2))
+    s[2] = []
     with pytest.raises(LightplaneError, match=r"only 2 usable placements.*placement 0.*placement 2"):
         calibrate_plane_from_points(cam, 50.0, rims, s, method="global")
 

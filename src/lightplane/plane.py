@@ -1065,8 +1065,11 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     if sigma_px is not None and not (np.isfinite(sigma_px) and sigma_px >= 0):
         raise LightplaneError(f"sigma_px must be >= 0, got {sigma_px}")
     r = 0.5 * diameter
-    rims = [as_points(a, 2, f"placement {i}: rim points") for i, a in enumerate(rims)]
-    stripes = [as_points(a, 2, f"placement {i}: stripe points") for i, a in enumerate(stripes)]
+    def _pts(a, what):
+        return np.zeros((0, 2)) if np.size(a) == 0 else as_points(a, 2, what)
+
+    rims = [_pts(a, f"placement {i}: rim points") for i, a in enumerate(rims)]
+    stripes = [_pts(a, f"placement {i}: stripe points") for i, a in enumerate(stripes)]
     for i, (rm, st) in enumerate(zip(rims, stripes)):
         if len(rm) == 0:
             raise LightplaneError(f"placement {i}: no rim points")
