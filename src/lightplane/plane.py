@@ -1112,10 +1112,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
             warnings.append("ambiguous choice of chords: " + ambiguity.message)
     used = sorted(choice)
     if len(used) < min_placements:
-        raise LightplaneError(
-            f"only {len(used)} placements could be used ({'; '.join(f'placement {i}: {reasons[i]}' for i in reasons)}), "
-            f"need at least {min_placements}"
-        )
+        why = "; ".join(f"placement {i}: {reasons[i]}" for i in sorted(reasons))
+        raise LightplaneError(f"only {len(used)} placements could be used ({why}), need at least {min_placements}")
     normals = np.array([cands[i].poses[choice[i]].normal for i in used])
     spread = float(np.degrees(np.arccos(np.clip(np.min(normals @ normals.T), -1.0, 1.0))))
     if spread <= min_normal_spread_deg and not strict:
