@@ -1,0 +1,221 @@
+"""Joint ML refinement (lightplane.refine) and point uncertainty (lightplane.uncertainty).
+
+Ground truth: lightplane's default sensor (SPEC §9) and random placements from
+lightplane.simulate.geometry; noise injected in pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lightplane import LightPlane, LightplaneError
+from lightplane.refine import _Pose, _Problem, crlb, refine_ml
+from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.uncertainty import (
+    plot_point_sigma_map,
+    point_covariance,
+    point_sigma_mm,
+    rms_point_sigma_mm,
+    rms_triangulation_error_mm,
+    working_volume_grid,
+)
+
+R_MM = 25.0
+
+
+def _angle(n1, n2) -> float:
+    """Angle between unit normals (rad), accurate for tiny angles."""
+    return float(np.arctan2(np.linalg.norm(np.cross(n1, n2)), abs(n1 @ n2)))
+
+
+def _scene(n, seed, distortion=True, n_rim=200, n_stripe=300):
+    cam = default_camera(distortion=distortion)
+    plane = default_plane()
+    rng = np.random.default_rng(seed)
+    ps = sample_placements(n, rng, camera=cam, plane=plane)
+    obs = [synthetic_observations(cam, plane, p, n_rim=n_rim, n_stripe=n_stripe) for p in ps]
+    return cam, plane, ps, obs
+
+
+def _perturbed_start(plane, ps, rng, ang=0.01, dd=3.0, dc=1.0, dn=0.01):
+    p0 = LightPlane(plane.normal + rng.normal(0, ang, 3), plane.d + dd)
+    poses0 = [_Pose(p.center + rng.normal(0, dc, 3), p.normal + rng.normal(0, dn, 3)) for p in ps]
+    return p0, poses0
+
+
+def test_jacobian_matches_finite_differences():
+    cam, plane, ps, obs = _scene(4, 1, n_rim=40, n_stripe=40)
+    rng = np.random.default_rng(2)
+    p0, poses0 = _perturbed_start(plane, ps, rng)
+    rims = [o[0] + rng.normal(0, 0.3, o[0].shape) for o in obs]
+    sts = [o[1] + rng.normal(0, 0.3, o[1].shape) for o in obs]
+    prob = _Problem(cam, R_MM, rims, sts, p0, poses0)
+    x = prob.x0 + rng.normal(0, 1e-3, prob.p)
+    J = prob.dense_jacobian(x)
+    Jn = np.zeros_like(J)
+    for k in range(prob.p):
+        h = 1e-6 * max(1.0, abs(x[k]))
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        Jn[:, k] = (prob.residuals(xp) - prob.residuals(xm)) / (2 * h)
+    # central differences: error ~ h² f''' + rounding ~1e-7 relative
+    err = np.abs(J - Jn).max(axis=0) / np.abs(J).max(axis=0)
+    assert err.max() < 1e-5, err
+
+
+def test_noise_free_recovers_truth_with_distortion():
+    cam, plane, ps, obs = _scene(12, 3)
+    p0, poses0 = _perturbed_start(plane, ps, np.random.default_rng(4))
+    res = refine_ml(cam, R_MM, [o[0] for o in obs], [o[1] for o in obs], p0, poses0)
+    assert _angle(res.plane.normal, plane.normal) < 1e-9
+    assert abs(res.plane.d - plane.d) < 1e-9 * abs(plane.d)
+    for got, p in zip(res.poses, ps):
+        assert np.linalg.norm(got.center - p.center) < 1e-9 * 500
+        assert _angle(got.normal, p.normal) < 1e-9
+        assert got.normal @ got.center < 0  # towards the camera (SPEC §2)
+    assert res.sigma_px < 1e-9
+    assert np.all(res.rim_rms_px < 1e-9) and np.all(res.stripe_rms_px < 1e-9)
+    assert res.covariance.shape == (4, 4)
+    assert res.plane.covariance is not None
+    # the covariance is rank 3: no uncertainty along the normal's length
+    assert abs(res.plane.normal @ res.covariance[:3, :3] @ res.plane.normal) <= 1e-12 * np.trace(res.covariance[:3, :3])
+
+
+def test_sigma_estimate_matches_injected_noise():
+    """sigma from the residuals (dof-corrected) estimates the injected noise; its relative
+    standard error is 1/sqrt(2 (m - p)) ~ 0.3 % here, so 3 % is > 10 standard errors."""
+    cam, plane, ps, obs = _scene(6, 5)
+    rng = np.random.default_rng(6)
+    sigma = 0.25
+    rims = [o[0] + rng.normal(0, sigma, o[0].shape) for o in obs]
+    sts = [o[1] + rng.normal(0, sigma, o[1].shape) for o in obs]
+    res = refine_ml(cam, R_MM, rims, sts, plane, ps)
+    assert abs(res.sigma_px / sigma - 1) < 0.03
+    assert np.all(np.abs(res.rim_rms_px / sigma - 1) < 0.2)
+    assert np.all(np.abs(res.stripe_rms_px / sigma - 1) < 0.2)
+
+
+def test_monte_carlo_ml_reaches_crlb_and_covariance_is_calibrated():
+    """12 placements, pinhole default sensor, sigma = 0.1 px (issue 4's "done when").
+
+    N = 60 noise trials on one fixed geometry.  The RMS over N trials of an error with
+    k >= 1 Gaussian degrees of freedom has a relative standard error <= 1/sqrt(2 N) = 9.1 %;
+    the tolerances are the target (1.15x the CRLB, predicted sigma within 15 %) widened by
+    3 standard errors (27 %), and ML cannot beat the bound by more than those 3 standard errors.
+    The 200-trial check at the nominal tolerances is benchmarks/bench_ml.py.
+    """
+    n_trials = 60
+    se3 = 3 / np.sqrt(2 * n_trials)
+    sigma = 0.1
+    cam, plane, ps, obs = _scene(12, 11, distortion=False)
+    vol = working_volume_grid(cam, plane, step_px=40.0)
+    bound = crlb(cam, R_MM, ps, plane, 200, 300, sigma)
+    bound_ang = np.sqrt(np.trace(bound[:3, :3]))
+    bound_tri = rms_point_sigma_mm(cam, plane, vol, covariance=bound)
+    rng = np.random.default_rng(12)
+    ang2, tri2, pred_ang2, pred_tri2 = [], [], [], []
+    for _ in range(n_trials):
+        rims = [o[0] + rng.normal(0, sigma, o[0].shape) for o in obs]
+        sts = [o[1] + rng.normal(0, sigma, o[1].shape) for o in obs]
+        res = refine_ml(cam, R_MM, rims, sts, plane, ps)
+        ang2.append(_angle(res.plane.normal, plane.normal) ** 2)
+        tri2.append(rms_triangulation_error_mm(cam, res.plane, plane, vol) ** 2)
+        pred_ang2.append(np.trace(res.covariance[:3, :3]))
+        pred_tri2.append(rms_point_sigma_mm(cam, res.plane, vol) ** 2)
+    rms_ang, rms_tri = np.sqrt(np.mean(ang2)), np.sqrt(np.mean(tri2))
+    ratio_ang, ratio_tri = rms_ang / bound_ang, rms_tri / bound_tri
+    assert 1 - se3 < ratio_ang < 1.15 * (1 + se3), ratio_ang
+    assert 1 - se3 < ratio_tri < 1.15 * (1 + se3), ratio_tri
+    pred_ang, pred_tri = np.sqrt(np.mean(pred_ang2)), np.sqrt(np.mean(pred_tri2))
+    assert abs(pred_ang / rms_ang - 1) < 0.15 + se3
+    assert abs(pred_tri / rms_tri - 1) < 0.15 + se3
+    # the predicted sigma is a property of the geometry: equal to the bound within a few %
+    assert abs(pred_ang / bound_ang - 1) < 0.05
+    assert abs(pred_tri / bound_tri - 1) < 0.05
+
+
+def test_crlb_scales_with_sigma_and_shrinks_with_placements():
+    cam, plane, ps, _ = _scene(8, 21)
+    c1 = crlb(cam, R_MM, ps, plane, 100, 100, 0.1)
+    c2 = crlb(cam, R_MM, ps, plane, 100, 100, 0.2)
+    np.testing.assert_allclose(c2, 4 * c1, rtol=1e-9, atol=0)
+    c_few = crlb(cam, R_MM, ps[:3], plane, 100, 100, 0.1)
+    assert np.trace(c_few[:3, :3]) > np.trace(c1[:3, :3])
+    assert c_few[3, 3] > c1[3, 3]
+
+
+def test_refine_bad_input_names_the_placement():
+    cam, plane, ps, obs = _scene(3, 31, n_rim=30, n_stripe=30)
+    rims = [o[0].copy() for o in obs]
+    sts = [o[1] for o in obs]
+    rims[1][4] = np.nan
+    with pytest.raises(LightplaneError, match="placement 1"):
+        refine_ml(cam, R_MM, rims, sts, plane, ps)
+    with pytest.raises(LightplaneError, match="radius_mm"):
+        refine_ml(cam, -1.0, [o[0] for o in obs], sts, plane, ps)
+    with pytest.raises(LightplaneError, match="one entry per placement"):
+        refine_ml(cam, R_MM, [o[0] for o in obs], sts[:2], plane, ps)
+    with pytest.raises(LightplaneError, match="rims_uv\\[0\\]"):
+        refine_ml(cam, R_MM, [np.zeros((5, 3))] + [o[0] for o in obs[1:]], sts, plane, ps)
+    with pytest.raises(LightplaneError, match="placement 2: needs at least 2 stripe"):
+        refine_ml(cam, R_MM, [o[0] for o in obs], sts[:2] + [sts[2][:1]], plane, ps)
+
+
+# ------------------------------------------------------------------ uncertainty
+def test_point_sigma_matches_sampled_plane_perturbations():
+    """First-order propagation against sampling plane errors from the covariance (errors of
+    1e-5 rad: the linearisation error is ~1e-5 relative, the sampling error 1/sqrt(2 N) ~ 0.7 %)."""
+    cam = default_camera()
+    plane = default_plane()
+    t = np.linalg.svd(plane.normal[None, :])[2][1:]  # tangent basis (2, 3)
+    G = np.zeros((4, 3))
+    G[:3, :2] = t.T
+    G[3, 2] = 1.0
+    cov3 = np.diag([1e-5, 2e-5, 0.01]) ** 2
+    cov3[0, 2] = cov3[2, 0] = 0.5 * 1e-5 * 0.01
+    cov = G @ cov3 @ G.T
+    pl = LightPlane(plane.normal, plane.d, cov)
+    vol = working_volume_grid(cam, pl, step_px=120.0)
+    s = point_sigma_mm(cam, pl, vol.uv)
+    rng = np.random.default_rng(41)
+    N = 10000
+    L = np.linalg.cholesky(cov3)
+    xy = cam.undistort_points(vol.uv, normalized=True)
+    xt = np.column_stack([xy, np.ones(len(xy))])
+    X0 = vol.points
+    err2 = np.zeros(len(xy))
+    for z in (L @ rng.normal(size=(3, N))).T:
+        n = plane.normal + t.T @ z[:2]
+        n /= np.linalg.norm(n)
+        d = plane.d + z[2]
+        X = -d * xt / (xt @ n)[:, None]
+        err2 += np.sum((X - X0) ** 2, axis=1)
+    mc = np.sqrt(err2 / N)
+    np.testing.assert_allclose(s, mc, rtol=0.03)
+    C = point_covariance(cam, pl, vol.uv)
+    assert C.shape == (len(vol.uv), 3, 3)
+    np.testing.assert_allclose(np.sqrt(np.trace(C, axis1=1, axis2=2)), s, rtol=1e-12)
+
+
+def test_point_sigma_requires_covariance_and_working_volume_checks():
+    cam, plane = default_camera(), default_plane()
+    with pytest.raises(LightplaneError, match="covariance"):
+        point_sigma_mm(cam, plane, np.array([[600.0, 400.0]]))
+    with pytest.raises(LightplaneError, match="not in view"):
+        working_volume_grid(cam, plane, distance_mm=(5000.0, 6000.0))
+    vol = working_volume_grid(cam, plane)
+    dist = np.linalg.norm(vol.points, axis=1)
+    assert np.all((dist >= 380) & (dist <= 520))
+    np.testing.assert_allclose(plane.signed_distance(vol.points), 0, atol=1e-9)
+
+
+def test_plot_point_sigma_map(tmp_path):
+    cam, plane = default_camera(), default_plane()
+    pl = LightPlane(plane.normal, plane.d, np.diag([1e-10, 1e-10, 1e-10, 1e-4]))
+    out = tmp_path / "sigma.png"
+    plot_point_sigma_map(cam, pl, out, step_px=40.0)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(LightplaneError, match="already exists"):
+        plot_point_sigma_map(cam, pl, out, step_px=40.0)
