@@ -93,14 +93,19 @@ def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, 
 
 
 def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], square_mm: float, *,
-                    name: str = "image") -> BoardPose:
+                    name: str = "image", channel: str | None = None) -> BoardPose:
     """Find the chessboard (inner corners ``board = (cols, rows)``) and solve its pose.
 
-    Raises LightplaneError naming the image when the board is not found.
+    With ``channel`` (e.g. "red" under a red laser and dim light) the board is
+    looked for in that channel, contrast-stretched.  Raises LightplaneError naming
+    the image when the board is not found.
     """
     from ..intrinsics import find_board
+    from ..io import to_gray_float
 
     camera.check_image(image, name)
+    if channel is not None:
+        image = to_gray_float(image, channel)  # float: find_board stretches it to 8 bits
     corners = find_board(image, tuple(board))
     if corners is None:
         raise LightplaneError(f"{name}: chessboard with {board[0]}x{board[1]} inner corners not found")
@@ -360,8 +365,9 @@ def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, boa
         bg = None
         if background_images is not None:
             bg = background_images[k if len(background_images) > 1 else 0]
-        pose = find_board_pose(bg if bg is not None and len(background_images) > 1 else img, camera, board,
-                               square_mm, name=names[k])
+        per_image = bg is not None and len(background_images) == len(images)
+        pose = find_board_pose(bg if per_image else img, camera, board,
+                               square_mm, name=names[k], channel=channel)
         mask = board_polygon_mask(camera, pose, board, square_mm)
         stripes.append(_stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv))
         poses.append(pose)
