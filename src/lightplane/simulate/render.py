@@ -91,7 +91,7 @@ _IMAGING = {
 
 # Scene brightness (grey levels per unit albedo): ambient light and laser power at 450 mm.
 _LIGHT = {"disc": 0.76, "background": 0.12, "ambient": 150.0, "laser": 150.0}
-_DARK = {"board": 0.8, "disc": 0.15, "background": 0.1, "ambient": 140.0, "laser": 140.0}
+_DARK = {"board": 0.8, "disc": 0.25, "background": 0.1, "ambient": 140.0, "laser": 140.0}
 
 
 def _check_choice(value: str, choices: tuple[str, ...], name: str) -> str:
@@ -176,7 +176,8 @@ def _backproject_to_plane(camera: Camera, uv: np.ndarray, n: np.ndarray, p0: np.
 
 
 def _sample_clutter(camera: Camera, placement: TargetPlacement, rng: np.random.Generator, surface_n: np.ndarray,
-                    surface_p: np.ndarray, polarity: str) -> list[dict]:
+                    surface_p: np.ndarray, polarity: str, max_offset_mm: float = np.inf,
+                    basis: np.ndarray | None = None) -> list[dict]:
     """2–4 ellipses and rectangles on the surface behind/around the disc, kept clear of its image."""
     rim_uv = camera.project(placement.rim_points(72))
     c_uv = rim_uv.mean(axis=0)
@@ -191,6 +192,9 @@ def _sample_clutter(camera: Camera, placement: TargetPlacement, rng: np.random.G
         kind = "ellipse" if rng.random() < 0.5 else "rectangle"
         a, b = (rng.uniform(6, 25), rng.uniform(6, 25)) if kind == "ellipse" else (rng.uniform(8, 30), rng.uniform(8, 30))
         p = _backproject_to_plane(camera, uv, surface_n, surface_p)
+        e1_, e2_ = _basis_from_normal(surface_n) if basis is None else (basis[:, 0], basis[:, 1])
+        if max(abs(e1_ @ (p - surface_p)), abs(e2_ @ (p - surface_p))) + np.hypot(a, b) > max_offset_mm:
+            continue  # printed marks stay on the board
         size_px = np.hypot(a, b) * camera.fx / p[2]
         if np.linalg.norm(uv - c_uv) < r_uv + size_px + 40:
             continue
@@ -246,7 +250,8 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
             items = _sample_clutter(camera, placement, rng, np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, bg_z]), polarity)
         else:
             # printed marks on the board, a hair in front of its plane
-            items = _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity)
+            items = _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity,
+                                    max_offset_mm=2.6 * placement.radius_mm, basis=placement.basis())
     jit = imaging.exposure_jitter
     ambient = levels["ambient"] * (1.0 + rng.uniform(-jit, jit))
     power = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
@@ -636,7 +641,8 @@ def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int]
         "frame": "camera",
         "board": {"inner_corners": [cols, rows], "square_mm": square_mm, "squares": [cols + 1, rows + 1],
                   "first_square": "dark", "margin_mm": square_mm,
-                  "corners_board_mm": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)"},
+                  "corners_board_mm": obj, "corner_order": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)",
+                  "outline_board_mm": [u0, u1, v0, v1]},
         "plane": plane.to_dict() if with_stripe else None,
         "laser_source_mm": laser_source(plane) if with_stripe else None,
         "with_stripe": bool(with_stripe),
