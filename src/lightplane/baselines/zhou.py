@@ -7,10 +7,10 @@ back-projected and intersected with the board plane, which gives 3D points of
 the light plane.  With two or more board poses the points span the plane, and
 one plane is fitted to all of them by total least squares.
 
-The covariance returned is the one of the least-squares fit from the residual
-scatter (points treated as independent with isotropic error along the normal).
-It does not see board-pose errors, which are shared by all points of one image,
-so it is optimistic when only a few poses are used.
+The plane's covariance is a leave-one-pose-out jackknife when there are four or
+more poses: the board-pose errors, shared by all points of one image, dominate
+and the residual scatter cannot see them.  With two or three poses only the
+least-squares covariance from the residual scatter is available (optimistic).
 """
 
 from __future__ import annotations
@@ -219,8 +219,15 @@ class ZhouCalibration:
 
 
 def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes_uv: Sequence[np.ndarray], *,
-                             min_points_per_view: int = 10, meta: dict | None = None) -> ZhouCalibration:
+                             min_points_per_view: int = 10, jackknife_min_views: int = 4,
+                             meta: dict | None = None) -> ZhouCalibration:
     """Zhou's method from board poses and stripe centres (distorted px, on each board).
+
+    The plane's covariance: with ``jackknife_min_views`` or more poses, the
+    leave-one-pose-out jackknife (it sees the board-pose errors, shared by all
+    points of a pose); with fewer, the least-squares covariance from the residual
+    scatter (:func:`fit_plane`), which does not and is optimistic.
+    ``plane.meta["covariance_method"]`` says which.
 
     Raises LightplaneError with fewer than two usable poses (one board plane
     only gives a line of the light plane) or when the points are collinear.
@@ -242,11 +249,20 @@ def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes
     P, I = np.vstack(pts), np.concatenate(idx)
     plane = fit_plane(P)
     res = plane.signed_distance(P)
+    cov, cov_method = plane.covariance, "fit residuals (optimistic: ignores board-pose errors)"
+    if len(pts) >= jackknife_min_views:
+        # leave-one-pose-out jackknife: each pose's error moves all its points together,
+        # which the residual scatter cannot see
+        theta = np.array([fit_plane(np.vstack(pts[:k] + pts[k + 1:])).coefficients for k in range(len(pts))])
+        dev = theta - theta.mean(axis=0)
+        cov = (len(pts) - 1) / len(pts) * dev.T @ dev
+        cov_method = f"jackknife over {len(pts)} board poses"
     for k, dg in enumerate(diag):
         sel = I == k
         dg["residual_rms_mm"] = float(np.sqrt(np.mean(res[sel] ** 2))) if sel.any() else None
-    m = {**plane.meta, "method": "zhou", "images": diag, **(meta or {})}
-    plane = LightPlane(plane.normal, plane.d, plane.covariance, meta=m)
+    m = {**plane.meta, "method": "zhou", "covariance_method": cov_method,
+         "covariance_fit": plane.covariance.tolist(), "images": diag, **(meta or {})}
+    plane = LightPlane(plane.normal, plane.d, cov, meta=m)
     return ZhouCalibration(plane, P, I, tuple(poses), res)
 
 

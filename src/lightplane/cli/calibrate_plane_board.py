@@ -82,8 +82,7 @@ def calibrate_plane_board_cmd(
         t.add_row(name, f"{v:+.6f}" if u == "-" else f"{v:+.4f}", f"{s:.2g}", u)
     console.print(t)
     sigma_deg = float(np.degrees(np.sqrt(np.trace(pl.covariance[:3, :3]))))
-    console.print(f"normal direction σ ≈ {sigma_deg:.4f} deg (from the fit residuals only; board-pose errors "
-                  f"are not included)")
+    console.print(f"normal direction σ ≈ {sigma_deg:.4f} deg (covariance: {pl.meta['covariance_method']})")
     console.print(f"{len(res.points_cam_mm)} stripe points from {len(set(res.view_index.tolist()))} board poses, "
                   f"residual RMS {res.residual_rms_mm:.4f} mm")
     v = Table(title="Per image", show_edge=False)
