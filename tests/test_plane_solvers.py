@@ -232,7 +232,7 @@ def test_bad_input_errors_name_the_problem():
     with pytest.raises(LightplaneError, match="placement 1: no rim points"):
         calibrate_plane_from_points(cam, 50.0, r, stripes, method="global")
     r[1] = rims[1][:4]
-    with pytest.raises(LightplaneError, match="placement 1: needs at least 5 rim points"):
+    with pytest.raises(LightplaneError, match="placement 1.*at least 5"):
         calibrate_plane_from_points(cam, 50.0, r, stripes, method="global")
     r = [a.copy() for a in rims]
     r[2][5, 0] = np.nan

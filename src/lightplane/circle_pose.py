@@ -27,7 +27,7 @@ import numpy as np
 from .camera import as_points
 from .errors import LightplaneError
 
-__all__ = ["CirclePose", "circle_poses", "fit_conic", "conic_residuals_px"]
+__all__ = ["CirclePose", "circle_poses", "circle_poses_batch", "fit_conic", "fit_conics", "conic_residuals_px"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,26 +65,92 @@ def _check_conic(conic: np.ndarray, name: str = "conic") -> np.ndarray:
     return E / nrm
 
 
-def _ellipse_check(E: np.ndarray, name: str) -> None:
-    """Raise unless the symmetric conic ``E`` is a real, non-degenerate ellipse.
+def _ellipse_problems(E: np.ndarray) -> list:
+    """For (n, 3, 3) symmetric conics (well scaled, Frobenius norm 1): per item None if a real,
+    non-degenerate ellipse, else the reason (str).
 
-    ``E`` must be well scaled (coordinates of order 1: normalised camera
-    coordinates, or the conditioned frame of :func:`fit_conic`), normalised to
-    Frobenius norm 1.  Ellipse: the 2x2 block is definite; real: the value at the
-    centre has the opposite sign of the block's trace; non-degenerate: the three
-    eigenvalues are not tiny (``|det| >= 1e-13``).
+    Ellipse: the 2x2 block is definite; non-degenerate: ``|det| >= 1e-13`` (for norm 1,
+    ``|det| = |λ1 λ2 λ3| <= min |λ|``); real: the value at the centre
+    (``det / det₂ = E33 - bᵀ A⁻¹ b``) has the opposite sign of the block's trace.  ``E``
+    must be well scaled (normalised camera coordinates, or :func:`fit_conic`'s
+    conditioned frame).
     """
-    A = E[:2, :2]
-    det2 = float(np.linalg.det(A))
-    if det2 <= 1e-12 * float(np.sum(A * A)):
-        raise LightplaneError(f"{name} is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2:.3g})")
-    det3 = float(np.linalg.det(E))
-    # |det| = |λ1 λ2 λ3| <= min |λ| for Frobenius norm 1: a tiny det flags a (near) zero eigenvalue
-    if abs(det3) < 1e-13:
-        raise LightplaneError(f"{name} is a degenerate conic (det {det3:.3g})")
-    centre_val = det3 / det2  # E33 - bᵀ A⁻¹ b
-    if centre_val * np.trace(A) >= 0:
-        raise LightplaneError(f"{name} is an imaginary ellipse (no real points)")
+    A = E[:, :2, :2]
+    det2 = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    det3 = np.linalg.det(E)
+    tr = A[:, 0, 0] + A[:, 1, 1]
+    out = []
+    for k in range(len(E)):
+        if not det2[k] > 1e-12 * float(np.sum(A[k] * A[k])):
+            out.append(f"is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2[k]:.3g})")
+        elif not abs(det3[k]) >= 1e-13:
+            out.append(f"is a degenerate conic (det {det3[k]:.3g})")
+        elif (det3[k] / det2[k]) * tr[k] >= 0:
+            out.append("is an imaginary ellipse (no real points)")
+        else:
+            out.append(None)
+    return out
+
+
+def _ellipse_check(E: np.ndarray, name: str) -> None:
+    """Raise unless the symmetric conic ``E`` (3, 3) is a real, non-degenerate ellipse (see
+    :func:`_ellipse_problems`)."""
+    why = _ellipse_problems(E[None])[0]
+    if why is not None:
+        raise LightplaneError(f"{name} {why}")
+
+
+def circle_poses_batch(conics: np.ndarray, K: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, list]:
+    """:func:`circle_poses` for many conics at once (vectorised; for speed).
+
+    ``conics`` (n, 3, 3) in undistorted pixels.  Returns ``centers (n, 2, 3)`` mm,
+    ``normals (n, 2, 3)`` and a list of n problems (None, or why item k is no ellipse);
+    rows with a problem are NaN.  ``K`` and ``radius_mm`` are assumed valid.
+    """
+    E = np.asarray(conics, dtype=np.float64)
+    E = 0.5 * (E + np.swapaxes(E, 1, 2))
+    W = K.T @ E @ K
+    W = W / np.linalg.norm(W, axis=(1, 2))[:, None, None]
+    problems = _ellipse_problems(W)
+    lam, V = np.linalg.eigh(W)  # ascending
+    npos = np.sum(lam > 0, axis=1)
+    # two positive: λ0 < 0 < λ1 <= λ2 -> (e1, e2, e3) = (v2, v1, v0);
+    # one positive: λ0 <= λ1 < 0 < λ2 -> (v0, v1, v2)
+    two = npos == 2
+    order = np.where(two[:, None], [2, 1, 0], [0, 1, 2])
+    al = np.abs(np.take_along_axis(lam, order, axis=1))
+    R = np.take_along_axis(V, order[:, None, :], axis=2)
+    flip = np.linalg.det(R) < 0
+    R[flip, :, 2] *= -1.0
+    l1, l2, l3 = al[:, 0], al[:, 1], al[:, 2]
+    r = float(radius_mm)
+    dl = np.maximum(l1 - l2, 0.0)  # >= 0 by the ordering; clip rounding
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cx = r * np.sqrt(l3 * dl / (l1 * (l1 + l3)))
+        cz = r * np.sqrt(l1 * (l2 + l3) / (l3 * (l1 + l3)))
+        nx = np.sqrt(dl / (l1 + l3))
+        nz = -np.sqrt((l2 + l3) / (l1 + l3))
+    centers = np.empty((len(E), 2, 3))
+    normals = np.empty((len(E), 2, 3))
+    zero = np.zeros_like(cx)
+    for j, sgn in enumerate((1.0, -1.0)):
+        C = np.einsum("nij,nj->ni", R, np.column_stack([sgn * cx, zero, cz]))
+        N = np.einsum("nij,nj->ni", R, np.column_stack([sgn * nx, zero, nz]))
+        neg = C[:, 2] < 0  # eigenvector signs are arbitrary
+        C[neg] *= -1.0
+        N[neg] *= -1.0
+        away = np.sum(N * C, axis=1) > 0  # SPEC §2: towards the camera
+        N[away] *= -1.0
+        N /= np.linalg.norm(N, axis=1, keepdims=True)
+        centers[:, j] = C
+        normals[:, j] = N
+    for k in range(len(E)):
+        if problems[k] is None and not (npos[k] in (1, 2) and np.min(al[k]) > 1e-14):
+            problems[k] = "has no real cone through the optical centre (eigenvalues of one sign or zero)"
+        if problems[k] is not None:
+            centers[k] = np.nan
+            normals[k] = np.nan
+    return centers, normals, problems
 
 
 def circle_poses(conic: np.ndarray, K: np.ndarray, radius_mm: float) -> tuple[CirclePose, CirclePose]:
@@ -125,42 +191,12 @@ def circle_poses(conic: np.ndarray, K: np.ndarray, radius_mm: float) -> tuple[Ci
         raise LightplaneError(f"radius_mm must be a number, got {radius_mm!r}") from None
     if not (np.isfinite(r) and r > 0):
         raise LightplaneError(f"radius_mm must be positive, got {radius_mm}")
-    W = Km.T @ E @ Km
-    W = 0.5 * (W + W.T)
-    W /= np.linalg.norm(W)
-    # checked on the cone W (normalised camera coordinates: well scaled); for zero
-    # skew its 2x2 block is diag(fx, fy) E₂ diag(fx, fy), so ellipse-ness is the same
-    _ellipse_check(W, "conic")
-    lam, V = np.linalg.eigh(W)
-    pos = lam > 0
-    if pos.sum() == 2:
-        i3 = int(np.flatnonzero(~pos)[0])
-    elif pos.sum() == 1:
-        i3 = int(np.flatnonzero(pos)[0])
-    else:
-        raise LightplaneError("conic: the cone through the optical centre has no real points (eigenvalues of one sign)")
-    i12 = [i for i in range(3) if i != i3]
-    i1, i2 = sorted(i12, key=lambda i: -abs(lam[i]))
-    l1, l2, l3 = abs(lam[i1]), abs(lam[i2]), abs(lam[i3])
-    if min(l1, l2, l3) < 1e-14:
-        raise LightplaneError("conic: degenerate cone (a zero eigenvalue)")
-    R = np.column_stack([V[:, i1], V[:, i2], V[:, i3]])
-    if np.linalg.det(R) < 0:
-        R[:, 2] = -R[:, 2]
-    dl = max(l1 - l2, 0.0)  # ≥ 0 by the ordering; clip rounding
-    cx = r * np.sqrt(l3 * dl / (l1 * (l1 + l3)))
-    cz = r * np.sqrt(l1 * (l2 + l3) / (l3 * (l1 + l3)))
-    nx = np.sqrt(dl / (l1 + l3))
-    nz = -np.sqrt((l2 + l3) / (l1 + l3))
+    centers, normals, problems = circle_poses_batch(E[None], Km, r)
+    if problems[0] is not None:
+        raise LightplaneError(f"conic {problems[0]}")
     out = []
-    for s in (1.0, -1.0):
-        C = R @ np.array([s * cx, 0.0, cz])
-        N = R @ np.array([s * nx, 0.0, nz])
-        if C[2] < 0:
-            C, N = -C, -N
-        if N @ C > 0:
-            N = -N
-        N = N / np.linalg.norm(N)
+    for j in range(2):
+        C, N = centers[0, j].copy(), normals[0, j].copy()
         C.setflags(write=False)
         N.setflags(write=False)
         out.append(CirclePose(C, N, r))
@@ -179,54 +215,87 @@ def fit_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
     :func:`conic_residuals_px` against the expected noise.
     """
     p = as_points(uv, 2, name)
-    if p.shape[0] < 5:
-        raise LightplaneError(f"{name}: need at least 5 points to fit an ellipse, got {p.shape[0]}")
-    if not np.all(np.isfinite(p)):
-        raise LightplaneError(f"{name}: contains NaN or infinite coordinates")
-    m = p.mean(axis=0)
-    q = p - m
-    s = np.sqrt(np.mean(np.sum(q * q, axis=1)))
-    if not s > 0:
-        raise LightplaneError(f"{name}: all points coincide")
-    q = q / s
-    ev = np.linalg.eigvalsh(q.T @ q)  # squared singular values, ascending
-    if ev[0] < 1e-6 * ev[1]:
-        raise LightplaneError(f"{name}: the points are (nearly) collinear, not an ellipse")
-    x, y = q[:, 0], q[:, 1]
-    D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
-    S = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
-    S1, S2, S3 = S[:3, :3], S[:3, 3:], S[3:, 3:]
-    try:
-        T = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        raise LightplaneError(f"{name}: degenerate point set (collinear?)") from None
+    conics, problems = fit_conics([p])
+    if problems[0] is not None:
+        raise LightplaneError(f"{name}: {problems[0]}")
+    return conics[0]
+
+
+def fit_conics(point_sets) -> tuple[np.ndarray, list]:
+    """:func:`fit_conic` for several point sets at once (the eigen-steps vectorised).
+
+    ``point_sets``: sequence of (N_i, 2) float arrays.  Returns ``conics (n, 3, 3)``
+    (NaN where the fit failed) and a list of n problems (None, or why not).
+    """
+    n = len(point_sets)
+    problems: list = [None] * n
+    S_all = np.zeros((n, 6, 6))
+    Tn_all = np.zeros((n, 3, 3))
+    for k, p in enumerate(point_sets):
+        if p.shape[0] < 5:
+            problems[k] = f"need at least 5 points to fit an ellipse, got {p.shape[0]}"
+            continue
+        if not np.all(np.isfinite(p)):
+            problems[k] = "contains NaN or infinite coordinates"
+            continue
+        m = p.mean(axis=0)
+        q = p - m
+        s = np.sqrt(np.mean(np.sum(q * q, axis=1)))
+        if not s > 0:
+            problems[k] = "all points coincide"
+            continue
+        q = q / s
+        ev = np.linalg.eigvalsh(q.T @ q)  # squared singular values, ascending
+        if ev[0] < 1e-6 * ev[1]:
+            problems[k] = "the points are (nearly) collinear, not an ellipse"
+            continue
+        x, y = q[:, 0], q[:, 1]
+        D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+        S_all[k] = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
+        Tn_all[k] = [[1 / s, 0, -m[0] / s], [0, 1 / s, -m[1] / s], [0, 0, 1.0]]
+    good = np.array([pr is None for pr in problems], dtype=bool)
+    conics = np.full((n, 3, 3), np.nan)
+    if not np.any(good):
+        return conics, problems
+    S = S_all[good]
+    S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
+    det3 = np.linalg.det(S3)
+    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).max(axis=(1, 2)) ** 3
+    S3 = np.where(ok3[:, None, None], S3, np.eye(3))
+    T = -np.linalg.solve(S3, np.swapaxes(S2, 1, 2))
     M = S1 + S2 @ T
-    M = np.array([M[2] / 2.0, -M[1], M[0] / 2.0])  # C1⁻¹ M with C1 = [[0,0,2],[0,-1,0],[2,0,0]]
+    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)  # C1⁻¹ M, C1 = [[0,0,2],[0,-1,0],[2,0,0]]
     w, v = np.linalg.eig(M)
     v = np.real(v)
-    cond = 4.0 * v[0] * v[2] - v[1] ** 2
-    ok = np.flatnonzero((cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w)))))
-    if ok.size == 0:
-        raise LightplaneError(f"{name}: the points do not lie on an ellipse")
-    a1 = v[:, ok[np.argmin(np.abs(np.real(w[ok])))]]
-    a2 = T @ a1
-    A, B, C = a1
-    D, E_, F = a2
-    Cn = np.array([[A, B / 2, D / 2], [B / 2, C, E_ / 2], [D / 2, E_ / 2, F]])
-    Cn /= np.linalg.norm(Cn)
-    if not np.all(np.isfinite(Cn)):
-        raise LightplaneError(f"{name}: ellipse fit failed")
-    try:
-        _ellipse_check(Cn, name)  # in the conditioned frame
-    except LightplaneError:
-        raise LightplaneError(f"{name}: the points do not lie on an ellipse") from None
-    Tn = np.array([[1 / s, 0, -m[0] / s], [0, 1 / s, -m[1] / s], [0, 0, 1.0]])
-    Cm = Tn.T @ Cn @ Tn
-    Cm = 0.5 * (Cm + Cm.T)
-    Cm /= np.linalg.norm(Cm)
-    if Cm[0, 0] + Cm[1, 1] < 0:
-        Cm = -Cm
-    return Cm
+    cond = 4.0 * v[:, 0] * v[:, 2] - v[:, 1] ** 2
+    valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
+    score = np.where(valid, np.abs(np.real(w)), np.inf)
+    pick = np.argmin(score, axis=1)
+    a1 = np.take_along_axis(v, pick[:, None, None], axis=2)[:, :, 0]
+    a2 = np.einsum("nij,nj->ni", T, a1)
+    A, B, C = a1[:, 0], a1[:, 1], a1[:, 2]
+    Dd, E_, F = a2[:, 0], a2[:, 1], a2[:, 2]
+    Cn = np.stack([np.stack([A, B / 2, Dd / 2], -1), np.stack([B / 2, C, E_ / 2], -1),
+                   np.stack([Dd / 2, E_ / 2, F], -1)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Cn = Cn / np.linalg.norm(Cn, axis=(1, 2))[:, None, None]
+    fin = np.all(np.isfinite(Cn), axis=(1, 2))
+    Cn_safe = np.where(fin[:, None, None], Cn, np.eye(3))
+    shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
+    Tn = Tn_all[good]
+    Cm = np.swapaxes(Tn, 1, 2) @ Cn @ Tn
+    Cm = 0.5 * (Cm + np.swapaxes(Cm, 1, 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Cm = Cm / np.linalg.norm(Cm, axis=(1, 2))[:, None, None]
+    Cm = np.where((Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None], -Cm, Cm)
+    for j, k in enumerate(np.flatnonzero(good)):
+        if not ok3[j]:
+            problems[k] = "degenerate point set (collinear?)"
+        elif not (np.isfinite(score[j, pick[j]]) and fin[j]) or shape_problems[j] is not None:
+            problems[k] = "the points do not lie on an ellipse"
+        else:
+            conics[k] = Cm[j]
+    return conics, problems
 
 
 def conic_residuals_px(conic: np.ndarray, uv: np.ndarray) -> np.ndarray:

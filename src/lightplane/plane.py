@@ -478,13 +478,17 @@ def _tau_unit(pose, f_px: float, n_rim: int, n_stripe: int) -> float:
 
 def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *, min_stripe_points: int = 10,
                       max_rim_rms_px: float = 3.0, rim_xy: np.ndarray | None = None,
-                      stripe_xy: np.ndarray | None = None) -> PlacementCandidates:
+                      stripe_xy: np.ndarray | None = None, conic: np.ndarray | None = None,
+                      poses: tuple | None = None, pose_problem: str | None = None) -> PlacementCandidates:
     """Undistort, fit the rim's ellipse, get both poses and both candidate chords of one placement.
 
     Raises LightplaneError naming the placement for bad input (empty or too few rim
     points, NaN, rim points that are not an ellipse).  Too few stripe points do not
     raise: the placement is returned with ``usable=False`` and the reason.
-    ``rim_xy``/``stripe_xy``: the points already undistorted (normalised), if at hand.
+    ``rim_xy``/``stripe_xy``: the points already undistorted (normalised), if at hand;
+    ``conic``/``poses``/``pose_problem``: the rim's conic (undistorted px) and its two
+    poses (or why there are none), if already computed (batched, see
+    :func:`calibrate_plane_from_points`).
     """
     from .circle_pose import circle_poses, fit_conic
 
@@ -502,7 +506,8 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     rim_und = camera.normalized_to_pixels(rim_xy, distort=False)
     if not np.all(np.isfinite(rim_und)):
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
-    conic = fit_conic(rim_und, name=f"{name}: rim points")
+    if conic is None:
+        conic = fit_conic(rim_und, name=f"{name}: rim points")
     xh = np.column_stack([rim_und, np.ones(len(rim_und))])
     Cx = xh @ conic
     res = np.sum(Cx * xh, axis=1) / (2.0 * np.hypot(Cx[:, 0], Cx[:, 1]))  # Sampson distance, px
@@ -512,10 +517,13 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
             f"{name}: the rim points are not an ellipse (RMS distance to the best ellipse {rim_rms:.3g} px "
             f"> {max_rim_rms_px} px)"
         )
-    try:
-        poses = circle_poses(conic, camera.K, radius_mm)
-    except LightplaneError as e:
-        raise LightplaneError(f"{name}: {e}") from None
+    if pose_problem is not None:
+        raise LightplaneError(f"{name}: conic {pose_problem}")
+    if poses is None:
+        try:
+            poses = circle_poses(conic, camera.K, radius_mm)
+        except LightplaneError as e:
+            raise LightplaneError(f"{name}: {e}") from None
     f_px = float(np.sqrt(camera.fx * camera.fy))
     empty = (np.zeros((0, 3)), np.zeros((0, 3)))
     base = dict(index=index, poses=poses, n_rim=len(rim), rim_rms_px=rim_rms, rim_res2=float(np.sum(res**2)),
@@ -1079,9 +1087,25 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     sizes = [len(a) for pair in zip(rims, stripes) for a in pair]
     xy_all = undistort_normalized_fast(camera, np.concatenate([a for pair in zip(rims, stripes) for a in pair]))
     parts = np.split(xy_all, np.cumsum(sizes)[:-1])
-    cands = [prepare_placement(camera, r, rm, st, i, min_stripe_points=min_stripe_points,
-                               max_rim_rms_px=max_rim_rms_px, rim_xy=parts[2 * i], stripe_xy=parts[2 * i + 1])
-             for i, (rm, st) in enumerate(zip(rims, stripes))]
+    # ellipse fits and circle poses of all placements in one vectorised pass each
+    from .circle_pose import CirclePose, circle_poses_batch, fit_conics
+
+    K = camera.K
+    rim_und = [parts[2 * i] @ K[:2, :2].T + K[:2, 2] for i in range(len(rims))]
+    conics, fit_problems = fit_conics(rim_und)
+    for i, why in enumerate(fit_problems):
+        if why is not None:
+            raise LightplaneError(f"placement {i}: rim points: {why}")
+    centers, normals, pose_problems = circle_poses_batch(conics, K, r)
+    cands = []
+    for i, (rm, st) in enumerate(zip(rims, stripes)):
+        poses = None
+        if pose_problems[i] is None:
+            poses = tuple(CirclePose(centers[i, j], normals[i, j], r) for j in range(2))
+        cands.append(prepare_placement(camera, r, rm, st, i, min_stripe_points=min_stripe_points,
+                                       max_rim_rms_px=max_rim_rms_px, rim_xy=parts[2 * i],
+                                       stripe_xy=parts[2 * i + 1], conic=conics[i], poses=poses,
+                                       pose_problem=pose_problems[i]))
     sigma_est = estimate_sigma_px(cands)
     sigma = float(sigma_px) if sigma_px is not None else sigma_est
     usable = [c.index for c in cands if c.usable]
