@@ -152,12 +152,13 @@ def edge_peaks_along_normals(grad: Gradients, p: np.ndarray, nrm: np.ndarray, po
 
 def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
                        polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Sub-pixel edge points along the normals of ``ellipse`` at ``n`` equally spaced
     parametric angles (see :func:`edge_peaks_along_normals`); ``polarity`` 0 picks the
     sign with the stronger total response.
 
-    Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude)``.
+    Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude,
+    polarity used)``.
     """
     n = int(max(n, 8))
     t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
@@ -169,4 +170,4 @@ def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: fl
         polarity = -1 if np.sum(pk_d[ok_d]) >= np.sum(pk_l[ok_l]) else 1
     uv, ok, pk = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
                                           step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad)
-    return uv[ok], t[ok], pk[ok]
+    return uv[ok], t[ok], pk[ok], int(polarity)

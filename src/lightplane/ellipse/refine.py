@@ -152,8 +152,8 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     uv = None
     keep = None
     for it in range(max(1, iterations)):
-        pts, _, _ = normal_edge_points(grad, local, n=n, band_px=band, step_px=0.5, polarity=pol,
-                                       min_mag=min_mag, max_angle_rad=math.radians(30))
+        pts, _, _, pol = normal_edge_points(grad, local, n=n, band_px=band, step_px=0.5, polarity=pol,
+                                            min_mag=min_mag, max_angle_rad=math.radians(30))
         if len(pts) < min_inliers:
             raise LightplaneError(f"refine_ellipse: only {len(pts)} edge points found near the ellipse")
         fit = fit_conic_robust(pts)
