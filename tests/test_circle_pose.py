@@ -138,3 +138,28 @@ def test_fit_conic_bad_points():
     bad[3, 0] = np.nan
     with pytest.raises(LightplaneError, match="NaN"):
         fit_conic(bad)
+
+
+def test_batched_versions_match_single_and_flag_bad_items():
+    from lightplane.circle_pose import circle_poses_batch, fit_conics
+
+    rng = np.random.default_rng(14)
+    cam = default_camera(distortion=False)
+    tps = sample_placements(6, rng)
+    sets = [cam.project(tp.rim_points(100), distort=False) + rng.normal(0, 0.2, (100, 2)) for tp in tps]
+    sets.insert(2, np.column_stack([np.arange(20.0), np.arange(20.0)]))  # collinear: flagged, not fatal
+    conics, problems = fit_conics(sets)
+    assert problems[2] is not None and "collinear" in problems[2] and np.all(np.isnan(conics[2]))
+    for k, pts in enumerate(sets):
+        if k != 2:
+            assert problems[k] is None
+            assert np.allclose(conics[k], fit_conic(pts), atol=1e-15)
+    good = [k for k in range(len(sets)) if k != 2]
+    centers, normals, probs = circle_poses_batch(conics[good], cam.K, 25.0)
+    assert all(p is None for p in probs)
+    for j, k in enumerate(good):
+        a, b = circle_poses(conics[k], cam.K, 25.0)
+        assert np.allclose(centers[j], [a.center, b.center], atol=1e-12)
+        assert np.allclose(normals[j], [a.normal, b.normal], atol=1e-15)
+    _, _, probs = circle_poses_batch(np.stack([np.eye(3), conics[0]]), cam.K, 25.0)
+    assert "imaginary" in probs[0] and probs[1] is None

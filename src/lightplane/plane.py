@@ -1097,6 +1097,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         if why is not None:
             raise LightplaneError(f"placement {i}: rim points: {why}")
     centers, normals, pose_problems = circle_poses_batch(conics, K, r)
+    centers.setflags(write=False)  # the poses below are read-only views
+    normals.setflags(write=False)
     cands = []
     for i, (rm, st) in enumerate(zip(rims, stripes)):
         poses = None
