@@ -236,3 +236,32 @@ def test_plane_scan_stripe_on_truth_line():
     # noise and sampling: well under half a pixel on every row, unbiased on average
     print("plane scan stripe offsets: rms", np.sqrt(np.mean(offsets**2)), "mean", offsets.mean())
     assert np.abs(offsets).max() < 0.5 and abs(offsets.mean()) < 0.1
+
+
+def test_sphere_scan_stripe_triangulates_onto_the_sphere():
+    """Stripe centres of the mid-scan frame, triangulated with the true plane, lie on the sphere."""
+    from lightplane.measure import triangulate
+
+    ds = render_scan_dataset("sphere", n_frames=1, seed=0, difficulty="clean")
+    cam, plane = ds.camera, default_plane()
+    s = ds.truth["frames"][0]["surfaces"]["sphere"]
+    c, r = np.asarray(s["center_mm"]), s["radius_mm"]
+    img = ds.images[0].astype(float)
+    us = np.arange(cam.width)
+    found = []
+    for v in range(0, cam.height, 4):
+        rays = cam.rays(np.column_stack([us, np.full(us.size, v)]), unit=True)
+        b = rays @ c
+        on_sphere = b * b - (c @ c - r * r) > 0  # the pixel's ray meets the sphere
+        row = np.where(on_sphere, img[v], 0.0)
+        u0 = int(np.argmax(row))
+        if row[u0] < 60 or u0 < 8 or u0 > cam.width - 9 or not on_sphere[u0 - 8:u0 + 9].all():
+            continue
+        win = np.arange(u0 - 6, u0 + 7)
+        w = np.clip(img[v, win] - 4.0, 0, None)  # 4 grey levels of ambient light
+        found.append((np.sum(win * w) / np.sum(w), v))
+    p = triangulate(cam, plane, np.array(found))
+    err = np.linalg.norm(p - c, axis=1) - r
+    print("sphere stripe points", len(found), "radial error rms mm", np.sqrt(np.mean(err**2)), "mean", err.mean())
+    assert len(found) > 50
+    assert np.sqrt(np.mean(err**2)) < 0.02 and abs(err.mean()) < 0.01
