@@ -75,3 +75,275 @@ def triangulate(camera: Camera, plane: LightPlane, uv: np.ndarray, *, min_cos: f
     uv = as_points(uv, 2, "uv")
     t = triangulate_normalized(plane, camera.undistort_points(uv, normalized=True), min_cos=min_cos)
     return t if return_flags else t.points
+
+
+# ======================================================================================
+# Profiles: one stripe centre per image column (row) -> 3D points with uncertainty
+
+__all__ += ["Profile", "ProfileMeasurer", "measure_profile", "profile_axis", "points_sigma_mm"]
+
+AXES = ("columns", "rows")
+
+
+def profile_axis(plane: LightPlane) -> str:
+    """Which profile axis suits the sensor: ``"columns"`` or ``"rows"``.
+
+    On a surface facing the camera (normal along the optical axis) the stripe runs
+    along ``n x z = (b, -a, 0)`` in the image (``(a, b, c)`` the plane's normal):
+    mostly horizontal when ``|b| >= |a|`` → one centre per column, else one per row.
+
+    >>> profile_axis(LightPlane([0.906, 0, -0.423], -190.0))
+    'rows'
+    """
+    a, b, _ = plane.normal
+    return "columns" if abs(b) >= abs(a) else "rows"
+
+
+def points_sigma_mm(plane: LightPlane, xy: np.ndarray) -> np.ndarray:
+    """σ (mm) of points triangulated from normalised rays ``xy`` (N, 2), from the plane's covariance.
+
+    Same quantity as :func:`lightplane.uncertainty.point_sigma_mm` (``sqrt(trace Cov X)``,
+    first-order propagation of the 4x4 covariance of ``(a, b, c, d)``), computed from
+    rays instead of pixels.  With ``X = -d x̃ / (n·x̃)`` the Jacobian is rank one,
+    ``∂X/∂(n, d) = x̃ wᵀ``, ``w = (d x̃ / (n·x̃)², -1 / (n·x̃))``, so
+    ``trace Cov X = |x̃|² wᵀ Σ w``.  NaN where the plane has no covariance or the
+    ray grazes the plane.
+    """
+    xy = as_points(xy, 2, "xy")
+    cov = plane.covariance
+    if cov is None:
+        return np.full(len(xy), np.nan)
+    xt = np.column_stack([xy, np.ones(len(xy))])
+    den = xt @ plane.normal
+    n2 = np.einsum("ij,ij->i", xt, xt)
+    bad = ~(np.abs(den) >= GRAZING_COS * np.sqrt(n2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.column_stack([plane.d * xt / (den**2)[:, None], -1.0 / den])
+        q = np.einsum("ij,jk,ik->i", w, cov, w)
+        s = np.sqrt(n2 * np.maximum(q, 0.0))
+    s[bad] = np.nan
+    return s
+
+
+@dataclass(frozen=True)
+class Profile:
+    """One measured stripe profile: 3D points of one frame.
+
+    One entry per image column (``axis="columns"``) or row of the roi:
+
+    - ``points`` (N, 3) float64 mm, camera frame; NaN where not ``valid``;
+    - ``sigma_mm`` (N,) σ of each point from the plane's covariance
+      (:func:`points_sigma_mm`; NaN when the plane has none);
+    - ``uv`` (N, 2) float64 distorted source pixels of the stripe centres;
+    - ``valid`` (N,) bool: a stripe centre was found and its ray meets the plane;
+    - ``intensity`` (N,) smoothed image value at the stripe's peak (grey levels);
+    - ``width_px`` (N,) stripe width (FWHM, px) across the stripe;
+    - ``axis`` ``"columns"`` or ``"rows"``.
+    """
+
+    points: np.ndarray
+    sigma_mm: np.ndarray
+    uv: np.ndarray
+    valid: np.ndarray
+    intensity: np.ndarray
+    width_px: np.ndarray
+    axis: str
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+
+def _check_roi(roi, width: int, height: int) -> tuple[int, int, int, int]:
+    if roi is None:
+        return 0, 0, width, height
+    try:
+        x, y, w, h = (int(t) for t in roi)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"roi must be (x, y, width, height) in px, got {roi!r}") from None
+    if w < 3 or h < 3 or x < 0 or y < 0 or x + w > width or y + h > height:
+        raise LightplaneError(f"roi {roi!r} (x, y, width, height) is empty or outside the {width}x{height} image")
+    return x, y, w, h
+
+
+class ProfileMeasurer:
+    """Stripe images → :class:`Profile`, with the per-camera work done once.
+
+    Each frame: :func:`lightplane.stripe.extract_profile` (one sub-pixel centre per
+    column or row), then pixel → undistorted normalised ray → light plane (SPEC §4,
+    paper Eq. 2 and 4), and σ from the plane's covariance.
+
+    With ``lookup=True`` (default) the exact undistortion (``Camera.undistort_points``)
+    of every pixel of the roi is computed once, with its derivative along the profile
+    direction (inverse of the distortion's Jacobian, SPEC §3).  A centre at sub-pixel
+    position ``t`` along its column (row) then costs a cubic Hermite interpolation
+    between the two bracketing pixels (error O(h⁴): below 1e-9 px for the default
+    sensor's distortion), instead of an iterative undistortion per point.
+    Tables: 24 bytes per roi pixel (30 MB for 1280x960).  ``lookup=False`` undistorts
+    the centres exactly per frame (for one-off profiles).
+
+    Parameters
+    ----------
+    camera, plane : the calibration.
+    axis : ``"columns"`` (stripe roughly horizontal), ``"rows"`` or ``"auto"``
+        (:func:`profile_axis`).
+    roi : ``(x, y, width, height)`` px or None (whole image).
+    min_cos : grazing-ray limit of :func:`triangulate_normalized`.
+    **stripe_options : passed to :func:`lightplane.stripe.extract_profile`
+        (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ...).
+    """
+
+    def __init__(self, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
+                 lookup: bool = True, min_cos: float = GRAZING_COS, **stripe_options) -> None:
+        if not isinstance(camera, Camera):
+            raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+        if not isinstance(plane, LightPlane):
+            raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+        if axis == "auto":
+            axis = profile_axis(plane)
+        if axis not in AXES:
+            raise LightplaneError(f"axis must be 'columns', 'rows' or 'auto', got {axis!r}")
+        if "axis" in stripe_options or "roi" in stripe_options:
+            raise LightplaneError("pass axis and roi to ProfileMeasurer itself")
+        self.camera = camera
+        self.plane = plane
+        self.axis = axis
+        self.roi = _check_roi(roi, camera.width, camera.height)
+        self.min_cos = float(min_cos)
+        self.stripe_options = dict(stripe_options)
+        self._xy = self._dxy = None
+        if lookup:
+            self._build_tables()
+
+    # ---------------------------------------------------------------- lookup tables
+    @property
+    def has_lookup(self) -> bool:
+        return self._xy is not None
+
+    def _line_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Line indices (image column or row numbers) and sample coordinates of the roi."""
+        x, y, w, h = self.roi
+        if self.axis == "columns":
+            return np.arange(x, x + w), np.arange(y, y + h)
+        return np.arange(y, y + h), np.arange(x, x + w)
+
+    def _build_tables(self) -> None:
+        lines, samples = self._line_grid()
+        L, S = lines.size, samples.size
+        ll, ss = np.meshgrid(lines.astype(float), samples.astype(float), indexing="ij")  # (L, S)
+        uv = np.column_stack([ll.ravel(), ss.ravel()]) if self.axis == "columns" \
+            else np.column_stack([ss.ravel(), ll.ravel()])
+        xy = self.camera.undistort_points(uv, normalized=True)
+        # d(xy)/d(sample): xy_d = K^-1 uv is linear in the pixel, xy = distort^-1(xy_d)
+        K = self.camera.K
+        dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
+            else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
+        j11, j12, j21, j22 = _distortion_jacobian(self.camera.dist, xy)
+        det = j11 * j22 - j12 * j21
+        d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
+        self._xy = xy.reshape(L, S, 2)
+        self._dxy = d.astype(np.float32).reshape(L, S, 2)
+        self._line0, self._sample0 = int(lines[0]), int(samples[0])
+
+    def normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Undistorted normalised ``(x, y)`` (N, 2) of stripe centres ``uv`` (N, 2) px.
+
+        Centres must lie on the grid lines of the measurer's axis (``u`` an integer
+        column for ``"columns"``, ``v`` an integer row for ``"rows"``) inside the roi,
+        as :func:`extract_profile` returns them; NaN rows stay NaN.  Without lookup
+        tables (or for points off the grid lines) the exact undistortion is used.
+        """
+        uv = as_points(uv, 2, "uv")
+        if self._xy is None:
+            return self.camera.undistort_points(uv, normalized=True)
+        li, si = (0, 1) if self.axis == "columns" else (1, 0)
+        L, S = self._xy.shape[:2]
+        line = uv[:, li] - self._line0
+        t = uv[:, si] - self._sample0
+        ok = np.isfinite(line) & np.isfinite(t)
+        lidx = np.where(ok, np.rint(line), 0).astype(np.intp)
+        on_grid = ok & (np.abs(line - lidx) < 1e-9) & (lidx >= 0) & (lidx < L)
+        out = np.full(uv.shape, np.nan)
+        if not np.all(on_grid == ok):
+            off = ok & ~on_grid
+            out[off] = self.camera.undistort_points(uv[off], normalized=True)
+        i0 = np.clip(np.floor(np.where(on_grid, t, 0.0)), 0, S - 2).astype(np.intp)
+        f = (np.where(on_grid, t, 0.0) - i0)[:, None]
+        l = np.where(on_grid, lidx, 0)
+        p0, p1 = self._xy[l, i0], self._xy[l, i0 + 1]
+        m0, m1 = self._dxy[l, i0].astype(np.float64), self._dxy[l, i0 + 1].astype(np.float64)
+        f2, f3 = f * f, f * f * f
+        h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, f3 - 2 * f2 + f, -2 * f3 + 3 * f2, f3 - f2
+        val = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1
+        out[on_grid] = val[on_grid]
+        return out
+
+    # --------------------------------------------------------------------- measure
+    def __call__(self, image: np.ndarray) -> Profile:
+        """Measure one frame: ``image`` (H, W) or (H, W, 3), the camera's size."""
+        from .stripe import extract_profile
+
+        if not isinstance(image, np.ndarray):
+            raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
+        self.camera.check_image(image)
+        x, y, w, h = self.roi
+        roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
+        sp = extract_profile(image, self.axis, roi=roi, **self.stripe_options)
+        return self.from_stripe(sp.uv, sp.valid, sp.intensity, sp.width)
+
+    def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
+                    width_px: np.ndarray | None = None) -> Profile:
+        """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""
+        uv = as_points(uv, 2, "uv")
+        valid = np.asarray(valid, bool) & np.all(np.isfinite(uv), axis=1)
+        xy = self.normalized(np.where(valid[:, None], uv, np.nan))
+        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_cos)
+        ok = valid & tri.valid
+        pts = tri.points
+        pts[~ok] = np.nan
+        sigma = points_sigma_mm(self.plane, xy)
+        sigma[~ok] = np.nan
+        n = len(uv)
+        inten = np.full(n, np.nan) if intensity is None else np.asarray(intensity, float)
+        width = np.full(n, np.nan) if width_px is None else np.asarray(width_px, float)
+        return Profile(points=pts, sigma_mm=sigma, uv=uv, valid=ok, intensity=inten, width_px=width, axis=self.axis)
+
+
+def _distortion_jacobian(dist: np.ndarray, xy: np.ndarray):
+    """Entries (j11, j12, j21, j22) of d(distorted)/d(undistorted) at normalised ``xy`` (SPEC §3)."""
+    k1, k2, p1, p2, k3 = dist
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+    j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+    j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    return j11, j12, j12, j22
+
+
+def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
+                    **stripe_options) -> Profile:
+    """3D profile of one stripe image (SPEC §4, §5.2): points (mm, camera frame), σ, pixels.
+
+    One stripe centre per column (``axis="columns"``) or row (``"rows"``; ``"auto"``
+    picks from the plane, :func:`profile_axis`) within ``roi`` ``(x, y, width, height)``,
+    triangulated on ``plane``; ``stripe_options`` go to
+    :func:`lightplane.stripe.extract_profile`.  For many frames build one
+    :class:`ProfileMeasurer` and call it per frame (lookup tables, much faster).
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> cam = Camera(np.array([[1000., 0, 64], [0, 1000, 48], [0, 0, 1]]), np.zeros(5), 128, 96)
+    >>> pl = LightPlane([0, 1, -0.5], 100)         # stripe along the columns
+    >>> v = np.arange(96.0)[:, None]
+    >>> img = (200 * np.exp(-0.5 * ((v - 40.25) / 1.5) ** 2) + 0 * np.arange(128.0)).astype(np.uint8)
+    >>> prof = measure_profile(img, cam, pl, width_px=3.5)
+    >>> prof.axis, prof.n_valid > 100, bool(np.allclose(pl.signed_distance(prof.points[prof.valid]), 0, atol=1e-9))
+    ('columns', True, True)
+    """
+    return ProfileMeasurer(camera, plane, axis=axis, roi=roi, lookup=False, **stripe_options)(image)
