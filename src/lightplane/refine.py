@@ -55,8 +55,10 @@ determine the geometry.
 >>> normals = [np.array(v) / np.linalg.norm(v) for v in ([0.3, 0.1, -1], [-0.2, 0.4, -1], [0.1, -0.3, -1])]
 >>> rims, stripes = zip(*[simulate_points(cam, plane, c, n, 25.0, 100, 100) for c, n in zip(centres, normals)])
 >>> res = refine_ml(cam, 25.0, list(rims), list(stripes), plane, [_Pose(c, n) for c, n in zip(centres, normals)])
->>> bool(res.plane.angle_to(plane) < 1e-9)
+>>> bool(np.linalg.norm(np.cross(res.plane.normal, plane.normal)) < 1e-9 and abs(res.plane.d - plane.d) < 1e-9)
 True
+>>> res.covariance.shape, len(res.poses)
+((4, 4), 3)
 """
 
 from __future__ import annotations
