@@ -214,23 +214,28 @@ class Camera:
         return xy if normalized else self.normalized_to_pixels(xy, distort=False)
 
     def _undistort_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Newton on the exact model from the linear guess K⁻¹uv (fast, vectorised); any
+        point that does not then reproject onto its pixel within 1e-9 px is redone from
+        OpenCV's iterative undistortion (tight criteria) followed by Newton."""
         import cv2
 
-        out = np.full(uv.shape, np.nan)
+        target = self.pixels_to_normalized_linear(uv)
         good = np.all(np.isfinite(uv), axis=1)
-        if not np.any(good):
-            return out
-        src = np.ascontiguousarray(uv[good]).reshape(-1, 1, 2)
-        crit = _tight_criteria()
-        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-            xy0 = cv2.undistortPointsIter(src, self.K, self.dist, np.eye(3), np.eye(3), crit)
-        else:  # OpenCV 5 takes the criteria in undistortPoints itself
-            xy0 = cv2.undistortPoints(src, self.K, self.dist, None, np.eye(3), np.eye(3), crit)
-        xy = xy0.reshape(-1, 2).astype(np.float64)
-        target = self.pixels_to_normalized_linear(uv[good])
-        xy = self._newton_undistort(xy, target)
-        out[good] = xy
-        return out
+        with np.errstate(all="ignore"):
+            xy = self._newton_undistort(target.copy(), target, iters=12)
+            err = np.linalg.norm(self.normalized_to_pixels(xy) - uv, axis=1)
+        redo = good & ~(err < 1e-9)
+        xy[~good] = np.nan
+        if np.any(redo):
+            src = np.ascontiguousarray(uv[redo]).reshape(-1, 1, 2)
+            crit = _tight_criteria()
+            if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+                xy0 = cv2.undistortPointsIter(src, self.K, self.dist, np.eye(3), np.eye(3), crit)
+            else:  # OpenCV 5 takes the criteria in undistortPoints itself
+                xy0 = cv2.undistortPoints(src, self.K, self.dist, None, np.eye(3), np.eye(3), crit)
+            with np.errstate(all="ignore"):
+                xy[redo] = self._newton_undistort(xy0.reshape(-1, 2).astype(np.float64), target[redo])
+        return xy
 
     def _newton_undistort(self, xy: np.ndarray, target: np.ndarray, iters: int = 20) -> np.ndarray:
         """Solve distort(xy) = target by Newton's method, starting from ``xy``."""
@@ -250,7 +255,7 @@ class Camera:
             dx = (j22 * fx - j12 * fy) / det
             dy = (-j21 * fx + j11 * fy) / det
             xy = xy - np.column_stack([dx, dy])
-            if np.nanmax(np.abs(np.concatenate([dx, dy]))) < 1e-15:
+            if not np.nanmax(np.abs(np.concatenate([dx, dy])), initial=0.0) > 1e-16:
                 break
         return xy
 

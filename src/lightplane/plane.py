@@ -403,41 +403,13 @@ def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tu
 
 
 def undistort_normalized_fast(camera, uv: np.ndarray) -> np.ndarray:
-    """Normalised undistorted coordinates of (N, 2) distorted pixels, fast.
+    """Normalised undistorted coordinates of (N, 2) distorted pixels.
 
-    Newton's method on the plumb-bob model (SPEC §3) from the linear guess ``K⁻¹ uv``,
-    vectorised over all points; every point whose reprojection misses its pixel by
-    more than 1e-9 px after the iterations is redone by ``Camera.undistort_points``
-    (OpenCV + Newton).  ~10x faster than ``Camera.undistort_points`` for moderate
-    distortion, same result to ~1e-12 px.  NaN rows stay NaN.
+    Kept for the solvers' call sites: ``Camera.undistort_points`` itself now runs
+    Newton's method from the linear guess and only falls back to OpenCV where that
+    does not converge to 1e-9 px.
     """
-    uv = as_points(uv, 2, "uv")
-    target = camera.pixels_to_normalized_linear(uv)
-    if not camera.has_distortion:
-        return target
-    k1, k2, p1, p2, k3 = camera.dist
-    xy = target.copy()
-    for _ in range(12):
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - target[:, 0]
-        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - target[:, 1]
-        j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-        j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-        j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-        det = j11 * j22 - j12 * j12
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = np.column_stack([(j22 * fx - j12 * fy) / det, (j11 * fy - j12 * fx) / det])
-        xy -= step
-        if not np.nanmax(np.abs(step), initial=0.0) > 1e-16:
-            break
-    err = np.linalg.norm(camera.normalized_to_pixels(xy) - uv, axis=1)
-    bad = ~(err < 1e-9) & np.all(np.isfinite(uv), axis=1)
-    if np.any(bad):
-        xy[bad] = camera.undistort_points(uv[bad], normalized=True)
-    return xy
+    return camera.undistort_points(as_points(uv, 2, "uv"), normalized=True)
 
 
 @_dataclass(frozen=True)
