@@ -66,7 +66,8 @@ class Imaging:
     """Image-formation settings of one difficulty level.
 
     psf_sigma_px: Gaussian PSF (px); vignetting: relative fall-off at the image corner
-    (``1 - vignetting · (r / r_corner)²``); speckle: contrast of the sheet's modulation;
+    (``1 - vignetting · (r / r_corner)²``); speckle: standard deviation of the sheet's
+multiplicative modulation at a point (before pixel averaging);
     speckle_corr_mm: its correlation length on the surface; gain_e_per_dn: electrons per
     grey level (shot noise); read_noise_dn: Gaussian read noise (grey levels);
     exposure_jitter: relative random spread of ambient and laser power between images;
@@ -85,8 +86,8 @@ class Imaging:
 
 _IMAGING = {
     "clean": Imaging(0.6, 0.0, 0.0, 0.1, 200.0, 0.3, 0.0),
-    "realistic": Imaging(0.9, 0.25, 0.5, 0.1, 40.0, 1.0, 0.15),
-    "hard": Imaging(0.9, 0.25, 0.5, 0.1, 40.0, 1.2, 0.15),
+    "realistic": Imaging(0.9, 0.25, 0.3, 0.1, 40.0, 1.0, 0.15),
+    "hard": Imaging(0.9, 0.25, 0.3, 0.1, 40.0, 1.2, 0.15),
 }
 
 # Scene brightness (grey levels per unit albedo): ambient light and laser power at 450 mm.

@@ -18,7 +18,8 @@ point ``p`` with unit normal ``n`` (facing the camera)
 with ``L`` the laser's source (a point of the plane beside the camera), ``l`` the
 unit direction from ``p`` to ``L`` and a shadow test along ``p -> L`` (the disc
 shadows the background).  ``speckle(p)`` is ``max(0, 1 + c·noise(p))`` with a
-smooth 3-D value noise of unit-ish variance and correlation length ``corr_mm``:
+smooth 3-D value noise of unit variance and lattice spacing ``corr_mm``, so ``c`` is
+the standard deviation of the modulation at a point (before pixel averaging):
 a multiplicative, spatially correlated modulation of the sheet (SPEC §5.2).
 
 Pixels are integrated by stratified jittered supersampling: ``S x S`` samples in
@@ -112,6 +113,8 @@ def make_laser(plane_normal, plane_d, source, *, power: float, sigma_mm: float, 
 
 
 _R0_MM = 450.0
+# 1 / std of _value_noise (measured over 20000 random points: 0.3706): unit-variance noise
+_NOISE_UNIT = 2.7
 
 _jit = dict(cache=True, fastmath=False)
 
@@ -330,7 +333,7 @@ def _shade(patches, spheres, laser, ambient, x, y):
                     if c > 0.0:
                         inv = 1.0 / laser[10]
                         nz_ = _value_noise(px * inv, py * inv, pz * inv, int(laser[11]))
-                        m = 1.0 + c * 1.7 * nz_
+                        m = 1.0 + c * _NOISE_UNIT * nz_
                         el *= m if m > 0.0 else 0.0
                     e += el
     return albedo * e, mat, dist
