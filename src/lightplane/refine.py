@@ -188,7 +188,7 @@ class _Problem:
         self.m_rim = len(rxy)
         rb = np.cumsum([0] + [len(a) for a in rims])
         sb = np.cumsum([0] + [len(a) for a in stripes])
-        self.slices = [(rb[i], rb[i + 1], sb[i], sb[i + 1]) for i in range(n)]  # rows per placement
+        self.rim_starts, self.st_starts = rb[:-1], sb[:-1]  # first row of each placement
         self.m = len(rxy) + len(sxy)
         self.p = 3 + 5 * n
         # tangent bases at the start values
@@ -290,42 +290,95 @@ class _Problem:
         J[rs[:, None], 3 + 5 * self.st_idx[:, None] + np.arange(5)] = J_spose
         return J
 
-    def normal_equations(self, r: np.ndarray, Jb) -> tuple[np.ndarray, np.ndarray]:
-        """``(JᵀJ, Jᵀr)`` from the block-local Jacobian, placement by placement.
+    def normal_equations(self, r: np.ndarray, Jb) -> "_Normal":
+        """Blocks of ``JᵀJ`` and ``Jᵀr`` from the block-local Jacobian.
 
-        Avoids the dense (m, p) product (mostly zeros; and multi-threaded BLAS on a
-        tall matrix is slow on a busy machine).
+        ``JᵀJ = [[A, B], [Bᵀ, blockdiag(D_i)]]``: A (3, 3) plane, D_i (5, 5) pose i,
+        B (n, 3, 5) plane–pose.  Sums of per-row outer products (``einsum`` and
+        ``add.reduceat``, no multi-threaded BLAS: on a busy machine OpenBLAS's threads
+        made 63x63 LAPACK calls take ~100 ms).
         """
         J_rim, J_sp, J_spose = Jb
         r_rim, r_st = r[: self.m_rim], r[self.m_rim:]
-        H = np.zeros((self.p, self.p))
-        g = np.zeros(self.p)
-        H[:3, :3] = J_sp.T @ J_sp
-        g[:3] = J_sp.T @ r_st
-        for i, (a, b, c, e) in enumerate(self.slices):
-            sl = slice(3 + 5 * i, 8 + 5 * i)
-            Jr, Jp, Jq = J_rim[a:b], J_sp[c:e], J_spose[c:e]
-            H[sl, sl] = Jr.T @ Jr + Jq.T @ Jq
-            H[:3, sl] = Jp.T @ Jq
-            H[sl, :3] = H[:3, sl].T
-            g[sl] = Jr.T @ r_rim[a:b] + Jq.T @ r_st[c:e]
-        return H, g
+        rs, ss = self.rim_starts, self.st_starts
+        D = np.add.reduceat(np.einsum("ij,ik->ijk", J_rim, J_rim), rs) \
+            + np.add.reduceat(np.einsum("ij,ik->ijk", J_spose, J_spose), ss)
+        B = np.add.reduceat(np.einsum("ij,ik->ijk", J_sp, J_spose), ss)
+        A = np.einsum("ij,ik->jk", J_sp, J_sp)
+        gp = np.einsum("ij,i->j", J_sp, r_st)
+        gi = np.add.reduceat(J_rim * r_rim[:, None], rs) + np.add.reduceat(J_spose * r_st[:, None], ss)
+        return _Normal(A, B, D, gp, gi)
 
-    @staticmethod
-    def covariance(H: np.ndarray, sigma: float) -> np.ndarray:
-        """``sigma² (JᵀJ)⁻¹`` over the minimal parameters from ``H = JᵀJ`` (Jacobi-scaled)."""
-        scale = np.sqrt(np.diag(H))
-        if np.any(scale == 0):
-            raise LightplaneError("refine_ml: a parameter is not constrained by any point (degenerate geometry)")
-        Hs = H / np.outer(scale, scale)
-        w, V = np.linalg.eigh(Hs)
-        if w[0] < 1e-13 * w[-1]:
+
+@dataclass
+class _Normal:
+    """Block normal equations of the joint problem (see :meth:`_Problem.normal_equations`)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    D: np.ndarray
+    gp: np.ndarray
+    gi: np.ndarray
+
+    def diag(self) -> np.ndarray:
+        return np.concatenate([np.diag(self.A), np.einsum("nii->ni", self.D).ravel()])
+
+    def dense(self) -> np.ndarray:
+        n = len(self.D)
+        H = np.zeros((3 + 5 * n, 3 + 5 * n))
+        H[:3, :3] = self.A
+        for i in range(n):
+            sl = slice(3 + 5 * i, 8 + 5 * i)
+            H[sl, sl] = self.D[i]
+            H[:3, sl] = self.B[i]
+            H[sl, :3] = self.B[i].T
+        return H
+
+    @property
+    def g(self) -> np.ndarray:
+        return np.concatenate([self.gp, self.gi.ravel()])
+
+    def _scaled(self, lam: float):
+        """Jacobi-scaled blocks with Marquardt damping ``lam`` on the (unit) diagonal."""
+        dg = self.diag()
+        dg[dg == 0] = 1.0
+        s = np.sqrt(dg)
+        sp, si = s[:3], s[3:].reshape(-1, 5)
+        A = self.A / np.outer(sp, sp) + lam * np.eye(3)
+        D = self.D / (si[:, :, None] * si[:, None, :]) + lam * np.eye(5)
+        B = self.B / (sp[None, :, None] * si[:, None, :])
+        return A, B, D, sp, si
+
+    def solve(self, lam: float) -> np.ndarray:
+        """Solve ``(H + lam diag H) δ = −g`` by the Schur complement on the plane block."""
+        A, B, D, sp, si = self._scaled(lam)
+        gp, gi = -self.gp / sp, -self.gi / si
+        Dinv = np.linalg.inv(D)  # batched 5x5
+        BDinv = np.einsum("nij,njk->nik", B, Dinv)
+        S = A - np.einsum("nij,nkj->ik", BDinv, B)
+        dp = np.linalg.solve(S, gp - np.einsum("nij,nj->i", BDinv, gi))
+        di = np.einsum("nij,nj->ni", Dinv, gi - np.einsum("nji,j->ni", B, dp))
+        return np.concatenate([dp / sp, (di / si).ravel()])
+
+    def covariance(self, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """``sigma² (JᵀJ)⁻¹``: the plane block (3, 3) and the pose blocks (n, 5, 5)."""
+        A, B, D, sp, si = self._scaled(0.0)
+        # rank check on the whole (scaled) matrix: eigenvalues only, cheap
+        Hs = self.dense() / np.outer(np.concatenate([sp, si.ravel()]), np.concatenate([sp, si.ravel()]))
+        w = np.linalg.eigvalsh(Hs)
+        if not w[0] > 1e-13 * w[-1]:
             raise LightplaneError(
                 "refine_ml: the placements do not determine the light plane (the joint problem is singular; "
                 "are all stripes parallel or the targets all alike?)"
             )
-        cov_s = (V / w) @ V.T
-        return sigma**2 * cov_s / np.outer(scale, scale)
+        Dinv = np.linalg.inv(D)
+        BDinv = np.einsum("nij,njk->nik", B, Dinv)
+        Sinv = np.linalg.inv(A - np.einsum("nij,nkj->ik", BDinv, B))
+        Sinv = 0.5 * (Sinv + Sinv.T)
+        Ci = Dinv + np.einsum("nji,jk,nkl->nil", BDinv, Sinv, BDinv)
+        cov_p = sigma**2 * Sinv / np.outer(sp, sp)
+        cov_i = sigma**2 * Ci / (si[:, :, None] * si[:, None, :])
+        return cov_p, 0.5 * (cov_i + np.swapaxes(cov_i, 1, 2))
 
 
 def _levenberg_marquardt(prob: "_Problem", x0: np.ndarray, max_iter: int = 100) -> tuple[np.ndarray, int, bool]:
@@ -333,9 +386,10 @@ def _levenberg_marquardt(prob: "_Problem", x0: np.ndarray, max_iter: int = 100) 
 
     ``scipy.optimize.least_squares`` was measured first: ``lm`` (MINPACK's unblocked
     QR of the dense 6000x63 Jacobian) took ~200 ms and ``trf`` with a sparse
-    Jacobian and LSMR ~2 s for 12 placements; with only 3 + 5 n parameters the
-    normal equations are tiny, so this loop costs little more than the residual
-    and Jacobian evaluations.  Returns ``(x, evaluations, converged)``.
+    Jacobian and LSMR ~2 s for 12 placements; with only 3 + 5 n parameters and the
+    block structure (plane + one pose per placement) the normal equations are tiny,
+    solved by the Schur complement on the plane block, so this loop costs little
+    more than the residual and Jacobian evaluations.  Returns ``(x, evaluations, converged)``.
     """
     x = x0.copy()
     r, J = prob.evaluate(x)
@@ -343,19 +397,18 @@ def _levenberg_marquardt(prob: "_Problem", x0: np.ndarray, max_iter: int = 100) 
     lam = 1e-4
     nfev = 1
     for _ in range(max_iter):
-        H, g = prob.normal_equations(r, J)
-        dH = np.diag(H).copy()
-        dH[dH == 0] = 1.0
+        ne = prob.normal_equations(r, J)
+        H = ne.dense()
+        g = ne.g
         for _attempt in range(12):
-            A = H + lam * np.diag(dH)
             try:
-                step = -np.linalg.solve(A, g)
+                step = ne.solve(lam)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
             # predicted decrease of the cost (Gauss–Newton model): stop when it is at
             # round-off level rather than spending evaluations on rejected steps
-            predicted = -2 * (step @ g) - step @ H @ step
+            predicted = -2 * (step @ g) - step @ (H @ step)
             if predicted <= 1e-13 * cost + 1e-24 * len(r):
                 return x, nfev, True
             x_new = x + step
@@ -448,18 +501,17 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     r, Jb = prob.evaluate(x, want_jac=True)
     dof = prob.m - prob.p
     sigma = float(np.sqrt(np.sum(r**2) / dof))
-    cov = prob.covariance(prob.normal_equations(r, Jb)[0], sigma)
+    cov_p, cov_i = prob.normal_equations(r, Jb).covariance(sigma)
     nvec, dn, d, C, N, dN = prob.unpack(x)
     G = plane_param_jacobian(dn)
-    cov4 = G @ cov[:3, :3] @ G.T
+    cov4 = G @ cov_p @ G.T
     cov4 = 0.5 * (cov4 + cov4.T)
     pose_covs = []
     for i in range(prob.n):
         Gi = np.zeros((6, 5))
         Gi[:3, :3] = np.eye(3)
         Gi[3:, 3:] = dN[i]
-        sl = slice(3 + 5 * i, 8 + 5 * i)
-        pose_covs.append(Gi @ cov[sl, sl] @ Gi.T)
+        pose_covs.append(Gi @ cov_i[i] @ Gi.T)
     r_rim, r_st = r[: prob.m_rim], r[prob.m_rim:]
     rim_rms = np.array([np.sqrt(np.mean(r_rim[prob.rim_idx == i] ** 2)) for i in range(prob.n)])
     st_rms = np.array([np.sqrt(np.mean(r_st[prob.st_idx == i] ** 2)) for i in range(prob.n)])
@@ -544,7 +596,7 @@ def crlb(camera: Camera, radius_mm: float, placements_true: Sequence[Any], plane
     stripes = [o[1] for o in observations]
     prob = _Problem(camera, radius_mm, rims, stripes, plane_true, list(placements_true))
     r, Jb = prob.evaluate(prob.x0, want_jac=True)
-    cov = prob.covariance(prob.normal_equations(r, Jb)[0], 1.0) * sigma_px**2
+    cov_p, _ = prob.normal_equations(r, Jb).covariance(float(sigma_px))
     _, dn, *_ = prob.unpack(prob.x0)
     G = plane_param_jacobian(dn)
-    return G @ cov[:3, :3] @ G.T
+    return G @ cov_p @ G.T
