@@ -31,6 +31,7 @@ NO_CROSSING = 3   # first derivative does not change sign near the peak
 TOO_WIDE = 4      # FWHM above max_width (glare, blooming) or no half-level crossing
 ALONG_LINE = 5    # the stripe runs along the scan line (normal nearly across it)
 EDGE = 6          # centre closer than the kernel radius to the first/last sample
+WHITISH = 7       # whitish pixels on the stripe (glare, sensor bloom); set by stripe.py
 
 
 @lru_cache(maxsize=64)
@@ -283,9 +284,10 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
        Steger's one-step Newton ``t`` whose error grows like t^3);
     4. raw FWHM along the line, times ``|n_s|`` (width across the stripe).
 
-    ``xw`` (R+1, 3, 2R+1): across-line kernels truncated symmetrically to radius
-    ``k`` (row ``k``; see :func:`edge_kernels`), used for the lines within R of
-    the first/last line so the smoothing stays symmetric about the line.
+    ``xw`` (RX+1, 3, 2RX+1): across-line kernels (their own scale, possibly
+    larger than along the line) truncated symmetrically to radius ``k`` (row
+    ``k``; see :func:`edge_kernels`), used for the lines within RX of the
+    first/last line so the smoothing stays symmetric about the line.
 
     Outputs per line: ``centre`` (sample coordinate, NaN if invalid), ``normal``
     (L, 2) as (n_l, n_s), ``strength`` = -lambda, ``intensity`` = smoothed value
@@ -293,6 +295,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
     """
     S, L = A.shape
     R = (w0.shape[0] - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
     for l in prange(L):
         centre[l] = np.nan
         normal[l, 0] = np.nan
@@ -327,12 +330,12 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
         rss = np.zeros(3)
         r0c = 0.0
         li = np.int64(l)
-        re = min(np.int64(R), li, np.int64(L) - 1 - li)
+        re = min(np.int64(RX), li, np.int64(L) - 1 - li)
         for j in range(-re, re + 1):
             lj = l + j
-            a0j = xw[re, 0, j + R]
-            a1j = xw[re, 1, j + R]
-            a2j = xw[re, 2, j + R]
+            a0j = xw[re, 0, j + RX]
+            a1j = xw[re, 1, j + RX]
+            a2j = xw[re, 2, j + RX]
             for m in range(3):
                 s0 = c - 1 + m
                 b0 = 0.0
@@ -495,7 +498,8 @@ def normal_profiles(img, uv, nrm, reach, step, out_width, out_bg):
     """FWHM (px) across the stripe at each point, sampling ``img`` bilinearly along the normal.
 
     ``out_bg[:, 0]`` / ``[:, 1]``: background (minimum) on the ``-n`` / ``+n`` side
-    within ``reach`` px; ``out_width`` NaN when a side never falls to half level.
+    within ``reach`` px, ``out_bg[:, 2]`` the image at the point; ``out_width`` NaN
+    when a side never falls to half level.
     """
     N = uv.shape[0]
     nstep = int(reach / step)
@@ -516,6 +520,7 @@ def normal_profiles(img, uv, nrm, reach, step, out_width, out_bg):
             bgs[side] = bg
         out_bg[k, 0] = bgs[0]
         out_bg[k, 1] = bgs[1]
+        out_bg[k, 2] = peak
         tot = 0.0
         ok = True
         for side in range(2):

@@ -130,14 +130,16 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     c = s_all[ln, np.argmax(y, axis=1)]
     edge = (c - 1 - R < 0) | (c + 1 + R > S - 1)
     # 2. derivatives at c-1, c, c+1 from the local patch P[l, j, m, i]
-    lines = np.clip(ln[:, None] + ii[None, :], 0, L - 1)                     # (L, 2R+1)
-    re = np.minimum(np.minimum(ln, L - 1 - ln), R)
-    x0, x1, x2 = xw[re, 0], xw[re, 1], xw[re, 2]                               # (L, 2R+1) each
+    RX = (xw.shape[2] - 1) // 2
+    jj = np.arange(-RX, RX + 1)
+    lines = np.clip(ln[:, None] + jj[None, :], 0, L - 1)                     # (L, 2RX+1)
+    re = np.minimum(np.minimum(ln, L - 1 - ln), RX)
+    x0, x1, x2 = xw[re, 0], xw[re, 1], xw[re, 2]                               # (L, 2RX+1) each
     rows = c[:, None, None] + np.arange(-1, 2)[None, :, None] + ii[None, None, :]  # (L, 3, 2R+1)
     P = A[np.clip(rows, 0, S - 1)[:, None, :, :], lines[:, :, None, None]].astype(np.float64)
     b0 = P @ w0
     b1 = P @ w1
-    b2 = P @ w2                                                               # (L, 2R+1, 3)
+    b2 = P @ w2                                                               # (L, 2RX+1, 3)
     rs = np.einsum("lj,ljm->lm", x0, b1)
     rss = np.einsum("lj,ljm->lm", x0, b2)
     rl = np.einsum("lj,ljm->lm", x1, b0)

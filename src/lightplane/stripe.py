@@ -91,6 +91,7 @@ PROFILE_STATUS = {
     K.TOO_WIDE: "wider than max_width_px (glare) or no half-level crossing",
     K.ALONG_LINE: "stripe runs along the scan line (use the other axis)",
     K.EDGE: "centre within the kernel radius of the image (roi) border",
+    K.WHITISH: "whitish pixels on the stripe (glare, sensor bloom): min_chroma",
 }
 
 _DEFAULT_WIDTH_PX = 5.0
@@ -199,7 +200,8 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
     if out.dtype.kind == "f" and not np.all(np.isfinite(out)):
         raise LightplaneError(f"{name} contains NaN or infinite values")
-    if out.dtype.kind in "iu" and out.dtype not in (np.uint8, np.uint16):
+    # one float type and two integer types: fewer numba specialisations to compile
+    if out.dtype not in (np.uint8, np.uint16, np.float32):
         out = out.astype(np.float32)
     return out
 
@@ -292,11 +294,9 @@ def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]
             raise LightplaneError(f"roi {roi!r} is empty or outside the {W}x{H} image")
     sub = img[y:y + h, x:x + w]
     if axis == "columns":
-        return sub, x, y
+        return np.ascontiguousarray(sub), x, y
     if axis == "rows":
-        if sub.dtype in (np.uint8, np.uint16, np.float32):
-            return cv2.transpose(np.ascontiguousarray(sub) if not sub.flags.c_contiguous and sub.ndim != 2 else sub), y, x
-        return np.ascontiguousarray(sub.T), y, x
+        return cv2.transpose(np.ascontiguousarray(sub)), y, x
     raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
 
 
@@ -322,8 +322,9 @@ def _profile_numba(A, w0, w1, w2, params):
 def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float | None = None,
                     channel: str | None = None, roi=None, min_peak: float | None = None,
                     max_width_px: float | None = None, sigma_px: float | None = None,
-                    continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
-                    backend: str = "numba") -> StripeProfile:
+                    sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
+                    correct_curvature: bool = True,
+                    min_chroma: float | None = None, backend: str = "numba") -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
     Per line: the highest sample (and the highest one farther than twice the width
@@ -347,11 +348,24 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     max_width_px : lines whose stripe is wider (glare, blooming) are invalid;
         default ``2.5 * width_px + 2``.
     sigma_px : Gaussian scale; default :func:`sigma_for_width`.
+    sigma_along_px : Gaussian scale across the lines, i.e. along a stripe that
+        crosses them (default ``sigma_px``).  Larger values average laser speckle
+        along the stripe without widening its profile; a straight stripe's centre
+        stays unbiased at any tilt (the smoothing is point-symmetric).
     min_cos : lines where the stripe normal makes ``|n . line direction| < min_cos``
         are invalid (the stripe runs along them).
     correct_curvature : remove the inward shift of curved stripes (see
         :func:`extract_stripe`), curvature from the centres ``4 sigma`` lines away
         (only where both are valid).
+    min_chroma : colour images only: a line is invalid (status ``WHITISH``)
+        where a pixel of its stripe (within ``width_px`` of the centre, brighter
+        than 30 % of the brightest there) has a colour saturation
+        ``(max - min) / max`` of its B, G, R below this.  A laser's light is
+        strongly coloured (a red laser's core may bloom into magenta, still
+        saturated); grey-white pixels on the stripe are glare or sensor blooming
+        (a specular hot spot), where the centre found is not the stripe's.  Off by
+        default (ambient white light on a raw frame lowers it too); 0.5 suits
+        background-subtracted frames.
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
 
     Returns
@@ -381,6 +395,9 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
     if not (np.isfinite(sigma) and 0.3 <= sigma <= 100):
         raise LightplaneError(f"sigma_px must be between 0.3 and 100 px, got {sigma_px!r}")
+    sigma_al = sigma if sigma_along_px is None else float(sigma_along_px)
+    if not (np.isfinite(sigma_al) and 0.3 <= sigma_al <= 100):
+        raise LightplaneError(f"sigma_along_px must be between 0.3 and 100 px, got {sigma_along_px!r}")
     w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
     R = (w0.size - 1) // 2
     maxw = 2.5 * w + 2.0 if max_width_px is None else float(max_width_px)
@@ -393,7 +410,7 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         half=int(math.ceil(1.5 * w)) + 3 + R,
         max_width=maxw,
         min_cos=float(min_cos),
-        xw=K.edge_kernels_cached(sigma),
+        xw=K.edge_kernels_cached(sigma_al),
     )
     if backend == "numba":
         centre, normal, strength, intensity, width, status = _profile_numba(A, w0, w1, w2, params)
@@ -401,6 +418,9 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         from ._stripe_numpy import profile_numpy
 
         centre, normal, strength, intensity, width, status = profile_numpy(A, w0, w1, w2, params)
+    if min_chroma is not None:
+        status = _chroma_check(image, axis, centre, status, line0, sample0, float(min_chroma),
+                               int(math.ceil(w)))
     valid = status == K.OK
     lines = np.arange(L, dtype=np.int64) + line0
     uv = np.full((L, 2), np.nan)
@@ -415,11 +435,46 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         nrm[:, 0] = normal[:, 1]
         nrm[:, 1] = normal[:, 0]
     if correct_curvature:
-        uv = _profile_curvature(uv, nrm, valid, sigma, max(5, int(math.ceil(4.0 * sigma))),
+        # the inward shift comes from the smoothing along the stripe: sigma_along
+        uv = _profile_curvature(uv, nrm, valid, sigma_al, max(5, int(math.ceil(4.0 * sigma_al))),
                                 1 if axis == "columns" else 0)
     return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
                          normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
                          width_px=float(w))
+
+
+def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Least colour saturation ``(max - min) / max`` over each set of pixels (HSV sense).
+
+    ``rows``, ``cols`` (N, K) index K pixels per point; pixels darker than 30 % of
+    the brightest of their set are ignored.  NaN where all are black.
+    """
+    if image.ndim != 3:
+        raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
+    px = image[rows, cols, :3].astype(np.float64)          # (N, K, 3)
+    hi = px.max(axis=2)
+    lo = px.min(axis=2)
+    bright = hi >= 0.3 * hi.max(axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chroma = np.where(bright & (hi > 0), (hi - lo) / hi, np.inf)
+    out = chroma.min(axis=1)
+    return np.where(np.isfinite(out), out, np.nan)
+
+
+def _chroma_check(image, axis, centre, status, line0, sample0, min_chroma, half):
+    """Flag lines whose stripe (centre +- ``half`` samples) holds whitish pixels."""
+    status = status.copy()
+    ok = np.flatnonzero(status == K.OK)
+    if ok.size == 0:
+        return status
+    n_s = image.shape[0 if axis == "columns" else 1]
+    k = np.arange(-half, half + 1)
+    s = np.clip(np.round(centre[ok]).astype(np.int64)[:, None] + sample0 + k[None, :], 0, n_s - 1)
+    ln = np.broadcast_to((ok + line0)[:, None], s.shape)
+    rows, cols = (s, ln) if axis == "columns" else (ln, s)
+    chroma = _chroma(image, rows, cols)
+    status[ok[~(chroma >= min_chroma)]] = K.WHITISH
+    return status
 
 
 # ----------------------------------------------------------------------------------------
@@ -454,7 +509,7 @@ _BUFFERS = _Buffers()
 def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.ndarray | None = None, *,
                    channel: str | None = None, sigma_px: float | None = None,
                    low: float | None = None, high: float | None = None,
-                   min_contrast: float | None = None, min_length: int = 5,
+                   min_contrast: float | None = None, min_length: int = 10, min_chroma: float | None = None,
                    border_px: int | None = None, correct_asymmetry: bool = False,
                    correct_curvature: bool = True) -> StripePoints:
     """Centre points of all bright lines (Steger's method), linked into ordered curves.
@@ -477,8 +532,11 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     low, high : hysteresis thresholds on the ridge strength ``-lambda``
         (grey levels / px^2); defaults: the response of a Gaussian stripe of width
         ``width_px`` and contrast ``min_contrast`` (``high``) and half of it (``low``).
-    min_contrast : default 20/255 of the image's full scale.
+    min_contrast : least stripe contrast (grey levels of the image as given);
+        default 20/255 of the full scale.
     min_length : shortest curve kept, points.
+    min_chroma : colour images only: drop points with whitish pixels on their
+        stripe (glare, sensor bloom); see :func:`extract_profile`.
     border_px : no points within this distance of the image border, where the
         replicated border biases the derivatives; default ``ceil(2 sigma)``.
     correct_asymmetry : remove the bar-model bias of stripes on asymmetric
@@ -561,16 +619,34 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     nrm = np.column_stack([snu.ravel()[pix], snv.ravel()[pix]]).astype(np.float64)[order]
     st = st[order].astype(np.float64)
     cid = curve[order]
-    counts = np.bincount(cid)
-    good = counts[cid] >= int(min_length)
-    uv, nrm, st, cid = uv[good], nrm[good], st[good], cid[good]
-    if uv.shape[0] == 0:
-        return empty
-    _, cid = np.unique(cid, return_inverse=True)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     width = np.empty(uv.shape[0])
-    bg = np.empty((uv.shape[0], 2))
-    K.normal_profiles(gray, uv, nrm, 1.5 * w + 3.0 + 2.0 * sigma, 0.25, width, bg)
+    bg = np.empty((uv.shape[0], 3))
+    K.normal_profiles(gray, uv, nrm, 1.5 * w + 3.0 + 2.0 * sigma, 0.5, width, bg)
+    # a stripe point: contrast above min_contrast, width near the stripe's (thin
+    # residual edges of a background subtraction and broad glow are not stripes)
+    contrast = bg[:, 2] - 0.5 * (bg[:, 0] + bg[:, 1])
+    keep = (contrast >= mc) & (width >= 0.4 * w) & (width <= 2.5 * w + 2.0)
+    if min_chroma is not None:
+        k = np.arange(-int(math.ceil(w)), int(math.ceil(w)) + 1)
+        cols = np.clip(np.round(uv[:, :1] + k[None, :] * nrm[:, :1]).astype(np.int64), 0, W - 1)
+        rows = np.clip(np.round(uv[:, 1:] + k[None, :] * nrm[:, 1:]).astype(np.int64), 0, H - 1)
+        if image.ndim != 3:
+            raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
+        keep &= _chroma(image, rows, cols) >= float(min_chroma)
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return empty
+    brk = np.ones(idx.size, bool)
+    brk[1:] = (np.diff(idx) != 1) | (np.diff(cid[idx]) != 0)      # split curves at dropped points
+    cid = np.cumsum(brk) - 1
+    uv, nrm, st, width, bg = uv[idx], nrm[idx], st[idx], width[idx], bg[idx]
+    counts = np.bincount(cid)
+    good = counts[cid] >= int(min_length)
+    if not good.any():
+        return empty
+    uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
+    _, cid = np.unique(cid, return_inverse=True)
     if correct_asymmetry:
         uv = _correct_asymmetry(gray, uv, nrm, width, bg, sigma)
     if correct_curvature:
