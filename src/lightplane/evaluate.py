@@ -211,7 +211,7 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
         lines = [grid[:, i] for i in range(cols)]
         across = grid[:, 1:] - grid[:, :-1]
     spacing_across = float(np.median(np.linalg.norm(across.reshape(-1, 2), axis=1)))
-    half_window = 1.5 * spacing_across if window_px is None else float(window_px)
+    half_window = np.inf if window_px is None else float(window_px)
     pts, uvs, idx, angles, counts = [], [], [], [], []
     for li, line in enumerate(lines):
         m, t = _fit_line(line)
@@ -222,7 +222,9 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
         step = float(np.median(np.diff(s_c)))
         rel = stripe - m
         s, h = rel @ t, rel @ nrm
-        near = (np.abs(h) < half_window) & (s > s_c[0] - step) & (s < s_c[-1] + step)
+        near = np.abs(h) < half_window
+        if np.isfinite(half_window):
+            near &= (s > s_c[0] - step) & (s < s_c[-1] + step)
         if np.count_nonzero(near) < min_stripe_points or not (h[near].min() < 0 < h[near].max()):
             continue
         q = np.column_stack([s[near], h[near]])
@@ -285,10 +287,11 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], st
         and last corner of the line; "all" — a least-squares 1D homography through
         every corner of the line (the same map, less sensitive to corner noise).
     window_px : half-width of the band around a corner line in which stripe points
-        are used (default: 1.5 times the spacing between corner lines).  The stripe
-        on a flat board is straight in undistorted pixels, so a wide band costs
-        nothing and bridges the dark squares on either side of a corner line, where
-        the stripe is faint.
+        are used; default: all of them.  The stripe on a flat board is straight in
+        undistorted pixels, so one line through all its centres is both the most
+        precise and the only choice that always bridges the dark squares on either
+        side of a corner line, where the stripe is faint or missing.  Give a band
+        (e.g. 1.5 square spacings) for a board that is not flat.
     min_angle_deg : crossings flatter than this are skipped (ill-conditioned).
     min_stripe_points : fewest stripe points for one crossing.
 
