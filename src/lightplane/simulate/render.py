@@ -31,7 +31,7 @@ endpoints; board poses ``T_cam_board``; scan surfaces and motion).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -164,13 +164,6 @@ def _basis_from_normal(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- circle
-@dataclass(frozen=True)
-class _CircleExtras:
-    clutter: list = field(default_factory=list)
-    saturate: bool = False
-    background_z_mm: float = 0.0
-
-
 def _backproject_to_plane(camera: Camera, uv: np.ndarray, n: np.ndarray, p0: np.ndarray) -> np.ndarray:
     ray = camera.rays(np.atleast_2d(uv))[0]
     return ray * (n @ p0) / (n @ ray)

@@ -430,10 +430,10 @@ _RAY_MAPS: dict = {}
 
 def _ray_maps(camera) -> tuple[np.ndarray, np.ndarray]:
     """Cached rays (normalised undistorted x, y) of the pixel centres ``(H, W, 2)`` and
-    corners ``(H+1, W+1, 2)`` of a camera (one entry per distinct camera, at most 4)."""
+    corners ``(H+1, W+1, 2)`` of a camera (the last two cameras used are kept, ~40 MB each at 1280x960)."""
     key = (camera.K.tobytes(), camera.dist.tobytes(), camera.width, camera.height)
     if key not in _RAY_MAPS:
-        if len(_RAY_MAPS) >= 4:
+        if len(_RAY_MAPS) >= 2:
             _RAY_MAPS.pop(next(iter(_RAY_MAPS)))
         d = np.ascontiguousarray(camera.dist, dtype=np.float64)
         args = (camera.fx, camera.fy, camera.cx, camera.cy, d)
@@ -458,6 +458,12 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     """
     import cv2
 
+    from ..errors import LightplaneError
+
+    if abs(camera.skew) > 0:
+        raise LightplaneError(f"the renderer models zero skew (SPEC §3); camera has K[0, 1] = {camera.skew}")
+    if int(samples) < 4:
+        raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
     patches = np.ascontiguousarray(patches, dtype=np.float64).reshape(-1, PATCH_COLS)
     spheres = np.ascontiguousarray(spheres, dtype=np.float64).reshape(-1, SPHERE_COLS)
     laser = np.ascontiguousarray(laser, dtype=np.float64)
