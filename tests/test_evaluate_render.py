@@ -1,7 +1,7 @@
 """Rendered chessboards with the stripe (lightplane.simulate.render): cross-ratio ideal points,
 Zhou's plane and the `evaluate` / `calibrate-plane-board` commands against the renderer's truth.
 
-Five board poses, each with a laser-off companion frame (2 samples per pixel, 8 per
+Five board poses, each with a laser-off companion frame (4x4 samples per pixel, 8 per
 edge: a few seconds).  At ~8 px/mm the corners (≈0.04 px RMS) and the stripe line
 put the ideal points within 0.01 mm and Zhou's plane within 0.01 deg.
 """
@@ -26,7 +26,7 @@ def dataset():
     from lightplane.simulate.render import render_chessboard_dataset
 
     ds = render_chessboard_dataset(5, seed=11, board=BOARD, square_mm=8.0, with_stripe=True, laser_off=True,
-                                   samples=2, edge_samples=8)
+                                   samples=4, edge_samples=8)
     on = [im for im, n in zip(ds.images, ds.names) if "_off" not in n]
     off = [im for im, n in zip(ds.images, ds.names) if "_off" in n]
     return ds, on, off
