@@ -24,8 +24,11 @@ method: the relative errors of the plane coefficients ``b, c, d`` (the paper's
 measure; ``a`` = 0 in the paper's plane, so it has no relative error), the normal's
 angle error (deg), the offset error ``|Δd|`` (mm) and the RMS triangulation error over
 the working volume (mm) — RMS over the trials that succeeded — and the number of
-trials that failed (an error raised, or a gross wrong-chord answer: angle error
-> ``GROSS_DEG``).
+trials that failed: the disambiguation chose the wrong circle pose for a used
+placement (``wrong_choice``; judged against the truth), an error was raised, or the
+answer is gross (angle error > ``GROSS_DEG``).  With two placements the ambiguity
+rests on the coplanarity of the two true chords alone, so at high noise or small
+diameters a wrong pair is sometimes more coplanar than the true one.
 """
 
 from __future__ import annotations
@@ -109,6 +112,19 @@ def n_trials_total(factors: Sequence[str], trials: int) -> int:
     return sum(len(FACTORS[f].levels) for f in factors) * int(trials)
 
 
+def _wrong_choice(res, placements) -> bool:
+    """Whether a used placement got the wrong one of its two circle poses: the chosen
+    candidate's normal is farther from the true normal than the other candidate's."""
+    for pr, truth in zip(res.placements, placements):
+        if not pr.used or pr.poses is None or pr.candidate is None:
+            continue
+        mine = pr.poses[pr.candidate].normal
+        other = pr.poses[1 - pr.candidate].normal
+        if abs(mine @ truth.normal) < abs(other @ truth.normal):
+            return True
+    return False
+
+
 def _errors(est: LightPlane, true: LightPlane, vol_xy: np.ndarray) -> dict:
     from ..measure import triangulate_normalized
 
@@ -181,7 +197,8 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     for k, level in enumerate(spec.levels):
         n_pl, sigma, diam = spec.settings(level)
         per = {m: [] for m in methods}
-        failed = {m: 0 for m in methods}
+        failed = {m: 0 for m in methods}  # an error raised, or a gross answer
+        wrong = {m: 0 for m in methods}  # a used placement with the wrong one of its two poses
         bounds = []
         for t in range(int(trials)):
             # common random numbers: trial t draws its placements from the same stream at
@@ -203,6 +220,9 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
                 except LightplaneError:
                     failed[m] += 1
                     continue
+                if _wrong_choice(res, placements):
+                    wrong[m] += 1
+                    continue
                 e = _errors(res.plane, plane, vol_xy)
                 if e["angle_deg"] > GROSS_DEG:
                     failed[m] += 1
@@ -217,13 +237,13 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
                 progress(1)
         base = {"factor": factor, "level": level, "n_placements": n_pl, "sigma_px": sigma, "diameter_mm": diam}
         for m in methods:
-            row = dict(base, method=m, trials=int(trials), failed=failed[m])
+            row = dict(base, method=m, trials=int(trials), failed=failed[m] + wrong[m], wrong_choice=wrong[m])
             for key in _METRICS:
                 v = np.array([e[key] for e in per[m]], dtype=float)
                 row[key] = float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
                 row[key + "_median"] = float(np.median(v)) if len(v) else float("nan")
             rows.append(row)
-        row = dict(base, method="crlb", trials=int(trials), failed=0)
+        row = dict(base, method="crlb", trials=int(trials), failed=0, wrong_choice=0)
         for key in _METRICS:
             row[key] = float(np.sqrt(np.mean([b[key] for b in bounds])))
             row[key + "_median"] = float("nan")
@@ -231,7 +251,8 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     return StudyResult(spec, rows, int(trials), int(seed), int(n_rim), int(n_stripe))
 
 
-_COLUMNS = ["factor", "level", "n_placements", "sigma_px", "diameter_mm", "method", "trials", "failed"] + [
+_COLUMNS = ["factor", "level", "n_placements", "sigma_px", "diameter_mm", "method", "trials", "failed",
+            "wrong_choice"] + [
     c for key in _METRICS for c in (key, key + "_median")]
 
 
@@ -252,6 +273,7 @@ def write_csv(result: StudyResult, path: str | os.PathLike, *, force: bool = Fal
     return atomic_write(path, csv_text(result), force=force)
 
 
+_PLOT_FLOOR = {"rel_coef_pct": 1e-7, "angle_deg": 1e-7, "tri_rms_mm": 1e-7}
 _STYLE = {"paper": dict(color="tab:red", marker="s"), "global": dict(color="tab:orange", marker="^"),
           "ml": dict(color="tab:blue", marker="o"), "crlb": dict(color="black", ls="--", marker="")}
 
@@ -270,7 +292,7 @@ def plot_factor(result: StudyResult, path: str | os.PathLike, *, force: bool = F
     methods = [m for m in (*METHODS, "crlb") if any(r["method"] == m for r in result.rows)]
     fig, axes = plt.subplots(2, 2, figsize=(11, 8), dpi=100)
     panels = [("rel_coef_pct", "relative error of b, c, d (RMS, %)"), ("angle_deg", "normal angle error (RMS, deg)"),
-              ("tri_rms_mm", "triangulation error, working volume (RMS, mm)"), ("failed", "failed trials (%)")]
+              ("tri_rms_mm", "triangulation error, working volume (RMS, mm)"), ("failed", "failed trials (%): wrong pose chosen, or error")]
     for ax, (key, ylabel) in zip(axes.ravel(), panels):
         for m in methods:
             rows = [r for r in result.rows if r["method"] == m]
@@ -281,7 +303,7 @@ def plot_factor(result: StudyResult, path: str | os.PathLike, *, force: bool = F
                 y = np.array([100.0 * r["failed"] / r["trials"] for r in rows])
             else:
                 y = np.array([r[key] for r in rows], dtype=float)
-                y = np.where(y > 0, y, np.nan)
+                y = np.where(y > _PLOT_FLOOR.get(key, 0.0), y, np.nan)  # noise-free level: not on a log axis
             ax.plot(x, y, label="Cramér–Rao bound" if m == "crlb" else m, lw=1.5, ms=5, **_STYLE[m])
         if key != "failed":
             ax.set_yscale("log")
