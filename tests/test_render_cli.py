@@ -267,3 +267,14 @@ def test_sphere_scan_stripe_triangulates_onto_the_sphere():
     print("sphere stripe points", len(found), "radial error rms mm", np.sqrt(np.mean(err**2)), "mean", err.mean())
     assert len(found) > 50
     assert np.sqrt(np.mean(err**2)) < 0.02 and abs(err.mean()) < 0.01
+
+
+def test_circle_laser_off_companions():
+    ds = render_circle_dataset(n=1, seed=5, difficulty="realistic", laser_off=True)
+    assert ds.names == ["circle_000.png", "circle_000_off.png"]
+    on, off = ds.images[0].astype(int), ds.images[1].astype(int)
+    chord = np.asarray(ds.truth["images"][0]["target"]["chord_mm"])
+    uv = ds.camera.project(chord[0] + np.linspace(0.2, 0.8, 30)[:, None] * (chord[1] - chord[0])).round().astype(int)
+    assert np.median((on - off)[uv[:, 1], uv[:, 0]]) > 30  # the stripe only in the laser-on image
+    far = (on - off)[:100, :100]
+    assert abs(far.mean()) < 0.5 and 0 < far.std() < 5  # same scene, independent noise

@@ -31,8 +31,8 @@ def render_cmd(
     board: str = typer.Option("9x6", "--board", help="chessboard: inner corners COLSxROWS."),
     square: float = typer.Option(8.0, "--square", help="chessboard: square size in mm."),
     stripe: bool = typer.Option(False, "--stripe", help="chessboard: laser on, stripe crossing every board."),
-    laser_off: bool = typer.Option(False, "--laser-off", help="chessboard with --stripe: also a laser-off image "
-                                   "of every pose."),
+    laser_off: bool = typer.Option(False, "--laser-off", help="circle, and chessboard with --stripe: also a "
+                                   "laser-off image of every pose."),
     kind: str = typer.Option("sphere", "--kind", help="scan: sphere (radius 25.4 mm), step (10.000 mm gauge) "
                              "or plane (tilted)."),
     step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
@@ -80,7 +80,8 @@ def render_cmd(
 
         if scene == "circle":
             ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",
-                                       polarity=polarity, diameter_mm=diameter, progress=progress)
+                                       polarity=polarity, diameter_mm=diameter, laser_off=laser_off,
+                                       progress=progress)
         elif scene == "chessboard":
             ds = render_chessboard_dataset(n=15 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
                                            with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
@@ -96,7 +97,7 @@ def render_cmd(
     if scene == "circle":
         bad = [e["file"] for e in ds.truth["images"] if not e["usable"]]
         console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
-                      f"{len(ds.images) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
+                      f"{len(ds.truth['images']) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
     elif scene == "chessboard":
         console.print(f"board {cols_rows[0]}x{cols_rows[1]} inner corners, square {square:g} mm"
                       + (", laser stripe on" if stripe else ""))

@@ -232,7 +232,7 @@ def _circle_patches(placement: TargetPlacement, polarity: str, background_z_mm: 
 def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
                    difficulty: str, polarity: str, *, noise: bool = True, saturate: bool = False,
                    clutter: bool | None = None, laser: bool = True, samples: int = 4,
-                   edge_samples: int = 16) -> tuple[np.ndarray, dict]:
+                   edge_samples: int = 16, noise_rng: np.random.Generator | None = None) -> tuple[np.ndarray, dict]:
     imaging = _IMAGING[difficulty]
     levels = _LIGHT if polarity == "light" else _DARK
     bg_z = float(placement.center[2] + rng.uniform(80.0, 150.0))
@@ -254,7 +254,7 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
     salt = int(rng.integers(0, 2**31 - 1))
     rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser_row, ambient,
                              samples=samples, edge_samples=edge_samples, salt=salt)
-    img = _finish(rad, camera, imaging, rng, noise=noise)
+    img = _finish(rad, camera, imaging, rng if noise_rng is None else noise_rng, noise=noise)
     info = {
         "background_plane": {"normal": [0.0, 0.0, -1.0], "d": bg_z},
         "ambient_dn": ambient,
@@ -398,7 +398,7 @@ def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, m
 
 def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realistic", polarity: str = "light",
                           camera: Camera | None = None, plane: LightPlane | None = None, diameter_mm: float = 50.0,
-                          *, noise: bool = True, progress=None) -> Dataset:
+                          *, laser_off: bool = False, noise: bool = True, progress=None) -> Dataset:
     """``n`` images of a circular target (SPEC §9 placements) crossed by the stripe.
 
     Truth (``Dataset.truth``): ``plane``; per image ``file``, ``target`` (centre and
@@ -406,7 +406,9 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
     ``usable`` and ``reason``, and scene details (background plane, clutter, exposure).
     ``hard``: one image (chosen by the seed) has the target shifted off the sheet:
     ``usable: false``, ``reason: "stripe misses the target"``; every other image has
-    the stripe 3.5x too bright (partly saturated).  ``progress``: optional callable
+    the stripe 3.5x too bright (partly saturated).  ``laser_off``: also, for each image,
+    the same scene with the laser off (``circle_XXX_off.png``, listed after its laser-on
+    image; ``file_laser_off`` in the truth).  ``progress``: optional callable
     ``progress(i, n)`` after each image.
     """
     n = _check_n(n)
@@ -435,6 +437,12 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate)
         name = f"circle_{i:03d}.png"
         entry = {"file": name, "target": _placement_truth(camera, plane, tp)}
+        if laser_off:
+            # the same scene (same draws), laser off, its own noise
+            off, _ = _render_circle(camera, plane, tp, np.random.default_rng([seed, i]), difficulty, polarity,
+                                    noise=noise, saturate=saturate, laser=False,
+                                    noise_rng=np.random.default_rng([seed, i, 1]))
+            entry["file_laser_off"] = f"circle_{i:03d}_off.png"
         if i == miss_index:
             entry.update(usable=False, reason="stripe misses the target")
         else:
@@ -442,6 +450,9 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         entry["scene"] = info
         images.append(img)
         names.append(name)
+        if laser_off:
+            images.append(off)
+            names.append(entry["file_laser_off"])
         per_image.append(entry)
         if progress is not None:
             progress(i + 1, n)
@@ -455,7 +466,8 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         "polarity": polarity,
         "imaging": _IMAGING[difficulty].__dict__,
         "seed": seed,
-        "options": {"n": n, "seed": seed, "difficulty": difficulty, "polarity": polarity, "diameter_mm": diameter_mm},
+        "options": {"n": n, "seed": seed, "difficulty": difficulty, "polarity": polarity, "diameter_mm": diameter_mm,
+                    "laser_off": laser_off},
         "images": per_image,
     }
     return Dataset(images, names, camera, truth)
