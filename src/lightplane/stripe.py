@@ -167,8 +167,15 @@ class StripeProfile:
 # ----------------------------------------------------------------------------------------
 # input handling
 
-def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> np.ndarray:
-    """2-D array (dtype kept for uint8/uint16/float) from gray or BGR input."""
+def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
+    """2-D uint8, uint16 or float32 array from gray or BGR input, and its full scale.
+
+    ``channel``: None / ``"gray"`` (weighted gray), ``"red"``, ``"green"``,
+    ``"blue"``, or ``"sum"`` (unweighted B + G + R: a laser that saturates its own
+    channel blooms into the others, which carry the stripe on).  The full scale is
+    255 for 8-bit, 65535 for 16-bit, 1 or 255 for float (by the maximum), times 3
+    for ``"sum"``.
+    """
     import cv2
 
     if not isinstance(image, np.ndarray):
@@ -179,45 +186,50 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
         raise LightplaneError(f"{name} must be an integer or float image, got dtype {image.dtype}")
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
+    if image.dtype.kind == "f" and not np.all(np.isfinite(image)):
+        raise LightplaneError(f"{name} contains NaN or infinite values")
+    if image.dtype == np.uint8:
+        fs = 255.0
+    elif image.dtype == np.uint16:
+        fs = 65535.0
+    elif image.dtype.kind == "f":
+        fs = 1.0 if (image.size == 0 or float(np.max(image)) <= 1.0) else 255.0
+    else:
+        fs = 255.0
+    known = (None, "gray", "red", "green", "blue", "sum")
+    if channel not in known:
+        raise LightplaneError(f"channel must be red, green, blue, sum or gray, got {channel!r}")
     if image.ndim == 2:
         if channel not in (None, "gray"):
             raise LightplaneError(f"channel={channel!r} given but {name} is single-channel")
         out = image
     elif image.ndim == 3 and image.shape[2] in (3, 4):
-        idx = {"blue": 0, "green": 1, "red": 2}.get(channel) if channel not in (None, "gray") else None
-        if channel not in (None, "gray") and idx is None:
-            raise LightplaneError(f"channel must be red, green, blue or gray, got {channel!r}")
-        if idx is not None:
-            out = cv2.extractChannel(image, idx) if image.dtype in (np.uint8, np.uint16, np.float32) \
-                else np.ascontiguousarray(image[:, :, idx])
+        bgr = image[:, :, :3]
+        if channel in ("red", "green", "blue"):
+            idx = {"blue": 0, "green": 1, "red": 2}[channel]
+            out = cv2.extractChannel(np.ascontiguousarray(bgr), idx) if image.dtype in (np.uint8, np.uint16, np.float32) \
+                else np.ascontiguousarray(bgr[:, :, idx])
+        elif channel == "sum":
+            acc = np.uint16 if image.dtype == np.uint8 else np.float32
+            out = bgr[:, :, 0].astype(acc) + bgr[:, :, 1].astype(acc) + bgr[:, :, 2].astype(acc)
+            fs *= 3.0
         elif image.dtype in (np.uint8, np.uint16, np.float32):
-            out = cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_BGR2GRAY)
+            out = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)
         else:
-            out = (0.114 * image[:, :, 0] + 0.587 * image[:, :, 1] + 0.299 * image[:, :, 2]).astype(np.float32)
+            out = (0.114 * bgr[:, :, 0] + 0.587 * bgr[:, :, 1] + 0.299 * bgr[:, :, 2]).astype(np.float32)
     else:
         raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {image.shape}")
     if out.shape[0] < 3 or out.shape[1] < 3:
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
-    if out.dtype.kind == "f" and not np.all(np.isfinite(out)):
-        raise LightplaneError(f"{name} contains NaN or infinite values")
     # one float type and two integer types: fewer numba specialisations to compile
     if out.dtype not in (np.uint8, np.uint16, np.float32):
         out = out.astype(np.float32)
-    return out
+    return out, fs
 
 
-def _full_scale(img: np.ndarray) -> float:
-    if img.dtype == np.uint8:
-        return 255.0
-    if img.dtype == np.uint16:
-        return 65535.0
-    m = float(np.max(img)) if img.size else 1.0
-    return 1.0 if m <= 1.0 else 255.0
-
-
-def _default_min_peak(img: np.ndarray) -> float:
-    """20 grey levels of 255, scaled to the image type (see ``_full_scale``)."""
-    return 20.0 / 255.0 * _full_scale(img)
+def _default_min_peak(full_scale: float) -> float:
+    """20 grey levels of 255, scaled to the image's full scale."""
+    return 20.0 / 255.0 * full_scale
 
 
 def sigma_for_width(width_px: float) -> float:
@@ -262,8 +274,8 @@ def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str |
     """
     import cv2
 
-    img = _channel_image(image, channel)
-    mp = _default_min_peak(img) if min_peak is None else float(min_peak)
+    img, fs = _channel_image(image, channel)
+    mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     res = []
     if axis in (None, "columns"):
         res.append(_fwhm_median(img, mp))
@@ -340,7 +352,8 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     axis : ``"columns"`` for a roughly horizontal stripe (one centre per column),
         ``"rows"`` for a roughly vertical one.
     width_px : full stripe width (FWHM) in px; estimated from the frame when None.
-    channel : ``"red"``, ``"green"``, ``"blue"`` or None / ``"gray"`` (weighted gray).
+    channel : ``"red"``, ``"green"``, ``"blue"``, ``"sum"`` (B + G + R) or None /
+        ``"gray"`` (weighted gray).
     roi : ``(x, y, width, height)`` px; only this region is searched; ``uv`` stays
         in full-image pixels.
     min_peak : minimum contrast (peak minus the local minimum within ~1.5 widths),
@@ -383,10 +396,10 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     """
     if backend not in ("numba", "numpy"):
         raise LightplaneError(f"backend must be 'numba' or 'numpy', got {backend!r}")
-    img = _channel_image(image, channel)
+    img, fs = _channel_image(image, channel)
     A, line0, sample0 = _lines_array(img, axis, roi)
     S, L = A.shape
-    mp = _default_min_peak(img) if min_peak is None else float(min_peak)
+    mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     w = _check_width(width_px)
     if w is None:
         w, n = _fwhm_median(A, mp, every=max(1, L // 160))
@@ -550,7 +563,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     """
     import cv2
 
-    img = _channel_image(image, channel)
+    img, fs = _channel_image(image, channel)
     H, W = img.shape
     if mask is not None:
         mask = np.asarray(mask)
@@ -558,7 +571,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
             raise LightplaneError(f"mask must have the image's shape {(H, W)}, got {mask.shape}")
         mask = mask.astype(bool, copy=False)
     gray = img.astype(np.float32, copy=False) if img.dtype != np.float64 else img.astype(np.float32)
-    mc = _default_min_peak(img) if min_contrast is None else float(min_contrast)
+    mc = _default_min_peak(fs) if min_contrast is None else float(min_contrast)
     w = _check_width(width_px)
     if w is None:
         w = estimate_width(gray, min_peak=mc)
