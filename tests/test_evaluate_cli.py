@@ -94,3 +94,6 @@ def test_evaluate_bad_plane_and_existing_output(files):
     r = run("evaluate", *blanks, "--camera", cam, "--plane", plane, "--board", "9x6", "--square", "8", "--json", js)
     assert "already exists" in _one_error_line(r)
     assert js.read_text() == "keep"
+    r = run("evaluate", *blanks, "--camera", cam, "--plane", plane, "--board", "9x6", "--square", "8",
+            "--lines", "diagonal")
+    assert "--lines" in _one_error_line(r)

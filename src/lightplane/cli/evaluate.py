@@ -46,6 +46,10 @@ def evaluate_cmd(
     from ..plane import LightPlane
 
     cols, rows = parse_board(board)
+    if lines not in ("rows", "columns", "auto"):
+        raise LightplaneError(f"--lines must be rows, columns or auto, got {lines!r}")
+    if corners_used not in ("three", "all"):
+        raise LightplaneError(f"--corners must be three or all, got {corners_used!r}")
     if not square > 0:
         raise LightplaneError(f"--square must be positive, got {square} mm")
     for out in (json_out, csv_out):
