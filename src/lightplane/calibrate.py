@@ -1,0 +1,510 @@
+"""Light-plane calibration from images of a circular target (paper §2.2, SPEC §5–§7).
+
+The user's main job: images of a flat circular target of known diameter, each with
+the laser stripe crossing it, and a calibrated camera in; the light plane with its
+uncertainty and per-image diagnostics out.
+
+Per image (in parallel across cores, :func:`observe_image`):
+
+1. read it (PNG, JPEG, BMP, TIFF; 8/16-bit; gray or colour) and check its size
+   against the camera;
+2. detect ellipses (arc-support segments, SPEC §5.1) of a plausible size for a disc
+   of ``diameter_mm`` seen at ``distance_range_mm``, and choose the target: the
+   salient ellipse the stripe crosses (:func:`lightplane.ellipse.select_target`);
+3. refine it to sub-pixel edge points (:func:`lightplane.ellipse.refine_ellipse`);
+   edge points where the stripe meets the rim are dropped (the stripe's light
+   shifts the edge there);
+4. extract the stripe's centre points (Steger, SPEC §5.2) inside the ellipse shrunk
+   by a margin (the rim's intensity step biases the stripe centres next to it), and
+   keep those on the stripe's line through the target.
+
+Then all placements go to :func:`lightplane.plane.calibrate_plane_from_points`
+(``paper``, ``global`` or ``ml``; SPEC §7) with the rim edge points and the stripe
+points, both in distorted pixels.  Every image's outcome is recorded: used, or
+rejected with its reason (no target ellipse, no stripe crossing it, too few stripe
+points, or the solver's reason).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .camera import Camera
+from .errors import LightplaneError
+from .plane import PlaneCalibration, calibrate_plane_from_points
+
+__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "calibrate_plane", "default_workers"]
+
+
+@dataclass(frozen=True, eq=False)
+class ImageObservation:
+    """What one calibration image gave (before and after the plane solver).
+
+    Attributes
+    ----------
+    index : position in the input list.
+    source : file path, or ``"image[i]"`` for an array.
+    ok : True when a target and enough stripe points were found (the image went to the solver).
+    reason : why the image was rejected ("" when ``ok``), e.g. "no target ellipse found".
+    used : True when its chord entered the final plane (set after the solver).
+    shape : (H, W) of the image.
+    ellipse : the target's image ellipse (distorted px) or None.
+    conic_undistorted : (3, 3) the refined rim conic in undistorted px, or None.
+    rim_uv : (M, 2) sub-pixel rim edge points, distorted px (empty if none).
+    stripe_uv : (K, 2) stripe centre points on the target, distorted px (empty if none).
+    chord_px : (2, 2) the stripe's chord through the ellipse as found by target selection, or None.
+    rim_fit_rms_px : RMS distance of the rim points to their refined conic (px).
+    n_candidates : ellipses detected in the image.
+    placement : the solver's :class:`~lightplane.plane.PlacementResult` (``index`` = image index) or None.
+    seconds : wall time spent on the image (reading included), s.
+    """
+
+    index: int
+    source: str
+    ok: bool
+    reason: str
+    used: bool = False
+    shape: tuple = ()
+    ellipse: object | None = None
+    conic_undistorted: np.ndarray | None = field(default=None, repr=False)
+    rim_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+    stripe_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+    chord_px: np.ndarray | None = field(default=None, repr=False)
+    rim_fit_rms_px: float = float("nan")
+    n_candidates: int = 0
+    placement: object | None = None
+    seconds: float = 0.0
+
+    @property
+    def status(self) -> str:
+        """``"used"`` or ``"rejected"``."""
+        return "used" if self.used else "rejected"
+
+    @property
+    def name(self) -> str:
+        return Path(self.source).name if not self.source.startswith("image[") else self.source
+
+    def to_dict(self) -> dict:
+        """JSON-ready per-image diagnostics (the plane file's ``images`` entries)."""
+        p = self.placement
+        e = self.ellipse
+        return {
+            "index": self.index,
+            "file": self.source,
+            "status": self.status,
+            "reason": self.reason if not self.used else "used",
+            "n_rim": int(len(self.rim_uv)),
+            "n_stripe": int(len(self.stripe_uv)) if p is None else int(p.n_stripe),
+            "rim_fit_rms_px": _num(self.rim_fit_rms_px),
+            "rim_residual_rms_px": None if p is None else _num(p.rim_rms_px),
+            "stripe_residual_rms_px": None if p is None else _num(p.stripe_rms_px),
+            "chord_rms_mm": None if p is None else _num(p.chord_rms_mm),
+            "candidate": None if p is None else p.candidate,
+            "pose": None if (p is None or p.pose is None) else p.pose.to_dict(),
+            "ellipse_px": None if e is None else {"centre": [float(e.centre[0]), float(e.centre[1])],
+                                                  "a": float(e.a), "b": float(e.b),
+                                                  "angle_deg": float(np.degrees(e.angle))},
+            "seconds": round(float(self.seconds), 4),
+        }
+
+
+def _num(x) -> float | None:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+@dataclass(frozen=True)
+class ImagePlaneCalibration(PlaneCalibration):
+    """A :class:`~lightplane.plane.PlaneCalibration` computed from images, with per-image diagnostics.
+
+    Extra attributes
+    ----------------
+    images : tuple of :class:`ImageObservation`, one per input image, in input order.
+        ``placements`` (inherited) holds the solver's results of the images that reached
+        it, with ``index`` = the image's index.
+    camera : the :class:`~lightplane.camera.Camera` used.
+    diameter_mm : target diameter, mm.
+    seconds : wall time of the whole calibration, s.
+    """
+
+    images: tuple = ()
+    camera: Camera | None = None
+    diameter_mm: float = float("nan")
+    seconds: float = 0.0
+
+    @property
+    def n_images(self) -> int:
+        return len(self.images)
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["images"] = [o.to_dict() for o in self.images]
+        d["diameter_mm"] = self.diameter_mm
+        d["n_images"] = self.n_images
+        d["seconds"] = round(float(self.seconds), 3)
+        return d
+
+
+# ------------------------------------------------------------------------ per image
+def _load(source, index: int) -> tuple[np.ndarray, str]:
+    from .io import read_image
+
+    if isinstance(source, np.ndarray):
+        return source, f"image[{index}]"
+    if isinstance(source, (str, os.PathLike)):
+        return read_image(source), str(source)
+    raise LightplaneError(f"images[{index}] must be a file path or an image array, got {type(source).__name__}")
+
+
+def _line_distance(uv: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    d = p1 - p0
+    n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-12)
+    return (uv - p0) @ n
+
+
+def _full_scale(img: np.ndarray) -> float:
+    return 65535.0 if img.dtype == np.uint16 else (255.0 if img.dtype == np.uint8 or float(np.max(img)) > 1.0 else 1.0)
+
+
+def _distance_inside(e, uv: np.ndarray) -> np.ndarray:
+    """Approximate distance (px) of points inside ellipse ``e`` to its rim (first order in 1 - rho)."""
+    d = uv - e.centre
+    c, s = math.cos(e.angle), math.sin(e.angle)
+    x = c * d[:, 0] + s * d[:, 1]
+    y = -s * d[:, 0] + c * d[:, 1]
+    rho = np.sqrt((x / e.a) ** 2 + (y / e.b) ** 2)
+    g = np.hypot(x / e.a**2, y / e.b**2) / np.maximum(rho, 1e-9)  # |grad rho|
+    return (1.0 - rho) / np.maximum(g, 1e-12)
+
+
+def _robust_line(uv: np.ndarray, tol_px: float) -> np.ndarray:
+    """Inlier mask of the total-least-squares line through ``uv`` with MAD rejection (>= tol_px)."""
+    keep = np.ones(len(uv), bool)
+    for _ in range(3):
+        if keep.sum() < 3:
+            break
+        q = uv[keep]
+        m = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - m, full_matrices=False)
+        r = (uv - m) @ vt[1]
+        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        keep = np.abs(r) <= max(4.0 * mad, tol_px)
+    return keep
+
+
+def stripe_width_along(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, n: int = 24,
+                       half_px: float = 25.0) -> tuple[float, float]:
+    """Full width at half maximum (px) and height of a bright line along the segment ``p0``–``p1`` (px).
+
+    Profiles across the segment at ``n`` positions of its middle 80 %, sampled every
+    0.5 px (bilinear) up to ``half_px`` on each side; per profile the half level between
+    the peak (within 8 px of the segment) and the lower of the two side backgrounds
+    (median of the outer quarter).  Returns the medians of the widths (px) and of the
+    peak heights above the background (grey levels); NaNs when no profile has a peak.
+    Used instead of a whole-image estimate, which a bright target disc inflates.
+    """
+    import cv2
+
+    d = np.asarray(p1, float) - np.asarray(p0, float)
+    L = float(np.hypot(*d))
+    if L < 4:
+        return float("nan"), float("nan")
+    d /= L
+    nrm = np.array([-d[1], d[0]])
+    s = np.linspace(0.1, 0.9, n) * L
+    t = np.arange(-half_px, half_px + 0.25, 0.5)
+    pts = p0 + s[:, None, None] * d + t[None, :, None] * nrm  # (n, T, 2)
+    prof = cv2.remap(np.ascontiguousarray(gray, dtype=np.float32), pts[..., 0].astype(np.float32),
+                     pts[..., 1].astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    q = len(t) // 4
+    centre = np.abs(t) <= 8.0
+    widths, heights = [], []
+    for row in prof:
+        bg = min(float(np.median(row[:q])), float(np.median(row[-q:])))
+        k = int(np.argmax(np.where(centre, row, -np.inf)))
+        peak = float(row[k])
+        if peak - bg < 5.0 / 255.0 * max(float(np.max(gray)), 1.0):
+            continue
+        half = bg + 0.5 * (peak - bg)
+        i = k
+        while i > 0 and row[i] > half:
+            i -= 1
+        j = k
+        while j < len(row) - 1 and row[j] > half:
+            j += 1
+        if i == 0 or j == len(row) - 1:
+            continue
+        # linear interpolation of the two half-level crossings
+        left = t[i] + (half - row[i]) / (row[i + 1] - row[i]) * 0.5
+        right = t[j - 1] + (row[j - 1] - half) / (row[j - 1] - row[j]) * 0.5
+        widths.append(right - left)
+        heights.append(peak - bg)
+    if not widths:
+        return float("nan"), float("nan")
+    return float(np.median(widths)), float(np.median(heights))
+
+
+def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
+                  distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
+                  stripe_width_px: float | None = None, margin_px: float | None = None,
+                  min_stripe_points: int = 20) -> ImageObservation:
+    """Find the target's rim points and the stripe points on it in one image (SPEC §5).
+
+    Parameters
+    ----------
+    source : file path, or (H, W) / (H, W, 3) array (8/16-bit or float).
+    camera : the camera (its image size is checked; rim points are undistorted for the conic).
+    diameter_mm : target diameter (mm), for the plausible ellipse size.
+    distance_range_mm : (near, far) distances (mm) at which the target may be: the
+        target's major semi-axis must lie in ``f r / far .. f r / near`` (+-15 %).
+    channel : colour channel of the laser (``"red"``...) or None (weighted gray).
+    stripe_width_px : stripe FWHM (px); estimated when None.
+    margin_px : stripe points closer than this to the rim are dropped (the rim's
+        intensity step biases them); default ``max(4, 1.5 FWHM)``.
+    min_stripe_points : fewer stripe points on the target's chord -> rejected.
+
+    Returns an :class:`ImageObservation` (``ok=False`` with a reason when the image
+    cannot be used).  Raises :class:`LightplaneError` only for unreadable files and
+    images whose size differs from the camera's.
+    """
+    from .ellipse import detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
+    from .stripe import extract_stripe
+
+    t0 = time.perf_counter()
+    img, name = _load(source, index)
+    try:
+        camera.check_image(img)
+    except LightplaneError as e:
+        raise LightplaneError(f"{name}: {e}") from None
+    shape = tuple(img.shape[:2])
+
+    def reject(reason: str, **kw) -> ImageObservation:
+        return ImageObservation(index=index, source=name, ok=False, reason=reason, shape=shape,
+                                seconds=time.perf_counter() - t0, **kw)
+
+    lo, hi = expected_axis_range_px(camera, diameter_mm, distance_range_mm)
+    # the minor semi-axis of a disc tilted by up to ~70 deg is >= a cos 70 deg
+    ellipses = detect_ellipses(img, min_axis_px=max(0.35 * lo, 6.0), max_axis_px=hi)
+    if not ellipses:
+        return reject("no target ellipse found")
+    sel = select_target(img, ellipses, axis_range_px=(lo, hi), min_chord_fraction=0.15)
+    if sel.ellipse is None:
+        why = {"stripe misses the target": "no stripe crossing the target",
+               "no plausible ellipse": f"no target ellipse found (none of {len(ellipses)} ellipses has a "
+                                       f"plausible size for a {diameter_mm:g} mm disc at "
+                                       f"{distance_range_mm[0]:g}-{distance_range_mm[1]:g} mm)"}
+        return reject(why.get(sel.reason, sel.reason or "no target ellipse found"), n_candidates=len(ellipses))
+    try:
+        ref = refine_ellipse(img, sel.ellipse, camera)
+    except LightplaneError as e:
+        return reject(f"target ellipse could not be refined ({e})", ellipse=sel.ellipse, n_candidates=len(ellipses))
+    e_img = ref.image_ellipse
+    chord = None if sel.crossing is None else sel.crossing.chord_px
+
+    # stripe: Steger on a crop around the target, inside the ellipse shrunk by a margin
+    h, w = shape
+    u0, v0, u1, v1 = e_img.bbox()
+    pad = 12
+    cu0, cv0 = max(int(math.floor(u0)) - pad, 0), max(int(math.floor(v0)) - pad, 0)
+    cu1, cv1 = min(int(math.ceil(u1)) + pad, w - 1), min(int(math.ceil(v1)) + pad, h - 1)
+    crop = np.ascontiguousarray(img[cv0:cv1 + 1, cu0:cu1 + 1])
+    off = np.array([cu0, cv0], dtype=np.float64)
+    local = type(e_img).from_params(e_img.centre - off, e_img.a, e_img.b, e_img.angle)
+    inside = local.mask(crop.shape[:2], shrink_px=2.0)
+    width, contrast = stripe_width_px, None
+    if chord is not None:
+        from .io import to_gray_float
+
+        w_est, height = stripe_width_along(to_gray_float(crop, channel), chord[0] - off, chord[1] - off)
+        if width is None and np.isfinite(w_est):
+            width = float(np.clip(w_est, 2.0, 40.0))
+        if np.isfinite(height):
+            # a stripe on a dark disc is faint: threshold relative to what this stripe shows
+            contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
+    sp = extract_stripe(crop, width_px=width, mask=inside, channel=channel, min_contrast=contrast)
+    uv = sp.uv + off
+    fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
+    # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
+    margin = max(3.0, 3.0 * float(sp.sigma_px) + 1.0) if margin_px is None else float(margin_px)
+    if len(uv):
+        uv = uv[_distance_inside(e_img, uv) >= margin]
+    if len(uv) and chord is not None:
+        # keep the stripe's line through the target (clutter, reflections, rim fragments)
+        uv = uv[np.abs(_line_distance(uv, chord[0], chord[1])) <= max(3.0, 0.6 * fwhm + 2.0)]
+    if len(uv) >= 3:
+        und = camera.undistort_points(uv)
+        uv = uv[_robust_line(und, 0.5)]
+    # rim points where the stripe meets the rim are disturbed by its light
+    rim = ref.edge_points_px
+    if chord is not None and len(rim):
+        far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
+        if far.sum() >= 0.5 * len(rim):
+            rim = rim[far]
+    common = dict(ellipse=e_img, conic_undistorted=ref.conic, rim_uv=rim, stripe_uv=uv,
+                  chord_px=chord, rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
+    if len(uv) == 0:
+        return reject("no stripe crossing the target", **common)
+    if len(uv) < min_stripe_points:
+        return reject(f"too few stripe points ({len(uv)})", **common)
+    return ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
+                            seconds=time.perf_counter() - t0, **common)
+
+
+def _observe_task(args):
+    source, camera, diameter_mm, index, kw = args
+    try:
+        return observe_image(source, camera, diameter_mm, index, **kw)
+    except LightplaneError as e:
+        return e
+
+
+def default_workers() -> int:
+    """Worker processes used by default: the cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover (not Linux)
+        return max(1, os.cpu_count() or 1)
+
+
+# ------------------------------------------------------------------------ public
+def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml", *,
+                    workers: int | None = None, executor: str = "process",
+                    progress: Callable[[int, int], None] | None = None,
+                    distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
+                    stripe_width_px: float | None = None, min_stripe_points: int = 20,
+                    min_placements: int = 3, **solver_options) -> ImagePlaneCalibration:
+    """Calibrate the light plane from images of a circular target crossed by the stripe (paper §2.2).
+
+    Parameters
+    ----------
+    images : sequence of file paths (PNG, JPEG, BMP, TIFF...) or arrays ((H, W) or
+        (H, W, 3), 8/16-bit or float), one per target placement.
+    camera : calibrated :class:`~lightplane.camera.Camera`; every image must have its size.
+    diameter_mm : target diameter, mm (> 0).
+    method : ``"ml"`` (default), ``"global"`` or ``"paper"`` (SPEC §7; see
+        :func:`~lightplane.plane.calibrate_plane_from_points`).
+    workers : processes (or threads) for the per-image work; default: all cores;
+        1 runs in this process.
+    executor : ``"process"`` (default; measured faster on 2 cores, see the benchmark) or ``"thread"``.
+    progress : optional callable ``progress(done, total)`` after each image.
+    distance_range_mm, channel, stripe_width_px, min_stripe_points : see :func:`observe_image`.
+    min_placements : fewest used placements accepted (>= 3 for a checked result).
+    solver_options : passed to :func:`~lightplane.plane.calibrate_plane_from_points`
+        (``sigma_px``, ``min_normal_spread_deg``, ...).
+
+    Returns
+    -------
+    :class:`ImagePlaneCalibration` (a :class:`~lightplane.plane.PlaneCalibration`):
+    the plane (covariance for ``ml``), per-image diagnostics in ``images``.
+
+    Raises
+    ------
+    LightplaneError
+        No images, an unreadable file, an image whose size differs from the camera's,
+        fewer than ``min_placements`` usable images (the message lists each image's
+        reason), placements too alike, or an unresolvable ambiguity.
+    """
+    t_start = time.perf_counter()
+    if method not in ("ml", "global", "paper"):
+        raise LightplaneError(f"method must be 'ml', 'global' or 'paper', got {method!r}")
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    try:
+        diameter = float(diameter_mm)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"diameter_mm must be a number, got {diameter_mm!r}") from None
+    if not (math.isfinite(diameter) and diameter > 0):
+        raise LightplaneError(f"diameter_mm must be positive, got {diameter_mm}")
+    if isinstance(images, (str, os.PathLike, np.ndarray)):
+        images = [images]
+    images = list(images)
+    if not images:
+        raise LightplaneError("no images given")
+    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
+    if not (0 < lo < hi):
+        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
+    if executor not in ("process", "thread"):
+        raise LightplaneError(f"executor must be 'process' or 'thread', got {executor!r}")
+    for i, src in enumerate(images):  # cheap checks first: a missing file fails before any work
+        if isinstance(src, (str, os.PathLike)):
+            p = Path(src)
+            if not p.exists():
+                raise LightplaneError(f"{p}: no such file")
+            if p.is_dir():
+                raise LightplaneError(f"{p}: is a folder, not an image")
+        elif not isinstance(src, np.ndarray):
+            raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
+    kw = dict(distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
+              min_stripe_points=int(min_stripe_points))
+    tasks = [(src, camera, diameter, i, kw) for i, src in enumerate(images)]
+    n = len(tasks)
+    n_workers = default_workers() if workers is None else max(1, int(workers))
+    n_workers = min(n_workers, n)
+    results: list = [None] * n
+    if n_workers == 1:
+        for k, t in enumerate(tasks):
+            results[k] = _observe_task(t)
+            if isinstance(results[k], LightplaneError):
+                raise results[k]
+            if progress is not None:
+                progress(k + 1, n)
+    else:
+        pool_cls = ProcessPoolExecutor if executor == "process" else ThreadPoolExecutor
+        with pool_cls(max_workers=n_workers) as pool:
+            for k, res in enumerate(pool.map(_observe_task, tasks)):
+                if isinstance(res, LightplaneError):
+                    for f in getattr(pool, "_pending_work_items", {}).values():  # pragma: no cover
+                        f.future.cancel()
+                    raise res
+                results[k] = res
+                if progress is not None:
+                    progress(k + 1, n)
+    obs: list[ImageObservation] = results
+    ok = [o for o in obs if o.ok]
+    if len(ok) < min_placements:
+        why = "; ".join(f"{o.name}: {o.reason}" for o in obs if not o.ok)
+        raise LightplaneError(f"only {len(ok)} of {n} images show the target crossed by the stripe, "
+                              f"need at least {min_placements}" + (f" ({why})" if why else ""))
+    try:
+        cal = calibrate_plane_from_points(camera, diameter, [o.rim_uv for o in ok], [o.stripe_uv for o in ok],
+                                          method=method, min_placements=min_placements, **solver_options)
+    except LightplaneError as e:
+        msg = str(e)
+        # the solver names placements by their position among the usable images: name the files
+        for j in sorted(range(len(ok)), reverse=True):
+            msg = msg.replace(f"placement {j}:", f"{ok[j].name}:").replace(f"placement {j} ", f"{ok[j].name} ")
+        rejected = [f"{o.name}: {o.reason}" for o in obs if not o.ok]
+        if rejected:
+            msg += " [rejected before the solver: " + "; ".join(rejected) + "]"
+        raise LightplaneError(msg) from None
+    placements = []
+    final = list(obs)
+    for j, o in enumerate(ok):
+        pr = replace(cal.placements[j], index=o.index)
+        placements.append(pr)
+        reason = "" if pr.used else pr.reason.replace("rejected: ", "")
+        final[o.index] = replace(o, used=bool(pr.used), placement=pr, reason=reason)
+    warnings = []
+    for w in cal.warnings:
+        for j in sorted(range(len(ok)), reverse=True):
+            w = w.replace(f"placement {j} ", f"{ok[j].name} ")
+        warnings.append(w)
+    warnings.extend(f"{o.name} not used: {o.reason}" for o in obs if not o.ok)
+    meta = dict(cal.plane.meta)
+    meta.update({"diameter_mm": diameter, "n_images": n})
+    plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cal.plane.covariance, meta=meta)
+    return ImagePlaneCalibration(plane=plane, covariance=cal.covariance, sigma_px=cal.sigma_px,
+                                 placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,
+                                 warnings=tuple(warnings), iterations=cal.iterations, images=tuple(final),
+                                 camera=camera, diameter_mm=diameter, seconds=time.perf_counter() - t_start)
