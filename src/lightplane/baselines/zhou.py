@@ -27,6 +27,7 @@ from ..plane import LightPlane
 __all__ = [
     "BoardPose",
     "find_board_pose",
+    "pose_from_corners",
     "board_polygon_mask",
     "stripe_points_on_board",
     "fit_plane",
