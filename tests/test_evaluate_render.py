@@ -84,17 +84,15 @@ def test_zhou_plane_matches_truth(dataset, detected):
 
 @pytest.fixture(scope="module")
 def circle_plane(dataset):
-    """A plane calibrated with the circular target (lightplane.plane.calibrate_plane_from_points) from
-    point-level observations of 6 disc placements, 0.1 px noise, same camera and plane as the renders."""
-    from lightplane.plane import calibrate_plane_from_points
-    from lightplane.simulate.geometry import sample_placements, synthetic_observations
+    """The light plane calibrated the paper's way (lightplane.calibrate.calibrate_plane) from 8
+    rendered images of the circular target, same camera and plane as the chessboard renders."""
+    from lightplane.calibrate import calibrate_plane
+    from lightplane.simulate.render import render_circle_dataset
 
     ds, _, _ = dataset
     truth = LightPlane.from_dict(ds.truth["plane"])
-    rng = np.random.default_rng(5)
-    placements = sample_placements(6, rng, camera=ds.camera, plane=truth)
-    obs = [synthetic_observations(ds.camera, truth, p, sigma_px=0.1, rng=rng) for p in placements]
-    return calibrate_plane_from_points(ds.camera, 50.0, [o[0] for o in obs], [o[1] for o in obs]).plane
+    circ = render_circle_dataset(8, seed=2, camera=ds.camera, plane=truth, diameter_mm=50.0)
+    return calibrate_plane(circ.images, circ.camera, 50.0, workers=1).plane
 
 
 def test_circle_and_zhou_side_by_side(dataset, detected, circle_plane):
