@@ -160,14 +160,16 @@ def arc_groups(segs: np.ndarray, *, max_turn_rad: float = math.radians(60),
     return groups
 
 
-def _group_points(segs: np.ndarray, idx: np.ndarray, step_px: float = 1.5) -> np.ndarray:
-    pts = []
-    for i in idx:
+def _group_points(segs: np.ndarray, idx: np.ndarray, step_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ~``step_px`` along the group's segments, and each point's position in the chain."""
+    pts, owner = [], []
+    for k, i in enumerate(idx):
         x1, y1, x2, y2 = segs[i]
         m = max(2, int(math.hypot(x2 - x1, y2 - y1) / step_px) + 1)
         f = np.linspace(0, 1, m)
         pts.append(np.column_stack([x1 + f * (x2 - x1), y1 + f * (y2 - y1)]))
-    return np.concatenate(pts)
+        owner.append(np.full(m, k))
+    return np.concatenate(pts), np.concatenate(owner)
 
 
 # --------------------------------------------------------------------------
@@ -175,28 +177,25 @@ def _group_points(segs: np.ndarray, idx: np.ndarray, step_px: float = 1.5) -> np
 # --------------------------------------------------------------------------
 
 class _Group:
-    __slots__ = ("pts", "sign", "span", "head", "tail", "mid", "normal", "length")
+    """An arc-support group: its points (sampled along its segments), polarity sign,
+    total turn ``span`` (rad), end points, middle point and normal (towards the brighter side)."""
+
+    __slots__ = ("pts", "seg_of_pt", "turns", "sign", "span", "head", "tail", "mid", "normal", "length")
 
     def __init__(self, segs: np.ndarray, idx: np.ndarray, sign: int):
-        self.pts = _group_points(segs, idx)
+        self.pts, self.seg_of_pt = _group_points(segs, idx)
         self.sign = sign
-        d0 = segs[idx[0], 2:] - segs[idx[0], :2]
-        d1 = segs[idx[-1], 2:] - segs[idx[-1], :2]
-        turn = 0.0
-        for a, b in zip(idx[:-1], idx[1:]):
-            da = segs[a, 2:] - segs[a, :2]
-            db = segs[b, 2:] - segs[b, :2]
-            turn += abs(math.atan2(da[0] * db[1] - da[1] * db[0], da @ db))
-        self.span = turn
+        d = segs[idx, 2:] - segs[idx, :2]
+        self.turns = np.abs(np.arctan2(d[:-1, 0] * d[1:, 1] - d[:-1, 1] * d[1:, 0], np.sum(d[:-1] * d[1:], axis=1)))
+        self.span = float(self.turns.sum())
         self.head = segs[idx[0], :2]
         self.tail = segs[idx[-1], 2:]
         k = idx[len(idx) // 2]
         self.mid = 0.5 * (segs[k, :2] + segs[k, 2:])
         dm = segs[k, 2:] - segs[k, :2]
         dm = dm / np.linalg.norm(dm)
-        self.normal = np.array([-dm[1], dm[0]])  # towards the brighter side
-        self.length = float(np.sum(np.hypot(*(segs[idx, 2:] - segs[idx, :2]).T)))
-        del d0, d1
+        self.normal = np.array([-dm[1], dm[0]])
+        self.length = float(np.sum(np.hypot(d[:, 0], d[:, 1])))
 
 
 def _params_from_rect(rect) -> tuple[float, float, float, float, float] | None:
@@ -242,18 +241,22 @@ def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], 
                         max_axis_px: float, polarity: int, shape: tuple[int, int]) -> list[tuple]:
     G = [_Group(segs, idx, s) for idx, s in groups if polarity == 0 or s == polarity]
     cands: list[tuple] = []  # (cx, cy, a, b, angle, sign)
-    # local: salient groups
+    # local: salient groups.  A chain may have picked up a stray segment at an end (a
+    # stripe's straight edge meeting the rim): fits without one or two end segments are
+    # tried when the whole chain does not fit.
+    min_span = math.radians(70)
     for g in G:
-        if g.span >= math.radians(70) and len(g.pts) >= 6:
-            e = _fit_candidate(g.pts, min_axis_px, max_axis_px)
-            if e is not None:
-                r = np.abs(_param_distance(e, g.pts))
-                if np.mean(r) >= 1.0:  # one robust pass: drop stray points (e.g. a stripe's edge)
-                    keep = r < max(1.5, 2 * np.median(r))
-                    e = _fit_candidate(g.pts[keep], min_axis_px, max_axis_px) if keep.mean() >= 0.7 else None
-                    r = np.abs(_param_distance(e, g.pts[keep])) if e is not None else None
-                if e is not None and np.mean(r) < 1.0:
-                    cands.append((*e, g.sign))
+        if g.span < min_span or len(g.pts) < 6:
+            continue
+        L = len(g.turns) + 1
+        for i0, i1 in ((0, L), (1, L), (0, L - 1), (1, L - 1), (2, L), (0, L - 2)):
+            if i1 - i0 < 2 or g.turns[i0:i1 - 1].sum() < min_span:
+                continue
+            sel = (g.seg_of_pt >= i0) & (g.seg_of_pt < i1)
+            e = _fit_candidate(g.pts[sel], min_axis_px, max_axis_px)
+            if e is not None and np.mean(np.abs(_param_distance(e, g.pts[sel]))) < 1.0:
+                cands.append((*e, g.sign))
+                break
     # global: pairs of groups under polarity and region conditions
     m = len(G)
     if m >= 2:

@@ -37,10 +37,10 @@ def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
             img = img.astype(np.uint8) * 255
         if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
             raise LightplaneError(f"{name} must be a numeric array, got dtype {img.dtype}")
-        g = img.astype(np.float32)
+        g = img.astype(np.float32, copy=False)
     else:
         raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {img.shape}")
-    if not np.all(np.isfinite(g)):
+    if g.dtype.kind == "f" and img.dtype.kind not in "iub" and not np.all(np.isfinite(g)):
         g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
     return np.ascontiguousarray(g)
 

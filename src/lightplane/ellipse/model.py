@@ -312,19 +312,42 @@ def sampson_distance(C: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return alg / np.maximum(g, 1e-300)
 
 
-def _ortho_residuals(params: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Orthogonal-distance approximation: Sampson distance for params (cx, cy, log a, log b, angle)."""
+def _ortho_parts(params: np.ndarray, uv: np.ndarray):
     cx, cy, la, lb, ang = params
-    a, b = math.exp(la), math.exp(lb)
+    A, B = math.exp(-2 * la), math.exp(-2 * lb)  # 1/a^2, 1/b^2
     c, s = math.cos(ang), math.sin(ang)
     d0 = uv[:, 0] - cx
     d1 = uv[:, 1] - cy
     x = c * d0 + s * d1
     y = -s * d0 + c * d1
-    # f = x^2/a^2 + y^2/b^2 - 1 ; |grad f| = 2 sqrt(x^2/a^4 + y^2/b^4)
-    f = x * x / (a * a) + y * y / (b * b) - 1.0
-    g = 2.0 * np.sqrt(x * x / a ** 4 + y * y / b ** 4)
-    return f / np.maximum(g, 1e-12)
+    f = A * x * x + B * y * y - 1.0
+    q = np.sqrt(A * A * x * x + B * B * y * y)
+    g = 2.0 * np.maximum(q, 1e-12)
+    return A, B, c, s, x, y, f, g
+
+
+def _ortho_residuals(params: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Sampson distance (px) of ``uv`` (N, 2) to the ellipse params (cx, cy, log a, log b, angle):
+    ``f / |grad f|`` with ``f = x^2/a^2 + y^2/b^2 - 1`` in the ellipse's frame."""
+    *_, f, g = _ortho_parts(params, uv)
+    return f / g
+
+
+def _ortho_jacobian(params: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Analytic Jacobian (N, 5) of :func:`_ortho_residuals`."""
+    A, B, c, s, x, y, f, g = _ortho_parts(params, uv)
+    # derivatives of (x, y) w.r.t. cx, cy, angle; of (A, B) w.r.t. log a, log b
+    dx = (-c, -s, 0.0, 0.0, y)
+    dy = (s, -c, 0.0, 0.0, -x)
+    dA = (0.0, 0.0, -2 * A, 0.0, 0.0)
+    dB = (0.0, 0.0, 0.0, -2 * B, 0.0)
+    J = np.empty((len(uv), 5))
+    for k in range(5):
+        df = 2 * A * x * dx[k] + 2 * B * y * dy[k] + x * x * dA[k] + y * y * dB[k]
+        dQ = 2 * A * A * x * dx[k] + 2 * B * B * y * dy[k] + 2 * A * x * x * dA[k] + 2 * B * y * y * dB[k]
+        dg = 2 * dQ / g
+        J[:, k] = (df * g - f * dg) / (g * g)
+    return J
 
 
 def fit_ellipse_geometric(uv: np.ndarray, init: "Ellipse | np.ndarray", *, loss: str = "linear",
@@ -347,8 +370,9 @@ def fit_ellipse_geometric(uv: np.ndarray, init: "Ellipse | np.ndarray", *, loss:
             return None
     x0 = np.array([init.centre[0], init.centre[1], math.log(init.a), math.log(init.b), init.angle])
     try:
-        res = least_squares(_ortho_residuals, x0, args=(uv,), method="lm" if loss == "linear" else "trf",
-                            loss=loss, f_scale=f_scale, x_scale="jac", max_nfev=200)
+        res = least_squares(_ortho_residuals, x0, jac=_ortho_jacobian, args=(uv,),
+                            method="lm" if loss == "linear" else "trf", loss=loss, f_scale=f_scale,
+                            x_scale="jac", max_nfev=100)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(res.x)):

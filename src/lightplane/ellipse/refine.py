@@ -53,11 +53,13 @@ class RefinedEllipse:
 
 
 def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float = 0.05,
-                     iterations: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                     iterations: int = 2, geometric: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Direct (Halir–Flusser) then geometric conic fit with MAD outlier rejection.
 
     ``uv`` (N, 2) px.  Points farther than ``mad_k`` robust sigmas (1.4826 MAD, at least
-    ``min_sigma_px``) from the current fit are dropped, ``iterations`` times.
+    ``min_sigma_px``) from the current fit are dropped, ``iterations`` times; then (if
+    ``geometric``) a Levenberg–Marquardt fit of the Sampson distances, one more
+    rejection and a final geometric fit.
     Returns ``(conic (3, 3), inlier mask (N,), residuals of the inliers (M,) px)`` or None.
     """
     uv = np.asarray(uv, dtype=np.float64)
@@ -77,6 +79,8 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
         if C2 is None:
             return None
         C = C2
+    if not geometric:
+        return C, keep, sampson_distance(C, uv[keep])
     g = fit_ellipse_geometric(uv[keep], C)
     if g is None:
         return None
@@ -156,7 +160,8 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
                                             min_mag=min_mag, max_angle_rad=math.radians(30))
         if len(pts) < min_inliers:
             raise LightplaneError(f"refine_ellipse: only {len(pts)} edge points found near the ellipse")
-        fit = fit_conic_robust(pts)
+        last = it == max(1, iterations) - 1
+        fit = fit_conic_robust(pts, geometric=last and camera is None)
         if fit is None:
             raise LightplaneError("refine_ellipse: no ellipse fits the edge points")
         C, keep, _ = fit

@@ -112,9 +112,10 @@ def _chord(e: Ellipse, p0: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _stripe_pixels(gray: np.ndarray, e: Ellipse, shrink: float, outer: float,
-                   width_px: float) -> tuple[np.ndarray, np.ndarray]:
+                   width_px: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Pixels of a narrow bright line (white top-hat) inside ``e`` scaled by ``shrink`` and in
-    the ring between ``e`` scaled by 1.1 and by ``outer``: ``(inside (N, 2), ring (M, 2))``.
+    the ring between ``e`` scaled by 1.1 and by ``outer``: ``(inside (N, 2), ring (M, 2),
+    sampling step px)``.  Large ellipses are searched at half resolution (step 2).
     Each region gets its own robust threshold (a stripe on a dark disc is faint)."""
     import cv2
 
@@ -124,13 +125,19 @@ def _stripe_pixels(gray: np.ndarray, e: Ellipse, shrink: float, outer: float,
     cu1, cv1 = min(int(u1) + 2, w), min(int(v1) + 2, h)
     empty = np.zeros((0, 2))
     if cu1 - cu0 < 8 or cv1 - cv0 < 8:
-        return empty, empty
+        return empty, empty, 1
+    f = 2 if e.b >= 80 and cu1 - cu0 >= 32 and cv1 - cv0 >= 32 else 1
+    crop = np.ascontiguousarray(gray[cv0:cv1, cu0:cu1])
+    if f > 1:
+        crop = cv2.resize(crop, ((cu1 - cu0) // f, (cv1 - cv0) // f), interpolation=cv2.INTER_AREA)
     # smoothing first: a faint stripe (on a dark disc) must stand out of the noise
-    crop = cv2.GaussianBlur(np.ascontiguousarray(gray[cv0:cv1, cu0:cu1]), (0, 0), 1.5)
-    k = int(2 * round(width_px) + 1)
+    crop = cv2.GaussianBlur(crop, (0, 0), 1.5 / f)
+    k = int(2 * round(width_px / f) + 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     th = cv2.morphologyEx(crop, cv2.MORPH_TOPHAT, kernel)
-    vv, uu = np.mgrid[cv0:cv1, cu0:cu1]
+    vv, uu = np.mgrid[0:crop.shape[0], 0:crop.shape[1]].astype(np.float64)
+    uu = cu0 + f * (uu + 0.5) - 0.5  # full-resolution pixel coordinates of the samples
+    vv = cv0 + f * (vv + 0.5) - 0.5
     q = np.column_stack([uu.ravel(), vv.ravel()])
     rho = e.algebraic(q).reshape(uu.shape) + 1.0  # normalised radius: 1 on the ellipse
     span = float(np.percentile(crop, 99.5) - np.percentile(crop, 0.5))
@@ -144,18 +151,19 @@ def _stripe_pixels(gray: np.ndarray, e: Ellipse, shrink: float, outer: float,
         mad = float(np.median(np.abs(vals - med))) * 1.4826
         thr = med + max(5.0 * mad, 0.01 * span, 1.0)
         sel = region & (th > thr)
-        out.append(np.column_stack([uu[sel], vv[sel]]).astype(np.float64))
-    return out[0], out[1]
+        out.append(np.column_stack([uu[sel], vv[sel]]))
+    return out[0], out[1], f
 
 
-def _coverage(pts: np.ndarray, m: np.ndarray, d: np.ndarray, s0: float, s1: float, tol: float) -> float:
-    """Fraction of 1-px bins of the segment m + s d, s in [s0, s1], holding a point within tol."""
+def _coverage(pts: np.ndarray, m: np.ndarray, d: np.ndarray, s0: float, s1: float, tol: float,
+              bin_px: float = 1.0) -> float:
+    """Fraction of ``bin_px`` bins of the segment m + s d, s in [s0, s1], holding a point within tol."""
     if len(pts) == 0 or s1 <= s0:
         return 0.0
     dist = np.abs((pts[:, 0] - m[0]) * d[1] - (pts[:, 1] - m[1]) * d[0])
     proj = (pts - m) @ d
     sel = (dist <= tol) & (proj >= s0) & (proj <= s1)
-    nb = max(int(s1 - s0), 1)
+    nb = max(int((s1 - s0) / bin_px), 1)
     bins = np.clip(((proj[sel] - s0) / (s1 - s0) * nb).astype(int), 0, nb - 1)
     return np.unique(bins).size / nb
 
@@ -181,10 +189,10 @@ def stripe_crossing(image: np.ndarray, ellipse: Ellipse, *, stripe_hint: np.ndar
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         rho = ellipse.algebraic(pts) + 1.0 if len(pts) else np.zeros(0)
         p_in, p_ring = pts[rho <= shrink], pts[(rho >= 1.1) & (rho <= outer)]
-        tol = 2.0
+        tol, step = 2.0, 1.0
     else:
         gray = prepare_gray(image)
-        p_in, p_ring = _stripe_pixels(gray, ellipse, shrink, outer, stripe_width_px)
+        p_in, p_ring, step = _stripe_pixels(gray, ellipse, shrink, outer, stripe_width_px)
         tol = max(2.0, 0.6 * stripe_width_px)
     best = StripeCrossing(None, 0.0, 0.0, int(len(p_in)))
     for pts, use_ring in ((p_in, False), (np.concatenate([p_in, p_ring]), True)):
@@ -200,13 +208,13 @@ def stripe_crossing(image: np.ndarray, ellipse: Ellipse, *, stripe_hint: np.ndar
         if ch is None:
             continue
         s0, s1 = ch
-        cov = _coverage(p_in, m, d, s0, s1, tol)
+        cov = _coverage(p_in, m, d, s0, s1, tol, step)
         if use_ring and cov >= 0.2:
             full = _chord(ellipse, m, d)
             far = _chord(ellipse.scaled(outer), m, d)
             if full is not None and far is not None:
-                before = _coverage(p_ring, m, d, far[0], full[0], tol)
-                after = _coverage(p_ring, m, d, full[1], far[1], tol)
+                before = _coverage(p_ring, m, d, far[0], full[0], tol, step)
+                after = _coverage(p_ring, m, d, full[1], far[1], tol, step)
                 if before >= 0.3 and after >= 0.3:
                     cov = 1.0
         if cov > best.coverage:
@@ -258,6 +266,7 @@ def select_target(image: np.ndarray, ellipses: list[Ellipse], stripe_hint: np.nd
     for i, e in enumerate(ellipses):
         if not isinstance(e, Ellipse):
             raise LightplaneError(f"ellipses[{i}] must be an Ellipse, got {type(e).__name__}")
+    gray = prepare_gray(image) if stripe_hint is None else None
     status = ["" for _ in ellipses]
     pool = []
     for i, e in enumerate(ellipses):
@@ -276,7 +285,7 @@ def select_target(image: np.ndarray, ellipses: list[Ellipse], stripe_hint: np.nd
         if e.area < relative_area * amax:
             status[i] = "too small"
             continue
-        cr = stripe_crossing(image, e, stripe_hint=stripe_hint, stripe_width_px=stripe_width_px)
+        cr = stripe_crossing(gray, e, stripe_hint=stripe_hint, stripe_width_px=stripe_width_px)
         if cr.crosses(min_stripe_coverage, min_chord_fraction):
             crossed.append((e.area * e.score * cr.coverage, i, cr))
         else:
