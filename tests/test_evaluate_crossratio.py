@@ -86,6 +86,34 @@ def test_ideal_points_exact_rows(corners_used):
     assert np.all(cr.crossing_angle_deg > 45)
 
 
+def test_ideal_points_exact_with_corners_left_out():
+    """Corners the stripe runs over (or any others) can be left out; three per line suffice."""
+    from lightplane.baselines.zhou import corners_clear_of_stripe
+
+    corners, stripe, ideal = scene(R1, T1, PLANE1)
+    pose = pose_from_corners(CAM, corners, BOARD, SQ)
+    clear = corners_clear_of_stripe(CAM, pose, stripe, clearance_px=10.0)  # ~0.35 square
+    assert 0 < np.count_nonzero(~clear) < 20
+    # the left-out corners are those within 10 px of the true stripe line (undistorted)
+    a, b = CAM.undistort_points(stripe[[0, -1]])
+    n = np.array([a[1] - b[1], b[0] - a[0]]) / np.linalg.norm(b - a)
+    np.testing.assert_array_equal(clear, np.abs((CAM.undistort_points(corners) - a) @ n) > 10.0)
+    ok = clear.copy()
+    ok[[0, 1, 2, 3, 4, 5]] = False  # row 0 keeps only three corners
+    for mode in ("three", "all"):
+        cr = cross_ratio_points(CAM.undistort_points(corners), BOARD, CAM.undistort_points(stripe), square_mm=SQ,
+                                corners_used=mode, corner_ok=ok)
+        np.testing.assert_array_equal(cr.line_index, np.arange(6))
+        np.testing.assert_allclose(cr.p_board_mm, ideal, atol=1e-8)
+    ok[6] = False  # row 0: two corners left -> that row is skipped
+    cr = cross_ratio_points(CAM.undistort_points(corners), BOARD, CAM.undistort_points(stripe), square_mm=SQ,
+                            corner_ok=ok)
+    np.testing.assert_array_equal(cr.line_index, np.arange(1, 6))
+    pose2 = pose_from_corners(CAM, corners, BOARD, SQ, corner_ok=clear)
+    np.testing.assert_allclose(pose2.t_cam_board, T1, atol=1e-6)
+    assert pose2.to_dict()["corners_left_out"] == np.count_nonzero(~clear)
+
+
 def test_ideal_points_exact_columns():
     R, t = rot(-10, 15, 2), np.array([-40.0, -25.0, 420.0])
     plane = vertical_plane(R @ np.array([40.0, 23.0, 0]) + t, tilt=(0.05, 0.95, -0.3))

@@ -201,30 +201,32 @@ class CrossRatioPoints:
 
 def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, square_mm: float,
                family: str, corners_used: str, window_px: float | None, min_angle_deg: float,
-               min_stripe_points: int) -> CrossRatioPoints:
+               min_stripe_points: int, corner_ok: np.ndarray) -> CrossRatioPoints:
     cols, rows = board
     grid = corners.reshape(rows, cols, 2)
+    okg = corner_ok.reshape(rows, cols)
     if family == "rows":
-        lines = [grid[j] for j in range(rows)]
-        across = grid[1:] - grid[:-1]  # neighbours between rows
+        lines = [(grid[j], okg[j]) for j in range(rows)]
     else:
-        lines = [grid[:, i] for i in range(cols)]
-        across = grid[:, 1:] - grid[:, :-1]
-    spacing_across = float(np.median(np.linalg.norm(across.reshape(-1, 2), axis=1)))
+        lines = [(grid[:, i], okg[:, i]) for i in range(cols)]
     half_window = np.inf if window_px is None else float(window_px)
     pts, uvs, idx, angles, counts = [], [], [], [], []
-    for li, line in enumerate(lines):
+    for li, (full_line, line_ok) in enumerate(lines):
+        if np.count_nonzero(line_ok) < 3:
+            continue
+        X = np.flatnonzero(line_ok).astype(np.float64)  # board coordinate in squares
+        line = full_line[line_ok]
         m, t = _fit_line(line)
         if (line[-1] - line[0]) @ t < 0:
             t = -t  # along increasing board coordinate
         nrm = np.array([-t[1], t[0]])
         s_c = (line - m) @ t
-        step = float(np.median(np.diff(s_c)))
+        step = float(np.median(np.diff(s_c) / np.diff(X)))
         rel = stripe - m
         s, h = rel @ t, rel @ nrm
         near = np.abs(h) < half_window
         if np.isfinite(half_window):
-            near &= (s > s_c[0] - step) & (s < s_c[-1] + step)
+            near &= (s > s_c[0] - step * (X[0] + 1)) & (s < s_c[-1] + step * (len(full_line) - X[-1]))
         if np.count_nonzero(near) < min_stripe_points or not (h[near].min() < 0 < h[near].max()):
             continue
         q = np.column_stack([s[near], h[near]])
@@ -239,17 +241,17 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
         if angle < min_angle_deg:
             continue
         s_d = qm[0] - qm[1] * qd[0] / qd[1]  # where the stripe line meets h = 0
-        if not (s_c[0] - step <= s_d <= s_c[-1] + step):
+        s_lo, s_hi = s_c[0] - step * X[0], s_c[-1] + step * (len(full_line) - 1 - X[-1])  # the full line
+        if not (s_lo - step <= s_d <= s_hi + step):
             continue
-        X = np.arange(len(line), dtype=np.float64)  # board coordinate in squares
         if corners_used == "three":
             ia, ib, ic = 0, (len(line) - 1) // 2, len(line) - 1
             x_d = float(point_from_cross_ratio(cross_ratio(s_c[ia], s_c[ib], s_c[ic], s_d), X[ia], X[ib], X[ic]))
         else:
-            scale = step  # condition the algebraic fit: s in units of one square
-            p_, q_, r_ = _line_map(X, (s_c - s_c[0]) / scale)
-            sd = (s_d - s_c[0]) / scale
-            x_d = (sd - q_) / (p_ - r_ * sd)
+            x0 = X[0]  # condition the algebraic fit: both coordinates in squares from the first corner
+            p_, q_, r_ = _line_map(X - x0, (s_c - s_c[0]) / step)
+            sd = (s_d - s_c[0]) / step
+            x_d = x0 + (sd - q_) / (p_ - r_ * sd)
         along, fixed = x_d * square_mm, li * square_mm
         pts.append([along, fixed, 0.0] if family == "rows" else [fixed, along, 0.0])
         uvs.append(m + s_d * t)
@@ -269,7 +271,7 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
 def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], stripe_uv_undist: np.ndarray, *,
                        square_mm: float, lines: str = "auto", corners_used: str = "all",
                        window_px: float | None = None, min_angle_deg: float = 15.0,
-                       min_stripe_points: int = 4) -> CrossRatioPoints:
+                       min_stripe_points: int = 4, corner_ok: np.ndarray | None = None) -> CrossRatioPoints:
     """Ideal points where the stripe crosses the chessboard's corner lines (paper §4.3, Eq. 16).
 
     Parameters
@@ -294,6 +296,8 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], st
         (e.g. 1.5 square spacings) for a board that is not flat.
     min_angle_deg : crossings flatter than this are skipped (ill-conditioned).
     min_stripe_points : fewest stripe points for one crossing.
+    corner_ok : (cols·rows,) bool, corners to use (e.g. not those the stripe runs over);
+        a line needs three usable corners.  Default: all.
 
     Returns
     -------
@@ -316,9 +320,12 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], st
     stripe = stripe[np.all(np.isfinite(stripe), axis=1)]
     if not (np.isfinite(square_mm) and square_mm > 0):
         raise LightplaneError(f"square_mm must be positive, got {square_mm}")
+    ok = np.ones(len(corners), bool) if corner_ok is None else np.asarray(corner_ok, bool).ravel()
+    if ok.shape != (len(corners),):
+        raise LightplaneError(f"corner_ok must have {len(corners)} entries, got {np.shape(corner_ok)}")
     args = (corners, (cols, rows), stripe, float(square_mm))
     kw = dict(corners_used=corners_used, window_px=window_px, min_angle_deg=min_angle_deg,
-              min_stripe_points=min_stripe_points)
+              min_stripe_points=min_stripe_points, corner_ok=ok)
     if lines != "auto":
         if lines == "columns" and rows < 3:
             raise LightplaneError("lines='columns' needs at least 3 rows of corners")
@@ -419,7 +426,7 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
         corners_u = camera.undistort_points(view.corners_uv)
         stripe_u = camera.undistort_points(as_points(stripe, 2, "stripe")) if len(stripe) else np.zeros((0, 2))
         cr = cross_ratio_points(corners_u, board, stripe_u, square_mm=square_mm, lines=lines,
-                                corners_used=corners_used)
+                                corners_used=corners_used, corner_ok=getattr(view, "corner_ok", None))
         diag.append({"view": names[k], "n_points": len(cr), "family": cr.family,
                      "lines": cr.line_index.tolist()})
         if len(cr) == 0:

@@ -28,6 +28,7 @@ __all__ = [
     "BoardPose",
     "find_board_pose",
     "pose_from_corners",
+    "corners_clear_of_stripe",
     "board_polygon_mask",
     "stripe_points_on_board",
     "fit_plane",
@@ -50,6 +51,8 @@ class BoardPose:
     t_cam_board : (3,) float, board origin in the camera frame, mm.
     reprojection_rms_px : float, RMS corner reprojection error of the pose.
     name : str, where it came from.
+    corner_ok : (cols·rows,) bool or None; False for corners left out of the pose (and of the
+        cross-ratio) because the laser stripe runs over them; None: all used.
     """
 
     corners_uv: np.ndarray
@@ -57,6 +60,7 @@ class BoardPose:
     t_cam_board: np.ndarray
     reprojection_rms_px: float
     name: str = ""
+    corner_ok: np.ndarray | None = None
 
     @property
     def normal_cam(self) -> np.ndarray:
@@ -68,12 +72,16 @@ class BoardPose:
 
         rvec, _ = cv2.Rodrigues(self.R_cam_board)
         return {"name": self.name, "rvec": rvec.ravel().tolist(), "t_cam_board_mm": self.t_cam_board.tolist(),
-                "reprojection_rms_px": self.reprojection_rms_px}
+                "reprojection_rms_px": self.reprojection_rms_px,
+                "corners_left_out": 0 if self.corner_ok is None else int(np.count_nonzero(~self.corner_ok))}
 
 
 def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, int], square_mm: float,
-                      name: str = "") -> BoardPose:
-    """Board pose from its detected corners: ``cv2.solvePnP`` with the camera's distortion, then LM refinement."""
+                      name: str = "", corner_ok: np.ndarray | None = None) -> BoardPose:
+    """Board pose from its detected corners: ``cv2.solvePnP`` with the camera's distortion, then LM refinement.
+
+    ``corner_ok`` (N,) bool: only these corners are used (all when None).
+    """
     import cv2
 
     from ..intrinsics import board_points
@@ -82,15 +90,32 @@ def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, 
     uv = as_points(corners_uv, 2, "corners_uv")
     if len(uv) != len(obj):
         raise LightplaneError(f"{name or 'corners_uv'}: {len(uv)} corners, board {board[0]}x{board[1]} needs {len(obj)}")
-    ok, rvec, tvec = cv2.solvePnP(obj, uv, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    use = np.ones(len(uv), bool) if corner_ok is None else np.asarray(corner_ok, bool)
+    o, u = obj[use], uv[use]
+    ok, rvec, tvec = cv2.solvePnP(o, u, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         raise LightplaneError(f"{name or 'board'}: solvePnP failed")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, uv, camera.K, camera.dist, rvec, tvec)
+    rvec, tvec = cv2.solvePnPRefineLM(o, u, camera.K, camera.dist, rvec, tvec)
     R, _ = cv2.Rodrigues(rvec)
     t = tvec.ravel().astype(np.float64)
-    res = camera.project(obj @ R.T + t) - uv
+    res = camera.project(o @ R.T + t) - u
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    return BoardPose(uv, R, t, rms, name)
+    return BoardPose(uv, R, t, rms, name, None if corner_ok is None else use)
+
+
+def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarray, *,
+                            clearance_px: float) -> np.ndarray:
+    """(N,) bool: corners farther than ``clearance_px`` (undistorted px) from the stripe's line.
+
+    A bright stripe across a corner pulls its sub-pixel position (the refinement
+    window sees the stripe's edges); such corners are left out when the board
+    had to be found in the laser-on image.
+    """
+    uv = camera.undistort_points(as_points(stripe_uv, 2, "stripe_uv"))
+    m = uv.mean(axis=0)
+    _, _, vt = np.linalg.svd(uv - m, full_matrices=False)
+    c = camera.undistort_points(pose.corners_uv)
+    return np.abs((c - m) @ vt[1]) > clearance_px
 
 
 def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], square_mm: float, *,
@@ -386,7 +411,14 @@ def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, boa
         pose = find_board_pose(bg if per_image else img, camera, board,
                                square_mm, name=names[k], channel=channel)
         mask = board_polygon_mask(camera, pose, board, square_mm)
-        stripes.append(_stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv))
+        stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
+        if not per_image and len(stripe) >= 2:
+            # corners found in the laser-on image: leave out those the stripe runs over
+            spacing = float(np.median(np.linalg.norm(np.diff(pose.corners_uv, axis=0), axis=1)))
+            clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * spacing)
+            if not clear.all() and np.count_nonzero(clear) >= 6:
+                pose = pose_from_corners(camera, pose.corners_uv, board, square_mm, names[k], corner_ok=clear)
+        stripes.append(stripe)
         poses.append(pose)
         if progress is not None:
             progress(k)
