@@ -37,7 +37,7 @@ WHITISH = 7       # whitish pixels on the stripe (glare, sensor bloom); set by s
 @lru_cache(maxsize=64)
 def _kernels_cached(sigma_milli: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     sigma = sigma_milli / 1000.0
-    R = int(math.ceil(3.5 * sigma))
+    R = int(math.ceil(3.0 * sigma))
     i = np.arange(-R, R + 1, dtype=np.float64)
     s2 = math.sqrt(2.0)
     erf = np.vectorize(math.erf)
@@ -68,7 +68,7 @@ def _kernels_cached(sigma_milli: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def gaussian_derivative_kernels(sigma_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correlation kernels (value, first, second derivative) of a pixel-integrated Gaussian.
 
-    Returns three read-only float64 arrays of length ``2R + 1``, ``R = ceil(3.5 sigma)``;
+    Returns three read-only float64 arrays of length ``2R + 1``, ``R = ceil(3 sigma)``;
     ``w1`` is odd (``sum i w1[i] = 1``), ``w2`` even (``sum i^2 w2[i] / 2 = 1``).
     ``sigma_px`` is rounded to 0.001 px (kernels are cached).
     """
@@ -101,27 +101,39 @@ def edge_kernels(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # small scalar helpers (shared by the 2-D and profile kernels)
 
+HERMITE_ITER = 6    # safeguarded Newton steps (quadratic convergence: ~1e-15 px)
+
+
 @njit(cache=True, inline="always")
 def _hermite_root(g0, d0, g1, d1):
-    """Root in [0, 1] of the cubic Hermite interpolant (values g, slopes d) with g0*g1 <= 0."""
+    """Root in [0, 1] of the cubic Hermite interpolant (values g, slopes d) with g0*g1 <= 0.
+
+    Safeguarded Newton from the secant estimate, keeping a bracket (bisection
+    when a step leaves it); a fixed number of steps so that the numpy version
+    reproduces it exactly.
+    """
     if g0 == 0.0:
         return 0.0
     if g1 == 0.0:
         return 1.0
     lo = 0.0
     hi = 1.0
-    glo = g0
-    for _ in range(40):
-        t = 0.5 * (lo + hi)
+    t = g0 / (g0 - g1)
+    pos0 = g0 > 0.0
+    for _ in range(HERMITE_ITER):
         t2 = t * t
         t3 = t2 * t
         h = (2.0 * t3 - 3.0 * t2 + 1.0) * g0 + (t3 - 2.0 * t2 + t) * d0 + (-2.0 * t3 + 3.0 * t2) * g1 + (t3 - t2) * d1
-        if (h > 0.0) == (glo > 0.0):
+        dh = (6.0 * t2 - 6.0 * t) * (g0 - g1) + (3.0 * t2 - 4.0 * t + 1.0) * d0 + (3.0 * t2 - 2.0 * t) * d1
+        if (h > 0.0) == pos0:
             lo = t
-            glo = h
         else:
             hi = t
-    return 0.5 * (lo + hi)
+        tn = t - h / dh if dh != 0.0 else 0.5 * (lo + hi)
+        if not (lo <= tn <= hi):
+            tn = 0.5 * (lo + hi)
+        t = tn
+    return t
 
 
 @njit(cache=True, inline="always")
@@ -152,35 +164,79 @@ def _ridge_normal(ruu, ruv, rvv):
 # ----------------------------------------------------------------------------------------
 # profile kernels (A[s, l], lines = columns of A)
 
+BLOCK = 16      # samples per block of the candidate search
+_CHUNK = 256    # lines per parallel task
+
+
+@njit(cache=True)
+def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
+    # numba's parfor lowering slows this body ~5x when it is inlined in prange:
+    # keep it a separate serial function
+    S = A.shape[0]
+    B = BLOCK
+    nb = (S + B - 1) // B
+    n = l1 - l0
+    bm = np.empty((nb, n), dtype=A.dtype)
+    for b in range(nb):
+        s0 = b * B
+        s1 = min(S, s0 + B)
+        acc = bm[b]
+        r0 = A[s0, l0:l1]
+        for l in range(n):
+            acc[l] = r0[l]
+        for s in range(s0 + 1, s1):
+            r = A[s, l0:l1]
+            for l in range(n):
+                acc[l] = max(acc[l], r[l])
+    for l in range(n):
+        lg = l0 + l
+        bb = 0
+        best = bm[0, l]
+        for b in range(1, nb):
+            if bm[b, l] > best:
+                best = bm[b, l]
+                bb = b
+        q1 = bb * B
+        while A[q1, lg] != best:
+            q1 += 1
+        p1[lg] = q1
+        v1[lg] = float(best)
+        b2 = -1
+        best2 = best
+        for b in range(nb):
+            s0 = b * B
+            s1 = min(S, s0 + B)
+            if s1 - 1 < q1 - sep or s0 > q1 + sep:
+                if b2 < 0 or bm[b, l] > best2:
+                    best2 = bm[b, l]
+                    b2 = b
+        if b2 < 0:
+            p2[lg] = -1
+            v2[lg] = -np.inf
+            continue
+        q2 = b2 * B
+        while A[q2, lg] != best2:
+            q2 += 1
+        p2[lg] = q2
+        v2[lg] = float(best2)
+
+
 @njit(cache=True, parallel=True)
 def profile_candidates(A, sep, p1, v1, p2, v2):
-    """Per line the highest sample (p1, v1; first of equals) and the highest one farther than ``sep`` from it (p2, v2).
+    """Per line the highest sample (p1, v1) and a second, farther candidate (p2, v2).
 
-    Two passes over ``A`` in memory order (rows of ``A``), parallel over blocks of
-    lines.  ``p2 = -1`` where there is no second candidate.
+    ``p1`` is the first sample holding the line's maximum (``argmax``).  ``p2`` is
+    the first sample holding the maximum over the blocks of ``BLOCK`` samples
+    (``s // BLOCK``) that lie entirely farther than ``sep`` from ``p1``; ``p2 = -1``
+    and ``v2 = -inf`` where there is no such block.  One pass over ``A`` in memory
+    order computes the block maxima (a max-reduction the compiler vectorises:
+    reading the columns of a row-major image sample by sample would miss the
+    cache at every sample); positions then cost at most ``2 BLOCK`` reads a line.
     """
-    S, L = A.shape
-    nblk = (L + 127) // 128
-    for b in prange(nblk):
-        l0 = b * 128
-        l1 = min(L, l0 + 128)
-        for l in range(l0, l1):
-            p1[l] = -1
-            p2[l] = -1
-            v1[l] = -np.inf
-            v2[l] = -np.inf
-        for s in range(S):
-            for l in range(l0, l1):
-                x = float(A[s, l])
-                if x > v1[l]:
-                    v1[l] = x
-                    p1[l] = s
-        for s in range(S):
-            for l in range(l0, l1):
-                x = float(A[s, l])
-                if x > v2[l] and abs(s - p1[l]) > sep:
-                    v2[l] = x
-                    p2[l] = s
+    L = A.shape[1]
+    nch = (L + _CHUNK - 1) // _CHUNK
+    for ch in prange(nch):
+        _candidates_chunk(A, sep, p1, v1, p2, v2, ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK))
 
 
 @njit(cache=True)
@@ -269,6 +325,131 @@ def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
         out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
 
 
+@njit(cache=True)
+def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                 centre, normal, strength, intensity, width, status):
+    """One line of :func:`profile_centres` (a separate serial function: numba's
+    parfor lowering compiles loops inlined in a prange body into much slower code)."""
+    S, L = A.shape
+    R = (w0.shape[0] - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
+    centre[l] = np.nan
+    normal[l, 0] = np.nan
+    normal[l, 1] = np.nan
+    strength[l] = np.nan
+    intensity[l] = np.nan
+    width[l] = np.nan
+    if p < 0:
+        status[l] = NO_PEAK
+        return
+    # 1. smoothed peak along the line
+    c = p
+    ybest = -np.inf
+    for s in range(p - qpeak, p + qpeak + 1):
+        if s < 0 or s >= S:
+            continue
+        y = 0.0
+        for i in range(-R, R + 1):
+            y += w0[i + R] * float(A[_clamp(s + i, S), l])
+        if y > ybest:
+            ybest = y
+            c = s
+    if c - 1 - R < 0 or c + 1 + R > S - 1:
+        status[l] = EDGE
+        return
+    # 2. across the lines first (rows of A are contiguous): X_k[m] for the 2R+3
+    #    samples c-1-R .. c+1+R, then along the line at c-1, c, c+1
+    re = min(RX, l, L - 1 - l)
+    X0 = tmp[0]
+    X1 = tmp[1]
+    X2 = tmp[2]
+    for m in range(2 * R + 3):
+        row = A[c - 1 - R + m]
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for j in range(-re, re + 1):
+            x = float(row[l + j])
+            a0 += xw[re, 0, j + RX] * x
+            a1 += xw[re, 1, j + RX] * x
+            a2 += xw[re, 2, j + RX] * x
+        X0[m] = a0
+        X1[m] = a1
+        X2[m] = a2
+    rl = tmp[3]
+    rs = tmp[4]
+    rll = tmp[5]
+    rls = tmp[6]
+    rss = tmp[7]
+    for q in range(3):
+        b_s = 0.0
+        b_ss = 0.0
+        b_l = 0.0
+        b_ll = 0.0
+        b_ls = 0.0
+        for i in range(2 * R + 1):
+            m = q + i
+            b_s += w1[i] * X0[m]
+            b_ss += w2[i] * X0[m]
+            b_l += w0[i] * X1[m]
+            b_ll += w0[i] * X2[m]
+            b_ls += w1[i] * X1[m]
+        rs[q] = b_s
+        rss[q] = b_ss
+        rl[q] = b_l
+        rll[q] = b_ll
+        rls[q] = b_ls
+    r0c = 0.0
+    for i in range(2 * R + 1):
+        r0c += w0[i] * X0[1 + i]
+    intensity[l] = r0c
+    lam, nl, ns = _ridge_normal(rll[1], rls[1], rss[1])
+    normal[l, 0] = nl
+    normal[l, 1] = ns
+    strength[l] = -lam
+    fw, left, right, best, bg = _fwhm_line(A, l, c, half, 0.0)
+    if best - bg < min_peak:
+        status[l] = NO_PEAK
+        return
+    if lam >= 0.0:
+        status[l] = NOT_RIDGE
+        return
+    if abs(ns) < min_cos:
+        status[l] = ALONG_LINE
+        return
+    # 3. zero crossing of g = n . grad r along the line
+    g0 = nl * rl[0] + ns * rs[0]
+    g1 = nl * rl[1] + ns * rs[1]
+    g2 = nl * rl[2] + ns * rs[2]
+    d0 = nl * rls[0] + ns * rss[0]
+    d1 = nl * rls[1] + ns * rss[1]
+    d2 = nl * rls[2] + ns * rss[2]
+    if g1 == 0.0:
+        cc = float(c)
+    else:
+        lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
+        hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+        if lo_ok and hi_ok:
+            # both sides bracket a root (should not happen on a ridge): take the nearer
+            t_lo = _hermite_root(g0, d0, g1, d1)
+            t_hi = _hermite_root(g1, d1, g2, d2)
+            cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
+        elif lo_ok:
+            cc = c - 1 + _hermite_root(g0, d0, g1, d1)
+        elif hi_ok:
+            cc = c + _hermite_root(g1, d1, g2, d2)
+        else:
+            status[l] = NO_CROSSING
+            return
+    # 4. width across the stripe
+    width[l] = fw * ns
+    if not (fw == fw) or fw * ns > max_width:
+        status[l] = TOO_WIDE
+        return
+    centre[l] = cc
+    status[l] = OK
+
+
 @njit(cache=True, parallel=True)
 def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                     centre, normal, strength, intensity, width, status):
@@ -276,7 +457,8 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
 
     1. peak: argmax of the line smoothed with ``w0`` within ``pos ± qpeak``;
     2. the five Gaussian derivatives at that sample and its two neighbours, from
-       a local (2R+1) x (2R+3) patch (no full-image filtering);
+       a local (2RX+1) x (2R+3) patch (no full-image filtering), across the
+       lines first (contiguous rows), then along the line;
     3. normal ``n`` = Hessian eigenvector of the most negative eigenvalue at the
        peak (Steger); ``g = n . grad r`` at the three samples, its slope along the
        line ``n . (H e_s)``; the zero crossing of ``g`` bracketed next to the peak
@@ -293,113 +475,14 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
     (L, 2) as (n_l, n_s), ``strength`` = -lambda, ``intensity`` = smoothed value
     at the peak, ``width`` (px across the stripe), ``status`` (codes above).
     """
-    S, L = A.shape
+    L = A.shape[1]
     R = (w0.shape[0] - 1) // 2
-    RX = (xw.shape[2] - 1) // 2
-    for l in prange(L):
-        centre[l] = np.nan
-        normal[l, 0] = np.nan
-        normal[l, 1] = np.nan
-        strength[l] = np.nan
-        intensity[l] = np.nan
-        width[l] = np.nan
-        p = pos[l]
-        if p < 0:
-            status[l] = NO_PEAK
-            continue
-        # 1. smoothed peak along the line
-        c = p
-        ybest = -np.inf
-        for s in range(p - qpeak, p + qpeak + 1):
-            if s < 0 or s >= S:
-                continue
-            y = 0.0
-            for i in range(-R, R + 1):
-                y += w0[i + R] * float(A[_clamp(s + i, S), l])
-            if y > ybest:
-                ybest = y
-                c = s
-        if c - 1 - R < 0 or c + 1 + R > S - 1:
-            status[l] = EDGE
-            continue
-        # 2. derivatives at c-1, c, c+1 (index m = 0, 1, 2)
-        rl = np.zeros(3)
-        rs = np.zeros(3)
-        rll = np.zeros(3)
-        rls = np.zeros(3)
-        rss = np.zeros(3)
-        r0c = 0.0
-        li = np.int64(l)
-        re = min(np.int64(RX), li, np.int64(L) - 1 - li)
-        for j in range(-re, re + 1):
-            lj = l + j
-            a0j = xw[re, 0, j + RX]
-            a1j = xw[re, 1, j + RX]
-            a2j = xw[re, 2, j + RX]
-            for m in range(3):
-                s0 = c - 1 + m
-                b0 = 0.0
-                b1 = 0.0
-                b2 = 0.0
-                for i in range(-R, R + 1):
-                    x = float(A[_clamp(s0 + i, S), lj])
-                    b0 += w0[i + R] * x
-                    b1 += w1[i + R] * x
-                    b2 += w2[i + R] * x
-                rs[m] += a0j * b1
-                rss[m] += a0j * b2
-                rl[m] += a1j * b0
-                rll[m] += a2j * b0
-                rls[m] += a1j * b1
-                if m == 1:
-                    r0c += a0j * b0
-        intensity[l] = r0c
-        lam, nl, ns = _ridge_normal(rll[1], rls[1], rss[1])
-        normal[l, 0] = nl
-        normal[l, 1] = ns
-        strength[l] = -lam
-        fw, left, right, best, bg = _fwhm_line(A, l, c, half, 0.0)
-        if best - bg < min_peak:
-            status[l] = NO_PEAK
-            continue
-        if lam >= 0.0:
-            status[l] = NOT_RIDGE
-            continue
-        if abs(ns) < min_cos:
-            status[l] = ALONG_LINE
-            continue
-        # 3. zero crossing of g = n . grad r along the line
-        g0 = nl * rl[0] + ns * rs[0]
-        g1 = nl * rl[1] + ns * rs[1]
-        g2 = nl * rl[2] + ns * rs[2]
-        d0 = nl * rls[0] + ns * rss[0]
-        d1 = nl * rls[1] + ns * rss[1]
-        d2 = nl * rls[2] + ns * rss[2]
-        if g1 == 0.0:
-            cc = float(c)
-        else:
-            lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
-            hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
-            if lo_ok and hi_ok:
-                # both sides bracket a root (should not happen on a ridge): take the nearer
-                t_lo = _hermite_root(g0, d0, g1, d1)
-                t_hi = _hermite_root(g1, d1, g2, d2)
-                cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
-            elif lo_ok:
-                cc = c - 1 + _hermite_root(g0, d0, g1, d1)
-            elif hi_ok:
-                cc = c + _hermite_root(g1, d1, g2, d2)
-            else:
-                status[l] = NO_CROSSING
-                continue
-        # 4. width across the stripe
-        if not (fw == fw) or fw * ns > max_width:
-            width[l] = fw * ns
-            status[l] = TOO_WIDE
-            continue
-        width[l] = fw * ns
-        centre[l] = cc
-        status[l] = OK
+    nch = (L + _CHUNK - 1) // _CHUNK
+    for ch in prange(nch):
+        tmp = np.empty((8, 2 * R + 3))      # scratch, allocated once per task
+        for l in range(ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK)):
+            _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                         centre, normal, strength, intensity, width, status)
 
 
 # ----------------------------------------------------------------------------------------

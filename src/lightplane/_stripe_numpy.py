@@ -12,18 +12,27 @@ from . import _stripe_kernels as K
 
 
 def candidates_numpy(A: np.ndarray, sep: int):
+    """:func:`_stripe_kernels.profile_candidates` in numpy (same definition of p2)."""
     S, L = A.shape
+    B = K.BLOCK
+    nb = (S + B - 1) // B
+    ln = np.arange(L)
     Af = A.astype(np.float64)
     p1 = np.argmax(Af, axis=0).astype(np.int64)
-    v1 = Af[p1, np.arange(L)]
-    s = np.arange(S)[:, None]
-    far = np.abs(s - p1[None, :]) > sep
-    A2 = np.where(far, Af, -np.inf)
-    p2 = np.argmax(A2, axis=0).astype(np.int64)
-    v2 = A2[p2, np.arange(L)]
-    none = ~np.isfinite(v2)
-    p2[none] = -1
-    v2[none] = -np.inf
+    v1 = Af[p1, ln]
+    pad = np.full((nb * B, L), -np.inf)
+    pad[:S] = Af
+    bm = pad.reshape(nb, B, L).max(axis=1)                       # (nb, L)
+    s0 = np.arange(nb)[:, None] * B
+    s1 = np.minimum(S, s0 + B)
+    far = (s1 - 1 < p1[None, :] - sep) | (s0 > p1[None, :] + sep)
+    bmf = np.where(far, bm, -np.inf)
+    b2 = np.argmax(bmf, axis=0)
+    has = far.any(axis=0)
+    v2 = np.where(has, bmf[b2, ln], -np.inf)
+    blk = pad.reshape(nb, B, L)[b2, :, ln]                         # (L, B)
+    p2 = b2 * B + np.argmax(blk == v2[:, None], axis=1)
+    p2 = np.where(has, p2, -1).astype(np.int64)
     return p1, v1, p2, v2
 
 
@@ -80,21 +89,24 @@ def fwhm_numpy(A, c, half):
 
 
 def _hermite_root_np(g0, d0, g1, d1):
+    """Vectorised :func:`_stripe_kernels._hermite_root` (same steps)."""
     lo = np.zeros_like(g0)
     hi = np.ones_like(g0)
-    glo = g0.copy()
-    for _ in range(40):
-        t = 0.5 * (lo + hi)
-        t2 = t * t
-        t3 = t2 * t
-        h = (2.0 * t3 - 3.0 * t2 + 1.0) * g0 + (t3 - 2.0 * t2 + t) * d0 + (-2.0 * t3 + 3.0 * t2) * g1 + (t3 - t2) * d1
-        same = (h > 0.0) == (glo > 0.0)
-        lo = np.where(same, t, lo)
-        glo = np.where(same, h, glo)
-        hi = np.where(same, hi, t)
-    r = 0.5 * (lo + hi)
-    r = np.where(g1 == 0.0, 1.0, r)
-    return np.where(g0 == 0.0, 0.0, r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = g0 / (g0 - g1)
+        pos0 = g0 > 0.0
+        for _ in range(K.HERMITE_ITER):
+            t2 = t * t
+            t3 = t2 * t
+            h = (2.0 * t3 - 3.0 * t2 + 1.0) * g0 + (t3 - 2.0 * t2 + t) * d0 + (-2.0 * t3 + 3.0 * t2) * g1 + (t3 - t2) * d1
+            dh = (6.0 * t2 - 6.0 * t) * (g0 - g1) + (3.0 * t2 - 4.0 * t + 1.0) * d0 + (3.0 * t2 - 2.0 * t) * d1
+            same = (h > 0.0) == pos0
+            lo = np.where(same, t, lo)
+            hi = np.where(same, hi, t)
+            tn = np.where(dh != 0.0, t - h / dh, 0.5 * (lo + hi))
+            t = np.where((lo <= tn) & (tn <= hi), tn, 0.5 * (lo + hi))
+    t = np.where(g1 == 0.0, 1.0, t)
+    return np.where(g0 == 0.0, 0.0, t)
 
 
 def _ridge_normal_np(ruu, ruv, rvv):

@@ -1,0 +1,78 @@
+"""Speed of the stripe extractors on 1280x960 8-bit frames (SPEC §5.2; issue 6 targets).
+
+Run: ``.venv/bin/python benchmarks/bench_stripe.py [--repeat N]``.  Prints the median
+(and the minimum, which shows what the code does when the shared machine is not
+busy) in ms per frame, frames/s, and the ratio to the target, beside
+``cv2.GaussianBlur`` of the same frame timed in the same run (a reference for how
+fast this machine is right now).  Targets: ``extract_profile`` <= 1 ms per 1280x960
+frame (>= 1000 profiles/s), >= 3000 profiles/s on a 1280x128 region,
+``extract_stripe`` <= 8 ms per frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import cv2
+import numpy as np
+
+from lightplane.stripe import extract_profile, extract_stripe
+
+
+def frame(rng: np.random.Generator, H: int = 960, W: int = 1280, width_px: float = 5.0) -> np.ndarray:
+    """A slightly tilted, slightly curved Gaussian stripe, noise 2 grey levels, 8-bit."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    centre = 0.5 * H + 0.05 * (u - W / 2) + 40.0 * np.sin(u / W * np.pi)
+    s = width_px / 2.3548
+    img = 10.0 + 200.0 * np.exp(-0.5 * ((v - centre) / s) ** 2) + rng.normal(0.0, 2.0, (H, W))
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def timeit(fn, repeat: int) -> tuple[float, float]:
+    fn()  # warm up (numba compilation, caches)
+    t = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        t.append(time.perf_counter() - t0)
+    return float(np.median(t)) * 1e3, float(np.min(t)) * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=200)
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    img = frame(rng)
+    band = np.ascontiguousarray(img[416:544])          # 1280x128 region around the stripe
+    try:
+        import numba
+
+        threads = numba.get_num_threads()
+    except Exception:  # pragma: no cover
+        threads = -1
+    print(f"cpus {os.cpu_count()}, numba threads {threads}, opencv threads {cv2.getNumThreads()}, "
+          f"load average {os.getloadavg()[0]:.1f}")
+    rows = []
+    blur = timeit(lambda: cv2.GaussianBlur(img, (0, 0), 1.44), args.repeat)
+    rows.append(("cv2.GaussianBlur 1280x960 (reference)", blur, None))
+    rows.append(("extract_profile numba 1280x960", timeit(lambda: extract_profile(img, width_px=5.0), args.repeat), 1.0))
+    rows.append(("extract_profile numba 1280x960, width estimated",
+                 timeit(lambda: extract_profile(img), args.repeat), 1.0))
+    rows.append(("extract_profile numba 1280x128", timeit(lambda: extract_profile(band, width_px=5.0), args.repeat),
+                 1000.0 / 3000.0))
+    rows.append(("extract_profile numpy 1280x960",
+                 timeit(lambda: extract_profile(img, width_px=5.0, backend="numpy"), max(5, args.repeat // 20)), None))
+    rows.append(("extract_stripe 1280x960", timeit(lambda: extract_stripe(img, 5.0), max(10, args.repeat // 5)), 8.0))
+    rows.append(("extract_stripe 1280x960, width estimated",
+                 timeit(lambda: extract_stripe(img), max(10, args.repeat // 5)), 8.0))
+    print(f"{'':50s} {'median ms':>10s} {'min ms':>8s} {'frames/s':>9s} {'target ms':>10s} {'median/target':>14s}")
+    for name, (med, mn), target in rows:
+        tgt = f"{target:10.3f} {med / target:14.2f}" if target else f"{'':10s} {'':14s}"
+        print(f"{name:50s} {med:10.3f} {mn:8.3f} {1000.0 / med:9.0f} {tgt}")
+
+
+if __name__ == "__main__":
+    main()
