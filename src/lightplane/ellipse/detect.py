@@ -350,8 +350,16 @@ def _contour_candidates(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: f
             ha = cv2.contourArea(hull)
             if ha <= 0 or area / ha < 0.85:
                 continue
+            pts = c.reshape(-1, 2)
+            # an ellipse cut by the image border: fit only the points off the border
+            on_border = (pts[:, 0] <= 0) | (pts[:, 1] <= 0) | (pts[:, 0] >= w - 1) | (pts[:, 1] >= h - 1)
+            cut = bool(on_border.any())
+            if cut:
+                pts = pts[~on_border]
+                if len(pts) < 8:
+                    continue
             try:
-                e = _params_from_rect(cv2.fitEllipse(c))
+                e = _params_from_rect(cv2.fitEllipse(pts.astype(np.float32)))
             except cv2.error:
                 continue
             if e is None:
@@ -361,7 +369,7 @@ def _contour_candidates(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: f
             ea, eb = ea + 0.5, eb + 0.5
             if not (min_axis_px <= eb and ea <= max_axis_px and eb >= 0.08 * ea):
                 continue
-            if abs(area + 0.5 * len(c) - math.pi * ea * eb) > 0.25 * math.pi * ea * eb:
+            if not cut and abs(area + 0.5 * len(c) - math.pi * ea * eb) > 0.25 * math.pi * ea * eb:
                 continue
             out.append((cx, cy, ea, eb, th, sign))
     return out
@@ -501,6 +509,9 @@ def _support_batch(grad: Gradients, edges: np.ndarray, P: np.ndarray, S: np.ndar
     pol = S[owner].astype(np.float64)
     cosmax = math.cos(max_angle_rad)
     inl = np.zeros(len(p), bool)
+    # samples outside the image are unknown, not missing: an ellipse cut by the border is
+    # judged on its visible part (at least half of it must be visible)
+    seen = (p[:, 0] >= 1) & (p[:, 0] <= w - 2) & (p[:, 1] >= 1) & (p[:, 1] <= h - 2)
     for off in (0.0, -0.7, 0.7, -1.4, 1.4):
         q = p + off * nr
         iu = np.rint(q[:, 0]).astype(int)
@@ -510,10 +521,17 @@ def _support_batch(grad: Gradients, edges: np.ndarray, P: np.ndarray, S: np.ndar
         gx, gy = grad.gx[iv, iu], grad.gy[iv, iu]
         c = -pol * (gx * nr[:, 0] + gy * nr[:, 1]) / np.maximum(np.hypot(gx, gy), 1e-9)
         inl |= edges[iv, iu] & inside & (c >= cosmax)
-    ratio = np.bincount(owner, weights=inl, minlength=K) / cnt
-    bins = np.minimum((t * (n_bins / (2 * math.pi))).astype(int), n_bins - 1)
-    occupied = np.unique(owner[inl] * n_bins + bins[inl])
-    cov = np.bincount(occupied // n_bins, minlength=K) / n_bins
+    inl &= seen
+    n_seen = np.bincount(owner, weights=seen, minlength=K)
+    ratio = np.bincount(owner, weights=inl, minlength=K) / np.maximum(n_seen, 1)
+    nb = np.minimum(cnt, n_bins)  # small ellipses have fewer samples than sectors
+    bins = owner * n_bins + np.minimum((t * (nb[owner] / (2 * math.pi))).astype(int), nb[owner] - 1)
+    occupied = np.unique(bins[inl])
+    visible = np.unique(bins[seen])
+    cov = np.bincount(occupied // n_bins, minlength=K) / np.maximum(np.bincount(visible // n_bins, minlength=K), 1)
+    too_hidden = n_seen < 0.5 * cnt
+    ratio[too_hidden] = 0.0
+    cov[too_hidden] = 0.0
     return ratio, cov
 
 
@@ -540,9 +558,12 @@ def _refit_batch(grad: Gradients, P: np.ndarray, S: np.ndarray, min_mag: float) 
         uv, ok, _ = edge_peaks_along_normals(grad, p, nr, S[idx][owner], band_px=band, step_px=0.5,
                                              min_mag=min_mag, max_angle_rad=math.radians(30))
         nok = np.bincount(owner, weights=ok, minlength=len(idx))
+        hh, ww = grad.gx.shape
+        seen = (p[:, 0] >= 1) & (p[:, 0] <= ww - 2) & (p[:, 1] >= 1) & (p[:, 1] <= hh - 2)
+        n_vis = np.bincount(owner, weights=seen, minlength=len(idx))  # visible samples only
         bounds = np.concatenate([[0], np.cumsum(cnt)])
         for k, i in enumerate(idx):
-            if nok[k] < max(8, 0.4 * cnt[k]):
+            if nok[k] < max(8, 0.4 * n_vis[k]) or n_vis[k] < 0.5 * cnt[k]:
                 valid[i] = False
                 continue
             sl = slice(bounds[k], bounds[k + 1])
