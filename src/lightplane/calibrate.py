@@ -41,7 +41,8 @@ from .camera import Camera
 from .errors import LightplaneError
 from .plane import PlaneCalibration, calibrate_plane_from_points
 
-__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "calibrate_plane", "default_workers"]
+__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
+           "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -379,7 +380,7 @@ def default_workers() -> int:
 
 # ------------------------------------------------------------------------ public
 def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml", *,
-                    workers: int | None = None, executor: str = "process",
+                    workers: int | None = None, executor: str = "thread",
                     progress: Callable[[int, int], None] | None = None,
                     distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
                     stripe_width_px: float | None = None, min_stripe_points: int = 20,
@@ -396,7 +397,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
         :func:`~lightplane.plane.calibrate_plane_from_points`).
     workers : processes (or threads) for the per-image work; default: all cores;
         1 runs in this process.
-    executor : ``"process"`` (default; measured faster on 2 cores, see the benchmark) or ``"thread"``.
+    executor : ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores 12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
     progress : optional callable ``progress(done, total)`` after each image.
     distance_range_mm, channel, stripe_width_px, min_stripe_points : see :func:`observe_image`.
     min_placements : fewest used placements accepted (>= 3 for a checked result).
@@ -434,8 +435,6 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
     if not (0 < lo < hi):
         raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
-    if executor not in ("process", "thread"):
-        raise LightplaneError(f"executor must be 'process' or 'thread', got {executor!r}")
     for i, src in enumerate(images):  # cheap checks first: a missing file fails before any work
         if isinstance(src, (str, os.PathLike)):
             p = Path(src)
@@ -445,9 +444,24 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                 raise LightplaneError(f"{p}: is a folder, not an image")
         elif not isinstance(src, np.ndarray):
             raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
-    kw = dict(distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
-              min_stripe_points=int(min_stripe_points))
-    tasks = [(src, camera, diameter, i, kw) for i, src in enumerate(images)]
+    obs = observe_images(images, camera, diameter, workers=workers, executor=executor, progress=progress,
+                         distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
+                         min_stripe_points=min_stripe_points)
+    return solve_observations(obs, camera, diameter, method, min_placements=min_placements,
+                              seconds=time.perf_counter() - t_start, **solver_options)
+
+
+def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, workers: int | None = None,
+                   executor: str = "thread", progress: Callable[[int, int], None] | None = None,
+                   **observe_options) -> list[ImageObservation]:
+    """:func:`observe_image` on every image, in parallel (``workers`` processes or threads).
+
+    Raises :class:`LightplaneError` for the first unreadable image or wrong image size.
+    """
+    if executor not in ("process", "thread"):
+        raise LightplaneError(f"executor must be 'process' or 'thread', got {executor!r}")
+    kw = dict(observe_options)
+    tasks = [(src, camera, float(diameter_mm), i, kw) for i, src in enumerate(images)]
     n = len(tasks)
     n_workers = default_workers() if workers is None else max(1, int(workers))
     n_workers = min(n_workers, n)
@@ -470,7 +484,22 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                 results[k] = res
                 if progress is not None:
                     progress(k + 1, n)
-    obs: list[ImageObservation] = results
+    return results
+
+
+def solve_observations(observations: Sequence[ImageObservation], camera: Camera, diameter_mm: float,
+                       method: str = "ml", *, min_placements: int = 3, seconds: float = 0.0,
+                       **solver_options) -> ImagePlaneCalibration:
+    """The light plane from per-image observations (:func:`observe_images`) (SPEC §7).
+
+    Runs :func:`~lightplane.plane.calibrate_plane_from_points` on the images that gave
+    a target and stripe points, and maps its per-placement results back to the images.
+    Lets one set of observations be solved by several methods (``paper``, ``global``, ``ml``).
+    """
+    obs = list(observations)
+    n = len(obs)
+    diameter = float(diameter_mm)
+    t_start = time.perf_counter()
     ok = [o for o in obs if o.ok]
     if len(ok) < min_placements:
         why = "; ".join(f"{o.name}: {o.reason}" for o in obs if not o.ok)
@@ -507,4 +536,51 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     return ImagePlaneCalibration(plane=plane, covariance=cal.covariance, sigma_px=cal.sigma_px,
                                  placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,
                                  warnings=tuple(warnings), iterations=cal.iterations, images=tuple(final),
-                                 camera=camera, diameter_mm=diameter, seconds=time.perf_counter() - t_start)
+                                 camera=camera, diameter_mm=diameter,
+                                 seconds=seconds + time.perf_counter() - t_start)
+
+
+def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
+    """The plane's uncertainty in the user's units (needs ``cal.covariance``, i.e. ``ml``).
+
+    Returns a dict: ``normal_sigma_deg`` (the two principal standard deviations of the
+    normal's direction, deg, largest first), ``d_sigma_mm``, ``working_distance_mm``
+    (where the plane crosses the optical axis), ``point_sigma_axis_mm`` (sigma of a
+    point triangulated there), ``distance_range_mm`` (the used targets' distances) and
+    ``point_sigma_rms_mm`` (RMS over the image region whose rays meet the plane in that
+    range).  Empty without a covariance.  Point sigmas cover the plane's uncertainty
+    only (:mod:`lightplane.uncertainty`).
+    """
+    from .uncertainty import point_sigma_mm, rms_point_sigma_mm, working_volume_grid
+
+    C = cal.covariance
+    if C is None:
+        return {}
+    plane = cal.plane
+    n = plane.normal
+    ref = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, ref)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    B = np.column_stack([e1, e2])
+    w = np.linalg.eigvalsh(B.T @ np.asarray(C)[:3, :3] @ B)
+    out = {"normal_sigma_deg": [float(np.degrees(np.sqrt(max(x, 0.0)))) for x in w[::-1]],
+           "d_sigma_mm": float(np.sqrt(max(C[3, 3], 0.0)))}
+    p_axis = plane.point_on_axis()
+    if np.all(np.isfinite(p_axis)) and p_axis[2] > 0:
+        out["working_distance_mm"] = float(p_axis[2])
+        uv = camera.project(p_axis[None])
+        if np.all(np.isfinite(uv)):
+            out["point_sigma_axis_mm"] = float(point_sigma_mm(camera, plane, uv)[0])
+    dists = [float(np.linalg.norm(p.pose.center)) for p in cal.placements if p.used and p.pose is not None]
+    if dists:
+        rng = (min(dists), max(dists))
+        if rng[1] - rng[0] < 1.0:
+            rng = (rng[0] - 0.5, rng[1] + 0.5)
+        out["distance_range_mm"] = [rng[0], rng[1]]
+        try:
+            vol = working_volume_grid(camera, plane, distance_mm=rng)
+            out["point_sigma_rms_mm"] = rms_point_sigma_mm(camera, plane, vol)
+        except LightplaneError:
+            pass
+    return out
