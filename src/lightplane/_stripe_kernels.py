@@ -488,6 +488,72 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
 # ----------------------------------------------------------------------------------------
 # 2-D kernels (full derivative images)
 
+@njit(cache=True)
+def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row):
+    """One row of :func:`ridge_points` (serial: see :func:`_centre_line`)."""
+    H, W = ru.shape
+    # vectorisable pass: most negative Hessian eigenvalue of every pixel of the row
+    a_row = ruu[v]
+    b_row = ruv[v]
+    c_row = rvv[v]
+    s_row = sstr[v]
+    for u in range(W):
+        a = a_row[u]
+        b = b_row[u]
+        cq = c_row[u]
+        d = a - cq
+        lam_row[u] = 0.5 * (a + cq) - math.sqrt(0.25 * d * d + b * b)
+        s_row[u] = 0.0
+    for u in range(W):
+        if lam_row[u] > -low:
+            continue
+        a = float(ruu[v, u])
+        b = float(ruv[v, u])
+        cq = float(rvv[v, u])
+        lam, nu, nv = _ridge_normal(a, b, cq)
+        vert = abs(nv) >= abs(nu)
+        if vert:
+            if v == 0 or v == H - 1:
+                continue
+            gm = nu * ru[v - 1, u] + nv * rv[v - 1, u]
+            g0 = nu * ru[v, u] + nv * rv[v, u]
+            gp = nu * ru[v + 1, u] + nv * rv[v + 1, u]
+            dm = nu * ruv[v - 1, u] + nv * rvv[v - 1, u]
+            d0 = nu * b + nv * cq
+            dp = nu * ruv[v + 1, u] + nv * rvv[v + 1, u]
+        else:
+            if u == 0 or u == W - 1:
+                continue
+            gm = nu * ru[v, u - 1] + nv * rv[v, u - 1]
+            g0 = nu * ru[v, u] + nv * rv[v, u]
+            gp = nu * ru[v, u + 1] + nv * rv[v, u + 1]
+            dm = nu * ruu[v, u - 1] + nv * ruv[v, u - 1]
+            d0 = nu * a + nv * b
+            dp = nu * ruu[v, u + 1] + nv * ruv[v, u + 1]
+        t = 2.0
+        if g0 == 0.0:
+            t = 0.0
+        elif (g0 > 0.0) != (gp > 0.0):
+            t = _hermite_root(g0, d0, gp, dp)
+            if t >= 0.5:
+                t = 2.0
+        if t == 2.0 and (gm > 0.0) != (g0 > 0.0):
+            t = _hermite_root(gm, dm, g0, d0) - 1.0
+            if t < -0.5:
+                t = 2.0
+        if t == 2.0:
+            continue
+        if vert:
+            su[v, u] = u
+            sv[v, u] = v + t
+        else:
+            su[v, u] = u + t
+            sv[v, u] = v
+        sn_u[v, u] = nu
+        sn_v[v, u] = nv
+        sstr[v, u] = -lam
+
+
 @njit(cache=True, parallel=True)
 def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
     """Steger points of bright lines from the five derivative images (H, W).
@@ -502,57 +568,11 @@ def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
     point).
     """
     H, W = ru.shape
-    for v in prange(H):
-        for u in range(W):
-            sstr[v, u] = 0.0
-            a = float(ruu[v, u])
-            b = float(ruv[v, u])
-            cq = float(rvv[v, u])
-            # quick reject before the square root
-            if 0.5 * (a + cq) - math.sqrt(0.25 * (a - cq) * (a - cq) + b * b) > -low:
-                continue
-            lam, nu, nv = _ridge_normal(a, b, cq)
-            vert = abs(nv) >= abs(nu)
-            if vert:
-                if v == 0 or v == H - 1:
-                    continue
-                gm = nu * ru[v - 1, u] + nv * rv[v - 1, u]
-                g0 = nu * ru[v, u] + nv * rv[v, u]
-                gp = nu * ru[v + 1, u] + nv * rv[v + 1, u]
-                dm = nu * ruv[v - 1, u] + nv * rvv[v - 1, u]
-                d0 = nu * b + nv * cq
-                dp = nu * ruv[v + 1, u] + nv * rvv[v + 1, u]
-            else:
-                if u == 0 or u == W - 1:
-                    continue
-                gm = nu * ru[v, u - 1] + nv * rv[v, u - 1]
-                g0 = nu * ru[v, u] + nv * rv[v, u]
-                gp = nu * ru[v, u + 1] + nv * rv[v, u + 1]
-                dm = nu * ruu[v, u - 1] + nv * ruv[v, u - 1]
-                d0 = nu * a + nv * b
-                dp = nu * ruu[v, u + 1] + nv * ruv[v, u + 1]
-            t = 2.0
-            if g0 == 0.0:
-                t = 0.0
-            elif (g0 > 0.0) != (gp > 0.0):
-                t = _hermite_root(g0, d0, gp, dp)
-                if t >= 0.5:
-                    t = 2.0
-            if t == 2.0 and (gm > 0.0) != (g0 > 0.0):
-                t = _hermite_root(gm, dm, g0, d0) - 1.0
-                if t < -0.5:
-                    t = 2.0
-            if t == 2.0:
-                continue
-            if vert:
-                su[v, u] = u
-                sv[v, u] = v + t
-            else:
-                su[v, u] = u + t
-                sv[v, u] = v
-            sn_u[v, u] = nu
-            sn_v[v, u] = nv
-            sstr[v, u] = -lam
+    nch = (H + 31) // 32
+    for ch in prange(nch):
+        lam_row = np.empty(W, dtype=np.float32)
+        for v in range(ch * 32, min(H, ch * 32 + 32)):
+            _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row)
 
 
 @njit(cache=True)

@@ -504,7 +504,10 @@ def _ridge_response(width_px: float, sigma: float) -> float:
 
 
 class _Buffers:
-    """Preallocated float32 derivative images, reused between calls of the same size."""
+    """Preallocated float32 derivative images, reused between calls of the same size.
+
+    Not thread-safe: one :func:`extract_stripe` at a time per process.
+    """
 
     def __init__(self):
         self.shape = None
@@ -512,7 +515,8 @@ class _Buffers:
     def get(self, shape):
         if self.shape != shape:
             self.shape = shape
-            self.bufs = [np.empty(shape, np.float32) for _ in range(10)]
+            self.bufs = [np.empty(shape, np.float32) for _ in range(13)]
+            self.index_map = np.full(shape, -1, np.int64)
         return self.bufs
 
 
@@ -587,13 +591,17 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
         raise LightplaneError(f"need 0 < low <= high, got low={lo}, high={hi}")
 
     w0, w1, w2 = (k.astype(np.float32) for k in K.gaussian_derivative_kernels(sigma))
-    ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr = _BUFFERS.get((H, W))
+    bufs = _BUFFERS.get((H, W))
+    ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr, x0, x1, x2 = bufs[:13]
+    index_map = _BUFFERS.index_map
+    # separable: three row passes (value, 1st, 2nd derivative along u) on the image
+    # as given (8-bit input is filtered fastest), then five column passes
     border = cv2.BORDER_REPLICATE
-    cv2.sepFilter2D(gray, cv2.CV_32F, w1, w0, dst=ru, borderType=border)
-    cv2.sepFilter2D(gray, cv2.CV_32F, w0, w1, dst=rv, borderType=border)
-    cv2.sepFilter2D(gray, cv2.CV_32F, w2, w0, dst=ruu, borderType=border)
-    cv2.sepFilter2D(gray, cv2.CV_32F, w1, w1, dst=ruv, borderType=border)
-    cv2.sepFilter2D(gray, cv2.CV_32F, w0, w2, dst=rvv, borderType=border)
+    src = img if img.dtype in (np.uint8, np.uint16, np.float32) else gray
+    for k, x in ((w0, x0), (w1, x1), (w2, x2)):
+        cv2.filter2D(src, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
+    for x, k, out in ((x1, w0, ru), (x0, w1, rv), (x2, w0, ruu), (x1, w1, ruv), (x0, w2, rvv)):
+        cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
     K.ridge_points(ru, rv, ruu, ruv, rvv, lo, su, sv, snu, snv, sstr)
     if mask is not None:
         sstr[~mask] = 0.0
@@ -623,11 +631,11 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
         return empty
     pv, pu = np.divmod(pix, W)
     N = pix.size
-    index_map = np.full((H, W), -1, np.int64)
     index_map.ravel()[pix] = np.arange(N)
     order = np.empty(N, np.int64)
     curve = np.empty(N, np.int64)
     K.link_points(index_map, pu, pv, su, sv, order, curve, 2.9)
+    index_map.ravel()[pix] = -1          # leave the shared buffer all -1 again
     uv = np.column_stack([su.ravel()[pix], sv.ravel()[pix]]).astype(np.float64)[order]
     nrm = np.column_stack([snu.ravel()[pix], snv.ravel()[pix]]).astype(np.float64)[order]
     st = st[order].astype(np.float64)
