@@ -474,8 +474,14 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
             if progress is not None:
                 progress(k + 1, n)
     else:
-        pool_cls = ProcessPoolExecutor if executor == "process" else ThreadPoolExecutor
-        with pool_cls(max_workers=n_workers) as pool:
+        if executor == "process":
+            import multiprocessing as mp
+
+            # spawn, not fork: forking a process that already ran OpenMP code (numba, OpenCV) aborts it
+            pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn"))
+        else:
+            pool = ThreadPoolExecutor(max_workers=n_workers)
+        with pool:
             for k, res in enumerate(pool.map(_observe_task, tasks)):
                 if isinstance(res, LightplaneError):
                     for f in getattr(pool, "_pending_work_items", {}).values():  # pragma: no cover

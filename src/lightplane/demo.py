@@ -237,7 +237,10 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             for k in jobs:
                 done[k] = _render_job(k, str(data / k), seed, cfg)
         else:
-            with ProcessPoolExecutor(max_workers=n_workers) as pool:
+            import multiprocessing as mp
+
+            # spawn, not fork: forking after OpenMP code ran (numba, OpenCV) aborts the child
+            with ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn")) as pool:
                 # longest first
                 futs = {k: pool.submit(_render_job, k, str(data / k), seed, cfg)
                         for k in sorted(jobs, key=lambda k: -jobs[k])}

@@ -1,11 +1,112 @@
-"""`lightplane calibrate-plane` (not implemented yet: its issue is open)."""
+"""``lightplane calibrate-plane``: the light plane from images of a circular target (paper §2.2)."""
 
 from __future__ import annotations
 
-from ._common import app, fail
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from ..errors import LightplaneError
+from ..io import check_output, expand_inputs, provenance
+from ._common import app, console, handles_errors
 
 
-@app.command("calibrate-plane", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-def calibrate_plane() -> None:
-    """Not implemented yet."""
-    fail("'calibrate-plane' is not implemented yet")
+@app.command("calibrate-plane")
+@handles_errors
+def calibrate_plane_cmd(
+    images: List[str] = typer.Argument(..., help="Images of the circular target with the stripe across it "
+                                                 "(files, folders or glob patterns)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file: lightplane JSON, ROS YAML or OpenCV YAML/XML."),
+    diameter: float = typer.Option(..., "--diameter", help="Target diameter in mm."),
+    output: Path = typer.Option(..., "-o", "--output", help="Light-plane file to write (JSON)."),
+    method: str = typer.Option("ml", "--method", help="ml (default: joint maximum likelihood, with covariance), "
+                                                     "global (order-independent) or paper (progressive, §2.2.3)."),
+    report: Optional[Path] = typer.Option(None, "--report", help="Folder for the HTML report (index.html)."),
+    channel: Optional[str] = typer.Option(None, "--channel", help="Laser colour channel: red, green, blue or gray."),
+    near: float = typer.Option(200.0, "--near", help="Nearest target distance expected, mm (plausible ellipse size)."),
+    far: float = typer.Option(1500.0, "--far", help="Farthest target distance expected, mm."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Parallel workers (default: all cores)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing plane file / report."),
+) -> None:
+    """Calibrate the light plane from images of a flat circular target (Wang & Li 2022)."""
+    from ..calibrate import calibrate_plane, uncertainty_summary
+    from ..camera import Camera
+
+    if method not in ("ml", "global", "paper"):
+        raise LightplaneError(f"--method must be ml, global or paper, got {method!r}")
+    if not (diameter > 0):
+        raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
+    if channel is not None and channel not in ("red", "green", "blue", "gray"):
+        raise LightplaneError(f"--channel must be red, green, blue or gray, got {channel!r}")
+    if not (0 < near < far):
+        raise LightplaneError(f"need 0 < --near < --far, got {near} and {far} mm")
+    files = expand_inputs(images)
+    if not files:
+        raise LightplaneError(f"no images found in {' '.join(images)}")
+    for f in files:
+        if not f.is_file():
+            raise LightplaneError(f"{f}: no such file" if not f.exists() else f"{f}: not a file")
+    # every output is checked before any work: nothing is written on bad input
+    check_output(output, force)
+    if report is not None:
+        if report.exists() and not report.is_dir():
+            raise LightplaneError(f"{report}: exists and is not a folder")
+        if report.exists():
+            check_output(report / "index.html", force)
+        elif not report.parent.is_dir():
+            raise LightplaneError(f"{report}: its parent folder {report.parent} does not exist")
+    cam = Camera.load(camera)
+
+    with Progress(TextColumn("images"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("images", total=len(files))
+        cal = calibrate_plane([str(f) for f in files], cam, diameter, method, workers=workers, channel=channel,
+                              distance_range_mm=(near, far), progress=lambda i, n: bar.update(task, completed=i))
+
+    unc = uncertainty_summary(cal, cam)
+    a, b, c = cal.plane.normal
+    console.print(f"Light plane ({cal.method}, camera frame, mm): {a:+.6f} x {b:+.6f} y {c:+.6f} z "
+                  f"{cal.plane.d:+.4f} = 0")
+    if unc:
+        console.print(f"  σ normal {unc['normal_sigma_deg'][0]:.4f} deg / {unc['normal_sigma_deg'][1]:.4f} deg "
+                      f"(principal directions), σ offset {unc['d_sigma_mm']:.4f} mm")
+        if "point_sigma_axis_mm" in unc:
+            console.print(f"  σ of a measured point at the working distance {unc['working_distance_mm']:.0f} mm: "
+                          f"{unc['point_sigma_axis_mm']:.4f} mm (plane calibration only)")
+        if "point_sigma_rms_mm" in unc:
+            lo, hi = unc["distance_range_mm"]
+            console.print(f"  RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm: {unc['point_sigma_rms_mm']:.4f} mm")
+    else:
+        console.print("  (no covariance with this method; use --method ml for the uncertainty)")
+    console.print(f"  image noise σ {cal.sigma_px:.3f} px; {cal.n_used} of {len(cal.images)} images used; "
+                  f"{cal.seconds:.2f} s")
+    t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe points, "
+                                     "chord's RMS distance to the plane (µm)", title_justify="left")
+    t.add_column("image", no_wrap=True)
+    t.add_column("status", no_wrap=True)
+    t.add_column("reason", overflow="fold")
+    for col in ("rim px", "stripe px", "points", "chord µm"):
+        t.add_column(col, justify="right", no_wrap=True)
+    for o in cal.images:
+        p = o.placement
+        t.add_row(o.name, o.status, o.reason or "",
+                  "–" if p is None else f"{p.rim_rms_px:.3f}", "–" if p is None else f"{p.stripe_rms_px:.3f}",
+                  str(len(o.stripe_uv) if p is None else p.n_stripe),
+                  "–" if p is None or not p.used else f"{p.chord_rms_mm * 1e3:.1f}")
+    console.print(t)
+    for w in cal.warnings:
+        console.print(f"  warning: {w}")
+
+    options = {"camera": str(camera), "diameter_mm": diameter, "method": method, "channel": channel,
+               "distance_range_mm": [near, far]}
+    extra = {**cal.to_dict(), "uncertainty": unc, "provenance": provenance([*map(str, files), str(camera)], options)}
+    cal.plane.save(output, force=force, extra=extra)
+    console.print(f"wrote {output}")
+    if report is not None:
+        from ..report import write_report
+
+        path = write_report(report, cal, force=force)
+        console.print(f"wrote {path}")
