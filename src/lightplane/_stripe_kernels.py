@@ -497,15 +497,18 @@ def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row)
     b_row = ruv[v]
     c_row = rvv[v]
     s_row = sstr[v]
-    for u in range(W):
+    half = np.float32(0.5)
+    quarter = np.float32(0.25)
+    for u in range(W):      # float32 throughout so that it vectorises
         a = a_row[u]
         b = b_row[u]
         cq = c_row[u]
         d = a - cq
-        lam_row[u] = 0.5 * (a + cq) - math.sqrt(0.25 * d * d + b * b)
+        lam_row[u] = half * (a + cq) - np.sqrt(quarter * d * d + b * b)
         s_row[u] = 0.0
+    neg_low = np.float32(-low)
     for u in range(W):
-        if lam_row[u] > -low:
+        if lam_row[u] > neg_low:
             continue
         a = float(ruu[v, u])
         b = float(ruv[v, u])
