@@ -5,10 +5,16 @@
    overlap, pooled, duplicates are false positives), median time per image.
 2. Renders: median time of detection + refinement (and of target selection) per
    1280x960 calibration image (lightplane.simulate.render, "realistic"); target <= 60 ms.
-3. If ``cv2.ximgproc`` is importable (opencv-contrib; not a project dependency), the
-   time and F-measure of ``cv2.ximgproc.findEllipses`` in the same run.
+3. The time and F-measure of ``cv2.ximgproc.findEllipses`` (opencv-contrib; not a
+   project dependency, it conflicts with opencv-python-headless) in the same run: in
+   this process if ``cv2.ximgproc`` is importable, else through another interpreter
+   given by ``--ximgproc-python PATH`` (e.g. a throwaway venv with
+   opencv-contrib-python-headless), on the same images.
 
-Run: ``.venv/bin/python benchmarks/bench_ellipse.py [--quick]``.
+Times are medians of process CPU time (all threads), which other processes' load on a
+shared machine does not inflate, and of wall time for the renders.
+
+Run: ``.venv/bin/python benchmarks/bench_ellipse.py [--quick] [--ximgproc-python PATH]``.
 """
 
 from __future__ import annotations
@@ -35,8 +41,44 @@ TARGET_MS = 60.0
 TARGET_F = 0.95
 
 
+_XIMGPROC_SCRIPT = r"""
+import json, sys, time
+import cv2, numpy as np
+out = {}
+for path in json.loads(sys.argv[1]):
+    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    cpu = []
+    for _ in range(int(sys.argv[2])):
+        c0 = time.process_time()
+        r = cv2.ximgproc.findEllipses(img, scoreThreshold=0.7, reliabilityThreshold=0.5, centerDistanceThreshold=0.05)
+        cpu.append(time.process_time() - c0)
+    out[path] = {"cpu_s": cpu, "ellipses": [] if r is None else r.reshape(-1, r.shape[-1]).tolist()}
+print(json.dumps(out))
+"""
+
+
+def _external_findellipses(python: str, paths: list[str], repeats: int) -> dict:
+    """Run findEllipses in another interpreter (one with opencv-contrib) on image files."""
+    import json
+    import subprocess
+
+    res = subprocess.run([python, "-c", _XIMGPROC_SCRIPT, json.dumps(paths), str(repeats)],
+                         capture_output=True, text=True, check=True)
+    return json.loads(res.stdout)
+
+
+def _to_ellipses(rows) -> list[Ellipse]:
+    out = []
+    for x, y, a, b, _score, theta_rad in (r[:6] for r in rows):  # semi-axes, radians
+        try:
+            out.append(Ellipse.from_params((x, y), a, b, theta_rad))
+        except Exception:  # degenerate output of the reference detector
+            pass
+    return out
+
+
 def _findellipses(img: np.ndarray) -> list[Ellipse]:
-    """cv2.ximgproc.findEllipses with the parameters of OpenCV's own sample."""
+    """cv2.ximgproc.findEllipses (scoreThreshold 0.7, reliabilityThreshold 0.5, centerDistanceThreshold 0.05)."""
     import cv2
 
     res = cv2.ximgproc.findEllipses(img, scoreThreshold=0.7, reliabilityThreshold=0.5, centerDistanceThreshold=0.05)
@@ -51,7 +93,7 @@ def _findellipses(img: np.ndarray) -> list[Ellipse]:
     return out
 
 
-def bench_real(quick: bool) -> None:
+def bench_real(quick: bool, ext_python: str | None) -> None:
     if not (DATA / "images").is_dir():
         print(f"real images: {DATA} absent, skipped")
         return
@@ -83,14 +125,23 @@ def bench_real(quick: bool) -> None:
     print(f"  detect_ellipses: precision {total.precision:.4f}  recall {total.recall:.4f}  "
           f"F {total.f_measure:.4f} (target >= {TARGET_F}, ratio {total.f_measure / TARGET_F:.3f})  "
           f"TP {total.tp} FP {total.fp} FN {total.fn}  median {1e3 * np.median(times):.1f} ms CPU/image")
-    if has_ximgproc:
+    if not has_ximgproc and ext_python:
+        ext = _external_findellipses(ext_python, [str(p) for p in paths], 1)
+        for p in paths:
+            r = ext[str(p)]
+            ref_times.append(r["cpu_s"][0])
+            labels = read_ellipse_labels(DATA / "ground_truth" / (p.stem + ".txt"))
+            ref_total = ref_total + match_ellipses(_to_ellipses(r["ellipses"]), labels, iou_min=0.8)
+    if ref_times:
         print(f"  cv2.ximgproc.findEllipses: precision {ref_total.precision:.4f}  recall {ref_total.recall:.4f}  "
-              f"F {ref_total.f_measure:.4f}  median {1e3 * np.median(ref_times):.1f} ms CPU/image")
+              f"F {ref_total.f_measure:.4f}  median {1e3 * np.median(ref_times):.1f} ms CPU/image "
+              f"(ratio ours/theirs {np.median(times) / np.median(ref_times):.2f})")
     else:
-        print("  cv2.ximgproc.findEllipses: not importable here (opencv-contrib is not a dependency)")
+        print("  cv2.ximgproc.findEllipses: not importable here (opencv-contrib is not a dependency; "
+              "see --ximgproc-python)")
 
 
-def bench_render(quick: bool) -> None:
+def bench_render(quick: bool, ext_python: str | None) -> None:
     try:
         from lightplane.simulate.render import render_circle_dataset
     except ImportError:
@@ -127,6 +178,34 @@ def bench_render(quick: bool) -> None:
     cpu = float(np.median(cpu_ms))
     print(f"  CPU time of detection + refinement (all threads; immune to other processes' load): {cpu:.1f} ms median "
           f"(ratio {cpu / TARGET_MS:.2f}); load average now {_load()}")
+    ref_cpu = []
+    try:
+        import cv2
+
+        if hasattr(cv2, "ximgproc") and hasattr(cv2.ximgproc, "findEllipses"):
+            for img in ds.images:
+                for _ in range(3):
+                    c0 = time.process_time()
+                    _findellipses(img)
+                    ref_cpu.append(time.process_time() - c0)
+        elif ext_python:
+            import tempfile
+
+            import cv2
+
+            with tempfile.TemporaryDirectory() as tmp:
+                paths = []
+                for i, img in enumerate(ds.images):
+                    paths.append(str(Path(tmp) / f"render_{i}.png"))
+                    cv2.imwrite(paths[-1], img)
+                ext = _external_findellipses(ext_python, paths, 3)
+                ref_cpu = [t for p in paths for t in ext[p]["cpu_s"]]
+    except Exception as exc:  # the reference is optional
+        print(f"  cv2.ximgproc.findEllipses: failed ({exc})")
+    if ref_cpu:
+        ref = 1e3 * float(np.median(ref_cpu))
+        print(f"  cv2.ximgproc.findEllipses on the same renders: {ref:.1f} ms CPU median "
+              f"(ours / theirs = {cpu / ref:.2f})")
 
 
 def _load() -> str:
@@ -140,11 +219,14 @@ def _load() -> str:
 
 def main() -> None:
     quick = "--quick" in sys.argv
+    ext_python = None
+    if "--ximgproc-python" in sys.argv:
+        ext_python = sys.argv[sys.argv.index("--ximgproc-python") + 1]
     import cv2
 
     print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads")
-    bench_real(quick)
-    bench_render(quick)
+    bench_real(quick, ext_python)
+    bench_render(quick, ext_python)
 
 
 if __name__ == "__main__":

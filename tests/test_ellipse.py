@@ -299,6 +299,10 @@ def test_detect_bad_arguments():
         detect_ellipses(img, min_axis_px=30, max_axis_px=10)
     with pytest.raises(LightplaneError):
         detect_ellipses(np.zeros((4, 4, 4, 4)))
+    with pytest.raises(LightplaneError):
+        detect_ellipses(img, max_count=0)
+    with pytest.raises(LightplaneError):
+        detect_ellipses(img, min_axis_px=np.nan)
 
 
 # ----------------------------------------------------------------------------- target selection

@@ -652,6 +652,8 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
 
     if polarity not in _POLARITY:
         raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")
+    if max_count is not None and not int(max_count) >= 1:
+        raise LightplaneError(f"max_count must be >= 1 or None, got {max_count}")
     pol = _POLARITY[polarity]
     gray = prepare_gray(image)
     h, w = gray.shape
@@ -692,15 +694,16 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     # final non-maximum suppression: duplicates that survived clustering
     found.sort(key=lambda e: (-e.score, -e.a))
     kept: list[Ellipse] = []
+    kc = np.zeros((len(found), 2))
+    kb = np.zeros(len(found))
     for e in found:
-        dup = False
-        for k in kept:
-            if k.polarity == e.polarity and np.hypot(*(k.centre - e.centre)) < max(2.0, 0.3 * min(k.b, e.b)) \
-                    and _iou_approx(k, e) > 0.7:
-                dup = True
-                break
-        if not dup:
-            kept.append(e)
+        n = len(kept)
+        close = np.nonzero(np.hypot(kc[:n, 0] - e.centre[0], kc[:n, 1] - e.centre[1])
+                           < np.maximum(2.0, 0.3 * np.minimum(kb[:n], e.b)))[0]
+        if any(kept[k].polarity == e.polarity and _iou_approx(kept[k], e) > 0.7 for k in close):
+            continue
+        kc[n], kb[n] = e.centre, e.b
+        kept.append(e)
         if max_count is not None and len(kept) >= max_count:
             break
     return kept
