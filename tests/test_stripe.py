@@ -349,15 +349,17 @@ def test_asymmetry_correction_reduces_bar_bias():
 # ----------------------------------------------------------------------------------------
 # realistic renders (speckle, PSF, vignetting, shot noise) from lightplane.simulate.render
 
-def test_realistic_renders_with_speckle():
+@pytest.mark.parametrize("difficulty,rms_max,bias_max", [("clean", 0.02, 0.01), ("realistic", 0.2, 0.03)])
+def test_renders_of_the_simulator(difficulty, rms_max, bias_max):
     """Stripe on the target disc vs the projected true chord (light plane ∩ target plane).
 
-    Speckle (multiplicative, correlated ~1 px, 30 %) is the dominant error: SPEC §5.2
-    expects 0.1-0.3 px per point from it.  Both functions are held to 0.2 px RMS
-    per point and 0.03 px bias over each stripe.
+    ``clean`` (PSF 0.6 px, low noise, no speckle): the method's own accuracy on an
+    independent renderer.  ``realistic``: speckle (multiplicative, correlated ~1 px,
+    30 %) dominates: SPEC §5.2 expects 0.1-0.3 px per point from it; both functions
+    are held to 0.2 px RMS per point and 0.03 px bias over each stripe.
     """
     render = pytest.importorskip("lightplane.simulate.render")
-    ds = render.render_circle_dataset(n=3, seed=3, difficulty="realistic")
+    ds = render.render_circle_dataset(n=3, seed=3, difficulty=difficulty)
     cam = ds.camera
     for img, im in zip(ds.images, ds.truth["images"]):
         chord = np.asarray(im["target"]["chord_mm"], float)
@@ -380,5 +382,5 @@ def test_realistic_renders_with_speckle():
             on_disc = (f > 0.1) & (f < 0.9) & (np.abs(e) < 3.0)       # away from the rim
             assert on_disc.sum() > 100
             e = e[on_disc]
-            assert np.sqrt(np.mean(e**2)) < 0.2
-            assert abs(e.mean()) < 0.03
+            assert np.sqrt(np.mean(e**2)) < rms_max
+            assert abs(e.mean()) < bias_max
