@@ -261,6 +261,18 @@ def test_detect_with_stripe_across_the_rim():
     assert sel.ellipse is found[0] and sel.crossing.coverage > 0.8
 
 
+def test_detect_ellipse_cut_by_the_image_border():
+    """Judged on its visible part: found when most of it is in the image, not when most is out."""
+    rng = np.random.default_rng(11)
+    mostly_in = Ellipse.from_params((20.0, 120.0), 50.0, 35.0, 0.3)  # ~70 % of the rim visible
+    mostly_out = Ellipse.from_params((330.0, 120.0), 50.0, 35.0, 0.3)  # centre 10 px outside: < 40 % visible
+    img = render_ellipses((240, 320), [mostly_in, mostly_out], inside=40.0, background=200.0, blur_px=0.8,
+                          noise_sigma=2.0, rng=rng, dtype=np.uint8)
+    found = detect_ellipses(img, min_axis_px=10)
+    assert len(found) == 1 and ellipse_iou(found[0], mostly_in) > 0.95
+    assert found[0].coverage > 0.9  # coverage of the visible sectors
+
+
 @pytest.mark.parametrize("kind", ["blank", "white", "noise8", "noise16", "tiny", "tiny_colour", "one_px", "empty",
                                   "nan", "colour_noise"])
 def test_detect_degenerate_images_give_empty_list(kind):

@@ -22,7 +22,12 @@ Pipeline (one function per stage, all on arrays):
 5. **Verification** (Lu §III-E): each cluster's ellipse is refitted on sub-pixel edge
    points along its normals and kept when the edge support (inlier ratio: samples
    with an edge of the right polarity and direction within 1 px) and the angular
-   coverage are high enough; score = inlier ratio x coverage.
+   coverage are high enough; score = inlier ratio x coverage.  Samples outside the
+   image are left out of both (an ellipse cut by the border is judged on its visible
+   part, at least half of it); a final non-maximum suppression removes duplicates.
+
+Large ellipses are searched on a reduced image (``downscale``, from ``min_axis_px``):
+detection only needs to be close enough for :func:`refine_ellipse`.
 
 Supplementary candidates (documented deviation): ellipses of contours of a locally
 adaptive threshold, both polarities.  LSD finds no segments on ellipses only a few
