@@ -88,26 +88,45 @@ def plane_accuracy(plane_est, camera_est, plane_true, camera_true, *,
     return out
 
 
-def fit_sphere(points: np.ndarray, *, iterations: int = 5, k: float = 4.0, min_tol_mm: float = 0.05) -> dict:
+def _sphere_algebraic(q: np.ndarray) -> tuple[np.ndarray, float]:
+    A = np.column_stack([2 * q, np.ones(len(q))])
+    sol, *_ = np.linalg.lstsq(A, np.sum(q**2, axis=1), rcond=None)
+    return sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 0.0)))
+
+
+def fit_sphere(points: np.ndarray, *, ransac_tol_mm: float = 0.5, iterations: int = 4, k: float = 4.0,
+               min_tol_mm: float = 0.05, seed: int = 0) -> dict:
     """Robust least-squares sphere through ``points`` (N, 3) mm.
 
-    Algebraic fit (``|p|² = 2 c·p + (r² − |c|²)``), then geometric Gauss–Newton on the
-    inliers, dropping points farther than ``max(k · 1.4826 MAD, min_tol_mm)`` from the
-    sphere.  Returns ``center_mm``, ``radius_mm``, ``rms_mm`` (inliers), ``n_inliers``.
+    RANSAC on 4-point algebraic spheres (``|p|² = 2 c·p + (r² − |c|²)``, inliers within
+    ``ransac_tol_mm``), then geometric Gauss–Newton on the inliers, re-selected
+    ``iterations`` times as the points within ``max(k · 1.4826 MAD, min_tol_mm)``.
+    Returns ``center_mm``, ``radius_mm``, ``rms_mm`` (inliers), ``n_inliers``, ``n_points``.
     """
     p = np.asarray(points, dtype=np.float64)
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) < 4:
         raise LightplaneError(f"fit_sphere: need at least 4 points, got {len(p)}")
-    keep = np.ones(len(p), bool)
-    c = np.zeros(3)
-    r = 0.0
+    origin = np.median(p, axis=0)  # conditioning: fit in coordinates near the points
+    p = p - origin
+    rng = np.random.default_rng(seed)
+    best, best_n = None, -1
+    for _ in range(300):
+        idx = rng.choice(len(p), 4, replace=False)
+        try:
+            c, r = _sphere_algebraic(p[idx])
+        except np.linalg.LinAlgError:
+            continue
+        if not np.isfinite(r) or r <= 0:
+            continue
+        n_in = int(np.count_nonzero(np.abs(np.linalg.norm(p - c, axis=1) - r) <= ransac_tol_mm))
+        if n_in > best_n:
+            best, best_n = (c, r), n_in
+    c, r = best if best is not None else _sphere_algebraic(p)
+    keep = np.abs(np.linalg.norm(p - c, axis=1) - r) <= ransac_tol_mm
     for _ in range(iterations):
         q = p[keep]
-        A = np.column_stack([2 * q, np.ones(len(q))])
-        sol, *_ = np.linalg.lstsq(A, np.sum(q**2, axis=1), rcond=None)
-        c, r = sol[:3], float(np.sqrt(sol[3] + sol[:3] @ sol[:3]))
-        for _ in range(3):  # geometric refinement
+        for _ in range(5):  # geometric Gauss-Newton
             dv = q - c
             dist = np.linalg.norm(dv, axis=1)
             J = np.column_stack([-dv / dist[:, None], -np.ones(len(q))])
@@ -117,7 +136,7 @@ def fit_sphere(points: np.ndarray, *, iterations: int = 5, k: float = 4.0, min_t
         mad = 1.4826 * np.median(np.abs(res[keep] - np.median(res[keep])))
         keep = np.abs(res) <= max(k * mad, min_tol_mm)
     res = np.linalg.norm(p[keep] - c, axis=1) - r
-    return {"center_mm": c.tolist(), "radius_mm": float(r), "rms_mm": float(np.sqrt(np.mean(res**2))),
+    return {"center_mm": (c + origin).tolist(), "radius_mm": float(r), "rms_mm": float(np.sqrt(np.mean(res**2))),
             "n_inliers": int(keep.sum()), "n_points": int(len(p))}
 
 
@@ -228,8 +247,9 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
     say(f"[2] rendering {', '.join(f'{v} {k}' for k, v in jobs.items())} (1280x960, ray-traced, noise) ...")
 
     def render_all():
-        from . import simulate  # noqa: F401 - ImportError -> skipped
-        from .simulate import render  # noqa: F401
+        import importlib
+
+        importlib.import_module(f"{__package__}.simulate.render")  # ImportError -> stage skipped
 
         n_workers = 2 if workers is None else max(1, int(workers))
         done = {}
@@ -285,7 +305,7 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
     cal = None
     if "circles" in rendered:
         say(f"[4] calibrating the light plane from {cfg['circles']} circle-target images "
-            f"({cfg['diameter_mm']:g} mm disc) with the {camera_source.split(' (')[0]} camera ...")
+            f"({cfg['diameter_mm']:g} mm disc) (camera: {camera_source}) ...")
 
         def calib_plane():
             from .calibrate import observe_images, solve_observations, uncertainty_summary
