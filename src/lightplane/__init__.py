@@ -5,6 +5,10 @@ Three-Dimensional Measurements Based on a Single Circular Target",
 Appl. Sci. 2022, 12, 588, and goes beyond it (global disambiguation, joint
 maximum-likelihood refinement, uncertainty).  Conventions: SPEC.md §2
 (camera frame x right, y down, z forward; mm; plane normal with d < 0).
+
+The stable API (SPEC §10): :class:`Camera`, :class:`LightPlane`,
+:func:`detect_ellipses`, :func:`extract_stripe`, :func:`circle_poses`,
+:func:`calibrate_plane`, :func:`triangulate`; also :func:`distance_errors`.
 """
 
 from __future__ import annotations
@@ -13,7 +17,35 @@ __version__ = "0.1.0"
 
 from .camera import Camera
 from .errors import LightplaneError
+from .plane import LightPlane, PlaneCalibration, calibrate_plane_from_points
 from .measure import triangulate
-from .plane import LightPlane
+from .circle_pose import CirclePose, circle_poses
+from .ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
+from .stripe import StripePoints, StripeProfile, extract_profile, extract_stripe
+from .calibrate import calibrate_plane
+from .evaluate import DistanceErrors, distance_errors
+from .uncertainty import point_sigma_mm
 
-__all__ = ["Camera", "LightPlane", "LightplaneError", "triangulate", "__version__"]
+__all__ = [
+    "Camera",
+    "CirclePose",
+    "DistanceErrors",
+    "Ellipse",
+    "LightPlane",
+    "LightplaneError",
+    "PlaneCalibration",
+    "StripePoints",
+    "StripeProfile",
+    "__version__",
+    "calibrate_plane",
+    "calibrate_plane_from_points",
+    "circle_poses",
+    "detect_ellipses",
+    "distance_errors",
+    "extract_profile",
+    "extract_stripe",
+    "point_sigma_mm",
+    "refine_ellipse",
+    "select_target",
+    "triangulate",
+]
