@@ -342,18 +342,14 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     if p < 0:
         status[l] = NO_PEAK
         return
-    # 1. smoothed peak along the line
+    # 1. the stripe's middle: midpoint of the raw half-level crossings around the
+    #    highest sample (robust to a flat, saturated top and to one hot pixel)
+    fw, left, right, best, bg = _fwhm_line(A, l, p, half, 0.0)
     c = p
-    ybest = -np.inf
-    for s in range(p - qpeak, p + qpeak + 1):
-        if s < 0 or s >= S:
-            continue
-        y = 0.0
-        for i in range(-R, R + 1):
-            y += w0[i + R] * float(A[_clamp(s + i, S), l])
-        if y > ybest:
-            ybest = y
-            c = s
+    if fw == fw:
+        cm = np.int64(math.floor(0.5 * (left + right) + 0.5))
+        if abs(cm - p) <= qpeak:
+            c = cm
     if c - 1 - R < 0 or c + 1 + R > S - 1:
         status[l] = EDGE
         return
@@ -407,7 +403,6 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     normal[l, 0] = nl
     normal[l, 1] = ns
     strength[l] = -lam
-    fw, left, right, best, bg = _fwhm_line(A, l, c, half, 0.0)
     if best - bg < min_peak:
         status[l] = NO_PEAK
         return
@@ -455,7 +450,8 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
                     centre, normal, strength, intensity, width, status):
     """Sub-pixel ridge centre per line at the candidate sample ``pos[l]``.
 
-    1. peak: argmax of the line smoothed with ``w0`` within ``pos ± qpeak``;
+    1. the stripe's middle sample: midpoint of the raw half-level crossings around
+       ``pos`` (kept within ``pos ± qpeak``);
     2. the five Gaussian derivatives at that sample and its two neighbours, from
        a local (2RX+1) x (2R+3) patch (no full-image filtering), across the
        lines first (contiguous rows), then along the line;
@@ -464,7 +460,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
        line ``n . (H e_s)``; the zero crossing of ``g`` bracketed next to the peak
        is found on the cubic Hermite interpolant (exact to O(h^4), unlike
        Steger's one-step Newton ``t`` whose error grows like t^3);
-    4. raw FWHM along the line, times ``|n_s|`` (width across the stripe).
+    4. the raw FWHM of step 1 times ``|n_s|`` (width across the stripe).
 
     ``xw`` (RX+1, 3, 2RX+1): across-line kernels (their own scale, possibly
     larger than along the line) truncated symmetrically to radius ``k`` (row
@@ -724,3 +720,25 @@ def _edge_cached(sigma_milli: int) -> np.ndarray:
 def edge_kernels_cached(sigma_px: float) -> np.ndarray:
     """:func:`edge_kernels` of :func:`gaussian_derivative_kernels` (cached)."""
     return _edge_cached(int(round(float(sigma_px) * 1000.0)))
+
+
+@njit(cache=True)
+def profile_curvature(uv, nrm, valid, c2, m, k):
+    """Numba version of ``stripe._profile_curvature`` (same arithmetic), in place on ``uv``."""
+    L = uv.shape[0]
+    if L < 2 * m + 1:
+        return
+    shift = np.zeros(L)
+    for i in range(m, L - m):
+        if not (valid[i] and valid[i - m] and valid[i + m]):
+            continue
+        ax = uv[i - m, 0]
+        ay = uv[i - m, 1]
+        cx = uv[i + m, 0]
+        cy = uv[i + m, 1]
+        L2 = (cx - ax) ** 2 + (cy - ay) ** 2
+        kn = (8.0 * (0.5 * (ax + cx) - uv[i, 0]) * nrm[i, 0] + 8.0 * (0.5 * (ay + cy) - uv[i, 1]) * nrm[i, 1]) / L2
+        if kn == kn and abs(kn) < np.inf:
+            shift[i] = 0.5 * c2 * kn / nrm[i, k]
+    for i in range(m, L - m):
+        uv[i, k] -= shift[i]

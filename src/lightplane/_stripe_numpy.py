@@ -59,7 +59,7 @@ def _take(A, rows, lines):
 
 
 def fwhm_numpy(A, c, half):
-    """Vectorised :func:`_stripe_kernels._fwhm_line` (min_peak = 0): fwhm, best, bg."""
+    """Vectorised :func:`_stripe_kernels._fwhm_line` (min_peak = 0): fwhm, best, bg, left, right."""
     S, L = A.shape
     ln = np.arange(L)
     cands = np.stack([_take(A, c, ln), _take(A, c - 1, ln), _take(A, c + 1, ln)])
@@ -85,7 +85,7 @@ def fwhm_numpy(A, c, half):
             pos = (kk - sgn) + sgn * (prev - level) / (prev - x)
         res.append(np.where(found, pos, np.nan))
     right, left = res
-    return right - left, best, bg
+    return right - left, best, bg, left, right
 
 
 def _hermite_root_np(g0, d0, g1, d1):
@@ -132,14 +132,13 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     ln = np.arange(L)
     has = pos >= 0
     p = np.where(has, pos, 0)
-    # 1. smoothed peak
-    offs = np.arange(-qpeak, qpeak + 1)
+    # 1. midpoint of the half-level crossings around the highest sample
     ii = np.arange(-R, R + 1)
-    s_all = p[:, None] + offs[None, :]
-    vals = _take(A, s_all[:, :, None] + ii[None, None, :], ln[:, None, None])
-    y = vals @ w0
-    y[(s_all < 0) | (s_all >= S)] = -np.inf
-    c = s_all[ln, np.argmax(y, axis=1)]
+    fw, best, bg, left, right = fwhm_numpy(A, p, half)
+    with np.errstate(invalid="ignore"):
+        cm = np.floor(0.5 * (left + right) + 0.5)
+        use = np.isfinite(fw) & (np.abs(cm - p) <= qpeak)
+    c = np.where(use, cm, p).astype(np.int64)
     edge = (c - 1 - R < 0) | (c + 1 + R > S - 1)
     # 2. derivatives at c-1, c, c+1 from the local patch P[l, j, m, i]
     RX = (xw.shape[2] - 1) // 2
@@ -159,7 +158,6 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     rls = np.einsum("lj,ljm->lm", x1, b1)
     intensity = np.einsum("lj,lj->l", x0, b0[:, :, 1])
     lam, nl, ns = _ridge_normal_np(rll[:, 1], rls[:, 1], rss[:, 1])
-    fw, best, bg = fwhm_numpy(A, c, half)
     # 3. zero crossing
     g = nl[:, None] * rl + ns[:, None] * rs
     d = nl[:, None] * rls + ns[:, None] * rss

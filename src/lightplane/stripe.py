@@ -449,8 +449,12 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         nrm[:, 1] = normal[:, 0]
     if correct_curvature:
         # the inward shift comes from the smoothing along the stripe: sigma_along
-        uv = _profile_curvature(uv, nrm, valid, sigma_al, max(5, int(math.ceil(4.0 * sigma_al))),
-                                1 if axis == "columns" else 0)
+        m = max(5, int(math.ceil(4.0 * sigma_al)))
+        k = 1 if axis == "columns" else 0
+        if backend == "numba":
+            K.profile_curvature(uv, nrm, valid, sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, k)
+        else:
+            uv = _profile_curvature(uv, nrm, valid, sigma_al, m, k)
     return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
                          normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
                          width_px=float(w))
