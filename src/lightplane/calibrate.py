@@ -60,7 +60,10 @@ class ImageObservation:
     ellipse : the target's image ellipse (distorted px) or None.
     conic_undistorted : (3, 3) the refined rim conic in undistorted px, or None.
     rim_uv : (M, 2) sub-pixel rim edge points, distorted px (empty if none).
-    stripe_uv : (K, 2) stripe centre points on the target, distorted px (empty if none).
+    stripe_uv : (K, 2) stripe points on the target given to the solver, distorted px: averages
+        of ``stripe_bin`` consecutive centres (see :func:`observe_image`) (empty if none).
+    stripe_raw_uv : (K', 2) all stripe centre points kept on the target, distorted px.
+    stripe_bin : centres averaged per solver point (1: none).
     chord_px : (2, 2) the stripe's chord through the ellipse as found by target selection, or None.
     rim_fit_rms_px : RMS distance of the rim points to their refined conic (px).
     n_candidates : ellipses detected in the image.
@@ -78,6 +81,8 @@ class ImageObservation:
     conic_undistorted: np.ndarray | None = field(default=None, repr=False)
     rim_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
     stripe_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+    stripe_raw_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+    stripe_bin: int = 1
     chord_px: np.ndarray | None = field(default=None, repr=False)
     rim_fit_rms_px: float = float("nan")
     n_candidates: int = 0
@@ -104,6 +109,8 @@ class ImageObservation:
             "reason": self.reason if not self.used else "used",
             "n_rim": int(len(self.rim_uv)),
             "n_stripe": int(len(self.stripe_uv)) if p is None else int(p.n_stripe),
+            "n_stripe_centres": int(len(self.stripe_raw_uv)),
+            "stripe_bin": int(self.stripe_bin),
             "rim_fit_rms_px": _num(self.rim_fit_rms_px),
             "rim_residual_rms_px": None if p is None else _num(p.rim_rms_px),
             "stripe_residual_rms_px": None if p is None else _num(p.stripe_rms_px),
@@ -172,6 +179,24 @@ def _line_distance(uv: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray
     d = p1 - p0
     n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-12)
     return (uv - p0) @ n
+
+
+def _bin_along_line(uv: np.ndarray, k: int, min_bins: int = 12) -> tuple[np.ndarray, int]:
+    """Averages of ``k`` consecutive points (ordered along their principal direction); ``k``
+    is lowered so that at least ``min_bins`` averages remain.  Returns ``(points, k)``."""
+    n = len(uv)
+    k = int(max(1, min(k, n // min_bins if n >= min_bins else 1)))
+    if k == 1:
+        return uv, 1
+    m = uv.mean(axis=0)
+    _, _, vt = np.linalg.svd(uv - m, full_matrices=False)
+    order = np.argsort((uv - m) @ vt[0])
+    nb = n // k
+    # spread the remainder: bins of k or k+1 points covering all points
+    edges = np.linspace(0, n, nb + 1).round().astype(int)
+    s = uv[order]
+    out = np.array([s[a:b].mean(axis=0) for a, b in zip(edges[:-1], edges[1:])])
+    return out, k
 
 
 def _full_scale(img: np.ndarray) -> float:
@@ -259,7 +284,7 @@ def stripe_width_along(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, n: i
 def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
                   distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
                   stripe_width_px: float | None = None, margin_px: float | None = None,
-                  min_stripe_points: int = 20) -> ImageObservation:
+                  min_stripe_points: int = 20, stripe_bin: int | str = "auto") -> ImageObservation:
     """Find the target's rim points and the stripe points on it in one image (SPEC §5).
 
     Parameters
@@ -273,7 +298,17 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     stripe_width_px : stripe FWHM (px); estimated when None.
     margin_px : stripe points closer than this to the rim are dropped (the rim's
         intensity step biases them); default ``max(4, 1.5 FWHM)``.
-    min_stripe_points : fewer stripe points on the target's chord -> rejected.
+    min_stripe_points : fewer stripe centres on the target's chord -> rejected.
+    stripe_bin : ``"auto"`` or an int k >= 1: the solver gets the averages of k consecutive
+        stripe centres along the chord (at least 12 of them).  Why: the joint ML refinement
+        (:func:`lightplane.refine.refine_ml`) weighs rim and stripe points with one common
+        sigma, but a laser stripe's centres scatter ~3-4x more than the rim's edge points
+        (speckle: ~0.2 px against ~0.055 px on the realistic renders).  ``"auto"`` takes
+        ``k = (sigma_stripe / sigma_rim)²`` (robust line-fit scatter over the rim fit's RMS),
+        which makes the averaged points as noisy as the rim points and the common sigma
+        right; on the 12-image renders it lowers the triangulation error of ``ml`` by
+        10-25 % (benchmarks/bench_calibrate.py).  The chord is straight, so averaging
+        along it loses nothing but the correlated part of the noise.
 
     Returns an :class:`ImageObservation` (``ok=False`` with a reason when the image
     cannot be used).  Raises :class:`LightplaneError` only for unreadable files and
@@ -352,12 +387,30 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
         far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
         if far.sum() >= 0.5 * len(rim):
             rim = rim[far]
-    common = dict(ellipse=e_img, conic_undistorted=ref.conic, rim_uv=rim, stripe_uv=uv,
-                  chord_px=chord, rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
-    if len(uv) == 0:
+    raw = uv
+    k = 1
+    if len(uv) >= 3:
+        if stripe_bin == "auto":
+            und = camera.undistort_points(uv)
+            m = und.mean(axis=0)
+            _, _, vt = np.linalg.svd(und - m, full_matrices=False)
+            r = (und - m) @ vt[1]
+            s_stripe = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+            k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
+        else:
+            try:
+                k = int(stripe_bin)
+            except (TypeError, ValueError):
+                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}") from None
+            if k < 1:
+                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}")
+        uv, k = _bin_along_line(uv, k, min_bins=12)
+    common = dict(ellipse=e_img, conic_undistorted=ref.conic, rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw,
+                  stripe_bin=k, chord_px=chord, rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
+    if len(raw) == 0:
         return reject("no stripe crossing the target", **common)
-    if len(uv) < min_stripe_points:
-        return reject(f"too few stripe points ({len(uv)})", **common)
+    if len(raw) < min_stripe_points:
+        return reject(f"too few stripe points ({len(raw)})", **common)
     return ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
                             seconds=time.perf_counter() - t0, **common)
 
@@ -384,7 +437,8 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                     progress: Callable[[int, int], None] | None = None,
                     distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
                     stripe_width_px: float | None = None, min_stripe_points: int = 20,
-                    min_placements: int = 3, **solver_options) -> ImagePlaneCalibration:
+                    stripe_bin: int | str = "auto", min_placements: int = 3,
+                    **solver_options) -> ImagePlaneCalibration:
     """Calibrate the light plane from images of a circular target crossed by the stripe (paper §2.2).
 
     Parameters
@@ -399,7 +453,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
         1 runs in this process.
     executor : ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores 12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
     progress : optional callable ``progress(done, total)`` after each image.
-    distance_range_mm, channel, stripe_width_px, min_stripe_points : see :func:`observe_image`.
+    distance_range_mm, channel, stripe_width_px, min_stripe_points, stripe_bin : see :func:`observe_image`.
     min_placements : fewest used placements accepted (>= 3 for a checked result).
     solver_options : passed to :func:`~lightplane.plane.calibrate_plane_from_points`
         (``sigma_px``, ``min_normal_spread_deg``, ...).
@@ -446,7 +500,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
             raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
     obs = observe_images(images, camera, diameter, workers=workers, executor=executor, progress=progress,
                          distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
-                         min_stripe_points=min_stripe_points)
+                         min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)
     return solve_observations(obs, camera, diameter, method, min_placements=min_placements,
                               seconds=time.perf_counter() - t_start, **solver_options)
 

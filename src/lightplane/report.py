@@ -130,8 +130,9 @@ def figure_overlays(cal, images: Sequence | None = None, *, columns: int = 4, ma
         if len(o.rim_uv):
             r = o.rim_uv[:: max(1, len(o.rim_uv) // 150)]
             ax.plot(r[:, 0], r[:, 1], ".", color="#ffd000", ms=1.5)
-        if len(o.stripe_uv):
-            s = o.stripe_uv[:: max(1, len(o.stripe_uv) // 150)]
+        pts = o.stripe_raw_uv if len(o.stripe_raw_uv) else o.stripe_uv
+        if len(pts):
+            s = pts[:: max(1, len(pts) // 150)]
             ax.plot(s[:, 0], s[:, 1], ".", color="#ff3030", ms=1.5)
         ch = _chord_px(cal, o) if o.used else None
         if ch is not None:
@@ -342,7 +343,7 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
         parts.append("<ul>" + "".join(f"<li class=warn>{html.escape(w)}</li>" for w in cal.warnings) + "</ul>")
     # per-image table
     head = ("<tr><th>#</th><th>image</th><th>status</th><th>reason</th><th>rim points</th>"
-            "<th>stripe points</th><th>rim RMS (px)</th><th>stripe RMS (px)</th><th>chord to plane RMS (µm)</th>"
+            "<th>stripe centres (solver points)</th><th>rim RMS (px)</th><th>stripe RMS (px)</th><th>chord to plane RMS (µm)</th>"
             "<th>pose candidate</th><th>distance (mm)</th><th>time (s)</th></tr>")
     trs = []
     for o in cal.images:
@@ -351,7 +352,7 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
         trs.append(
             f"<tr class={'used' if o.used else 'rejected'}><td class=num>{o.index}</td><td>{html.escape(o.name)}</td>"
             f"<td>{o.status}</td><td>{html.escape(o.reason or '')}</td><td class=num>{len(o.rim_uv)}</td>"
-            f"<td class=num>{len(o.stripe_uv) if p is None else p.n_stripe}</td>"
+            f"<td class=num>{len(o.stripe_raw_uv)} ({len(o.stripe_uv) if p is None else p.n_stripe})</td>"
             f"<td class=num>{_f(None if p is None else p.rim_rms_px, '.3f')}</td>"
             f"<td class=num>{_f(None if p is None else p.stripe_rms_px, '.3f')}</td>"
             f"<td class=num>{_f(None if p is None else p.chord_rms_mm * 1e3, '.1f')}</td>"

@@ -83,7 +83,7 @@ def calibrate_plane_cmd(
         console.print("  (no covariance with this method; use --method ml for the uncertainty)")
     console.print(f"  image noise σ {cal.sigma_px:.3f} px; {cal.n_used} of {len(cal.images)} images used; "
                   f"{cal.seconds:.2f} s")
-    t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe points, "
+    t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe centres, "
                                      "chord's RMS distance to the plane (µm)", title_justify="left")
     t.add_column("image", no_wrap=True)
     t.add_column("status", no_wrap=True)
@@ -94,7 +94,7 @@ def calibrate_plane_cmd(
         p = o.placement
         t.add_row(o.name, o.status, o.reason or "",
                   "–" if p is None else f"{p.rim_rms_px:.3f}", "–" if p is None else f"{p.stripe_rms_px:.3f}",
-                  str(len(o.stripe_uv) if p is None else p.n_stripe),
+                  str(len(o.stripe_raw_uv)),
                   "–" if p is None or not p.used else f"{p.chord_rms_mm * 1e3:.1f}")
     console.print(t)
     for w in cal.warnings:
