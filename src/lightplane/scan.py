@@ -1,0 +1,599 @@
+"""Scans: a stream of stripe frames with known motion → one point cloud (SPEC §1 item 3).
+
+The object moves through the light sheet (conveyor, linear stage); every frame gives
+one profile (:class:`lightplane.measure.ProfileMeasurer`), and the known motion maps
+each frame's points back to where the object was at frame 0:
+
+    p_object = p_camera − (offset_i − offset_0)
+
+with ``offset_i`` the object's displacement at frame ``i`` (camera frame, mm):
+``i · step · direction`` for a constant step (:meth:`Motion.linear`), or read from an
+encoder log (:meth:`Motion.load_positions`).  Without motion the points stay in the
+camera frame.
+
+Streaming: frames are read one at a time (image files, a folder, a glob, a video
+file via ``cv2.VideoCapture``, or arrays in memory), processed by a pool of worker
+processes (each with its own measurer and lookup tables; numba kept to one thread per
+worker), a bounded number in flight, results consumed in frame order; points go to a
+:class:`lightplane.pointcloud.PointSpool` on disk and are copied into the output at
+the end.  Memory therefore does not grow with the number of frames.  A frame that
+cannot be read is skipped and reported; a frame whose size differs from the camera's
+stops the scan (wrong camera file) and nothing is written.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+
+from .camera import Camera
+from .errors import LightplaneError
+from .measure import ProfileMeasurer, profile_axis
+from .plane import LightPlane
+from .pointcloud import POINT_DTYPE, PointSpool, cloud_format, write_cloud
+
+__all__ = [
+    "Motion",
+    "FrameSource",
+    "ImageFiles",
+    "VideoFrames",
+    "ArrayFrames",
+    "open_frames",
+    "FrameProcessor",
+    "FrameResult",
+    "iter_scan",
+    "ScanSummary",
+    "measure_scan",
+    "scan_points",
+    "VIDEO_SUFFIXES",
+]
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".mjpeg", ".mjpg")
+
+
+# ----------------------------------------------------------------------------- motion
+def _unit(direction, name: str = "direction") -> np.ndarray:
+    d = np.asarray(direction, dtype=np.float64).ravel()
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-12:
+        raise LightplaneError(f"{name} must be 3 finite numbers, not all zero (camera frame); got {direction!r}")
+    return d / np.linalg.norm(d)
+
+
+@dataclass(frozen=True, eq=False)
+class Motion:
+    """The object's displacement per frame (camera frame, mm).
+
+    ``positions_mm`` (F, 3): the object's position at each frame (only differences to
+    frame 0 matter), or ``step_mm`` and unit ``direction``: frame ``i`` is displaced by
+    ``i · step_mm · direction``.  Neither: no motion (points stay in the camera frame).
+    """
+
+    step_mm: float | None = None
+    direction: np.ndarray | None = None
+    positions_mm: np.ndarray | None = None
+
+    @classmethod
+    def none(cls) -> "Motion":
+        return cls()
+
+    @classmethod
+    def linear(cls, step_mm: float, direction) -> "Motion":
+        """Constant ``step_mm`` between frames along ``direction`` (normalised here)."""
+        step = float(step_mm)
+        if not np.isfinite(step):
+            raise LightplaneError(f"step must be a finite number of mm, got {step_mm!r}")
+        return cls(step_mm=step, direction=_unit(direction))
+
+    @classmethod
+    def from_positions(cls, positions_mm) -> "Motion":
+        p = np.asarray(positions_mm, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 1 or not np.all(np.isfinite(p)):
+            raise LightplaneError(f"positions must be a finite (F, 3) array in mm, got shape {p.shape}")
+        return cls(positions_mm=p)
+
+    @classmethod
+    def load_positions(cls, path: str | os.PathLike, direction=None) -> "Motion":
+        """Read an encoder log: one row per frame, in frame order.
+
+        Columns ``dx,dy,dz`` (mm, camera frame; a header row naming them is optional,
+        other named columns such as ``frame`` or ``time`` are ignored), or a single
+        column: the position along ``direction`` (mm; ``direction`` required).
+        Blank lines and lines starting with ``#`` are ignored.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise LightplaneError(f"{p}: no such positions file")
+        rows: list[list[str]] = []
+        for line in p.read_text().splitlines():
+            s = line.strip()
+            if s and not s.startswith("#"):
+                rows.append([t.strip() for t in s.replace(";", ",").split(",")])
+        if not rows:
+            raise LightplaneError(f"{p}: positions file is empty")
+
+        def numeric(row):
+            try:
+                [float(t) for t in row]
+                return True
+            except ValueError:
+                return False
+
+        names = None
+        if not numeric(rows[0]):
+            names = [t.lower() for t in rows.pop(0)]
+        if not rows:
+            raise LightplaneError(f"{p}: positions file has a header but no rows")
+        width = len(rows[0])
+        for k, row in enumerate(rows):
+            if len(row) != width or not numeric(row):
+                raise LightplaneError(f"{p}: row {k + 1 + (names is not None)} is not {width} numbers: {','.join(row)!r}")
+        a = np.array(rows, dtype=np.float64)
+        if names is not None and len(names) != width:
+            raise LightplaneError(f"{p}: header names {len(names)} columns but rows hold {width}")
+        if names is not None and {"dx", "dy", "dz"} <= set(names):
+            a = a[:, [names.index("dx"), names.index("dy"), names.index("dz")]]
+        elif names is not None and {"x", "y", "z"} <= set(names):
+            a = a[:, [names.index("x"), names.index("y"), names.index("z")]]
+        elif width == 3 and names is None:
+            pass
+        elif width == 1 or (names is not None and width == 2 and "frame" in names):
+            col = a[:, 0] if width == 1 else a[:, 1 - names.index("frame")]
+            if direction is None:
+                raise LightplaneError(f"{p}: a single column of positions needs a direction (--direction X,Y,Z)")
+            a = col[:, None] * _unit(direction)[None, :]
+        else:
+            raise LightplaneError(f"{p}: expected columns dx,dy,dz (mm) or a single position column, got "
+                                  f"{width} columns{'' if names is None else ' ' + ','.join(names)}")
+        if not np.all(np.isfinite(a)):
+            raise LightplaneError(f"{p}: positions must be finite numbers")
+        return cls.from_positions(a)
+
+    @property
+    def kind(self) -> str:
+        return "positions" if self.positions_mm is not None else "step" if self.step_mm is not None else "none"
+
+    @property
+    def n_frames(self) -> int | None:
+        """Frames the motion is defined for (None: any number)."""
+        return None if self.positions_mm is None else int(self.positions_mm.shape[0])
+
+    def offset(self, index: int) -> np.ndarray:
+        """Displacement (3,) mm of the object at frame ``index`` relative to frame 0."""
+        if self.positions_mm is not None:
+            if not 0 <= index < self.positions_mm.shape[0]:
+                raise LightplaneError(f"frame {index} has no position (the positions file has "
+                                      f"{self.positions_mm.shape[0]} rows)")
+            return self.positions_mm[index] - self.positions_mm[0]
+        if self.step_mm is not None:
+            return index * self.step_mm * self.direction
+        return np.zeros(3)
+
+    def to_dict(self) -> dict:
+        if self.kind == "positions":
+            return {"kind": "positions", "n_frames": self.n_frames}
+        if self.kind == "step":
+            return {"kind": "step", "step_mm": self.step_mm, "direction": self.direction.tolist()}
+        return {"kind": "none"}
+
+
+# ----------------------------------------------------------------------------- frame sources
+class FrameSource:
+    """Frames in order: ``items()`` yields ``(index, name, payload)``; payload is an image
+    array or a path that :func:`load_frame` reads (in the worker)."""
+
+    n_frames: int | None = None
+    description: str = ""
+
+    def items(self) -> Iterator[tuple[int, str, object]]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+def load_frame(payload) -> np.ndarray:
+    """An image array as is, or read from a path (raises LightplaneError if unreadable)."""
+    if isinstance(payload, np.ndarray):
+        return payload
+    from .io import read_image
+
+    return read_image(payload)
+
+
+class ImageFiles(FrameSource):
+    """Image files in the given order (use :func:`lightplane.io.expand_inputs` for folders/globs)."""
+
+    def __init__(self, paths: Sequence[str | os.PathLike]) -> None:
+        self.paths = [Path(p) for p in paths]
+        if not self.paths:
+            raise LightplaneError("no input images")
+        missing = [str(p) for p in self.paths if not p.exists()]
+        if missing:
+            raise LightplaneError(f"{missing[0]}: no such file" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        self.n_frames = len(self.paths)
+        self.description = f"{len(self.paths)} image files"
+
+    def items(self):
+        for i, p in enumerate(self.paths):
+            yield i, str(p), str(p)
+
+
+class ArrayFrames(FrameSource):
+    """Frames already in memory: a sequence of (H, W[, 3]) arrays or an (F, H, W[, 3]) array."""
+
+    def __init__(self, frames, names: Sequence[str] | None = None) -> None:
+        self.frames = frames
+        self.n_frames = len(frames)
+        self.names = names
+        self.description = f"{self.n_frames} frames in memory"
+
+    def items(self):
+        for i in range(self.n_frames):
+            yield i, (self.names[i] if self.names is not None else f"frame {i}"), self.frames[i]
+
+
+class VideoFrames(FrameSource):
+    """Frames of a video file, decoded sequentially with ``cv2.VideoCapture``.
+
+    Raises :class:`LightplaneError` if the file cannot be opened.  ``n_frames`` is the
+    container's frame count (may be approximate; the scan counts the frames it reads).
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        import cv2
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise LightplaneError(f"{self.path}: no such video file")
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            cap.release()
+            raise LightplaneError(f"{self.path}: cannot be opened as a video")
+        self.cap = cap
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.n_frames = n if n > 0 else None
+        self.description = f"video {self.path.name}" + (f" ({n} frames)" if n > 0 else "")
+        self.ended_early = False
+
+    def items(self):
+        i = 0
+        while True:
+            ok, frame = self.cap.read()
+            if not ok or frame is None:
+                break
+            yield i, f"{self.path.name}#{i}", frame
+            i += 1
+        self.ended_early = self.n_frames is not None and i < self.n_frames
+        self.frames_read = i
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def open_frames(inputs: Sequence[str | os.PathLike]) -> FrameSource:
+    """A frame source for CLI-style inputs: one video file, or image files / folders / globs."""
+    from .io import expand_inputs
+
+    items = [str(x) for x in inputs]
+    if not items:
+        raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
+    videos = [s for s in items if Path(s).suffix.lower() in VIDEO_SUFFIXES]
+    if videos:
+        if len(items) > 1:
+            raise LightplaneError("give either one video file or image files, not both / several videos")
+        return VideoFrames(videos[0])
+    paths = expand_inputs(items)
+    if not paths:
+        raise LightplaneError(f"no images found in {', '.join(items)}")
+    return ImageFiles(paths)
+
+
+# ----------------------------------------------------------------------------- processing
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame's outcome: ``records`` (:data:`POINT_DTYPE`, valid points only, placed by
+    the motion) or ``error`` (why it was skipped)."""
+
+    index: int
+    name: str
+    records: np.ndarray | None
+    error: str | None = None
+
+
+class FrameProcessor:
+    """Frame → placed point records; picklable (sent once to each worker process)."""
+
+    def __init__(self, camera: Camera, plane: LightPlane, motion: Motion | None = None, *, axis: str = "auto",
+                 roi=None, **stripe_options) -> None:
+        self.measurer = ProfileMeasurer(camera, plane, axis=axis, roi=roi, **stripe_options)
+        self.motion = Motion.none() if motion is None else motion
+
+    @property
+    def camera(self) -> Camera:
+        return self.measurer.camera
+
+    def process(self, index: int, image: np.ndarray) -> np.ndarray:
+        prof = self.measurer(image)
+        ok = prof.valid
+        n = int(np.count_nonzero(ok))
+        rec = np.empty(n, POINT_DTYPE)
+        p = prof.points[ok] - self.motion.offset(index)[None, :]
+        rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
+        rec["frame"] = index
+        rec["intensity"] = prof.intensity[ok]
+        rec["sigma_mm"] = prof.sigma_mm[ok]
+        rec["u"], rec["v"] = prof.uv[ok, 0], prof.uv[ok, 1]
+        return rec
+
+    def run(self, index: int, name: str, payload) -> FrameResult:
+        """Read (if a path) and process one frame; an unreadable frame gives ``error``.
+
+        A frame of the wrong size raises (a camera mismatch is not a bad frame).
+        """
+        try:
+            image = load_frame(payload)
+        except LightplaneError as e:
+            return FrameResult(index, name, None, str(e))
+        return FrameResult(index, name, self.process(index, image))
+
+    def run_batch(self, batch: list) -> list[FrameResult]:
+        return [self.run(*item) for item in batch]
+
+
+_WORKER: FrameProcessor | None = None
+
+
+def _worker_init(processor: FrameProcessor) -> None:
+    global _WORKER
+    try:
+        import numba
+
+        numba.set_num_threads(1)  # one core per worker: numba's own threads would oversubscribe
+    except Exception:  # pragma: no cover - numba is a dependency, but stay usable without it
+        pass
+    _WORKER = processor
+
+
+def _worker_batch(batch: list) -> list[FrameResult]:
+    assert _WORKER is not None
+    return _WORKER.run_batch(batch)
+
+
+def default_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class _SingleThreadNumba:
+    """Run numba kernels on one thread inside the block (restored after)."""
+
+    def __enter__(self):
+        try:
+            import numba
+
+            self.old = numba.get_num_threads()
+            numba.set_num_threads(1)
+        except Exception:  # pragma: no cover
+            self.old = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            import numba
+
+            numba.set_num_threads(self.old)
+
+
+def _batches(items: Iterator, size: int) -> Iterator[list]:
+    batch = []
+    for it in items:
+        batch.append(it)
+        if len(batch) >= size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | None = None,
+              batch: int = 8, in_flight: int | None = None) -> Iterator[FrameResult]:
+    """Process every frame of ``source``; yield :class:`FrameResult` in frame order.
+
+    ``workers`` processes (default: the CPUs this process may use; 1: in this
+    process, no pool); frames go to them in batches of ``batch``, at most
+    ``in_flight`` batches at a time (default ``2 · workers``), so memory stays bounded
+    however long the source.
+    """
+    workers = default_workers() if workers is None else int(workers)
+    if workers < 1:
+        raise LightplaneError(f"workers must be >= 1, got {workers}")
+    if workers == 1:
+        with _SingleThreadNumba():
+            for item in source.items():
+                yield processor.run(*item)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn: workers must not inherit OpenMP/numba thread state (not fork-safe)
+    ctx = mp.get_context("spawn")
+    limit = 2 * workers if in_flight is None else max(1, int(in_flight))
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(processor,)) as ex:
+        pending: deque = deque()
+        try:
+            for b in _batches(source.items(), max(1, int(batch))):
+                pending.append(ex.submit(_worker_batch, b))
+                while len(pending) >= limit:
+                    yield from pending.popleft().result()
+            while pending:
+                yield from pending.popleft().result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+
+# ----------------------------------------------------------------------------- scan → file
+@dataclass(frozen=True)
+class ScanSummary:
+    """What a scan did.  ``skipped``: ``(index, name, reason)`` of frames that could not be read."""
+
+    path: Path | None
+    format: str | None
+    n_frames: int
+    n_frames_used: int
+    n_points: int
+    skipped: tuple = ()
+    frames_without_points: int = 0
+    axis: str = ""
+    width_px: float = float("nan")
+    motion: dict = field(default_factory=dict)
+    seconds: float = float("nan")
+
+    @property
+    def n_skipped(self) -> int:
+        return len(self.skipped)
+
+
+def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
+    """The first readable frame (for checks) and a source that still yields every frame."""
+    if isinstance(source, VideoFrames):
+        it = source.items()
+        try:
+            first = next(it)
+        except StopIteration:
+            raise LightplaneError(f"{source.path}: the video has no readable frames") from None
+
+        class _Replay(FrameSource):
+            def items(self_inner):
+                yield first
+                yield from it
+
+        rep = _Replay()
+        rep.n_frames = source.n_frames
+        rep.description = source.description
+        return first[2], rep
+    for k, (_, _, payload) in enumerate(source.items()):
+        try:
+            return load_frame(payload), source
+        except LightplaneError:
+            if k >= 50:
+                break
+    raise LightplaneError("none of the first input frames can be read as an image")
+
+
+def _prepare(source, camera, plane, motion, axis, width_px, channel):
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    if not isinstance(plane, LightPlane):
+        raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+    motion = Motion.none() if motion is None else motion
+    if motion.n_frames is not None and source.n_frames is not None and motion.n_frames != source.n_frames:
+        raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {source.n_frames}")
+    first, source = _first_frame(source)
+    camera.check_image(first, "the first frame")
+    axis = profile_axis(plane) if axis == "auto" else axis
+    if width_px is None:
+        from .stripe import estimate_width
+
+        with _SingleThreadNumba():
+            w = estimate_width(first, channel=channel, axis=axis)
+        width_px = float(w) if np.isfinite(w) else None
+    return source, motion, axis, width_px
+
+
+def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motion: Motion | None = None,
+                axis: str = "auto", roi=None, width_px: float | None = None, channel: str | None = None,
+                workers: int | None = 1, **stripe_options) -> tuple[np.ndarray, ScanSummary]:
+    """In-memory scan: all points as one :data:`POINT_DTYPE` array, and the summary.
+
+    For long scans use :func:`measure_scan` (streams to a file).  ``width_px`` None:
+    estimated once on the first frame and used for all frames.
+    """
+    t0 = time.perf_counter()
+    source, motion, axis, width_px = _prepare(source, camera, plane, motion, axis, width_px, channel)
+    proc = FrameProcessor(camera, plane, motion, axis=axis, roi=roi, width_px=width_px, channel=channel,
+                          **stripe_options)
+    parts, skipped, n, empty = [], [], 0, 0
+    for r in iter_scan(source, proc, workers=workers):
+        n += 1
+        if r.error is not None:
+            skipped.append((r.index, r.name, r.error))
+            continue
+        empty += r.records.size == 0
+        parts.append(r.records)
+    recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
+    summ = ScanSummary(None, None, n, n - len(skipped), int(recs.size), tuple(skipped), int(empty), axis,
+                       float("nan") if width_px is None else width_px, motion.to_dict(), time.perf_counter() - t0)
+    return recs, summ
+
+
+def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_path: str | os.PathLike, *,
+                 fmt: str | None = None, ascii: bool = False, motion: Motion | None = None, axis: str = "auto",
+                 roi=None, width_px: float | None = None, channel: str | None = None, workers: int | None = None,
+                 force: bool = False, progress: Callable[[int, int | None], None] | None = None,
+                 comments: Sequence[str] = (), **stripe_options) -> ScanSummary:
+    """Scan ``source`` into a point-cloud file (PLY/CSV/NPY, :func:`lightplane.pointcloud.write_cloud`).
+
+    Streams: frames are processed by ``workers`` processes and the points spooled to a
+    temporary file beside ``out_path``; the output is written (atomically) only when
+    every frame has been processed, so a failure leaves nothing behind.
+
+    Errors (:class:`LightplaneError`, nothing written): output exists without
+    ``force``; a frame's size differs from the camera's; ``motion`` has positions for a
+    different number of frames than the input holds; no frame readable.  Unreadable
+    frames are skipped and listed in the summary.  ``progress(done, total)`` is called
+    after each frame (``total`` None when unknown).
+    """
+    from .io import check_output, provenance
+
+    t0 = time.perf_counter()
+    original = source
+    out = check_output(out_path, force)
+    fmt = cloud_format(out, fmt)
+    if ascii and fmt != "ply":
+        raise LightplaneError("--ascii applies to PLY output only")
+    try:
+        source, motion, axis, width_px = _prepare(source, camera, plane, motion, axis, width_px, channel)
+        proc = FrameProcessor(camera, plane, motion, axis=axis, roi=roi, width_px=width_px, channel=channel,
+                              **stripe_options)
+        if workers is None and source.n_frames is not None and source.n_frames < 64:
+            workers = 1  # starting a pool costs more than it saves
+        skipped, n, empty = [], 0, 0
+        with PointSpool(out.parent if str(out.parent) else None) as spool:
+            for r in iter_scan(source, proc, workers=workers):
+                n += 1
+                if r.error is not None:
+                    skipped.append((r.index, r.name, r.error))
+                else:
+                    empty += r.records.size == 0
+                    spool.append(r.records)
+                if progress is not None:
+                    progress(n, source.n_frames)
+            if motion.n_frames is not None and motion.n_frames != n:
+                raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {n}")
+            if n == len(skipped):
+                raise LightplaneError(f"none of the {n} frames could be read")
+            opts = {"axis": axis, "roi": roi, "width_px": width_px, "channel": channel, "motion": motion.to_dict(),
+                    "frames": n, "skipped": len(skipped)}
+            prov = provenance([getattr(source, "description", "")], opts)
+            lines = ["lightplane point cloud: x y z in mm (camera frame"
+                     + (", object at frame 0" if motion.kind != "none" else "") + ")",
+                     f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",
+                     f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
+                     f"options: {opts}", *comments]
+            write_cloud(out, spool, fmt=fmt, ascii=ascii, force=force, comments=lines)
+            n_points = spool.count
+    finally:
+        original.close()
+    return ScanSummary(out, fmt, n, n - len(skipped), n_points, tuple(skipped), int(empty), axis,
+                       float("nan") if width_px is None else float(width_px), motion.to_dict(),
+                       time.perf_counter() - t0)

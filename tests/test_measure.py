@@ -1,0 +1,165 @@
+"""Profiles: stripe frames → 3D points (SPEC §4, §5.2), lookup tables, σ, scans with motion."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
+
+from lightplane import Camera, LightPlane, LightplaneError  # noqa: E402
+from lightplane.measure import ProfileMeasurer, measure_profile, points_sigma_mm, profile_axis  # noqa: E402
+from lightplane.scan import ArrayFrames, Motion, scan_points  # noqa: E402
+
+# stripe centres of a noise-free Gaussian stripe are good to ~0.01 px (stripe module's spec: 0.015 px);
+# rows within END_ROWS of the stripe's ends are biased by the abrupt end and excluded
+CENTRE_TOL_PX = 0.015
+END_ROWS = 8
+
+
+def interior(valid: np.ndarray) -> np.ndarray:
+    idx = np.flatnonzero(valid)
+    keep = valid.copy()
+    keep[: idx[0] + END_ROWS] = False
+    keep[idx[-1] - END_ROWS + 1:] = False
+    return keep
+
+
+@pytest.fixture(scope="module")
+def measurer() -> ProfileMeasurer:
+    return ProfileMeasurer(CAM, PLANE, width_px=3.5)
+
+
+def test_lookup_matches_exact_undistortion(measurer):
+    rng = np.random.default_rng(3)
+    # rows axis: v on integer rows, u sub-pixel anywhere along the row (also beyond the last pixel centre)
+    uv = np.column_stack([rng.uniform(-0.49, CAM.width - 0.51, 4000), rng.integers(0, CAM.height, 4000)])
+    exact = CAM.undistort_points(uv, normalized=True)
+    err_px = np.abs(measurer.normalized(uv) - exact) * CAM.fx
+    assert measurer.axis == "rows" and measurer.has_lookup
+    assert err_px.max() < 1e-6
+    # columns axis with a roi: same requirement
+    m = ProfileMeasurer(CAM, PLANE, axis="columns", roi=(40, 30, 500, 400))
+    uvc = np.column_stack([rng.integers(40, 540, 4000), rng.uniform(30, 429, 4000)])
+    assert np.max(np.abs(m.normalized(uvc) - CAM.undistort_points(uvc, normalized=True))) * CAM.fx < 1e-6
+    # off the grid lines or NaN: exact undistortion / NaN, never a wrong table value
+    odd = np.array([[100.3, 200.5], [np.nan, 3.0]])
+    got = m.normalized(odd)
+    assert np.allclose(got[0], CAM.undistort_points(odd[:1], normalized=True)[0], atol=1e-12)
+    assert np.all(np.isnan(got[1]))
+
+
+def test_profile_axis_follows_the_plane():
+    assert profile_axis(PLANE) == "rows"  # plane contains the camera's y axis: vertical stripe
+    assert profile_axis(LightPlane([0.0, np.cos(0.4), -np.sin(0.4)], 190.0)) == "columns"
+
+
+def test_measure_profile_points_on_surface_and_plane(measurer):
+    n_s, d_s = surface()
+    img, u_true = stripe_image(n_s, d_s)
+    prof = measure_profile(img, CAM, PLANE, width_px=3.5)
+    assert prof.axis == "rows" and len(prof) == CAM.height
+    assert np.array_equal(prof.valid, np.isfinite(u_true))  # every stripe row, nothing else
+    keep = interior(prof.valid)
+    assert np.max(np.abs(prof.uv[keep, 0] - u_true[keep])) < CENTRE_TOL_PX
+    assert np.array_equal(prof.uv[keep, 1], np.flatnonzero(keep).astype(float))
+    pts = prof.points[keep]
+    assert np.max(np.abs(PLANE.signed_distance(pts))) < 1e-9  # exactly on the light plane
+    # depth error from the centre error: |dX/du| ~ 0.5 mm/px here -> well under 0.01 mm
+    assert np.max(np.abs(pts @ n_s + d_s)) < 0.01
+    assert np.all(np.isnan(prof.points[~prof.valid]))
+    assert np.all(np.isnan(prof.sigma_mm))  # no covariance: sigma unknown, not zero
+    # intensity: the stripe (200 over 10, sigma 1.5 px) smoothed by the profile's Gaussian (sigma 1 px and the
+    # pixel's 1/12 px^2): 10 + 200 * 1.5 / sqrt(1.5^2 + 1 + 1/12) = 174 at the peak, less off the pixel centre
+    expected = 10 + 200 * 1.5 / np.sqrt(1.5**2 + 1 + 1 / 12)
+    assert np.all(prof.intensity[keep] <= expected + 1) and np.all(prof.intensity[keep] > expected - 10)
+    # the lookup-table path gives the same points
+    fast = measurer(img)
+    assert np.array_equal(fast.valid, prof.valid)
+    assert np.nanmax(np.abs(fast.points - prof.points)) < 1e-6
+
+
+def test_sigma_from_plane_covariance_matches_uncertainty_module():
+    from lightplane.uncertainty import point_sigma_mm
+
+    cov = np.diag([2e-7, 1e-7, 3e-7, 4e-3])
+    pl = LightPlane(PLANE.normal, PLANE.d, covariance=cov)
+    rng = np.random.default_rng(5)
+    uv = np.column_stack([rng.uniform(0, 639, 300), rng.uniform(0, 479, 300)])
+    ref = point_sigma_mm(CAM, pl, uv)
+    got = points_sigma_mm(pl, CAM.undistort_points(uv, normalized=True))
+    assert np.allclose(got, ref, rtol=1e-9, equal_nan=True)
+    n_s, d_s = surface()
+    img, _ = stripe_image(n_s, d_s)
+    prof = ProfileMeasurer(CAM, pl, width_px=3.5)(img)
+    v = prof.valid
+    assert np.allclose(prof.sigma_mm[v], point_sigma_mm(CAM, pl, prof.uv[v]), rtol=1e-6)
+    assert np.all(prof.sigma_mm[v] > 0)
+
+
+def test_bad_input_is_refused(measurer):
+    with pytest.raises(LightplaneError, match="calibrated for 640x480"):
+        measurer(np.zeros((240, 320), np.uint8))
+    with pytest.raises(LightplaneError, match="axis"):
+        ProfileMeasurer(CAM, PLANE, axis="diagonal")
+    with pytest.raises(LightplaneError, match="roi"):
+        ProfileMeasurer(CAM, PLANE, roi=(600, 0, 100, 100))
+    with pytest.raises(LightplaneError, match="camera"):
+        measure_profile(np.zeros((480, 640)), "cam.json", PLANE)
+
+
+def test_scan_places_frames_by_the_motion():
+    n_s, d_s = surface()
+    img, _ = stripe_image(n_s, d_s)
+    frames = [img] * 4
+    base, _ = scan_points(ArrayFrames(frames[:1]), CAM, PLANE, width_px=3.5)
+    step, direction = 0.75, np.array([1.0, 0.0, 0.2])
+    rec, summ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(step, direction), width_px=3.5)
+    assert summ.n_frames == 4 and summ.n_points == 4 * base.size and not summ.skipped
+    unit = direction / np.linalg.norm(direction)
+    p0 = np.column_stack([base["x"], base["y"], base["z"]]).astype(float)
+    for i in range(4):
+        r = rec[rec["frame"] == i]
+        p = np.column_stack([r["x"], r["y"], r["z"]]).astype(float)
+        assert np.allclose(p, p0 - i * step * unit, atol=1e-4)  # float32 storage at ~450 mm
+        assert np.array_equal(r["v"], base["v"])
+    # positions: only differences to the first row matter
+    pos = np.array([[5.0, 1.0, 0.0], [5.0, 1.0, 0.0], [7.0, 1.0, 0.0], [5.0, 4.0, 0.0]])
+    rec2, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.from_positions(pos), width_px=3.5)
+    for i in range(4):
+        r = rec2[rec2["frame"] == i]
+        p = np.column_stack([r["x"], r["y"], r["z"]]).astype(float)
+        assert np.allclose(p, p0 - (pos[i] - pos[0]), atol=1e-4)
+
+
+def test_scan_in_worker_processes_gives_the_same_records():
+    n_s, d_s = surface()
+    frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0] for k in range(6)]
+    one, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(1.0, [1, 0, 0]), width_px=3.5)
+    two, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(1.0, [1, 0, 0]), width_px=3.5,
+                         workers=2)
+    assert one.size > 6 * 300
+    assert np.array_equal(one.view(np.uint8), two.view(np.uint8))
+
+
+def test_positions_file_formats(tmp_path):
+    f = tmp_path / "enc.csv"
+    f.write_text("frame,dx,dy,dz\n0,0,0,0\n1,0.5,0,0.1\n2,1.0,0,0.2\n")
+    m = Motion.load_positions(f)
+    assert m.n_frames == 3 and np.allclose(m.offset(2), [1.0, 0.0, 0.2])
+    f.write_text("# encoder mm\n10.0\n10.5\n11.5\n")
+    m = Motion.load_positions(f, direction=[0, 2, 0])
+    assert np.allclose(m.offset(2), [0.0, 1.5, 0.0])
+    with pytest.raises(LightplaneError, match="direction"):
+        Motion.load_positions(f)
+    f.write_text("1,2\n3,x\n")
+    with pytest.raises(LightplaneError, match="row 2"):
+        Motion.load_positions(f)
+    with pytest.raises(LightplaneError, match="no such"):
+        Motion.load_positions(tmp_path / "none.csv")
+    with pytest.raises(LightplaneError, match="direction"):
+        Motion.linear(1.0, [0, 0, 0])
