@@ -485,7 +485,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
 # 2-D kernels (full derivative images)
 
 @njit(cache=True)
-def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row):
+def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row, u0, v0):
     """One row of :func:`ridge_points` (serial: see :func:`_centre_line`)."""
     H, W = ru.shape
     # vectorisable pass: most negative Hessian eigenvalue of every pixel of the row
@@ -543,18 +543,18 @@ def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row)
         if t == 2.0:
             continue
         if vert:
-            su[v, u] = u
-            sv[v, u] = v + t
+            su[v, u] = u + u0
+            sv[v, u] = v + v0 + t
         else:
-            su[v, u] = u + t
-            sv[v, u] = v
+            su[v, u] = u + u0 + t
+            sv[v, u] = v + v0
         sn_u[v, u] = nu
         sn_v[v, u] = nv
         sstr[v, u] = -lam
 
 
 @njit(cache=True, parallel=True)
-def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
+def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, u0=0, v0=0):
     """Steger points of bright lines from the five derivative images (H, W).
 
     For every pixel p with ridge strength ``-lambda >= low``: normal n from the
@@ -562,7 +562,9 @@ def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
     image axis closer to n (column if |n_v| >= |n_u|, else row); the zero of ``g``
     on the cubic Hermite interpolant of (g, dg/de) is the centre, kept by the
     pixel whose half-open cell [-0.5, 0.5) along e contains it, so each crossing
-    of a grid line by the centre line gives exactly one point.  Outputs: sub-pixel
+    of a grid line by the centre line gives exactly one point.  The arrays may be
+    a region of the image whose top-left pixel is (u0, v0): positions are written
+    in full-image pixels.  Outputs: sub-pixel
     (u, v) in ``su, sv``, normal in ``sn_u, sn_v``, strength in ``sstr`` (0 where no
     point).
     """
@@ -571,7 +573,7 @@ def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr):
     for ch in prange(nch):
         lam_row = np.empty(W, dtype=np.float32)
         for v in range(ch * 32, min(H, ch * 32 + 32)):
-            _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row)
+            _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row, u0, v0)
 
 
 @njit(cache=True)

@@ -497,6 +497,53 @@ def _chroma_check(image, axis, centre, status, line0, sample0, min_chroma, half)
 # ----------------------------------------------------------------------------------------
 # extract_stripe
 
+_TILE = 32
+
+
+def _active_regions(src: np.ndarray, min_contrast: float, R: int):
+    """Boxes ``(x0, y0, x1, y1)`` px around the tiles where a stripe may be, or None.
+
+    A 32 x 32 tile is active when its max - min reaches ``min_contrast``; active
+    tiles grow by one tile (more than the kernel radius ``R``, so the derivatives
+    inside are exact) and their connected groups' bounding boxes are returned.
+    None when they cover more than half of the image (filter it whole).
+    """
+    import cv2
+
+    H, W = src.shape
+    T = max(_TILE, R + 3)
+    ny, nx = -(-H // T), -(-W // T)
+    pad = cv2.copyMakeBorder(src, 0, ny * T - H, 0, nx * T - W, cv2.BORDER_REPLICATE)
+    blocks = pad.reshape(ny, T, nx, T)
+    hi = blocks.max(axis=3).max(axis=1)
+    lo = blocks.min(axis=3).min(axis=1)
+    contrast = hi.astype(np.float32) - lo.astype(np.float32)
+    active = (contrast >= min_contrast).astype(np.uint8)
+    if not active.any():
+        return []
+    active = cv2.dilate(active, np.ones((3, 3), np.uint8))
+    if active.mean() > 0.5:
+        return None
+    n, _, stats, _ = cv2.connectedComponentsWithStats(active, connectivity=8)
+    boxes = [(int(x * T), int(y * T), int(min(W, (x + w) * T)), int(min(H, (y + h) * T)))
+             for x, y, w, h, _area in stats[1:]]
+    # merge overlapping boxes: each pixel must be filtered in one region only
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return boxes
+
+
 def _ridge_response(width_px: float, sigma: float) -> float:
     """-r'' at the centre of a unit-contrast Gaussian stripe of FWHM ``width_px`` (same kernels)."""
     w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
@@ -578,7 +625,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
         if mask.shape != (H, W):
             raise LightplaneError(f"mask must have the image's shape {(H, W)}, got {mask.shape}")
         mask = mask.astype(bool, copy=False)
-    gray = img.astype(np.float32, copy=False) if img.dtype != np.float64 else img.astype(np.float32)
+    gray = img          # uint8, uint16 or float32 (_channel_image); kernels read any of them
     mc = _default_min_peak(fs) if min_contrast is None else float(min_contrast)
     w = _check_width(width_px)
     if w is None:
@@ -601,12 +648,32 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     # separable: three row passes (value, 1st, 2nd derivative along u) on the image
     # as given (8-bit input is filtered fastest), then five column passes
     border = cv2.BORDER_REPLICATE
-    src = img if img.dtype in (np.uint8, np.uint16, np.float32) else gray
-    for k, x in ((w0, x0), (w1, x1), (w2, x2)):
-        cv2.filter2D(src, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
-    for x, k, out in ((x1, w0, ru), (x0, w1, rv), (x2, w0, ruu), (x1, w1, ruv), (x0, w2, rvv)):
-        cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
-    K.ridge_points(ru, rv, ruu, ruv, rvv, lo, su, sv, snu, snv, sstr)
+    src = img
+    R = (w0.size - 1) // 2
+    regions = _active_regions(src, mc, R)
+    if regions is None:                   # stripes everywhere: the whole image at once
+        regions = [(0, 0, W, H)]
+    else:
+        sstr.fill(0.0)
+    for (a0, b0, a1, b1) in regions:
+        sub = src[b0:b1, a0:a1]
+        view = [buf[b0:b1, a0:a1] for buf in (x0, x1, x2, ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr)]
+        vx0, vx1, vx2, vru, vrv, vruu, vruv, vrvv, vsu, vsv, vsnu, vsnv, vsstr = view
+        for k, x in ((w0, vx0), (w1, vx1), (w2, vx2)):
+            cv2.filter2D(sub, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
+        for x, k, out in ((vx1, w0, vru), (vx0, w1, vrv), (vx2, w0, vruu), (vx1, w1, vruv), (vx0, w2, vrvv)):
+            cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
+        K.ridge_points(vru, vrv, vruu, vruv, vrvv, lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
+        # a region's inner edges (not the image's): the replicated border there is not the image
+        m = R + 1
+        if a0 > 0:
+            vsstr[:, :m] = 0.0
+        if b0 > 0:
+            vsstr[:m] = 0.0
+        if a1 < W:
+            vsstr[:, -m:] = 0.0
+        if b1 < H:
+            vsstr[-m:] = 0.0
     if mask is not None:
         sstr[~mask] = 0.0
     # the replicated border biases the derivatives: no points within 2 sigma of it
@@ -620,12 +687,21 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     meta = {"low": lo, "high": hi, "width_px": w}
     empty = StripePoints(np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0),
                          np.empty(0, np.int64), float(sigma), meta)
-    on = (sstr > 0).view(np.uint8)
-    n_lab, labels = cv2.connectedComponents(on, connectivity=8, ltype=cv2.CV_32S)
-    pix = np.flatnonzero(on)
-    if pix.size == 0:
+    # connected sets of points, region by region (regions are disjoint)
+    pix_l, lab_l, n_lab = [], [], 0
+    for (a0, b0, a1, b1) in regions:
+        on = (sstr[b0:b1, a0:a1] > 0).view(np.uint8)
+        n_r, labels = cv2.connectedComponents(on, connectivity=8, ltype=cv2.CV_32S)
+        loc = np.flatnonzero(on)
+        if loc.size:
+            r, c = np.divmod(loc, a1 - a0)
+            pix_l.append((r + b0) * W + (c + a0))
+            lab_l.append(labels.ravel()[loc] + n_lab)
+        n_lab += n_r
+    if not pix_l:
         return empty
-    lab = labels.ravel()[pix]
+    pix = np.concatenate(pix_l)
+    lab = np.concatenate(lab_l)
     st = sstr.ravel()[pix]
     maxs = np.zeros(n_lab)
     np.maximum.at(maxs, lab, st)
@@ -673,7 +749,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
     _, cid = np.unique(cid, return_inverse=True)
     if correct_asymmetry:
-        uv = _correct_asymmetry(gray, uv, nrm, width, bg, sigma)
+        uv = _correct_asymmetry(gray.astype(np.float32), uv, nrm, width, bg, sigma)
     if correct_curvature:
         uv = _correct_curvature(uv, nrm, cid, sigma)
     return StripePoints(uv=uv, normals=nrm, strength=st, width=width, curve_id=cid.astype(np.int64),
