@@ -272,8 +272,12 @@ def read_cloud(path: str | os.PathLike, fmt: str | None = None) -> np.ndarray:
         if not header or any(not n or n[0].isdigit() or n[0] in "+-." for n in names):
             raise LightplaneError(f"{p}: first row must name the columns (x,y,z,...), got {header!r}")
         dtype = np.dtype([(n, POINT_DTYPE[n] if n in (POINT_DTYPE.names or ()) else "<f8") for n in names])
+        import warnings
+
         try:
-            a = np.loadtxt(f, delimiter=",", dtype=dtype, ndmin=1)
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
+                a = np.loadtxt(f, delimiter=",", dtype=dtype, ndmin=1)
         except ValueError as e:
             raise LightplaneError(f"{p}: malformed CSV row ({e})") from None
     return a

@@ -239,6 +239,28 @@ class ArrayFrames(FrameSource):
             yield i, (self.names[i] if self.names is not None else f"frame {i}"), self.frames[i]
 
 
+class _quiet_stderr:
+    """Silence native libraries writing to file descriptor 2 inside the block (our errors are one line)."""
+
+    def __enter__(self):
+        import sys
+
+        try:
+            sys.stderr.flush()
+            self.saved = os.dup(2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+        except OSError:  # pragma: no cover - no fd 2
+            self.saved = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.saved is not None:
+            os.dup2(self.saved, 2)
+            os.close(self.saved)
+
+
 class VideoFrames(FrameSource):
     """Frames of a video file, decoded sequentially with ``cv2.VideoCapture``.
 
@@ -252,7 +274,8 @@ class VideoFrames(FrameSource):
         self.path = Path(path)
         if not self.path.is_file():
             raise LightplaneError(f"{self.path}: no such video file")
-        cap = cv2.VideoCapture(str(self.path))
+        with _quiet_stderr():  # FFmpeg prints its own complaints ("moov atom not found") to fd 2
+            cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             cap.release()
             raise LightplaneError(f"{self.path}: cannot be opened as a video")
