@@ -139,7 +139,7 @@ def test_extract_stripe_real(frames, frame):
         long_ids = ids[counts >= 50]
         pts = sp.uv[sel & np.isin(sp.curve_id, long_ids)]
         r, inl = _line_fit(pts)
-        columns = np.unique(np.round(pts[:, 0]).astype(int))
+        columns = np.unique(np.floor(pts[:, 0]).astype(int))
         coverage = columns.size / (COLUMNS[1] - COLUMNS[0])
         rms = np.sqrt(np.mean(r[inl] ** 2))
         print(f"{frame} stripe {k}: points {len(pts)} coverage {coverage:.3f} inliers {inl.mean():.3f} rms {rms:.3f}")
