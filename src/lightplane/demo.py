@@ -440,6 +440,9 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             from .report import Section, write_report
 
             sections = [Section("Demo summary", rows=_summary_rows(summary))]
+            if evaluation is not None:
+                sections.append(Section("Cross-ratio evaluation (paper §4.3, Table-2 layout)",
+                                        html=_evaluation_table(evaluation)))
             return write_report(out / "report", cal, plane_true=plane_true, extra_sections=sections, force=True,
                                 title="lightplane demo: circle-target calibration on rendered images")
 
@@ -451,6 +454,22 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
     write_json(out / "summary.json", summary, force=True)
     say(f"done in {summary['seconds']:.0f} s; wrote {out / 'summary.json'}")
     return summary
+
+
+def _evaluation_table(ev) -> str:
+    """HTML table: per pair the reference distance dt and, per plane, dm and Δ = dt − dm (mm)."""
+    import html as _html
+
+    head = "<tr><th>pair</th><th>dt (mm)</th>" + "".join(
+        f"<th>dm {_html.escape(lab)} (mm)</th><th>Δ {_html.escape(lab)} (mm)</th>" for lab in ev.labels) + "</tr>"
+    rows = []
+    for k, (i, j) in enumerate(ev.pairs):
+        cells = "".join(f"<td class=num>{e.dm_mm[k]:.4f}</td><td class=num>{e.delta_mm[k]:+.4f}</td>"
+                        for e in ev.errors)
+        rows.append(f"<tr><td>{i}–{j}</td><td class=num>{ev.errors[0].dt_mm[k]:.4f}</td>{cells}</tr>")
+    rms = "".join(f"<td></td><td class=num><b>{e.rms_mm:.4f}</b></td>" for e in ev.errors)
+    rows.append(f"<tr><td><b>RMS Δ</b></td><td></td>{rms}</tr>")
+    return "<table>" + head + "".join(rows) + "</table>"
 
 
 def _summary_rows(summary: dict) -> list[tuple[str, str]]:
