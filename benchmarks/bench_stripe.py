@@ -20,7 +20,7 @@ import time
 import cv2
 import numpy as np
 
-from lightplane.stripe import extract_profile, extract_stripe
+from lightplane.stripe import extract_profile, extract_profiles, extract_stripe
 
 
 def frame(rng: np.random.Generator, H: int = 960, W: int = 1280, width_px: float = 5.0) -> np.ndarray:
@@ -65,6 +65,9 @@ def main() -> None:
                  timeit(lambda: extract_profile(img), args.repeat), 1.0))
     rows.append(("extract_profile numba 1280x128", timeit(lambda: extract_profile(band, width_px=5.0), args.repeat),
                  1000.0 / 3000.0))
+    stack = np.stack([frame(rng) for _ in range(8)])
+    med, mn = timeit(lambda: extract_profiles(stack, width_px=5.0), max(5, args.repeat // 10))
+    rows.append(("extract_profiles, batch of 8 1280x960, per frame", (med / 8, mn / 8), 1.0))
     rows.append(("extract_profile numpy 1280x960",
                  timeit(lambda: extract_profile(img, width_px=5.0, backend="numpy"), max(5, args.repeat // 20)), None))
     rows.append(("extract_stripe 1280x960", timeit(lambda: extract_stripe(img, 5.0), max(10, args.repeat // 5)), 8.0))

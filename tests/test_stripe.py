@@ -21,6 +21,7 @@ from lightplane.stripe import (
     StripeProfile,
     estimate_width,
     extract_profile,
+    extract_profiles,
     extract_stripe,
 )
 
@@ -210,6 +211,23 @@ def test_profile_roi_and_channel_and_16bit():
     inner[:10] = inner[-10:] = False
     np.testing.assert_allclose(r.uv[inner], a.uv[40:240][inner], atol=1e-9)
     assert np.all(np.abs(errors(dist, r.points)) < 0.05)
+
+
+def test_profile_batch_equals_single_frames():
+    zoo = _profile_zoo()
+    frames = [zoo["clean"], zoo["curved"], zoo["two_stripes"], zoo["noise_only"]]
+    batch = extract_profiles(np.stack(frames), width_px=5.0)
+    assert len(batch) == 4
+    for img, b in zip(frames, batch):
+        a = extract_profile(img, width_px=5.0)
+        np.testing.assert_array_equal(a.status, b.status)
+        np.testing.assert_array_equal(a.uv, b.uv)
+    # the width is estimated once, from the first frame, and shared
+    est = extract_profiles(frames[:2])
+    assert est[0].width_px == est[1].width_px == extract_profile(frames[0]).width_px
+    assert extract_profiles([]) == []
+    with pytest.raises(LightplaneError, match="same size"):
+        extract_profiles([frames[0], frames[0][:50]])
 
 
 def test_profile_bad_input():

@@ -744,3 +744,38 @@ def profile_curvature(uv, nrm, valid, c2, m, k):
             shift[i] = 0.5 * c2 * kn / nrm[i, k]
     for i in range(m, L - m):
         uv[i, k] -= shift[i]
+
+
+@njit(cache=True, parallel=True)
+def profile_candidates_batch(A3, sep, p1, v1, p2, v2):
+    """:func:`profile_candidates` of a stack (N, S, L); outputs (N, L); one parallel launch, a frame a task."""
+    N, S, L = A3.shape
+    for f in prange(N):
+        _candidates_frame(A3[f], sep, p1[f], v1[f], p2[f], v2[f])
+
+
+@njit(cache=True, parallel=True)
+def profile_centres_batch(A3, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                          centre, normal, strength, intensity, width, status):
+    """:func:`profile_centres` of a stack (N, S, L); outputs (N, L[, 2]); one parallel launch, a frame a task."""
+    N = A3.shape[0]
+    for f in prange(N):
+        _centres_frame(A3[f], pos[f], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                       centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
+
+
+@njit(cache=True)
+def _candidates_frame(A, sep, p1, v1, p2, v2):
+    L = A.shape[1]
+    for l0 in range(0, L, _CHUNK):
+        _candidates_chunk(A, sep, p1, v1, p2, v2, l0, min(L, l0 + _CHUNK))
+
+
+@njit(cache=True)
+def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status):
+    R = (w0.shape[0] - 1) // 2
+    tmp = np.empty((8, 2 * R + 3))
+    for l in range(A.shape[1]):
+        _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                     centre, normal, strength, intensity, width, status)

@@ -77,6 +77,7 @@ __all__ = [
     "StripeProfile",
     "extract_stripe",
     "extract_profile",
+    "extract_profiles",
     "estimate_width",
     "sigma_for_width",
     "PROFILE_STATUS",
@@ -396,6 +397,21 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     """
     if backend not in ("numba", "numpy"):
         raise LightplaneError(f"backend must be 'numba' or 'numpy', got {backend!r}")
+    A, setup = _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
+                              sigma_along_px, continuity, min_cos)
+    w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
+    if backend == "numba":
+        raw = _profile_numba(A, w0, w1, w2, params)
+    else:
+        from ._stripe_numpy import profile_numpy
+
+        raw = profile_numpy(A, w0, w1, w2, params)
+    return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend)
+
+
+def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px, sigma_along_px,
+                   continuity, min_cos, width_from=None):
+    """Sample-major array and the scales/thresholds of :func:`extract_profile`."""
     img, fs = _channel_image(image, channel)
     A, line0, sample0 = _lines_array(img, axis, roi)
     S, L = A.shape
@@ -425,12 +441,16 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         min_cos=float(min_cos),
         xw=K.edge_kernels_cached(sigma_al),
     )
-    if backend == "numba":
-        centre, normal, strength, intensity, width, status = _profile_numba(A, w0, w1, w2, params)
-    else:
-        from ._stripe_numpy import profile_numpy
+    setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, sigma=sigma,
+                 sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak)
+    return A, setup
 
-        centre, normal, strength, intensity, width, status = profile_numpy(A, w0, w1, w2, params)
+
+def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend) -> StripeProfile:
+    """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature)."""
+    centre, normal, strength, intensity, width, status = raw
+    line0, sample0, L = setup["line0"], setup["sample0"], setup["L"]
+    sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
     if min_chroma is not None:
         status = _chroma_check(image, axis, centre, status, line0, sample0, float(min_chroma),
                                int(math.ceil(w)))
@@ -458,6 +478,62 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
                          normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
                          width_px=float(w))
+
+
+def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = None, channel: str | None = None,
+                     roi=None, min_peak: float | None = None, max_width_px: float | None = None,
+                     sigma_px: float | None = None, sigma_along_px: float | None = None,
+                     continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
+                     min_chroma: float | None = None) -> list[StripeProfile]:
+    """:func:`extract_profile` of many frames at once (a scan): one parallel launch per stage.
+
+    ``frames``: (N, H, W) / (N, H, W, 3) array or a sequence of equally sized
+    images.  The scales (``width_px``, estimated from the first frame when None)
+    are shared by all frames; each result equals ``extract_profile`` of that
+    frame with those scales.  Throughput: the per-call costs (thread launches,
+    Python) are paid once per batch instead of once per frame.
+    """
+    if isinstance(frames, np.ndarray):
+        if frames.ndim not in (3, 4):
+            raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
+        seq = [frames[i] for i in range(frames.shape[0])]
+    else:
+        seq = list(frames)
+    if not seq:
+        return []
+    A0, setup = _profile_setup(seq[0], axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
+                               sigma_along_px, continuity, min_cos)
+    w_first = setup["w"]
+    arrays = [A0]
+    for img in seq[1:]:
+        A, _ = _profile_setup(img, axis, w_first, channel, roi, min_peak, max_width_px, sigma_px,
+                              sigma_along_px, continuity, min_cos)
+        if A.shape != A0.shape or A.dtype != A0.dtype:
+            raise LightplaneError("frames must all have the same size and type")
+        arrays.append(A)
+    A3 = np.stack(arrays) if len(arrays) > 1 else A0[None]
+    N, S, L = A3.shape
+    w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
+    p1 = np.empty((N, L), np.int64)
+    p2 = np.empty((N, L), np.int64)
+    v1 = np.empty((N, L))
+    v2 = np.empty((N, L))
+    K.profile_candidates_batch(A3, params["sep"], p1, v1, p2, v2)
+    pos = np.empty_like(p1)
+    for f in range(N):
+        pos[f] = K.choose_consistent(p1[f], v1[f], p2[f], v2[f], params["min_peak"], 5, params["tol"]) \
+            if params["continuity"] else p1[f]
+    centre = np.empty((N, L))
+    normal = np.empty((N, L, 2))
+    strength = np.empty((N, L))
+    intensity = np.empty((N, L))
+    width = np.empty((N, L))
+    status = np.empty((N, L), np.uint8)
+    K.profile_centres_batch(A3, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
+                            params["max_width"], params["min_cos"], centre, normal, strength, intensity, width,
+                            status)
+    return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
+                            setup, min_chroma, correct_curvature, "numba") for f in range(N)]
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
