@@ -65,6 +65,10 @@ def main() -> None:
                  timeit(lambda: extract_profile(img), args.repeat), 1.0))
     rows.append(("extract_profile numba 1280x128", timeit(lambda: extract_profile(band, width_px=5.0), args.repeat),
                  1000.0 / 3000.0))
+    rows.append(("extract_profile numba 1280x960, parallel=False",
+                 timeit(lambda: extract_profile(img, width_px=5.0, parallel=False), args.repeat), 1.0))
+    rows.append(("extract_profile numba 1280x128, parallel=False",
+                 timeit(lambda: extract_profile(band, width_px=5.0, parallel=False), args.repeat), 1000.0 / 3000.0))
     stack = np.stack([frame(rng) for _ in range(8)])
     med, mn = timeit(lambda: extract_profiles(stack, width_px=5.0), max(5, args.repeat // 10))
     rows.append(("extract_profiles, batch of 8 1280x960, per frame", (med / 8, mn / 8), 1.0))

@@ -147,6 +147,9 @@ def test_profile_numba_and_numpy_agree(name, width_px):
     img = _profile_zoo()[name]
     a = extract_profile(img, width_px=width_px, backend="numba")
     b = extract_profile(img, width_px=width_px, backend="numpy")
+    c = extract_profile(img, width_px=width_px, backend="numba", parallel=False)
+    np.testing.assert_array_equal(a.uv, c.uv)
+    np.testing.assert_array_equal(a.status, c.status)
     np.testing.assert_array_equal(a.status, b.status)
     np.testing.assert_array_equal(a.valid, b.valid)
     for f in ("uv", "intensity", "strength", "width", "normals"):

@@ -313,13 +313,13 @@ def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]
     raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
 
 
-def _profile_numba(A, w0, w1, w2, params):
+def _profile_numba(A, w0, w1, w2, params, parallel=True):
     S, L = A.shape
     p1 = np.empty(L, np.int64)
     p2 = np.empty(L, np.int64)
     v1 = np.empty(L, np.float64)
     v2 = np.empty(L, np.float64)
-    K.profile_candidates(A, params["sep"], p1, v1, p2, v2)
+    (K.profile_candidates if parallel else K._candidates_frame)(A, params["sep"], p1, v1, p2, v2)
     pos = K.choose_consistent(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
     centre = np.empty(L)
     normal = np.empty((L, 2))
@@ -327,7 +327,7 @@ def _profile_numba(A, w0, w1, w2, params):
     intensity = np.empty(L)
     width = np.empty(L)
     status = np.empty(L, np.uint8)
-    K.profile_centres(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
+    (K.profile_centres if parallel else K._centres_frame)(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
                       params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
     return centre, normal, strength, intensity, width, status
 
@@ -337,7 +337,8 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
                     max_width_px: float | None = None, sigma_px: float | None = None,
                     sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
                     correct_curvature: bool = True,
-                    min_chroma: float | None = None, backend: str = "numba") -> StripeProfile:
+                    min_chroma: float | None = None, backend: str = "numba",
+                    parallel: bool = True) -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
     Per line: the highest sample (and the highest one farther than twice the width
@@ -381,6 +382,10 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         default (ambient white light on a raw frame lowers it too); 0.5 suits
         background-subtracted frames.
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
+    parallel : numba backend: split the frame over numba's threads (default).
+        ``False`` runs one thread: the better choice when other processes keep
+        the cores busy (numba's OpenMP threads then wait for each other, up to
+        milliseconds a call) or when frames are processed in parallel already.
 
     Returns
     -------
@@ -401,7 +406,7 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
                               sigma_along_px, continuity, min_cos)
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
     if backend == "numba":
-        raw = _profile_numba(A, w0, w1, w2, params)
+        raw = _profile_numba(A, w0, w1, w2, params, parallel=bool(parallel))
     else:
         from ._stripe_numpy import profile_numpy
 
