@@ -1,0 +1,261 @@
+"""Measurement benchmarks: accuracy on rendered scans, throughput, peak memory of a long scan.
+
+Run: ``.venv/bin/python benchmarks/bench_measure.py [accuracy] [speed] [memory]`` (all three
+by default).  Prints medians with units and the ratio to each target:
+
+- accuracy (renders, :func:`lightplane.simulate.render.render_scan_dataset`), with a light
+  plane calibrated by :func:`lightplane.calibrate.calibrate_plane` from rendered circle
+  images (``render_circle_dataset(n=12, difficulty="realistic")``), not the true plane:
+  sphere radius within 0.02 mm of 25.4 mm with RMS residual <= 0.02 mm; gauge step
+  10.000 ± 0.02 mm; tilted plane flatness RMS <= 0.015 mm.  The same numbers with the
+  true plane are printed alongside (what the calibration costs).
+- speed: >= 500 frames/s of 1280x960 8-bit frames from memory (profile + triangulation
+  + placement), 2 worker processes; also one process alone.
+- memory: a 10,000-frame scan written to a PLY, peak RSS (this process and its
+  workers, ``resource.getrusage``) < 500 MB, run in a fresh subprocess.
+
+Renders are cached in ``$LIGHTPLANE_BENCH_CACHE`` (default: the system temp folder).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+CACHE = Path(os.environ.get("LIGHTPLANE_BENCH_CACHE", tempfile.gettempdir())) / "lightplane_bench_measure"
+SCANS = {"sphere": dict(n_frames=21, step_mm=3.0), "step": dict(n_frames=11, step_mm=4.0),
+         "plane": dict(n_frames=11, step_mm=4.0)}
+
+
+def cached(name: str, make):
+    CACHE.mkdir(parents=True, exist_ok=True)
+    f = CACHE / f"{name}.pkl"
+    if f.exists():
+        with open(f, "rb") as fh:
+            return pickle.load(fh)
+    obj = make()
+    with open(f, "wb") as fh:
+        pickle.dump(obj, fh)
+    return obj
+
+
+# ----------------------------------------------------------------------------- fits
+def fit_sphere(p: np.ndarray, iters: int = 5) -> tuple[np.ndarray, float, np.ndarray]:
+    """Least-squares sphere (centre, radius) with 4-MAD outlier rejection; returns the inlier mask."""
+    from scipy.optimize import least_squares
+
+    keep = np.ones(len(p), bool)
+    c, r = p.mean(axis=0), 25.0
+    for _ in range(iters):
+        q = p[keep]
+        A = np.column_stack([2 * q, np.ones(len(q))])  # algebraic start
+        sol = np.linalg.lstsq(A, np.sum(q * q, axis=1), rcond=None)[0]
+        c0, r0 = sol[:3], np.sqrt(sol[3] + sol[:3] @ sol[:3])
+        res = least_squares(lambda x: np.linalg.norm(q - x[:3], axis=1) - x[3], np.append(c0, r0))
+        c, r = res.x[:3], res.x[3]
+        e = np.linalg.norm(p - c, axis=1) - r
+        mad = 1.4826 * np.median(np.abs(e[keep]))
+        new = np.abs(e) < 4 * mad
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return c, float(r), keep
+
+
+def fit_plane(p: np.ndarray, iters: int = 5) -> tuple[np.ndarray, float, np.ndarray]:
+    """Total-least-squares plane (n, d) with 4-MAD outlier rejection; returns the inlier mask."""
+    keep = np.ones(len(p), bool)
+    for _ in range(iters):
+        q = p[keep]
+        m = q.mean(axis=0)
+        n = np.linalg.svd(q - m, full_matrices=False)[2][2]
+        d = -n @ m
+        e = p @ n + d
+        mad = 1.4826 * np.median(np.abs(e[keep]))
+        new = np.abs(e) < 4 * mad
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return n, float(d), keep
+
+
+def xyz(rec) -> np.ndarray:
+    return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+
+
+# ----------------------------------------------------------------------------- accuracy
+def calibrated_plane():
+    from lightplane.calibrate import calibrate_plane
+    from lightplane.simulate.render import render_circle_dataset
+
+    ds = cached("circles12_realistic", lambda: render_circle_dataset(n=12, seed=0, difficulty="realistic"))
+    t = time.perf_counter()
+    cal = calibrate_plane(ds.images, ds.camera, 50.0, method="ml")
+    print(f"calibrate_plane (ml) on 12 rendered circle images: {time.perf_counter() - t:.1f} s, "
+          f"{sum(1 for p in cal.placements if getattr(p, 'used', True))} placements")
+    return cal.plane
+
+
+def scan(kind: str, plane, ds):
+    from lightplane.scan import ArrayFrames, Motion, scan_points
+
+    mo = ds.truth["motion"]
+    rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, plane, motion=Motion.linear(mo["step_mm"], mo["direction"]),
+                            workers=1)
+    # the static table (z = 600 mm in the camera frame) is not the object: drop it by its camera-frame depth
+    zc = xyz(rec) + np.array(mo["direction"])[None, :] * mo["step_mm"] * rec["frame"][:, None].astype(float)
+    obj = zc[:, 2] < 560.0
+    return xyz(rec)[obj], summ
+
+
+def accuracy() -> None:
+    from lightplane.plane import LightPlane
+    from lightplane.simulate.render import render_scan_dataset
+
+    print("== accuracy (rendered scans, difficulty 'realistic') ==")
+    planes = {}
+    try:
+        planes["calibrated"] = calibrated_plane()
+    except ImportError as e:
+        print(f"calibrate_plane unavailable ({e}): using the true plane only")
+    for kind, kw in SCANS.items():
+        ds = cached(f"scan_{kind}_{kw['n_frames']}_{kw['step_mm']}",
+                    lambda: render_scan_dataset(kind, seed=0, **kw))
+        planes.setdefault("true", LightPlane.from_dict(ds.truth["plane"]))
+        tp = LightPlane.from_dict(ds.truth["plane"])
+        if "calibrated" in planes:
+            print(f"[{kind}] calibrated plane vs truth: {np.degrees(planes['calibrated'].angle_to(tp)):.4f} deg, "
+                  f"d {planes['calibrated'].d - tp.d:+.4f} mm")
+        surf = ds.truth["frames"][0]["surfaces"]
+        for label in ("calibrated", "true"):
+            if label not in planes:
+                continue
+            p, summ = scan(kind, planes[label] if label == "calibrated" else tp, ds)
+            if kind == "sphere":
+                c, r, keep = fit_sphere(p)
+                e = np.linalg.norm(p[keep] - c, axis=1) - r
+                rms = float(np.sqrt(np.mean(e**2)))
+                print(f"  sphere [{label:10s}] {keep.sum()} points ({(~keep).sum()} rejected): radius {r:.4f} mm "
+                      f"(error {r - 25.4:+.4f}, target |err| <= 0.02: {abs(r - 25.4) / 0.02:.2f}x), "
+                      f"RMS residual {rms:.4f} mm (target <= 0.02: {rms / 0.02:.2f}x), centre error "
+                      f"{np.linalg.norm(c - np.asarray(surf['sphere']['center_mm'])):.4f} mm")
+            elif kind == "step":
+                n_true = np.asarray(surf["base"]["normal"], float)
+                db, dt = surf["base"]["d"], surf["top"]["d"]
+                on_b = np.abs(p @ n_true + db) < 1.0  # segmentation only: faces 10 mm apart
+                on_t = np.abs(p @ n_true + dt) < 1.0
+                nb, dbf, kb = fit_plane(p[on_b])
+                nt, dtf, kt = fit_plane(p[on_t])
+                # common normal from both faces (each centred on itself), then the two offsets along it
+                qb, qt = p[on_b][kb], p[on_t][kt]
+                n = np.linalg.svd(np.vstack([qb - qb.mean(0), qt - qt.mean(0)]), full_matrices=False)[2][2]
+                sep = abs(float(n @ (qb.mean(0) - qt.mean(0))))
+                par = np.degrees(np.arccos(min(1.0, abs(nb @ nt))))
+                print(f"  step   [{label:10s}] base {kb.sum()} / top {kt.sum()} points: separation {sep:.4f} mm "
+                      f"(error {sep - 10.0:+.4f}, target |err| <= 0.02: {abs(sep - 10) / 0.02:.2f}x), faces parallel "
+                      f"to {par:.3f} deg")
+            else:
+                n, d, keep = fit_plane(p)
+                e = p[keep] @ n + d
+                rms = float(np.sqrt(np.mean(e**2)))
+                print(f"  plane  [{label:10s}] {keep.sum()} points ({(~keep).sum()} rejected): flatness RMS "
+                      f"{rms:.4f} mm (target <= 0.015: {rms / 0.015:.2f}x)")
+
+
+# ----------------------------------------------------------------------------- speed
+def speed_frames(n_distinct: int = 8):
+    from lightplane.simulate.render import render_scan_dataset
+
+    ds = cached(f"speed_sphere_{n_distinct}", lambda: render_scan_dataset("sphere", n_frames=n_distinct, step_mm=5.0, seed=1))
+    return ds
+
+
+def speed(n_frames: int = 1200, repeats: int = 3) -> None:
+    from lightplane.plane import LightPlane
+    from lightplane.scan import ArrayFrames, FrameProcessor, Motion, iter_scan
+    from lightplane.stripe import estimate_width
+
+    print("== speed (1280x960 uint8 frames from memory; profile + triangulation + placement) ==")
+    ds = speed_frames()
+    plane = LightPlane.from_dict(ds.truth["plane"])
+    width = estimate_width(ds.images[0], axis="rows")
+    frames = [ds.images[i % len(ds.images)] for i in range(n_frames)]
+    t = time.perf_counter()
+    proc = FrameProcessor(ds.camera, plane, Motion.linear(0.1, [1, 0, 0]), width_px=width)
+    print(f"lookup tables: {time.perf_counter() - t:.2f} s (once per scan)")
+    for workers in (1, 2):
+        n = n_frames if workers > 1 else n_frames // 4
+        rates = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            count = 0
+            started = None
+            for r in iter_scan(ArrayFrames(frames[:n]), proc, workers=workers):
+                count += 1
+                if started is None:
+                    started = time.perf_counter()  # exclude pool start-up (once per scan)
+            rates.append((count - 1) / (time.perf_counter() - started))
+        med = float(np.median(rates))
+        print(f"workers={workers}: median {med:.0f} frames/s over {repeats} runs of {n} frames "
+              f"({', '.join(f'{x:.0f}' for x in rates)}); {1e3 / med:.2f} ms/frame; target 500 frames/s on 2 cores: "
+              f"{med / 500:.2f}x" + ("" if workers > 1 else " (one core)"))
+
+
+# ----------------------------------------------------------------------------- memory
+MEMORY_CHILD = r"""
+import resource, sys, time, numpy as np, pickle
+from lightplane.plane import LightPlane
+from lightplane.scan import FrameSource, Motion, measure_scan
+ds = pickle.load(open(sys.argv[1], "rb"))
+N = int(sys.argv[3])
+class Cycle(FrameSource):
+    n_frames = N
+    description = f"{N} frames cycled from memory"
+    def items(self):
+        for i in range(N):
+            yield i, f"frame {i}", ds.images[i % len(ds.images)]
+t = time.perf_counter()
+s = measure_scan(Cycle(), ds.camera, LightPlane.from_dict(ds.truth["plane"]), sys.argv[2], motion=Motion.linear(0.1, [1, 0, 0]),
+                 workers=2, force=True)
+dt = time.perf_counter() - t
+me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+ch = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {ch:.0f}")
+"""
+
+
+def memory(n_frames: int = 10_000) -> None:
+    print(f"== memory ({n_frames}-frame scan to binary PLY, 2 worker processes, fresh subprocess) ==")
+    speed_frames()
+    src = CACHE / "speed_sphere_8.pkl"
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "cloud.ply"
+        r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(src), str(out), str(n_frames)],
+                           capture_output=True, text=True, timeout=900)
+        if r.returncode != 0:
+            print(r.stderr)
+            raise SystemExit(1)
+        n, pts, dt, me, ch = r.stdout.split()[-5:]
+        size = out.stat().st_size / 2**20
+    print(f"{n} frames, {pts} points ({size:.0f} MB PLY) in {float(dt):.1f} s ({int(n) / float(dt):.0f} frames/s incl. "
+          f"reading the frames and writing); peak RSS: main {float(me):.0f} MB, largest worker {float(ch):.0f} MB, "
+          f"sum {float(me) + 2 * float(ch):.0f} MB (target < 500 MB: {(float(me) + 2 * float(ch)) / 500:.2f}x)")
+
+
+def main(argv: list[str]) -> None:
+    parts = argv or ["accuracy", "speed", "memory"]
+    print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (timings on a shared machine are noisy)")
+    for p in parts:
+        {"accuracy": accuracy, "speed": speed, "memory": memory}[p]()
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
