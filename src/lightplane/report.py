@@ -259,7 +259,9 @@ def figure_uncertainty(cal, distance_mm: tuple[float, float] | None = None) -> b
         return None
     if distance_mm is None:
         d = [float(np.linalg.norm(p.pose.center)) for p in cal.placements if p.used and p.pose is not None]
-        distance_mm = (min(d), max(d)) if d and max(d) - min(d) > 1 else (380.0, 520.0)
+        # the used targets' range, rounded outwards to 10 mm
+        distance_mm = ((math.floor(min(d) / 10) * 10.0, math.ceil(max(d) / 10) * 10.0)
+                       if d and max(d) - min(d) > 1 else (380.0, 520.0))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "sigma.png"
         plot_point_sigma_map(cal.camera, cal.plane, path, distance_mm=distance_mm, force=True)
