@@ -17,7 +17,13 @@ Two entry points:
   hot path (:class:`StripeProfile`): a fused numba kernel that finds the peak of
   each column and evaluates the Gaussian derivatives only in a small patch around
   it; a numpy implementation of the same algorithm (``backend="numpy"``) gives the
-  same numbers.
+  same numbers; :func:`extract_profiles` runs a batch of frames.
+
+On real laser stripes (speckle, saturation) a scale larger than Steger's minimum
+helps: ``sigma_px`` ~2 px and, for profiles, ``sigma_along_px`` ~5 px of smoothing
+along the stripe (straight stripes stay unbiased at any tilt).  Where a specular
+hot spot blooms the sensor, ``channel="sum"`` keeps the stripe (the bloom is in
+the other channels) and ``min_chroma`` flags whitish stretches instead.
 
 Sub-pixel centre: where we depart from Steger's one-step formula
 ------------------------------------------------------------------
@@ -40,8 +46,9 @@ Smoothing a ridge that curves with radius ``rho`` moves its maximum inwards by
 0.04 px for a 9 px stripe of radius 80 px.  Both functions remove it by default
 (``correct_curvature``), with the curvature measured on the linked centres
 (sagitta of the chord ``+-4 sigma`` along the curve) and ``sigma^2 + 1/12``
-(the pixel's own variance); what remains is below 0.005 px for radii >= 40 px
-in the tests.
+(the pixel's own variance; for profiles the smoothing along the stripe,
+``sigma_along_px``); what remains is below 0.005 px in the tests (radius 70 px,
+widths 3-9 px; about 0.01 px for a 15 px stripe of radius 70 px).
 
 Bias of asymmetric stripes (Steger 1998, "An unbiased detector of curvilinear
 structures", IEEE TPAMI 20(2), §4)
@@ -53,9 +60,9 @@ model convolved with a Gaussian.  :func:`extract_stripe` with
 ``correct_asymmetry=True`` estimates ``a`` from the backgrounds on both sides of
 each point (minima along the normal within reach of the stripe) and ``w`` from the
 measured FWHM, and removes ``l``.  It is off by default, because (1) a laser
-stripe's cross-section is close to Gaussian, not a bar, and for a Gaussian line on
-a step the shift is smaller than the bar formula predicts, so the "correction"
-would over-correct; (2) in the measurement pipeline the background is subtracted
+stripe's cross-section is close to Gaussian, not a bar, and the bar formula is
+not the shift of a Gaussian line on a step (not derived here), so the correction
+can over- or under-correct; (2) in the measurement pipeline the background is subtracted
 (laser frame minus laser-off frame), which removes the asymmetry at its source;
 (3) the background estimate is noisy where the stripe is short.  Steger's full
 correction (inverting the joint width/asymmetry map by table look-up) is not
@@ -343,10 +350,11 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
 
     Per line: the highest sample (and the highest one farther than twice the width
     from it: a reflection candidate); with ``continuity`` the second is taken when
-    only it agrees with the median of the neighbouring lines' peaks; then the peak
-    of the Gaussian-smoothed line, the Hessian at it (normal ``n``, strength
-    ``-lambda``) and the zero crossing of ``n . grad r`` along the line (module
-    docstring), from the derivatives of a small patch around the peak only.
+    only it agrees with the median of the neighbouring lines' peaks; then the
+    stripe's middle sample (midpoint of the half-level crossings: robust to a
+    flat saturated top), the Hessian there (normal ``n``, strength ``-lambda``)
+    and the zero crossing of ``n . grad r`` along the line (module docstring),
+    from the derivatives of a small patch around it only.
 
     Parameters
     ----------
