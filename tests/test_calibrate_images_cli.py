@@ -104,3 +104,15 @@ def test_too_few_usable_images(tmp_path, render):
     _bad(r, "only 2 of 3 images", "blank.png: no target ellipse found")
     assert not (tmp_path / "p.json").exists() and not rep.exists()
     assert Camera.load(render / "camera.json").width == 1280
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".xml"])
+def test_ros_and_opencv_camera_files(tmp_path, render, suffix):
+    """CAM may be a ROS camera_info YAML or an OpenCV FileStorage XML: same plane as with our JSON."""
+    cam = Camera.load(render / "camera.json")
+    other = cam.save(tmp_path / f"camera{suffix}")
+    out = tmp_path / "p.json"
+    r = run(render, "--camera", other, "--diameter", "50", "-o", out, "--method", "global")
+    assert r.returncode == 0, r.stderr
+    truth = LightPlane.from_dict(json.loads((render / "truth.json").read_text())["plane"])
+    assert np.degrees(LightPlane.load(out).angle_to(truth)) < 0.1
