@@ -359,16 +359,20 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     X0 = tmp[0]
     X1 = tmp[1]
     X2 = tmp[2]
+    k0 = xw[re, 0]
+    k1 = xw[re, 1]
+    k2 = xw[re, 2]
     for m in range(2 * R + 3):
         row = A[c - 1 - R + m]
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
-        for j in range(-re, re + 1):
-            x = float(row[l + j])
-            a0 += xw[re, 0, j + RX] * x
-            a1 += xw[re, 1, j + RX] * x
-            a2 += xw[re, 2, j + RX] * x
+        for jj in range(2 * re + 1):
+            x = float(row[l - re + jj])
+            kk = RX - re + jj
+            a0 += k0[kk] * x
+            a1 += k1[kk] * x
+            a2 += k2[kk] * x
         X0[m] = a0
         X1[m] = a1
         X2[m] = a2
