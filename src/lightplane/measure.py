@@ -243,22 +243,27 @@ class ProfileMeasurer:
             return np.arange(x, x + w), np.arange(y, y + h)
         return np.arange(y, y + h), np.arange(x, x + w)
 
-    def _build_tables(self) -> None:
+    def _build_tables(self, lines_per_chunk: int = 32) -> None:
         lines, samples = self._line_grid()
         L, S = lines.size, samples.size
-        ll, ss = np.meshgrid(lines.astype(float), samples.astype(float), indexing="ij")  # (L, S)
-        uv = np.column_stack([ll.ravel(), ss.ravel()]) if self.axis == "columns" \
-            else np.column_stack([ss.ravel(), ll.ravel()])
-        xy = self.camera.undistort_points(uv, normalized=True)
+        self._xy = np.empty((L, S, 2))
+        self._dxy = np.empty((L, S, 2), np.float32)
         # d(xy)/d(sample): xy_d = K^-1 uv is linear in the pixel, xy = distort^-1(xy_d)
         K = self.camera.K
         dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
             else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
-        j11, j12, j21, j22 = _distortion_jacobian(self.camera.dist, xy)
-        det = j11 * j22 - j12 * j21
-        d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
-        self._xy = xy.reshape(L, S, 2)
-        self._dxy = d.astype(np.float32).reshape(L, S, 2)
+        ss = samples.astype(float)
+        for a in range(0, L, lines_per_chunk):  # in chunks: the undistortion's temporaries stay small
+            ll, sg = np.meshgrid(lines[a:a + lines_per_chunk].astype(float), ss, indexing="ij")
+            uv = np.column_stack([ll.ravel(), sg.ravel()]) if self.axis == "columns" \
+                else np.column_stack([sg.ravel(), ll.ravel()])
+            xy = self.camera.undistort_points(uv, normalized=True)
+            j11, j12, j21, j22 = _distortion_jacobian(self.camera.dist, xy)
+            det = j11 * j22 - j12 * j21
+            d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
+            n = ll.shape[0]
+            self._xy[a:a + n] = xy.reshape(n, S, 2)
+            self._dxy[a:a + n] = d.reshape(n, S, 2)
         self._line0, self._sample0 = int(lines[0]), int(samples[0])
 
     def normalized(self, uv: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ __all__ = [
     "FrameProcessor",
     "FrameResult",
     "iter_scan",
+    "kernels_release_gil",
     "ScanSummary",
     "measure_scan",
     "scan_points",
@@ -487,8 +488,44 @@ def _batches(items: Iterator, size: int) -> Iterator[list]:
         yield batch
 
 
+def kernels_release_gil() -> bool:
+    """True when the stripe profile's numba kernels are compiled with ``nogil=True``
+    (then threads can share one process: one copy of the tables, no frame copies)."""
+    from . import _stripe_kernels as K
+
+    names = ("profile_candidates", "choose_consistent", "profile_centres", "estimate_fwhm_lines")
+    return all(bool(getattr(getattr(K, n, None), "targetoptions", {}).get("nogil")) for n in names)
+
+
+def _thread_init() -> None:
+    try:
+        import numba
+
+        numba.set_num_threads(1)  # numba's thread count is per calling thread
+    except Exception:  # pragma: no cover
+        pass
+
+
+def _iter_threads(source: FrameSource, processor: FrameProcessor, workers: int, batch: int,
+                  limit: int) -> Iterator[FrameResult]:
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers, initializer=_thread_init) as ex:
+        pending: deque = deque()
+        try:
+            for b in _batches(source.items(), batch):
+                while len(pending) >= limit:
+                    yield from pending.popleft().result()
+                pending.append(ex.submit(processor.run_batch, b))
+            while pending:
+                yield from pending.popleft().result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+
 def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | None = None,
-              batch: int = 8, in_flight: int | None = None) -> Iterator[FrameResult]:
+              batch: int = 8, in_flight: int | None = None, executor: str = "auto") -> Iterator[FrameResult]:
     """Process every frame of ``source``; yield :class:`FrameResult` in frame order.
 
     ``workers`` processes (default: the CPUs this process may use; 1: in this
@@ -497,23 +534,30 @@ def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | 
     measuring them), file paths are read by the workers themselves; frames go to
     them in batches of ``batch``, at most
     ``in_flight`` batches at a time (default ``2 · workers``), so memory stays bounded
-    however long the source.
+    however long the source.  ``executor``: ``"process"`` (worker processes),
+    ``"thread"`` (one process; useful only when the stripe kernels release the GIL) or
+    ``"auto"`` (threads when :func:`kernels_release_gil`, else processes).
     """
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise LightplaneError(f"workers must be >= 1, got {workers}")
+    if executor not in ("auto", "process", "thread"):
+        raise LightplaneError(f"executor must be auto, process or thread, got {executor!r}")
     if workers == 1:
         with _SingleThreadNumba():
             for item in source.items():
                 yield processor.run(*item)
+        return
+    limit = 2 * workers if in_flight is None else max(1, int(in_flight))
+    batch = max(1, int(batch))
+    if executor == "thread" or (executor == "auto" and kernels_release_gil()):
+        yield from _iter_threads(source, processor, workers, batch, limit)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     # spawn: workers must not inherit OpenMP/numba thread state (not fork-safe)
     ctx = mp.get_context("spawn")
-    limit = 2 * workers if in_flight is None else max(1, int(in_flight))
-    batch = max(1, int(batch))
     ring = _FrameRing(limit * batch)
     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(processor,)) as ex:
         pending: deque = deque()
@@ -614,7 +658,7 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
 
 def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motion: Motion | None = None,
                 axis: str = "auto", roi=None, width_px: float | None = None, channel: str | None = None,
-                workers: int | None = 1, **stripe_options) -> tuple[np.ndarray, ScanSummary]:
+                workers: int | None = 1, executor: str = "auto", **stripe_options) -> tuple[np.ndarray, ScanSummary]:
     """In-memory scan: all points as one :data:`POINT_DTYPE` array, and the summary.
 
     For long scans use :func:`measure_scan` (streams to a file).  ``width_px`` None:
@@ -625,7 +669,7 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motio
     proc = FrameProcessor(camera, plane, motion, axis=axis, roi=roi, width_px=width_px, channel=channel,
                           **stripe_options)
     parts, skipped, n, empty = [], [], 0, 0
-    for r in iter_scan(source, proc, workers=workers):
+    for r in iter_scan(source, proc, workers=workers, executor=executor):
         n += 1
         if r.error is not None:
             skipped.append((r.index, r.name, r.error))
@@ -642,7 +686,7 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
                  fmt: str | None = None, ascii: bool = False, motion: Motion | None = None, axis: str = "auto",
                  roi=None, width_px: float | None = None, channel: str | None = None, workers: int | None = None,
                  force: bool = False, progress: Callable[[int, int | None], None] | None = None,
-                 comments: Sequence[str] = (), **stripe_options) -> ScanSummary:
+                 comments: Sequence[str] = (), executor: str = "auto", **stripe_options) -> ScanSummary:
     """Scan ``source`` into a point-cloud file (PLY/CSV/NPY, :func:`lightplane.pointcloud.write_cloud`).
 
     Streams: frames are processed by ``workers`` processes and the points spooled to a
@@ -671,7 +715,7 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             workers = 1  # starting a pool costs more than it saves
         skipped, n, empty = [], 0, 0
         with PointSpool(out.parent if str(out.parent) else None) as spool:
-            for r in iter_scan(source, proc, workers=workers):
+            for r in iter_scan(source, proc, workers=workers, executor=executor):
                 n += 1
                 if r.error is not None:
                     skipped.append((r.index, r.name, r.error))
