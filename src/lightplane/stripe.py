@@ -72,6 +72,7 @@ implemented; the closed form above is the exact bar-model shift for known ``w``.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -643,10 +644,11 @@ def _ridge_response(width_px: float, sigma: float) -> float:
     return float(-np.dot(w2, f))
 
 
-class _Buffers:
+class _Buffers(threading.local):
     """Preallocated float32 derivative images, reused between calls of the same size.
 
-    Not thread-safe: one :func:`extract_stripe` at a time per process.
+    One set per thread (``threading.local``), so :func:`extract_stripe` may run in
+    several threads at once (``calibrate_plane`` with a thread pool).
     """
 
     def __init__(self):
