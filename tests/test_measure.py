@@ -185,8 +185,11 @@ def test_smoothing_along_the_profile_averages_noise_without_bias():
     # them), so a quadratic fit over 15 lines keeps ~0.7 of it, not the 0.38 of independent noise
     assert rms_to_surface(smooth(noisy)) < 0.8 * rms_to_surface(raw(noisy))
     # noise-free: the stripe is nearly straight over 15 rows, so smoothing changes nothing measurable
+    # (away from the stripe's ends, whose few biased centres the window carries inwards)
     a, b = raw(clean), smooth(clean)
-    keep = interior(a.valid)
+    keep = rows.copy()
+    idx = np.flatnonzero(keep)
+    keep[idx[:15]] = keep[idx[-15:]] = False
     assert np.max(np.abs(a.points[keep] - b.points[keep])) < 2e-3
     with pytest.raises(LightplaneError, match="smooth_lines"):
         ProfileMeasurer(CAM, PLANE, smooth_lines=4)
