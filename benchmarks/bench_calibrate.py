@@ -8,7 +8,11 @@ realistic light and dark polarity, hard light and dark — and 15 chessboards, t
   (one set of image observations solved by each method): normal angle (deg), offset
   of the plane at the optical axis (mm), RMS triangulation error over the working
   volume 380–520 mm (mm; in the camera frame, and after the best rigid alignment,
-  which removes the frame rotation a principal-point error causes);
+  which removes the frame rotation a principal-point error causes: the rendered
+  chessboards fix the principal point only to ~1-4 px (OpenCV's own std ~1.3 px), which
+  turns the camera frame by ~0.03-0.06 deg and moves points at 450 mm by 0.3-0.45 mm in
+  camera coordinates while distances and shapes stay right; the "calibrated camera"
+  bar is therefore checked on the aligned error);
 - targets: normal <= 0.01 deg, offset <= 0.02 mm, triangulation <= 0.02 mm RMS (true
   camera), <= 0.03 mm (calibrated camera); hard renders within 1.5x;
 - speed: ``calibrate_plane`` on 12 images of 1280x960 (reading included) with 1 and 2
@@ -81,7 +85,7 @@ def main() -> None:
     sets = [(d, p, _circles(d, p)) for d in ("realistic", "hard") for p in ("light", "dark")]
     boards = _boards()
     cam_cal = _calibrated_camera(boards)
-    print(f"camera from 15 rendered chessboards (k3 fixed): fx {cam_cal.fx:.2f} px, cx {cam_cal.cx:.2f}, "
+    print(f"camera from 15 rendered 9x6 chessboards of 8 mm squares (k3 fixed): fx {cam_cal.fx:.2f} px, cx {cam_cal.cx:.2f}, "
           f"cy {cam_cal.cy:.2f} px, rms {cam_cal.rms_px:.3f} px")
 
     print("\nAccuracy (12 images each; angle deg, offset mm at the optical axis, triangulation RMS mm over "
