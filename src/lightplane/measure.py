@@ -199,13 +199,14 @@ class ProfileMeasurer:
         (noise × ~0.6 for 7 lines) without biasing curves of radius much larger than
         the window (a quadratic is reproduced exactly).  It also blurs real detail
         finer than the window (edges, steps): off for edge-sensitive measurement.
-    min_cos : grazing-ray limit of :func:`triangulate_normalized`.
+    min_ray_cos : grazing-ray limit (``min_cos`` of :func:`triangulate_normalized`).
     **stripe_options : passed to :func:`lightplane.stripe.extract_profile`
-        (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ...).
+        (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ``min_cos`` — the
+        stripe's own limit on how obliquely it may cross a line, ...).
     """
 
     def __init__(self, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
-                 lookup: bool = True, smooth_lines: int = 0, min_cos: float = GRAZING_COS,
+                 lookup: bool = True, smooth_lines: int = 0, min_ray_cos: float = GRAZING_COS,
                  **stripe_options) -> None:
         if not isinstance(camera, Camera):
             raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
@@ -221,7 +222,7 @@ class ProfileMeasurer:
         self.plane = plane
         self.axis = axis
         self.roi = _check_roi(roi, camera.width, camera.height)
-        self.min_cos = float(min_cos)
+        self.min_ray_cos = float(min_ray_cos)
         k = int(smooth_lines)
         if k != smooth_lines or k < 0 or (k and (k < 5 or k % 2 == 0)):
             raise LightplaneError(f"smooth_lines must be 0 or an odd integer >= 5, got {smooth_lines!r}")
@@ -319,7 +320,7 @@ class ProfileMeasurer:
         uv = as_points(uv, 2, "uv")
         valid = np.asarray(valid, bool) & np.all(np.isfinite(uv), axis=1)
         xy = self.normalized(np.where(valid[:, None], uv, np.nan))
-        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_cos)
+        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos)
         ok = valid & tri.valid
         pts = tri.points
         pts[~ok] = np.nan
