@@ -67,3 +67,13 @@ def test_bad_shapes():
     plane = LightPlane([0, 0, 1], -500)
     with pytest.raises(LightplaneError, match="uv"):
         triangulate(CAM, plane, np.zeros((3, 3)))
+
+
+def test_result_files_are_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    p = LightPlane([0, 0, 1], -500)
+    p.save(tmp_path / "p.json")
+    mode = stat.S_IMODE(os.stat(tmp_path / "p.json").st_mode)
+    assert mode & stat.S_IRGRP and mode & stat.S_IROTH  # not the 0600 of a temporary file

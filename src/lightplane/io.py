@@ -97,6 +97,7 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[str], None] | bytes 
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=p.suffix or ".tmp", dir=str(p.parent) or ".")
     os.close(fd)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are ordinary files
         if callable(writer):
             writer(tmp)
         else:
@@ -109,6 +110,12 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[str], None] | bytes 
             os.unlink(tmp)
         raise
     return p
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _jsonable(x: Any) -> Any:
