@@ -42,7 +42,7 @@ def measure_cmd(
     plane: Path = typer.Option(..., "--plane", help="Light-plane JSON file (from calibrate-plane)."),
     output: Path = typer.Option(..., "-o", "--output", help="Point-cloud file (.ply, .csv or .npy)."),
     step: Optional[float] = typer.Option(None, "--step", help="Object motion between frames, mm (with --direction)."),
-    direction: Optional[str] = typer.Option(None, "--direction", help="Motion direction X,Y,Z in the camera frame (normalised)."),
+    direction: Optional[str] = typer.Option(None, "--direction", help="Motion direction X,Y,Z in the camera frame (normalised; write --direction=-1,0,0 when it starts with a minus)."),
     positions: Optional[Path] = typer.Option(None, "--positions", help="CSV of the object's position per frame: dx,dy,dz mm "
                                              "(camera frame), or one column along --direction; one row per frame."),
     fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix)."),
@@ -51,6 +51,7 @@ def measure_cmd(
     axis: str = typer.Option("auto", "--axis", help="One centre per 'columns', 'rows', or 'auto' (from the plane)."),
     channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width (FWHM) px; default: estimated on the first frame."),
+    smooth: int = typer.Option(0, "--smooth", help="Smooth the centres along the stripe over N lines (odd >= 5; 0: off)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all CPUs)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
@@ -99,7 +100,8 @@ def measure_cmd(
             bar.update(task, completed=done, total=total)
 
         s = measure_scan(source, cam, pl, out, fmt=fmt, ascii=ascii_ply, motion=motion, axis=axis, roi=roi_box,
-                         width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress)
+                         width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress,
+                         smooth_lines=smooth)
 
     console.print(f"{s.n_frames} frames ({source.description}), {s.n_points} points "
                   f"({s.n_points / max(s.n_frames_used, 1):.0f} per frame), axis {s.axis}, "
