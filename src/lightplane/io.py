@@ -97,7 +97,7 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[str], None] | bytes 
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=p.suffix or ".tmp", dir=str(p.parent) or ".")
     os.close(fd)
     try:
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are ordinary files
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are ordinary files
         if callable(writer):
             writer(tmp)
         else:
@@ -112,10 +112,13 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[str], None] | bytes 
     return p
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+_UMASK = _read_umask()  # read once at import: os.umask is process-wide, not thread-safe
 
 
 def _jsonable(x: Any) -> Any:
