@@ -191,6 +191,7 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
     frames = [ds.images[i % len(ds.images)] for i in range(n_frames)]
     t = time.perf_counter()
     proc = FrameProcessor(ds.camera, plane, Motion.linear(0.1, [1, 0, 0]), width_px=width)
+    proc.measurer.build_lookup()
     print(f"lookup tables: {time.perf_counter() - t:.2f} s (once per scan)")
     for workers in (1, 2):
         n = n_frames if workers > 1 else n_frames // 4
@@ -216,10 +217,10 @@ import os, resource, sys, threading, time, numpy as np, pickle
 from lightplane.plane import LightPlane
 from lightplane.scan import FrameSource, Motion, measure_scan
 
-def rss_mb(pid):
+def rss_mb(pid, key="VmRSS:"):
     try:
         for line in open(f"/proc/{pid}/status"):
-            if line.startswith("VmRSS:"):
+            if line.startswith(key):
                 return int(line.split()[1]) / 1024
     except OSError:
         pass
@@ -234,13 +235,17 @@ def children():
             pass
     return out
 
-peak = {"total": 0.0, "worker": 0.0}
+peak = {"total": 0.0}
+hwm = {}  # worker pid -> its latest VmHWM (after exec: its own peak, not the forked parent's)
 stop = False
 def sample():
     while not stop:
-        kids = [rss_mb(c) for c in children()]
-        peak["total"] = max(peak["total"], rss_mb(os.getpid()) + sum(kids))
-        peak["worker"] = max([peak["worker"], *kids])
+        kids = children()
+        peak["total"] = max(peak["total"], rss_mb(os.getpid()) + sum(rss_mb(c) for c in kids))
+        for c in kids:
+            v = rss_mb(c, "VmHWM:")
+            if v > 0:
+                hwm[c] = v
         time.sleep(0.1)
 threading.Thread(target=sample, daemon=True).start()
 
@@ -259,7 +264,8 @@ dt = time.perf_counter() - t
 stop = True
 time.sleep(0.2)
 me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {peak['worker']:.0f} {peak['total']:.0f}")
+workers = sorted(hwm.values())[-2:]  # the two pool workers (the resource tracker is small)
+print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {max(workers):.0f} {me + sum(workers):.0f} {peak['total']:.0f}")
 """
 
 
@@ -274,12 +280,12 @@ def memory(n_frames: int = 10_000) -> None:
         if r.returncode != 0:
             print(r.stderr)
             raise SystemExit(1)
-        n, pts, dt, me, wk, tot = r.stdout.split()[-6:]
+        n, pts, dt, me, wk, tot, sampled = r.stdout.split()[-7:]
         size = out.stat().st_size / 2**20
     print(f"{n} frames, {pts} points ({size:.0f} MB PLY) in {float(dt):.1f} s ({int(n) / float(dt):.0f} frames/s incl. "
           f"writing); peak RSS: main process {float(me):.0f} MB (getrusage; target < 500 MB: {float(me) / 500:.2f}x), "
-          f"largest worker {float(wk):.0f} MB, main + workers together {float(tot):.0f} MB (sampled every 0.1 s from "
-          f"/proc; shared pages counted in each process; {float(tot) / 500:.2f}x of 500 MB)")
+          f"worker peak {float(wk):.0f} MB (VmHWM), main + 2 workers {float(tot):.0f} MB ({float(tot) / 500:.2f}x of "
+          f"500 MB; largest simultaneous sum sampled every 0.1 s: {float(sampled):.0f} MB; shared pages count in each)")
 
 
 def main(argv: list[str]) -> None:

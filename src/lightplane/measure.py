@@ -7,6 +7,7 @@ plane ``s = -d / (a x + b y + c)``.  Rays nearly parallel to the plane give NaN
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -182,7 +183,8 @@ class ProfileMeasurer:
     position ``t`` along its column (row) then costs a cubic Hermite interpolation
     between the two bracketing pixels (error O(h⁴): below 1e-9 px for the default
     sensor's distortion), instead of an iterative undistortion per point.
-    Tables: 24 bytes per roi pixel (30 MB for 1280x960).  ``lookup=False`` undistorts
+    Tables: 24 bytes per roi pixel (30 MB for 1280x960), built on the first frame
+    (:meth:`build_lookup`), not pickled (each worker process builds its own).  ``lookup=False`` undistorts
     the centres exactly per frame (for one-off profiles).
 
     Parameters
@@ -228,14 +230,33 @@ class ProfileMeasurer:
             raise LightplaneError(f"smooth_lines must be 0 or an odd integer >= 5, got {smooth_lines!r}")
         self.smooth_lines = k
         self.stripe_options = dict(stripe_options)
-        self._xy = self._dxy = None
-        if lookup:
-            self._build_tables()
+        self._lookup = bool(lookup)
+        self._table = None  # (xy, dxy, line0, sample0), built on first use
+        self._lock = threading.Lock()
 
     # ---------------------------------------------------------------- lookup tables
     @property
     def has_lookup(self) -> bool:
-        return self._xy is not None
+        """Whether the lookup tables are built (on first use; never with ``lookup=False``)."""
+        return self._table is not None
+
+    def build_lookup(self) -> None:
+        """Build the lookup tables now (otherwise on the first frame).  Thread-safe."""
+        if self._lookup and self._table is None:
+            with self._lock:
+                if self._table is None:
+                    self._table = self._build_tables()
+
+    def __getstate__(self) -> dict:
+        # sent to worker processes without the tables (30 MB) or the lock: each builds its own
+        state = self.__dict__.copy()
+        state["_table"] = None
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     def _line_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Line indices (image column or row numbers) and sample coordinates of the roi."""
@@ -244,11 +265,11 @@ class ProfileMeasurer:
             return np.arange(x, x + w), np.arange(y, y + h)
         return np.arange(y, y + h), np.arange(x, x + w)
 
-    def _build_tables(self, lines_per_chunk: int = 32) -> None:
+    def _build_tables(self, lines_per_chunk: int = 32) -> tuple:
         lines, samples = self._line_grid()
         L, S = lines.size, samples.size
-        self._xy = np.empty((L, S, 2))
-        self._dxy = np.empty((L, S, 2), np.float32)
+        xy_t = np.empty((L, S, 2))
+        dxy_t = np.empty((L, S, 2), np.float32)
         # d(xy)/d(sample): xy_d = K^-1 uv is linear in the pixel, xy = distort^-1(xy_d)
         K = self.camera.K
         dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
@@ -263,9 +284,9 @@ class ProfileMeasurer:
             det = j11 * j22 - j12 * j21
             d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
             n = ll.shape[0]
-            self._xy[a:a + n] = xy.reshape(n, S, 2)
-            self._dxy[a:a + n] = d.reshape(n, S, 2)
-        self._line0, self._sample0 = int(lines[0]), int(samples[0])
+            xy_t[a:a + n] = xy.reshape(n, S, 2)
+            dxy_t[a:a + n] = d.reshape(n, S, 2)
+        return xy_t, dxy_t, int(lines[0]), int(samples[0])
 
     def normalized(self, uv: np.ndarray) -> np.ndarray:
         """Undistorted normalised ``(x, y)`` (N, 2) of stripe centres ``uv`` (N, 2) px.
@@ -276,12 +297,14 @@ class ProfileMeasurer:
         tables (or for points off the grid lines) the exact undistortion is used.
         """
         uv = as_points(uv, 2, "uv")
-        if self._xy is None:
+        self.build_lookup()
+        if self._table is None:
             return self.camera.undistort_points(uv, normalized=True)
+        tab_xy, tab_dxy, line0, sample0 = self._table
         li, si = (0, 1) if self.axis == "columns" else (1, 0)
-        L, S = self._xy.shape[:2]
-        line = uv[:, li] - self._line0
-        t = uv[:, si] - self._sample0
+        L, S = tab_xy.shape[:2]
+        line = uv[:, li] - line0
+        t = uv[:, si] - sample0
         ok = np.isfinite(line) & np.isfinite(t)
         lidx = np.where(ok, np.rint(line), 0).astype(np.intp)
         on_grid = ok & (np.abs(line - lidx) < 1e-9) & (lidx >= 0) & (lidx < L)
@@ -292,8 +315,8 @@ class ProfileMeasurer:
         i0 = np.clip(np.floor(np.where(on_grid, t, 0.0)), 0, S - 2).astype(np.intp)
         f = (np.where(on_grid, t, 0.0) - i0)[:, None]
         l = np.where(on_grid, lidx, 0)
-        p0, p1 = self._xy[l, i0], self._xy[l, i0 + 1]
-        m0, m1 = self._dxy[l, i0].astype(np.float64), self._dxy[l, i0 + 1].astype(np.float64)
+        p0, p1 = tab_xy[l, i0], tab_xy[l, i0 + 1]
+        m0, m1 = tab_dxy[l, i0].astype(np.float64), tab_dxy[l, i0 + 1].astype(np.float64)
         f2, f3 = f * f, f * f * f
         h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, f3 - 2 * f2 + f, -2 * f3 + 3 * f2, f3 - f2
         val = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1

@@ -382,6 +382,7 @@ def _worker_init(processor: FrameProcessor) -> None:
         numba.set_num_threads(1)  # one core per worker: numba's own threads would oversubscribe
     except Exception:  # pragma: no cover - numba is a dependency, but stay usable without it
         pass
+    processor.measurer.build_lookup()  # each worker builds its own tables once (they are not pickled)
     _WORKER = processor
 
 
