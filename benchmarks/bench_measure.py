@@ -118,18 +118,26 @@ def scan(kind: str, plane, ds):
 
 
 def accuracy() -> None:
-    from lightplane.plane import LightPlane
-    from lightplane.simulate.render import render_scan_dataset
-
-    print("== accuracy (rendered scans, difficulty 'realistic') ==")
+    print("== accuracy (rendered scans, difficulty 'realistic'; targets apply here) ==")
     planes = {}
     try:
         planes["calibrated"] = calibrated_plane()
     except ImportError as e:
         print(f"calibrate_plane unavailable ({e}): using the true plane only")
+    accuracy_scans("realistic", planes)
+    print("== the same scans rendered 'clean' (no speckle, low noise): the pipeline's own error ==")
+    accuracy_scans("clean", planes)
+
+
+def accuracy_scans(difficulty: str, planes: dict) -> None:
+    from lightplane.plane import LightPlane
+    from lightplane.simulate.render import render_scan_dataset
+
+    planes = dict(planes)
     for kind, kw in SCANS.items():
-        ds = cached(f"scan_{kind}_{kw['n_frames']}_{kw['step_mm']}",
-                    lambda: render_scan_dataset(kind, seed=0, **kw))
+        suffix = "" if difficulty == "realistic" else f"_{difficulty}"
+        ds = cached(f"scan_{kind}_{kw['n_frames']}_{kw['step_mm']}{suffix}",
+                    lambda: render_scan_dataset(kind, seed=0, difficulty=difficulty, **kw))
         planes.setdefault("true", LightPlane.from_dict(ds.truth["plane"]))
         tp = LightPlane.from_dict(ds.truth["plane"])
         if "calibrated" in planes:
