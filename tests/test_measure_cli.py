@@ -98,13 +98,19 @@ def test_video_input(scan_dir, tmp_path):
     assert np.array_equal(np.unique(rec["frame"]), np.arange(N_FRAMES))
     p = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(float)
     assert np.max(np.abs(PLANE.signed_distance(p))) < 1e-3
-    # positions with one row too few: exit 2, nothing written (counted from the video itself)
+    # positions with one row too few: exit 2 at the first frame without a position, nothing written
     pos = tmp_path / "pos.csv"
     pos.write_text("dx,dy,dz\n" + "".join(f"{0.5 * k},0,0\n" for k in range(N_FRAMES - 1)))
     r = run(video, "--camera", scan_dir / "camera.json", "--plane", scan_dir / "plane.json", "-o",
             tmp_path / "p.ply", "--positions", pos)
-    assert "positions give 4 frames but the input has 5" in one_error_line(r)
+    assert "positions give 4 frames but the input has more" in one_error_line(r)
+    # one row too many: found when the video ends (its announced frame count is not trusted)
+    pos.write_text("dx,dy,dz\n" + "".join(f"{0.5 * k},0,0\n" for k in range(N_FRAMES + 1)))
+    r = run(video, "--camera", scan_dir / "camera.json", "--plane", scan_dir / "plane.json", "-o",
+            tmp_path / "p.ply", "--positions", pos)
+    assert "positions give 6 frames but the input has 5" in one_error_line(r)
     assert not (tmp_path / "p.ply").exists()
+    assert not list(tmp_path.glob(".*"))  # no temporary spool or partial output left
 
 
 def test_bad_input_exit_2_nothing_written(scan_dir, tmp_path):

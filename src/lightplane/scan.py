@@ -169,8 +169,8 @@ class Motion:
         """Displacement (3,) mm of the object at frame ``index`` relative to frame 0."""
         if self.positions_mm is not None:
             if not 0 <= index < self.positions_mm.shape[0]:
-                raise LightplaneError(f"frame {index} has no position (the positions file has "
-                                      f"{self.positions_mm.shape[0]} rows)")
+                raise LightplaneError(f"frame {index} has no position: the positions give "
+                                      f"{self.positions_mm.shape[0]} frames but the input has more")
             return self.positions_mm[index] - self.positions_mm[0]
         if self.step_mm is not None:
             return index * self.step_mm * self.direction
@@ -284,7 +284,8 @@ class VideoFrames(FrameSource):
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.n_frames = n if n > 0 else None
         self.description = f"video {self.path.name}" + (f" ({n} frames)" if n > 0 else "")
-        self.ended_early = False
+        self.exact_count = False
+        self.frames_read = 0
 
     def items(self):
         i = 0
@@ -294,8 +295,7 @@ class VideoFrames(FrameSource):
                 break
             yield i, f"{self.path.name}#{i}", frame
             i += 1
-        self.ended_early = self.n_frames is not None and i < self.n_frames
-        self.frames_read = i
+            self.frames_read = i
 
     def close(self) -> None:
         self.cap.release()
@@ -604,6 +604,7 @@ class ScanSummary:
     width_px: float = float("nan")
     motion: dict = field(default_factory=dict)
     seconds: float = float("nan")
+    warnings: tuple = ()
 
     @property
     def n_skipped(self) -> int:
@@ -627,6 +628,7 @@ def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
         rep = _Replay()
         rep.n_frames = source.n_frames
         rep.description = source.description
+        rep.exact_count = False
         return first[2], rep
     for k, (_, _, payload) in enumerate(source.items()):
         try:
@@ -643,7 +645,8 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
     if not isinstance(plane, LightPlane):
         raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
     motion = Motion.none() if motion is None else motion
-    if motion.n_frames is not None and source.n_frames is not None and motion.n_frames != source.n_frames:
+    exact = getattr(source, "exact_count", True)  # a video's container count may be approximate: checked at the end
+    if exact and motion.n_frames is not None and source.n_frames is not None and motion.n_frames != source.n_frames:
         raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {source.n_frames}")
     first, source = _first_frame(source)
     camera.check_image(first, "the first frame")
@@ -741,6 +744,10 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             n_points = spool.count
     finally:
         original.close()
+    warnings = []
+    if isinstance(original, VideoFrames) and original.n_frames is not None and n < original.n_frames:
+        warnings.append(f"{original.path.name}: the video announces {original.n_frames} frames but only {n} "
+                        f"could be decoded (a damaged frame ends a video stream)")
     return ScanSummary(out, fmt, n, n - len(skipped), n_points, tuple(skipped), int(empty), axis,
                        float("nan") if width_px is None else float(width_px), motion.to_dict(),
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, tuple(warnings))

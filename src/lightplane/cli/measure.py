@@ -109,6 +109,8 @@ def measure_cmd(
                   f"({s.n_frames / max(s.seconds, 1e-9):.0f} frames/s)")
     if s.frames_without_points:
         console.print(f"{s.frames_without_points} frames had no stripe points")
+    for w in s.warnings:
+        err_console.print(f"warning: {w}")
     if s.skipped:
         err_console.print(f"warning: skipped {s.n_skipped} unreadable frame(s):")
         for idx, name, reason in s.skipped[:10]:
