@@ -193,3 +193,11 @@ def test_smoothing_along_the_profile_averages_noise_without_bias():
     assert np.max(np.abs(a.points[keep] - b.points[keep])) < 2e-3
     with pytest.raises(LightplaneError, match="smooth_lines"):
         ProfileMeasurer(CAM, PLANE, smooth_lines=4)
+
+
+def test_wrong_size_frame_mid_scan_stops_worker_processes_cleanly():
+    n_s, d_s = surface()
+    img, _ = stripe_image(n_s, d_s)
+    frames = [img] * 3 + [img[:240, :320]] + [img] * 3
+    with pytest.raises(LightplaneError, match="calibrated for 640x480"):
+        scan_points(ArrayFrames(frames), CAM, PLANE, width_px=3.5, workers=2, executor="process")
