@@ -221,7 +221,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
         v2[lg] = float(best2)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def profile_candidates(A, sep, p1, v1, p2, v2):
     """Per line the highest sample (p1, v1) and a second, farther candidate (p2, v2).
 
@@ -239,7 +239,7 @@ def profile_candidates(A, sep, p1, v1, p2, v2):
         _candidates_chunk(A, sep, p1, v1, p2, v2, ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
     """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
     L = p1.shape[0]
@@ -314,7 +314,7 @@ def _fwhm_line(A, l, c, half, min_peak):
     return right - left, left, right, best, bg
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
     """Raw FWHM (samples) at the candidate ``p1`` of each line in ``lines``."""
     for j in prange(lines.shape[0]):
@@ -449,7 +449,7 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     status[l] = OK
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                     centre, normal, strength, intensity, width, status):
     """Sub-pixel ridge centre per line at the candidate sample ``pos[l]``.
