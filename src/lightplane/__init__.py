@@ -8,7 +8,8 @@ maximum-likelihood refinement, uncertainty).  Conventions: SPEC.md §2
 
 The stable API (SPEC §10): :class:`Camera`, :class:`LightPlane`,
 :func:`detect_ellipses`, :func:`extract_stripe`, :func:`circle_poses`,
-:func:`calibrate_plane`, :func:`triangulate`; also :func:`distance_errors`.
+:func:`calibrate_plane`, :func:`triangulate`; also :func:`distance_errors`,
+:func:`measure_profile`, :func:`measure_scan`, :func:`read_cloud`/:func:`write_cloud`.
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ from .stripe import StripePoints, StripeProfile, extract_profile, extract_stripe
 from .calibrate import calibrate_plane
 from .evaluate import DistanceErrors, distance_errors
 from .uncertainty import point_sigma_mm
+from .measure import Profile, ProfileMeasurer, measure_profile
+from .pointcloud import read_cloud, write_cloud
+from .scan import Motion, measure_scan
 
 __all__ = [
     "Camera",
@@ -33,6 +37,9 @@ __all__ = [
     "Ellipse",
     "LightPlane",
     "LightplaneError",
+    "Motion",
+    "Profile",
+    "ProfileMeasurer",
     "PlaneCalibration",
     "StripePoints",
     "StripeProfile",
@@ -44,8 +51,12 @@ __all__ = [
     "distance_errors",
     "extract_profile",
     "extract_stripe",
+    "measure_profile",
+    "measure_scan",
     "point_sigma_mm",
+    "read_cloud",
     "refine_ellipse",
     "select_target",
     "triangulate",
+    "write_cloud",
 ]
