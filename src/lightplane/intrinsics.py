@@ -223,7 +223,7 @@ def plot_residuals(result: IntrinsicsCalibration, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_write
+    from .io import save_figure
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
     for name, r in zip(result.used, result.residuals_px):
@@ -240,5 +240,4 @@ def plot_residuals(result: IntrinsicsCalibration, path: str) -> None:
     ax2.set_ylabel("per-view RMS (px)")
     ax2.set_title("Per-view reprojection error")
     fig.tight_layout()
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format=Path(path).suffix.lstrip(".") or "png"), force=True)
-    plt.close(fig)
+    save_figure(fig, path, force=True, dpi=110)

@@ -154,7 +154,7 @@ def plot_point_sigma_map(camera: Camera, plane: LightPlane, path: str | os.PathL
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_write
+    from .io import save_figure
 
     cov = _plane_cov(plane, covariance)
     us = np.arange(0, camera.width, step_px)
@@ -186,10 +186,4 @@ def plot_point_sigma_map(camera: Camera, plane: LightPlane, path: str | os.PathL
     ax.set_title(title or f"Point uncertainty, working volume {distance_mm[0]:g}–{distance_mm[1]:g} mm from the camera")
     fig.tight_layout()
 
-    def writer(tmp: str) -> None:
-        fig.savefig(tmp, format="png")
-
-    try:
-        return atomic_write(path, writer, force=force)
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, force=force)

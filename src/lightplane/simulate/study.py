@@ -286,7 +286,7 @@ def plot_factor(result: StudyResult, path: str | os.PathLike, *, force: bool = F
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..io import atomic_write
+    from ..io import save_figure
 
     spec = result.factor
     methods = [m for m in (*METHODS, "crlb") if any(r["method"] == m for r in result.rows)]
@@ -318,10 +318,4 @@ def plot_factor(result: StudyResult, path: str | os.PathLike, *, force: bool = F
                  f"{result.n_rim} rim + {result.n_stripe} stripe points per placement)", fontsize=10)
     fig.tight_layout()
 
-    def writer(tmp: str) -> None:
-        fig.savefig(tmp, format="png")
-
-    try:
-        return atomic_write(path, writer, force=force)
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, force=force)
