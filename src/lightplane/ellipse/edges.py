@@ -13,7 +13,8 @@ import numpy as np
 from ..errors import LightplaneError
 from .model import Ellipse
 
-__all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "edge_peaks_along_normals"]
+__all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "normal_edge_samples", "NormalEdgeSamples",
+           "edge_peaks_along_normals"]
 
 
 def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
@@ -103,7 +104,7 @@ def _remap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def edge_peaks_along_normals(grad: Gradients, p: np.ndarray, nrm: np.ndarray, polarity: np.ndarray, *,
                              band_px: np.ndarray | float, step_px: float = 0.5, min_mag: float = 0.0,
-                             max_angle_rad: float = math.radians(30)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                             max_angle_rad: float = math.radians(30), return_width: bool = False):
     """Sub-pixel gradient peaks along given normals (vectorised over samples).
 
     ``p`` (N, 2) px sample points, ``nrm`` (N, 2) outward unit normals, ``polarity`` (N,)
@@ -114,6 +115,14 @@ def edge_peaks_along_normals(grad: Gradients, p: np.ndarray, nrm: np.ndarray, po
     sample is not positive).  Returns ``(uv (N, 2), ok (N,), peak (N,))``: a sample is not
     ok when its peak is on the band's border, weaker than ``min_mag`` or its gradient
     direction is more than ``max_angle_rad`` off the normal.
+
+    ``return_width``: also return ``width_sq (N,)`` px², the squared Gaussian width of
+    the gradient profile across the edge: least-squares parabola through the logarithm
+    of the five samples within +-1 px of the peak sample (``sigma^2 = -1 / (2 c2)``);
+    NaN where a sample is missing or not positive or the log-profile is not concave.
+    It measures the total blur across the edge (optics, pixel, pre-smoothing, the
+    derivative's difference kernel and the bilinear sampling): see
+    :func:`lightplane.ellipse.refine.edge_blur_sigma`.
     """
     n = len(p)
     band = np.broadcast_to(np.asarray(band_px, dtype=np.float64), (n,))
@@ -147,7 +156,69 @@ def edge_peaks_along_normals(grad: Gradients, p: np.ndarray, nrm: np.ndarray, po
     ok &= cosang >= math.cos(max_angle_rad)
     off = offs[jj] + np.where(np.isfinite(delta), delta, 0.0) * step_px
     uv = p + off[:, None] * nrm
-    return uv, ok, y1
+    if not return_width:
+        return uv, ok, y1
+    width_sq = _log_profile_width_sq(prof, j, step_px)
+    return uv, ok, y1, width_sq
+
+
+def _log_profile_width_sq(prof: np.ndarray, j: np.ndarray, step_px: float) -> np.ndarray:
+    """Squared Gaussian width (px²) of each profile row around its peak index ``j``
+    (log-parabola least squares over the samples within +-1 px; NaN where not possible)."""
+    n, m = prof.shape
+    h = max(1, int(round(1.0 / step_px)))
+    x = np.arange(-h, h + 1) * step_px
+    idx = j[:, None] + np.arange(-h, h + 1)[None, :]
+    inside = np.all((idx >= 0) & (idx < m), axis=1)
+    vals = prof[np.arange(n)[:, None], np.clip(idx, 0, m - 1)]
+    good = inside & np.all(np.isfinite(vals) & (vals > 0), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lv = np.log(np.where(good[:, None], vals, 1.0))
+        xc = x * x - np.mean(x * x)
+        c2 = (lv @ xc) / float(xc @ xc)  # quadratic coefficient (x and x² are orthogonal on a symmetric grid)
+        w2 = -0.5 / c2
+    return np.where(good & (c2 < 0), w2, np.nan)
+
+
+@dataclass(frozen=True)
+class NormalEdgeSamples:
+    """Edge points found along an ellipse's normals (:func:`normal_edge_samples`).
+
+    uv (M, 2) px; t (M,) parametric angles of the samples (rad); peak (M,) gradient
+    magnitude at the peak; normal (M, 2) outward unit normals searched along;
+    width_sq (M,) px² squared Gaussian width of the gradient profile (NaN where not
+    measured); polarity: +1 interior brighter, -1 darker.
+    """
+
+    uv: np.ndarray
+    t: np.ndarray
+    peak: np.ndarray
+    normal: np.ndarray
+    width_sq: np.ndarray
+    polarity: int
+
+
+def normal_edge_samples(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
+                        polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
+                        ) -> NormalEdgeSamples:
+    """As :func:`normal_edge_points`, with the normals and the profile widths."""
+    n = int(max(n, 8))
+    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    p = ellipse.points_at(t)
+    nrm = ellipse.normals_at(t)  # outward
+    if polarity == 0:
+        polarity = _stronger_polarity(grad, p, nrm, band_px, step_px)
+    uv, ok, pk, w2 = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
+                                              step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad,
+                                              return_width=True)
+    return NormalEdgeSamples(uv[ok], t[ok], pk[ok], nrm[ok], w2[ok], int(polarity))
+
+
+def _stronger_polarity(grad: Gradients, p: np.ndarray, nrm: np.ndarray, band_px: float, step_px: float) -> int:
+    n = len(p)
+    _, ok_d, pk_d = edge_peaks_along_normals(grad, p, nrm, np.full(n, -1.0), band_px=band_px, step_px=step_px)
+    _, ok_l, pk_l = edge_peaks_along_normals(grad, p, nrm, np.full(n, 1.0), band_px=band_px, step_px=step_px)
+    return -1 if np.sum(pk_d[ok_d]) >= np.sum(pk_l[ok_l]) else 1
 
 
 def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: float, step_px: float = 0.5,
@@ -165,9 +236,7 @@ def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: fl
     p = ellipse.points_at(t)
     nrm = ellipse.normals_at(t)  # outward
     if polarity == 0:
-        _, ok_d, pk_d = edge_peaks_along_normals(grad, p, nrm, np.full(n, -1.0), band_px=band_px, step_px=step_px)
-        _, ok_l, pk_l = edge_peaks_along_normals(grad, p, nrm, np.full(n, 1.0), band_px=band_px, step_px=step_px)
-        polarity = -1 if np.sum(pk_d[ok_d]) >= np.sum(pk_l[ok_l]) else 1
+        polarity = _stronger_polarity(grad, p, nrm, band_px, step_px)
     uv, ok, pk = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
                                           step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad)
     return uv[ok], t[ok], pk[ok], int(polarity)
