@@ -72,7 +72,7 @@ from .camera import Camera, as_points
 from .errors import LightplaneError
 from .plane import LightPlane
 
-__all__ = ["MLResult", "refine_ml", "crlb", "simulate_points", "plane_param_jacobian"]
+__all__ = ["MLResult", "refine_ml", "crlb", "simulate_points", "plane_param_jacobian", "integrated_autocorr_time"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,16 @@ class MLResult:
         ``m`` and ``p`` (``p = 3 + 5 n``).
     converged : bool
         Whether the solver met its tolerances.
+    sigma_rim_px, sigma_stripe_px : float
+        Noise sigma of the rim points and of the stripe points (px), each from its own
+        residuals with its degrees of freedom (``noise="shared"``: both the common one).
+    tau_rim, tau_stripe : float
+        Integrated autocorrelation times of the residuals along each rim / stripe (1:
+        white); the covariance inflation of each group (:func:`integrated_autocorr_time`).
+    covariance_white : (4, 4) float64 or None
+        The plane covariance without that inflation (as if the noise were white).
+    n_outliers : int
+        Points down-weighted by the Huber reweighting.
     """
 
     plane: LightPlane
@@ -120,6 +130,12 @@ class MLResult:
     n_residuals: int = 0
     n_params: int = 0
     converged: bool = True
+    sigma_rim_px: float = float("nan")
+    sigma_stripe_px: float = float("nan")
+    tau_rim: float = 1.0
+    tau_stripe: float = 1.0
+    covariance_white: np.ndarray | None = None
+    n_outliers: int = 0
 
 
 # ----------------------------------------------------------------- helpers
@@ -200,6 +216,20 @@ class _Problem:
         self.x0[2] = plane0.d
         for i, q in enumerate(poses0):
             self.x0[3 + 5 * i: 6 + 5 * i] = np.asarray(q.center, float)
+        self.row_w = np.ones(self.m)  # sqrt of the per-row weights (1/sigma_group, robust factor)
+        # order of the points along each stripe (principal direction) and each rim (angle):
+        # the residual autocorrelation is estimated along these sequences
+        self.rim_order = [np.argsort(np.arctan2(*(rxy[a:b] - rxy[a:b].mean(axis=0)).T[::-1]))
+                          for a, b in zip(rb[:-1], rb[1:])]
+        self.st_order = []
+        for a, b in zip(sb[:-1], sb[1:]):
+            q = sxy[a:b] - sxy[a:b].mean(axis=0)
+            self.st_order.append(np.argsort(q @ np.linalg.svd(q, full_matrices=False)[2][0]))
+        self._cache_x = None
+
+    def set_row_weights(self, row_w: np.ndarray) -> None:
+        """Multiply residual row k (and its Jacobian row) by ``row_w[k]`` (sqrt of its weight)."""
+        self.row_w = np.asarray(row_w, float).copy()
         self._cache_x = None
 
     def unpack(self, x: np.ndarray):
@@ -272,6 +302,9 @@ class _Problem:
             dr_dC_s = -zn[:, None] * Ns  # dm/dC = −n Nᵀ
             dr_db_s = np.einsum("ij,ijk->ik", dr_dN_s, dN[self.st_idx])
             J = (J_rim, J_st_plane, np.column_stack([dr_dC_s, dr_db_s]))
+            wr, ws = self.row_w[: self.m_rim, None], self.row_w[self.m_rim:, None]
+            J = (J[0] * wr, J[1] * ws, J[2] * ws)
+        r = r * self.row_w
         self._cache_x = x.copy()
         self._cache_r = r
         self._cache_J = J
@@ -308,6 +341,15 @@ class _Problem:
         gp = np.einsum("ij,i->j", J_sp, r_st)
         gi = np.add.reduceat(J_rim * r_rim[:, None], rs) + np.add.reduceat(J_spose * r_st[:, None], ss)
         return _Normal(A, B, D, gp, gi)
+
+    def group_normals(self, r: np.ndarray, Jb) -> tuple["_Normal", "_Normal"]:
+        """The normal equations of the rim rows alone and of the stripe rows alone (they add up)."""
+        J_rim, J_sp, J_spose = Jb
+        zr = np.zeros(self.m_rim)
+        zs = np.zeros(self.m - self.m_rim)
+        rim = self.normal_equations(np.concatenate([r[: self.m_rim], zs]), (J_rim, 0 * J_sp, 0 * J_spose))
+        st = self.normal_equations(np.concatenate([zr, r[self.m_rim:]]), (0 * J_rim, J_sp, J_spose))
+        return rim, st
 
 
 @dataclass
@@ -359,6 +401,38 @@ class _Normal:
         dp = np.linalg.solve(S, gp - np.einsum("nij,nj->i", BDinv, gi))
         di = np.einsum("nij,nj->ni", Dinv, gi - np.einsum("nji,j->ni", B, dp))
         return np.concatenate([dp / sp, (di / si).ravel()])
+
+    def inverse(self) -> np.ndarray:
+        """Dense ``H⁻¹`` (p, p) from the Schur complement on the plane block (no LAPACK on p x p).
+
+        Raises :class:`LightplaneError` when ``H`` is (numerically) singular.
+        """
+        A, B, D, sp, si = self._scaled(0.0)
+        Hs = self.dense() / np.outer(np.concatenate([sp, si.ravel()]), np.concatenate([sp, si.ravel()]))
+        w = np.linalg.eigvalsh(Hs)
+        if not w[0] > 1e-13 * w[-1]:
+            raise LightplaneError(
+                "refine_ml: the placements do not determine the light plane (the joint problem is singular; "
+                "are all stripes parallel or the targets all alike?)"
+            )
+        n = len(D)
+        Dinv = np.linalg.inv(D)
+        F = np.einsum("nij,njk->nik", B, Dinv)  # B_i D_i⁻¹ (n, 3, 5)
+        Sinv = np.linalg.inv(A - np.einsum("nij,nkj->ik", F, B))
+        Sinv = 0.5 * (Sinv + Sinv.T)
+        Hi = np.zeros((3 + 5 * n, 3 + 5 * n))
+        Hi[:3, :3] = Sinv
+        E = -np.einsum("ij,njk->nik", Sinv, F)  # plane–pose blocks (n, 3, 5)
+        Hi[:3, 3:] = np.concatenate(list(E), axis=1)
+        Hi[3:, :3] = Hi[:3, 3:].T
+        Fm = np.concatenate(list(F), axis=1)  # (3, 5 n)
+        Hi[3:, 3:] = Fm.T @ Sinv @ Fm
+        for i in range(n):
+            sl = slice(3 + 5 * i, 8 + 5 * i)
+            Hi[sl, sl] += Dinv[i]
+        s = np.concatenate([sp, si.ravel()])
+        Hi = Hi / np.outer(s, s)
+        return 0.5 * (Hi + Hi.T)
 
     def covariance(self, sigma: float) -> tuple[np.ndarray, np.ndarray]:
         """``sigma² (JᵀJ)⁻¹``: the plane block (3, 3) and the pose blocks (n, 5, 5)."""
@@ -465,8 +539,77 @@ def _check_inputs(radius_mm, rims, stripes, poses0):
     return out_r, out_s
 
 
+def integrated_autocorr_time(sequences: Sequence[np.ndarray], bases: Sequence[np.ndarray], *,
+                             window_c: float = 5.0, max_lag: int = 200) -> tuple[float, int]:
+    """Integrated autocorrelation time ``tau = 1 + 2 Σ_k rho_k`` of noise seen through fit residuals.
+
+    ``sequences[s]`` (n_s,) are residuals of one group (e.g. one stripe) in their order
+    along the curve; ``bases[s]`` (n_s, b) the smooth components to remove first (a
+    stripe: offset and slope along the chord; a rim: the harmonics 0–2 of the angle,
+    what a pose fit absorbs).  The autocovariance is pooled over the sequences, the sum
+    truncated by Sokal's window (the smallest ``W`` with ``W >= window_c tau(W)``), and
+    corrected to first order for the removed components: removing ``b`` smooth components
+    from ``n`` samples of noise with integrated time ``tau`` lowers every lagged
+    autocovariance by about ``sigma² tau b / n``, so with ``q = Σ b / Σ n`` and
+    ``S = Σ_{k<=W} rho_hat_k``
+
+        tau = (1 + 2 S) / (1 - 2 q (W - S)).
+
+    For white noise ``tau`` is 1 (returned clipped to >= 1: never below the white-noise
+    covariance); for noise correlated over a length ``L`` (in samples) it is the
+    variance inflation of a mean over ``n >> L`` samples: the effective number of
+    independent samples is ``n / tau``.  Returns ``(tau, W)``.
+    """
+    segs = []
+    q_num = 0
+    n_tot = 0
+    for e, Bm in zip(sequences, bases):
+        e = np.asarray(e, float)
+        if len(e) <= Bm.shape[1] + 2:
+            continue
+        coef, *_ = np.linalg.lstsq(Bm, e, rcond=None)
+        segs.append(e - Bm @ coef)
+        q_num += Bm.shape[1]
+        n_tot += len(e)
+    if not segs or n_tot == 0:
+        return 1.0, 0
+    kmax = int(min(max_lag, max(len(x) for x in segs) // 2))
+    c = np.zeros(kmax + 1)
+    cnt = np.zeros(kmax + 1)
+    for x in segs:
+        nx = len(x)
+        K = min(kmax, nx - 1)
+        # all lags at once via FFT (zero-padded: linear, not circular, correlation)
+        f = np.fft.rfft(x, 2 * nx)
+        ac = np.fft.irfft(f * np.conj(f), 2 * nx)[: K + 1]
+        c[: K + 1] += ac
+        cnt[: K + 1] += nx - np.arange(K + 1)
+    ok = cnt > 0
+    c = np.where(ok, c / np.maximum(cnt, 1), 0.0)
+    if not c[0] > 0:
+        return 1.0, 0
+    rho = c / c[0]
+    tau_hat = 1 + 2 * np.cumsum(rho[1:])
+    W = kmax
+    for M in range(1, kmax + 1):
+        if M >= window_c * tau_hat[M - 1]:
+            W = M
+            break
+    S = float(np.sum(rho[1: W + 1]))
+    q = q_num / n_tot
+    den = max(1.0 - 2.0 * q * (W - S), 0.2)
+    return float(max(1.0, (1 + 2 * S) / den)), int(W)
+
+
+def _huber_weights(u: np.ndarray, c: float) -> np.ndarray:
+    """Huber weights ``min(1, c / |u|)`` of standardised residuals ``u``."""
+    a = np.abs(u)
+    return np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))
+
+
 def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], stripes_uv: Sequence[np.ndarray],
-              plane0: LightPlane, poses0: Sequence[Any], *, max_iter: int = 100) -> MLResult:
+              plane0: LightPlane, poses0: Sequence[Any], *, max_iter: int = 100, noise: str = "per_type",
+              rounds: int = 3, huber_c: float | None = 3.0, correlated: bool = True) -> MLResult:
     """Joint maximum-likelihood refinement of the light plane and all target poses.
 
     Parameters
@@ -483,40 +626,144 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     poses0 : list of poses
         Start values, objects with ``center`` (mm) and unit ``normal`` (the chosen
         candidate of :func:`lightplane.circle_pose.circle_poses`).
+    noise : ``"per_type"`` (default) or ``"shared"``
+        ``per_type``: rim points and stripe points have their own noise sigma, each
+        estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
+        in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
+        then ``Σ w r² / (m_g − p_g)`` with ``p_g`` the group's share of the parameters,
+        the trace of its part of the hat matrix).  A laser stripe's centres scatter
+        3–4x more than the rim's edge points (speckle), so one shared sigma
+        under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
+        all points (the original model; no reweighting).
+    huber_c : float or None
+        Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
+        3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
+        influence grows only linearly).  None: plain least squares.
+    correlated : bool
+        True (default): the covariance is inflated per group by the integrated
+        autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
+        stripe points ordered along the chord, rim points by angle).
+
+    Covariance (what it covers, and what not)
+    -----------------------------------------
+    ``H⁻¹ M H⁻¹`` (sandwich) with ``H = Σ_g J_gᵀ J_g / sigma_g²`` and
+    ``M = Σ_g tau_g J_gᵀ J_g / sigma_g²``.  This is the banded sandwich
+    ``H⁻¹ JᵀW Σ W J H⁻¹`` with ``Σ_g`` Toeplitz along each curve, reduced to one
+    factor per group because the Jacobian rows vary smoothly along a stripe (a line's
+    offset and slope) and a rim (harmonics 0–2 of the angle), i.e. ``J_{i+k} ≈ J_i``
+    within the correlation length, so ``Σ_k rho_k J_iᵀ J_{i+k} ≈ tau J_iᵀ J_i``.  With
+    white noise ``tau = 1`` and it is ``(JᵀWJ)⁻¹``, the Cramér–Rao bound at the estimate.
+    It covers the image noise of the rim and stripe points, white or correlated along
+    the curve (laser speckle).  It does NOT cover: errors of the camera intrinsics and
+    distortion, systematic edge or stripe-centre biases (e.g. a blur- or
+    exposure-dependent edge shift, a stripe centre pulled by an asymmetric profile),
+    a wrong target diameter, model errors (a non-flat target or a curved light
+    sheet), nor correlation *between* placements.  ``covariance_white`` is the same
+    without the inflation.
 
     Returns
     -------
     MLResult
-        Plane with covariance, refined poses, sigma, per-placement residual RMS.
+        Plane with covariance, refined poses, sigmas, per-placement residual RMS.
     """
     if not isinstance(camera, Camera):
         raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
     if not isinstance(plane0, LightPlane):
         raise LightplaneError(f"plane0 must be a LightPlane, got {type(plane0).__name__}")
+    if noise not in ("per_type", "shared"):
+        raise LightplaneError(f"noise must be 'per_type' or 'shared', got {noise!r}")
+    if huber_c is not None and not huber_c > 0:
+        raise LightplaneError(f"huber_c must be positive or None, got {huber_c}")
     rims, stripes = _check_inputs(float(radius_mm), list(rims_uv), list(stripes_uv), list(poses0))
     prob = _Problem(camera, radius_mm, rims, stripes, plane0, list(poses0))
     if prob.m <= prob.p:
         raise LightplaneError(f"refine_ml: {prob.m} points cannot determine {prob.p} parameters")
+    m_rim, m_st = prob.m_rim, prob.m - prob.m_rim
     x, nfev, converged = _levenberg_marquardt(prob, prob.x0, max_iter=max_iter)
-    r, Jb = prob.evaluate(x, want_jac=True)
+    n_rounds = int(rounds) if noise == "per_type" or huber_c is not None else 0
+    r_raw = prob.residuals(x) / prob.row_w
+    hub = np.ones(prob.m)
+    # robust start: MAD of each group's residuals (residuals have zero mean)
+    sig = np.array([1.4826 * np.median(np.abs(r_raw[:m_rim])), 1.4826 * np.median(np.abs(r_raw[m_rim:]))])
+    if noise == "shared":
+        sig[:] = 1.4826 * np.median(np.abs(r_raw))
+    for _round in range(n_rounds):
+        sig = np.maximum(sig, 1e-9)
+        s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
+        hub = _huber_weights(r_raw / s_rows, huber_c) if huber_c is not None else np.ones(prob.m)
+        prob.set_row_weights(np.sqrt(hub) / s_rows)
+        x, nf, converged = _levenberg_marquardt(prob, x, max_iter=max_iter)
+        nfev += nf
+        r_raw = prob.residuals(x) / prob.row_w
+        # re-estimate each group's sigma with its degrees of freedom
+        r_w, Jb = prob.evaluate(x, want_jac=True)
+        ne_rim, ne_st = prob.group_normals(r_w, Jb)
+        Hinv = _add_normals(ne_rim, ne_st).inverse()
+        p_g = np.array([np.sum(Hinv * ne_rim.dense()), np.sum(Hinv * ne_st.dense())])
+        ss = np.array([np.sum(hub[:m_rim] * r_raw[:m_rim] ** 2), np.sum(hub[m_rim:] * r_raw[m_rim:] ** 2)])
+        nn = np.array([np.sum(hub[:m_rim]), np.sum(hub[m_rim:])])
+        if noise == "per_type":
+            sig = np.sqrt(ss / np.maximum(nn - p_g, 1.0))
+        else:
+            sig[:] = np.sqrt(ss.sum() / max(nn.sum() - prob.p, 1.0))
+    # final: covariance from the weighted normal equations
+    if n_rounds == 0:
+        sig = np.full(2, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
+    sig = np.maximum(sig, 1e-9)  # noise-free data: keep the weights finite
+    s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
+    prob.set_row_weights(np.sqrt(hub) / s_rows)
+    r_w, Jb = prob.evaluate(x, want_jac=True)
+    ne_rim, ne_st = prob.group_normals(r_w, Jb)
+    H = _add_normals(ne_rim, ne_st)
+    Hinv = H.inverse()
     dof = prob.m - prob.p
-    sigma = float(np.sqrt(np.sum(r**2) / dof))
-    cov_p, cov_i = prob.normal_equations(r, Jb).covariance(sigma)
+    sigma = float(np.sqrt(np.sum(r_raw ** 2) / dof))
+    tau = np.ones(2)
+    if correlated:
+        s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
+        u = r_raw / np.maximum(s_rows, 1e-300)
+        if huber_c is not None:
+            u = np.clip(u, -huber_c, huber_c)  # winsorised: an outlier must not fake a correlation
+        u_rim, u_st = u[:m_rim], u[m_rim:]
+        seq_r, bas_r, seq_s, bas_s = [], [], [], []
+        for i in range(prob.n):
+            a, b = prob.rim_starts[i], (prob.rim_starts[i + 1] if i + 1 < prob.n else m_rim)
+            o = prob.rim_order[i]
+            xy = prob.rim_x[a:b, :2][o]
+            th = np.arctan2(*(xy - xy.mean(axis=0)).T[::-1])
+            seq_r.append(u_rim[a:b][o])
+            bas_r.append(np.column_stack([np.ones(len(th)), np.cos(th), np.sin(th), np.cos(2 * th), np.sin(2 * th)]))
+            a, b = prob.st_starts[i], (prob.st_starts[i + 1] if i + 1 < prob.n else m_st)
+            o = prob.st_order[i]
+            t = np.linspace(-1.0, 1.0, len(o))
+            seq_s.append(u_st[a:b][o])
+            bas_s.append(np.column_stack([np.ones(len(o)), t]))
+        tau = np.array([integrated_autocorr_time(seq_r, bas_r)[0], integrated_autocorr_time(seq_s, bas_s)[0]])
+    Hd = H.dense()
+    cov_white = Hinv
+    M = tau[0] * ne_rim.dense() + tau[1] * ne_st.dense()
+    cov = Hinv @ M @ Hinv
+    cov = 0.5 * (cov + cov.T)
+    del Hd
     nvec, dn, d, C, N, dN = prob.unpack(x)
     G = plane_param_jacobian(dn)
-    cov4 = G @ cov_p @ G.T
+    cov4 = G @ cov[:3, :3] @ G.T
     cov4 = 0.5 * (cov4 + cov4.T)
+    cov4_white = G @ cov_white[:3, :3] @ G.T
+    cov4_white = 0.5 * (cov4_white + cov4_white.T)
     pose_covs = []
     for i in range(prob.n):
         Gi = np.zeros((6, 5))
         Gi[:3, :3] = np.eye(3)
         Gi[3:, 3:] = dN[i]
-        pose_covs.append(Gi @ cov_i[i] @ Gi.T)
-    r_rim, r_st = r[: prob.m_rim], r[prob.m_rim:]
+        sl = slice(3 + 5 * i, 8 + 5 * i)
+        pose_covs.append(Gi @ cov[sl, sl] @ Gi.T)
+    r_rim, r_st = r_raw[:m_rim], r_raw[m_rim:]
     rim_rms = np.array([np.sqrt(np.mean(r_rim[prob.rim_idx == i] ** 2)) for i in range(prob.n)])
     st_rms = np.array([np.sqrt(np.mean(r_st[prob.st_idx == i] ** 2)) for i in range(prob.n)])
     meta = dict(plane0.meta)
-    meta.update({"method": "ml", "sigma_px": sigma})
+    meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig[0]), "sigma_stripe_px": float(sig[1]),
+                 "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise})
     plane = LightPlane(nvec, d, cov4, meta=meta)
     # orient each normal towards the camera (SPEC §2)
     poses = []
@@ -525,7 +772,14 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         poses.append(_make_pose(C[i].copy(), Ni, float(radius_mm)))
     return MLResult(plane=plane, covariance=plane.covariance, poses=poses, sigma_px=sigma, rim_rms_px=rim_rms,
                     stripe_rms_px=st_rms, iterations=nfev, pose_covariances=pose_covs,
-                    n_residuals=prob.m, n_params=prob.p, converged=converged)
+                    n_residuals=prob.m, n_params=prob.p, converged=converged,
+                    sigma_rim_px=float(sig[0]), sigma_stripe_px=float(sig[1]), tau_rim=float(tau[0]),
+                    tau_stripe=float(tau[1]), covariance_white=cov4_white,
+                    n_outliers=int(np.sum(hub < 1.0)))
+
+
+def _add_normals(a: "_Normal", b: "_Normal") -> "_Normal":
+    return _Normal(a.A + b.A, a.B + b.B, a.D + b.D, a.gp + b.gp, a.gi + b.gi)
 
 
 # -------------------------------------------------------- simulation & CRLB
@@ -577,26 +831,40 @@ def simulate_points(camera: Camera, plane: LightPlane, center: np.ndarray, norma
 
 
 def crlb(camera: Camera, radius_mm: float, placements_true: Sequence[Any], plane_true: LightPlane, n_rim: int,
-         n_stripe: int, sigma_px: float, *, observations: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+         n_stripe: int, sigma_px: float | None = None, *, sigma_rim_px: float | None = None,
+         sigma_stripe_px: float | None = None,
+         observations: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
     """Cramér–Rao lower bound (4, 4) on the covariance of ``(a, b, c, d)``.
 
     Fisher information of the joint model of :func:`refine_ml` at the truth,
-    ``JᵀJ / sigma²``, with noise-free points (``n_rim`` equally spaced on each rim,
-    ``n_stripe`` along each chord, as :func:`simulate_points`, or the given
-    noise-free ``observations`` [(rim_uv, stripe_uv), ...]); the 3x3 bound on the
-    minimal plane parameters is mapped to ``(a, b, c, d)`` (rank 3).
-    ``placements_true``: objects with ``center`` (mm) and ``normal``.
+    ``J_rimᵀJ_rim / sigma_rim² + J_stripeᵀJ_stripe / sigma_stripe²`` (white Gaussian
+    noise; ``sigma_px`` sets both, or give ``sigma_rim_px`` and ``sigma_stripe_px``),
+    with noise-free points (``n_rim`` equally spaced on each rim, ``n_stripe`` along
+    each chord, as :func:`simulate_points`, or the given noise-free ``observations``
+    [(rim_uv, stripe_uv), ...]); the 3x3 bound on the minimal plane parameters is
+    mapped to ``(a, b, c, d)`` (rank 3).  ``placements_true``: objects with ``center``
+    (mm) and ``normal``.
     """
-    if sigma_px < 0:
-        raise LightplaneError(f"sigma_px must be >= 0, got {sigma_px}")
+    s_r = sigma_px if sigma_rim_px is None else sigma_rim_px
+    s_s = sigma_px if sigma_stripe_px is None else sigma_stripe_px
+    if s_r is None or s_s is None:
+        raise LightplaneError("crlb: give sigma_px, or both sigma_rim_px and sigma_stripe_px")
+    s_r, s_s = float(s_r), float(s_s)
+    if not (s_r >= 0 and s_s >= 0):
+        raise LightplaneError(f"sigmas must be >= 0, got rim {s_r}, stripe {s_s}")
+    if s_s > 0 and s_r == 0:
+        raise LightplaneError("crlb: sigma_rim_px = 0 with sigma_stripe_px > 0 is degenerate")
     if observations is None:
         observations = [simulate_points(camera, plane_true, p.center, p.normal, radius_mm, n_rim, n_stripe)
                         for p in placements_true]
     rims = [o[0] for o in observations]
     stripes = [o[1] for o in observations]
     prob = _Problem(camera, radius_mm, rims, stripes, plane_true, list(placements_true))
+    # information in units of 1/sigma_stripe²: rim rows weighted by sigma_stripe / sigma_rim
+    ratio = s_s / s_r if s_r > 0 else 1.0
+    prob.set_row_weights(np.concatenate([np.full(prob.m_rim, ratio), np.ones(prob.m - prob.m_rim)]))
     r, Jb = prob.evaluate(prob.x0, want_jac=True)
-    cov_p, _ = prob.normal_equations(r, Jb).covariance(float(sigma_px))
+    cov_p, _ = prob.normal_equations(r, Jb).covariance(s_s if s_r > 0 else 0.0)
     _, dn, *_ = prob.unpack(prob.x0)
     G = plane_param_jacobian(dn)
     return G @ cov_p @ G.T
