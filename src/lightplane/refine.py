@@ -63,6 +63,7 @@ True
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -630,8 +631,10 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         ``per_type``: rim points and stripe points have their own noise sigma, each
         estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
         in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
-        then ``Σ w r² / (m_g − p_g)`` with ``p_g`` the group's share of the parameters,
-        the trace of its part of the hat matrix).  A laser stripe's centres scatter
+        then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
+        ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
+        consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
+        share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
         3–4x more than the rim's edge points (speckle), so one shared sigma
         under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
         all points (the original model; no reweighting).
@@ -700,12 +703,20 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         ne_rim, ne_st = prob.group_normals(r_w, Jb)
         Hinv = _add_normals(ne_rim, ne_st).inverse()
         p_g = np.array([np.sum(Hinv * ne_rim.dense()), np.sum(Hinv * ne_st.dense())])
-        ss = np.array([np.sum(hub[:m_rim] * r_raw[:m_rim] ** 2), np.sum(hub[m_rim:] * r_raw[m_rim:] ** 2)])
-        nn = np.array([np.sum(hub[:m_rim]), np.sum(hub[m_rim:])])
+        # scale from the points within huber_c sigma (a truncated Gaussian: E[u² | |u| <= c] =
+        # 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3), so that gross outliers do not inflate it
+        inl = hub >= 1.0
+        ss = np.array([np.sum(r_raw[:m_rim][inl[:m_rim]] ** 2), np.sum(r_raw[m_rim:][inl[m_rim:]] ** 2)])
+        nn = np.array([np.sum(inl[:m_rim]), np.sum(inl[m_rim:])], float)
+        kappa = 1.0
+        if huber_c is not None:
+            c = float(huber_c)
+            pin = math.erf(c / math.sqrt(2))
+            kappa = 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / pin
         if noise == "per_type":
-            sig = np.sqrt(ss / np.maximum(nn - p_g, 1.0))
+            sig = np.sqrt(ss / (kappa * np.maximum(nn - p_g, 1.0)))
         else:
-            sig[:] = np.sqrt(ss.sum() / max(nn.sum() - prob.p, 1.0))
+            sig[:] = np.sqrt(ss.sum() / (kappa * max(nn.sum() - prob.p, 1.0)))
     # final: covariance from the weighted normal equations
     if n_rounds == 0:
         sig = np.full(2, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
