@@ -66,7 +66,8 @@ def _board_edge_residuals(img, camera, R, t, square_mm):
 
 def test_board_edges_on_projected_lines():
     cam = default_camera().pinhole()
-    ds = render_chessboard_dataset(n=2, seed=3, camera=cam, difficulty="clean", noise=False)
+    ds = render_chessboard_dataset(n=2, seed=3, board=BOARD, square_mm=8.0, camera=cam, difficulty="clean",
+                                   noise=False)
     sq = ds.truth["board"]["square_mm"]
     res = np.concatenate([_board_edge_residuals(img, cam, np.asarray(v["T_cam_board"]["R"]),
                                                 np.asarray(v["T_cam_board"]["t"]), sq)
@@ -80,7 +81,9 @@ def test_board_edges_on_projected_lines():
 
 @pytest.fixture(scope="module")
 def fifteen_boards():
-    return render_chessboard_dataset(n=15, seed=0, difficulty="clean")
+    # the original small-board capture (the renderer's check, issue 3)
+    return render_chessboard_dataset(n=15, seed=0, board=BOARD, square_mm=8.0, tilt_deg=(10.0, 45.0),
+                                     distance_mm=(330.0, 560.0), centre_frac=0.4, difficulty="clean")
 
 
 def _opencv_corners(img):

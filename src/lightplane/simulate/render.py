@@ -54,6 +54,8 @@ __all__ = [
     "check_output_dir",
     "sample_board_poses",
     "board_corners",
+    "CALIBRATION_CAPTURE",
+    "STRIPE_CAPTURE",
 ]
 
 DIFFICULTIES = ("clean", "realistic", "hard")
@@ -529,14 +531,18 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
                        board: tuple[int, int] = (9, 6), square_mm: float = 8.0,
                        distance_mm: tuple[float, float] = (330.0, 560.0), tilt_deg: tuple[float, float] = (10.0, 45.0),
                        plane: LightPlane | None = None, min_stripe_frac: float = 0.5,
-                       margin_px: float = 15.0, max_tries: int = 20000) -> list[tuple[np.ndarray, np.ndarray]]:
+                       margin_px: float = 15.0, centre_frac: float = 0.4, spin_deg: float = 30.0,
+                       max_tries: int = 20000) -> list[tuple[np.ndarray, np.ndarray]]:
     """Random chessboard poses ``(R_cam_board (3, 3), t_cam_board (3,) mm)``, whole board in view.
 
     The board (inner corners ``board = (cols, rows)``, plus a white margin of one
-    square) faces the camera, tilted by ``tilt_deg`` about a random in-plane axis and
-    turned by up to ±30° about its normal.  With ``plane``, only poses where the
-    stripe crosses the inner-corner area over at least ``min_stripe_frac`` of the
-    board's width (or height) are kept.
+    square) faces the camera, its centre on the ray of a pixel drawn uniformly from the
+    central ``centre_frac`` of the image's width and height, at ``distance_mm`` from the
+    camera, tilted by ``tilt_deg`` about a random in-plane axis and turned by up to
+    ``±spin_deg`` about its normal; poses whose board outline leaves the image (less
+    ``margin_px``) are redrawn.  With ``plane``, only poses where the stripe crosses the
+    inner-corner area over at least ``min_stripe_frac`` of the board's width (or height)
+    are kept.  :data:`CALIBRATION_CAPTURE` holds the design used for camera calibration.
     """
     camera = default_camera() if camera is None else camera
     cols, rows = board
@@ -547,13 +553,14 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
     for _ in range(max_tries):
         if len(out) == n:
             break
-        uv = rng.uniform([0.3 * camera.width, 0.3 * camera.height], [0.7 * camera.width, 0.7 * camera.height])
+        lo, hi = 0.5 - centre_frac / 2, 0.5 + centre_frac / 2
+        uv = rng.uniform([lo * camera.width, lo * camera.height], [hi * camera.width, hi * camera.height])
         ray = camera.rays(uv[None])[0]
         dist = rng.uniform(*distance_mm)
         C = ray / np.linalg.norm(ray) * dist
         phi = rng.uniform(0, 2 * np.pi)
         tilt = np.deg2rad(rng.uniform(*tilt_deg))
-        spin = np.deg2rad(rng.uniform(-30, 30))
+        spin = np.deg2rad(rng.uniform(-spin_deg, spin_deg))
         R = _rotation([np.cos(phi), np.sin(phi), 0.0], tilt) @ _rotation([0, 0, 1.0], spin)
         t = C - R @ centre_b
         corners_cam = outline @ R.T + t
@@ -578,10 +585,29 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
     return out
 
 
-def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int] = (9, 6), square_mm: float = 8.0,
-                              with_stripe: bool = False, *, laser_off: bool = False, difficulty: str = "clean",
+#: Chessboard capture designed for Zhang calibration of the default 16 mm camera (field
+#: of view ~135 x 100 mm at 450 mm): a 15 x 11 inner-corner board of 8 mm squares
+#: (144 x 112 mm with its margin) filling much of the image, strongly tilted (25–55°
+#: about random in-plane axes) at 350–650 mm, its centre anywhere in the central 80 %
+#: of the image so the image corners are covered.  With this narrow field of view the
+#: principal point is tied to the tangential distortion (a shift of the principal point
+#: is nearly a rotation of the camera plus p1, p2); the board size and view count set
+#: how well they are separated (see benchmarks/bench_calibrate.py).
+CALIBRATION_CAPTURE = {"board": (15, 11), "square_mm": 8.0, "distance_mm": (350.0, 650.0),
+                       "tilt_deg": (25.0, 55.0), "centre_frac": 0.8, "spin_deg": 30.0}
+#: Capture of boards crossed by the stripe (Zhou's method, cross ratios): a small board
+#: near the image centre, where the stripe is.
+STRIPE_CAPTURE = {"board": (9, 6), "square_mm": 8.0, "distance_mm": (330.0, 560.0),
+                  "tilt_deg": (10.0, 45.0), "centre_frac": 0.4, "spin_deg": 30.0}
+
+
+def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int] | None = None,
+                              square_mm: float | None = None, with_stripe: bool = False, *,
+                              laser_off: bool = False, difficulty: str = "clean",
                               camera: Camera | None = None, plane: LightPlane | None = None, noise: bool = True,
-                              samples: int = 4, edge_samples: int = 16, progress=None) -> Dataset:
+                              samples: int = 4, edge_samples: int = 16, distance_mm: tuple[float, float] | None = None,
+                              tilt_deg: tuple[float, float] | None = None, centre_frac: float | None = None,
+                              progress=None) -> Dataset:
     """``n`` views of a chessboard (``board`` inner corners ``(cols, rows)``, ``square_mm``).
 
     The board: ``(cols + 1) x (rows + 1)`` squares, the first one dark, a white margin of
@@ -590,9 +616,18 @@ def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int]
     so the stripe crosses its corners (for Zhou's method and the cross-ratio check,
     SPEC §8); ``laser_off`` adds, for each view, a companion image of the same pose with
     the laser off (``board_XXX_off.png``).
+    ``board``, ``square_mm``, ``distance_mm`` (board centre), ``tilt_deg`` and
+    ``centre_frac`` (see :func:`sample_board_poses`) left as None take
+    :data:`CALIBRATION_CAPTURE` without the stripe and :data:`STRIPE_CAPTURE` with it.
     Truth per view: ``T_cam_board`` (``R``, ``t`` mm), the corners projected (distorted and
     undistorted px), and with the stripe the 3-D segment of the plane across the corner area.
     """
+    design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
+    board = design["board"] if board is None else board
+    square_mm = design["square_mm"] if square_mm is None else square_mm
+    distance_mm = design["distance_mm"] if distance_mm is None else tuple(distance_mm)
+    tilt_deg = design["tilt_deg"] if tilt_deg is None else tuple(tilt_deg)
+    centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
     n = _check_n(n)
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
     cols, rows = int(board[0]), int(board[1])
@@ -605,7 +640,8 @@ def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int]
     imaging = _IMAGING[difficulty]
     rng = np.random.default_rng(seed)
     poses = sample_board_poses(n, rng, camera=camera, board=(cols, rows), square_mm=square_mm,
-                               plane=plane if with_stripe else None)
+                               distance_mm=distance_mm, tilt_deg=tilt_deg, centre_frac=centre_frac,
+                               spin_deg=design["spin_deg"], plane=plane if with_stripe else None)
     obj = board_corners((cols, rows), square_mm)
     u0, u1, v0, v1 = _board_outline((cols, rows), square_mm, square_mm)
     images, names, views = [], [], []
@@ -656,6 +692,7 @@ def render_chessboard_dataset(n: int = 15, seed: int = 0, board: tuple[int, int]
         "imaging": imaging.__dict__,
         "seed": seed,
         "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
+                    "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
                     "with_stripe": with_stripe, "laser_off": laser_off, "difficulty": difficulty},
         "views": views,
     }
