@@ -17,8 +17,8 @@ import numpy as np
 from .camera import Camera
 from .errors import LightplaneError
 
-__all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "board_points", "calibrate_camera",
-           "plot_residuals", "INTRINSIC_NAMES"]
+__all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "board_points",
+           "calibrate_camera", "plot_residuals", "INTRINSIC_NAMES"]
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
@@ -33,14 +33,80 @@ def board_points(board: tuple[int, int], square_mm: float) -> np.ndarray:
     return np.column_stack([xs.ravel() * square_mm, ys.ravel() * square_mm, np.zeros(cols * rows)])
 
 
-def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True) -> np.ndarray | None:
+def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, *, sigma_frac: float = 0.2,
+                   radius_frac: float = 0.6, max_radius_px: float = 30.0, max_iter: int = 30,
+                   tol_px: float = 1e-5) -> np.ndarray:
+    """Chessboard corners refined by gradient orthogonality on the pixel grid, ``(N, 2)`` px.
+
+    Each corner ``q`` solves ``sum_p w(p - q) g_p g_p^T (q - p) = 0`` (Förstner's
+    operator, as ``cv2.cornerSubPix``): the image gradient ``g_p`` (Scharr) at every
+    pixel ``p`` near the corner is orthogonal to ``p - q`` on the two board edges through
+    it.  Unlike ``cornerSubPix`` the sums run over the integer pixel grid (no bilinear
+    resampling of the image at sub-pixel offsets, whose phase-dependent error is
+    ~0.01 px) with a Gaussian weight ``w`` of σ = ``sigma_frac * spacing_px`` re-centred
+    on ``q`` at each iteration, cut at ``radius_frac * spacing_px`` (< 1 spacing: only the
+    two edges of this corner).  ``spacing_px`` is the smallest corner spacing on the
+    board (foreshortened).  On rendered 13x9 boards tilted 30–60° (realistic noise) the
+    error against the exact corners drops from 0.029 px RMS (cornerSubPix) to 0.019 px;
+    noise-free from 0.020 to 0.011 px.  Corners whose solve is singular, or that move
+    by more than a quarter of the spacing, keep their input position.
+    """
+    import cv2
+
+    g = np.asarray(gray, dtype=np.float64)
+    if g.ndim != 2:
+        raise LightplaneError(f"refine_corners: gray must be a 2-D image, got shape {g.shape}")
+    q0 = np.asarray(corners_uv, dtype=np.float64).reshape(-1, 2)
+    if not spacing_px > 0:
+        raise LightplaneError(f"refine_corners: spacing_px must be positive, got {spacing_px}")
+    gx = cv2.Scharr(g, cv2.CV_64F, 1, 0) / 32.0
+    gy = cv2.Scharr(g, cv2.CV_64F, 0, 1) / 32.0
+    h, w = g.shape
+    radius = max(2.0, min(radius_frac * spacing_px, max_radius_px))
+    sigma = sigma_frac * spacing_px * radius / (radius_frac * spacing_px)
+    r = int(np.ceil(radius))
+    oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
+    ox, oy = ox.ravel(), oy.ravel()
+    q = q0.copy()
+    for _ in range(max_iter):
+        base = np.round(q).astype(int)
+        px = np.clip(base[:, :1] + ox, 0, w - 1)
+        py = np.clip(base[:, 1:] + oy, 0, h - 1)
+        dx, dy = px - q[:, :1], py - q[:, 1:]
+        d2 = dx**2 + dy**2
+        wt = np.exp(-d2 / (2.0 * sigma**2)) * (d2 <= radius**2)
+        a, b = gx[py, px], gy[py, px]
+        axx, axy, ayy = (wt * a * a).sum(1), (wt * a * b).sum(1), (wt * b * b).sum(1)
+        bx = (wt * (a * a * px + a * b * py)).sum(1)
+        by = (wt * (a * b * px + b * b * py)).sum(1)
+        det = axx * ayy - axy**2
+        ok = det > 1e-12 * np.maximum(axx * ayy, 1e-300)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            qn = np.column_stack([(ayy * bx - axy * by) / det, (axx * by - axy * bx) / det])
+        qn[~ok] = q[~ok]
+        step = np.abs(qn - q).max() if len(q) else 0.0
+        q = qn
+        if step < tol_px:
+            break
+    bad = ~np.all(np.isfinite(q), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * spacing_px)
+    q[bad] = q0[bad]
+    return q
+
+
+def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True,
+               refine: bool = False) -> np.ndarray | None:
     """Chessboard inner corners ``(cols*rows, 2)`` (distorted px) or None if not found.
 
     ``cv2.findChessboardCornersSB`` finds the board robustly; ``cv2.cornerSubPix``
     then refines each corner with a half-window of 30 % of the local corner
     spacing (at most 11 px), as OpenCV's classic pipeline does.  That refinement
     reproduces the published Ciclop calibration to 0.01 px, where the SB
-    detector's own sub-pixel estimate differs by up to 0.9 px in cy.
+    detector's own sub-pixel estimate differs by up to 0.9 px in cy.  With ``refine``
+    (and ``subpix``) :func:`refine_corners` then polishes them on the pixel grid with
+    a wider window (0.6 spacing), which lowers the corner error by ~1.5x on rendered
+    boards (see its docstring); off by default because the wider window also takes in
+    a laser stripe crossing the board (Zhou's images): :func:`calibrate_camera`, whose
+    boards carry no stripe, turns it on.
     """
     import cv2
 
@@ -64,6 +130,8 @@ def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True
         half = int(np.clip(np.floor(0.3 * spacing), 2, 11))
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
         c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
+        if refine and spacing >= 8:
+            return refine_corners(gray, c, float(spacing))
     return c.astype(np.float64)
 
 
@@ -134,6 +202,7 @@ def calibrate_camera(
     flags: int = 0,
     rotate_deg: int = 0,
     min_views: int = 3,
+    refine: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsCalibration:
     """Zhang calibration from chessboard images (SPEC §3).
@@ -146,6 +215,9 @@ def calibrate_camera(
     flags : ``cv2.CALIB_*`` flags for ``calibrateCameraExtended`` (0: 5 coefficients, as OpenCV's default)
     rotate_deg : clockwise rotation applied to path inputs on reading (0/90/180/270)
     min_views : fewer usable views raise :class:`LightplaneError`
+    refine : polish the corners with :func:`refine_corners` (see :func:`find_board`); on
+        rendered realistic boards it lowers OpenCV's std of cx, cy by ~1.6x; on the real
+        Ciclop captures the RMS drops from 0.242 to 0.223 px and cx moves by 0.4 px
 
     All images must have one size.  Views where the board is not found are listed
     in ``not_found``.
@@ -169,7 +241,7 @@ def calibrate_camera(
             size = (w, h)
         elif size != (w, h):
             raise LightplaneError(f"{name}: size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px")
-        views.append(BoardView(name, find_board(img, board), (w, h)))
+        views.append(BoardView(name, find_board(img, board, refine=refine), (w, h)))
         if progress:
             progress(i + 1, len(images))
     found = [v for v in views if v.corners_uv is not None]
@@ -212,7 +284,7 @@ def calibrate_camera(
         board=tuple(board),
         square_mm=float(square_mm),
         flags=int(flags),
-        options={"rotate_deg": rotate_deg},
+        options={"rotate_deg": rotate_deg, "refine": refine},
     )
 
 
