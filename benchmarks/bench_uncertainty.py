@@ -42,7 +42,8 @@ BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
 CONFIGS = {
     "shared (old)": dict(noise="shared", huber_c=None, correlated=False),
     "per_type, white": dict(correlated=False),
-    "per_type+corr (new)": {},
+    "per_type+corr (new)": dict(noise="per_type"),
+    "per_placement+corr": dict(noise="per_placement"),
 }
 
 

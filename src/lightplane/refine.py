@@ -627,7 +627,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     poses0 : list of poses
         Start values, objects with ``center`` (mm) and unit ``normal`` (the chosen
         candidate of :func:`lightplane.circle_pose.circle_poses`).
-    noise : ``"per_type"`` (default) or ``"shared"``
+    noise : ``"per_type"`` (default), ``"per_placement"`` or ``"shared"``
         ``per_type``: rim points and stripe points have their own noise sigma, each
         estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
         in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
@@ -637,7 +637,8 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
         3–4x more than the rim's edge points (speckle), so one shared sigma
         under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
-        all points (the original model; no reweighting).
+        all points (the original model; no reweighting).  ``per_placement``: a sigma per type
+        *and* placement (stripes differ in brightness, width and speckle from image to image).
     huber_c : float or None
         Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
         3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
@@ -673,8 +674,8 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
     if not isinstance(plane0, LightPlane):
         raise LightplaneError(f"plane0 must be a LightPlane, got {type(plane0).__name__}")
-    if noise not in ("per_type", "shared"):
-        raise LightplaneError(f"noise must be 'per_type' or 'shared', got {noise!r}")
+    if noise not in ("per_type", "per_placement", "shared"):
+        raise LightplaneError(f"noise must be 'per_type', 'per_placement' or 'shared', got {noise!r}")
     if huber_c is not None and not huber_c > 0:
         raise LightplaneError(f"huber_c must be positive or None, got {huber_c}")
     rims, stripes = _check_inputs(float(radius_mm), list(rims_uv), list(stripes_uv), list(poses0))
@@ -682,80 +683,73 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     if prob.m <= prob.p:
         raise LightplaneError(f"refine_ml: {prob.m} points cannot determine {prob.p} parameters")
     m_rim, m_st = prob.m_rim, prob.m - prob.m_rim
+    is_rim = np.arange(prob.m) < m_rim
+    # noise groups: one sigma each
+    if noise == "shared":
+        grp = np.zeros(prob.m, int)
+    elif noise == "per_type":
+        grp = (~is_rim).astype(int)
+    else:
+        grp = np.concatenate([prob.rim_idx, prob.n + prob.st_idx]).astype(int)
+    n_grp = int(grp.max()) + 1
     x, nfev, converged = _levenberg_marquardt(prob, prob.x0, max_iter=max_iter)
-    n_rounds = int(rounds) if noise == "per_type" or huber_c is not None else 0
+    n_rounds = int(rounds) if noise != "shared" or huber_c is not None else 0
     r_raw = prob.residuals(x) / prob.row_w
     hub = np.ones(prob.m)
     # robust start: MAD of each group's residuals (residuals have zero mean)
-    sig = np.array([1.4826 * np.median(np.abs(r_raw[:m_rim])), 1.4826 * np.median(np.abs(r_raw[m_rim:]))])
-    if noise == "shared":
-        sig[:] = 1.4826 * np.median(np.abs(r_raw))
+    sig = np.array([1.4826 * np.median(np.abs(r_raw[grp == g])) for g in range(n_grp)])
+    kappa = 1.0
+    if huber_c is not None:
+        # scale from the points within huber_c sigma (a truncated Gaussian: E[u² | |u| <= c] =
+        # 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3), so that gross outliers do not inflate it
+        c = float(huber_c)
+        kappa = 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / math.erf(c / math.sqrt(2))
+    tau_w = np.ones(2)  # long-run variance factors used in the weights (rim, stripe)
     for _round in range(n_rounds):
         sig = np.maximum(sig, 1e-9)
-        s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
+        s_rows = sig[grp]
         hub = _huber_weights(r_raw / s_rows, huber_c) if huber_c is not None else np.ones(prob.m)
-        prob.set_row_weights(np.sqrt(hub) / s_rows)
+        if correlated and _round > 0:
+            tau_w = _residual_tau(prob, r_raw / s_rows, huber_c)
+        prob.set_row_weights(np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, tau_w[0], tau_w[1]))))
         x, nf, converged = _levenberg_marquardt(prob, x, max_iter=max_iter)
         nfev += nf
         r_raw = prob.residuals(x) / prob.row_w
-        # re-estimate each group's sigma with its degrees of freedom
+        # re-estimate each group's sigma with its degrees of freedom (its rows' leverages)
         r_w, Jb = prob.evaluate(x, want_jac=True)
-        ne_rim, ne_st = prob.group_normals(r_w, Jb)
-        Hinv = _add_normals(ne_rim, ne_st).inverse()
-        p_g = np.array([np.sum(Hinv * ne_rim.dense()), np.sum(Hinv * ne_st.dense())])
-        # scale from the points within huber_c sigma (a truncated Gaussian: E[u² | |u| <= c] =
-        # 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3), so that gross outliers do not inflate it
+        Hinv = prob.normal_equations(r_w, Jb).inverse()
+        p_g = np.bincount(grp, _row_leverages(prob, Jb, Hinv), minlength=n_grp)
         inl = hub >= 1.0
-        ss = np.array([np.sum(r_raw[:m_rim][inl[:m_rim]] ** 2), np.sum(r_raw[m_rim:][inl[m_rim:]] ** 2)])
-        nn = np.array([np.sum(inl[:m_rim]), np.sum(inl[m_rim:])], float)
-        kappa = 1.0
-        if huber_c is not None:
-            c = float(huber_c)
-            pin = math.erf(c / math.sqrt(2))
-            kappa = 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / pin
-        if noise == "per_type":
-            sig = np.sqrt(ss / (kappa * np.maximum(nn - p_g, 1.0)))
-        else:
-            sig[:] = np.sqrt(ss.sum() / (kappa * max(nn.sum() - prob.p, 1.0)))
+        ss = np.bincount(grp, np.where(inl, r_raw**2, 0.0), minlength=n_grp)
+        nn = np.bincount(grp, inl.astype(float), minlength=n_grp)
+        sig = np.sqrt(ss / (kappa * np.maximum(nn - p_g, 1.0)))
     # final: covariance from the weighted normal equations
     if n_rounds == 0:
-        sig = np.full(2, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
+        sig = np.full(n_grp, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
     sig = np.maximum(sig, 1e-9)  # noise-free data: keep the weights finite
-    s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
-    prob.set_row_weights(np.sqrt(hub) / s_rows)
+    s_rows = sig[grp]
+    prob.set_row_weights(np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, tau_w[0], tau_w[1]))))
     r_w, Jb = prob.evaluate(x, want_jac=True)
     ne_rim, ne_st = prob.group_normals(r_w, Jb)
     H = _add_normals(ne_rim, ne_st)
     Hinv = H.inverse()
     dof = prob.m - prob.p
     sigma = float(np.sqrt(np.sum(r_raw ** 2) / dof))
-    tau = np.ones(2)
-    if correlated:
-        s_rows = np.concatenate([np.full(m_rim, sig[0]), np.full(m_st, sig[1])])
-        u = r_raw / np.maximum(s_rows, 1e-300)
-        if huber_c is not None:
-            u = np.clip(u, -huber_c, huber_c)  # winsorised: an outlier must not fake a correlation
-        u_rim, u_st = u[:m_rim], u[m_rim:]
-        seq_r, bas_r, seq_s, bas_s = [], [], [], []
-        for i in range(prob.n):
-            a, b = prob.rim_starts[i], (prob.rim_starts[i + 1] if i + 1 < prob.n else m_rim)
-            o = prob.rim_order[i]
-            xy = prob.rim_x[a:b, :2][o]
-            th = np.arctan2(*(xy - xy.mean(axis=0)).T[::-1])
-            seq_r.append(u_rim[a:b][o])
-            bas_r.append(np.column_stack([np.ones(len(th)), np.cos(th), np.sin(th), np.cos(2 * th), np.sin(2 * th)]))
-            a, b = prob.st_starts[i], (prob.st_starts[i + 1] if i + 1 < prob.n else m_st)
-            o = prob.st_order[i]
-            t = np.linspace(-1.0, 1.0, len(o))
-            seq_s.append(u_st[a:b][o])
-            bas_s.append(np.column_stack([np.ones(len(o)), t]))
-        tau = np.array([integrated_autocorr_time(seq_r, bas_r)[0], integrated_autocorr_time(seq_s, bas_s)[0]])
-    Hd = H.dense()
-    cov_white = Hinv
-    M = tau[0] * ne_rim.dense() + tau[1] * ne_st.dense()
+    # per type: pooled over its groups (with their degrees of freedom)
+    lev = _row_leverages(prob, Jb, Hinv)
+    inl = hub >= 1.0
+    sig_type = np.array([np.sqrt(np.sum(np.where(inl & t, r_raw**2, 0.0))
+                                 / (kappa * max(np.sum(inl & t) - np.sum(lev[t]), 1.0))) for t in (is_rim, ~is_rim)])
+    if n_rounds == 0:
+        sig_type[:] = sig[0]
+    tau = _residual_tau(prob, r_raw / s_rows, huber_c) if correlated else np.ones(2)
+    # sandwich H⁻¹ M H⁻¹: rows were weighted with tau_w, the noise has tau (see the docstring)
+    ne_rim_w, ne_st_w = _scale_normals(ne_rim, tau_w[0]), _scale_normals(ne_st, tau_w[1])
+    M = (tau[0] / tau_w[0]) * ne_rim.dense() + (tau[1] / tau_w[1]) * ne_st.dense()
     cov = Hinv @ M @ Hinv
     cov = 0.5 * (cov + cov.T)
-    del Hd
+    # what a white-noise model with these sigmas would claim: (Σ_g J_gᵀJ_g / sigma_g²)⁻¹
+    cov_white = _add_normals(ne_rim_w, ne_st_w).inverse()
     nvec, dn, d, C, N, dN = prob.unpack(x)
     G = plane_param_jacobian(dn)
     cov4 = G @ cov[:3, :3] @ G.T
@@ -773,7 +767,8 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     rim_rms = np.array([np.sqrt(np.mean(r_rim[prob.rim_idx == i] ** 2)) for i in range(prob.n)])
     st_rms = np.array([np.sqrt(np.mean(r_st[prob.st_idx == i] ** 2)) for i in range(prob.n)])
     meta = dict(plane0.meta)
-    meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig[0]), "sigma_stripe_px": float(sig[1]),
+    meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig_type[0]),
+                 "sigma_stripe_px": float(sig_type[1]),
                  "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise})
     plane = LightPlane(nvec, d, cov4, meta=meta)
     # orient each normal towards the camera (SPEC §2)
@@ -784,9 +779,52 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     return MLResult(plane=plane, covariance=plane.covariance, poses=poses, sigma_px=sigma, rim_rms_px=rim_rms,
                     stripe_rms_px=st_rms, iterations=nfev, pose_covariances=pose_covs,
                     n_residuals=prob.m, n_params=prob.p, converged=converged,
-                    sigma_rim_px=float(sig[0]), sigma_stripe_px=float(sig[1]), tau_rim=float(tau[0]),
+                    sigma_rim_px=float(sig_type[0]), sigma_stripe_px=float(sig_type[1]), tau_rim=float(tau[0]),
                     tau_stripe=float(tau[1]), covariance_white=cov4_white,
                     n_outliers=int(np.sum(hub < 1.0)))
+
+
+def _residual_tau(prob: "_Problem", u: np.ndarray, huber_c: float | None) -> np.ndarray:
+    """(2,) integrated autocorrelation times of the standardised residuals ``u`` (m,): rim, stripe.
+
+    Rim points in the order of their angle about the rim's centroid (harmonics 0–2 removed),
+    stripe points along the chord (offset and slope removed): :func:`integrated_autocorr_time`.
+    """
+    if huber_c is not None:
+        u = np.clip(u, -huber_c, huber_c)  # winsorised: an outlier must not fake a correlation
+    m_rim, m_st = prob.m_rim, prob.m - prob.m_rim
+    u_rim, u_st = u[:m_rim], u[m_rim:]
+    seq_r, bas_r, seq_s, bas_s = [], [], [], []
+    for i in range(prob.n):
+        a, b = prob.rim_starts[i], (prob.rim_starts[i + 1] if i + 1 < prob.n else m_rim)
+        o = prob.rim_order[i]
+        xy = prob.rim_x[a:b, :2][o]
+        th = np.arctan2(*(xy - xy.mean(axis=0)).T[::-1])
+        seq_r.append(u_rim[a:b][o])
+        bas_r.append(np.column_stack([np.ones(len(th)), np.cos(th), np.sin(th), np.cos(2 * th), np.sin(2 * th)]))
+        a, b = prob.st_starts[i], (prob.st_starts[i + 1] if i + 1 < prob.n else m_st)
+        o = prob.st_order[i]
+        seq_s.append(u_st[a:b][o])
+        bas_s.append(np.column_stack([np.ones(len(o)), np.linspace(-1.0, 1.0, len(o))]))
+    return np.array([integrated_autocorr_time(seq_r, bas_r)[0], integrated_autocorr_time(seq_s, bas_s)[0]])
+
+
+def _scale_normals(a: "_Normal", f: float) -> "_Normal":
+    return _Normal(a.A * f, a.B * f, a.D * f, a.gp * f, a.gi * f)
+
+
+def _row_leverages(prob: "_Problem", Jb, Hinv: np.ndarray) -> np.ndarray:
+    """(m,) diagonal of the hat matrix ``J H⁻¹ Jᵀ`` of the (weighted) rows, from the block Jacobian."""
+    J_rim, J_sp, J_spose = Jb
+    n = prob.n
+    idx = 3 + 5 * np.arange(n)[:, None] + np.arange(5)  # (n, 5) pose columns
+    Hpp = Hinv[idx[:, :, None], idx[:, None, :]]  # (n, 5, 5)
+    lev_r = np.einsum("ij,ijk,ik->i", J_rim, Hpp[prob.rim_idx], J_rim)
+    cols = np.concatenate([np.tile(np.arange(3), (n, 1)), idx], axis=1)  # (n, 8) plane + pose i
+    Hb = Hinv[cols[:, :, None], cols[:, None, :]]  # (n, 8, 8)
+    Js = np.concatenate([J_sp, J_spose], axis=1)
+    lev_s = np.einsum("ij,ijk,ik->i", Js, Hb[prob.st_idx], Js)
+    return np.concatenate([lev_r, lev_s])
 
 
 def _add_normals(a: "_Normal", b: "_Normal") -> "_Normal":
