@@ -1,24 +1,30 @@
 """Benchmark of light-plane calibration from images (issue 7): accuracy and speed.
 
 Renders (cached under ``benchmarks/out/renders``) 12-image circle-target data sets —
-realistic light and dark polarity, hard light and dark — and 15 chessboards, then:
+realistic light and dark polarity, hard light and dark — and ``N_BOARDS`` chessboards of
+the calibration capture (:data:`lightplane.simulate.render.CALIBRATION_CAPTURE`: 15x11
+corners of 8 mm, tilted 25–55°, over the whole image), then:
 
+- the camera calibrated from the chessboards (k3 fixed) against the renderer's camera:
+  error of fx, fy, cx, cy with OpenCV's std;
 - accuracy against the exact truth of the renders, with the true camera and with the
   camera calibrated from the rendered chessboards, for ``ml``, ``global`` and ``paper``
   (one set of image observations solved by each method): normal angle (deg), offset
   of the plane at the optical axis (mm), RMS triangulation error over the working
-  volume 380–520 mm (mm; in the camera frame, and after the best rigid alignment,
-  which removes the frame rotation a principal-point error causes: the rendered
-  chessboards fix the principal point only to ~1-4 px (OpenCV's own std ~1.3 px), which
-  turns the camera frame by ~0.03-0.06 deg and moves points at 450 mm by 0.3-0.45 mm in
-  camera coordinates while distances and shapes stay right; the "calibrated camera"
-  bar is therefore checked on the aligned error);
+  volume 380–520 mm (mm; in the camera frame — the number checked — and, alongside,
+  after the best rigid alignment, which removes the frame rotation a principal-point
+  error causes: ~0.1 mm at 450 mm per px of cx or cy error);
 - targets: normal <= 0.01 deg, offset <= 0.02 mm, triangulation <= 0.02 mm RMS (true
   camera), <= 0.03 mm (calibrated camera); hard renders within 1.5x;
 - speed: ``calibrate_plane`` on 12 images of 1280x960 (reading included) with 1 and 2
   workers, processes and threads, median of ``--repeats`` runs; target <= 3 s.
 
-    .venv/bin/python benchmarks/bench_calibrate.py [--repeats 3] [--no-speed]
+With this 16 mm lens (17° field of view) the principal point is nearly interchangeable
+with a camera rotation plus tangential distortion; OpenCV's std of cx, cy with 30 views
+is ~0.3 px, i.e. ~0.03 mm at 450 mm: the calibrated-camera bar sits at the edge of what
+a planar-board calibration of this camera gives (see the report's rows and std).
+
+    .venv/bin/python benchmarks/bench_calibrate.py [--repeats 3] [--no-speed] [--boards-seed 1]
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from lightplane.plane import LightPlane
 CACHE = Path(__file__).resolve().parent / "out" / "renders"
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
 BAR_CALIBRATED_MM = 0.03
+N_BOARDS = 30
 
 
 def _circles(difficulty: str, polarity: str) -> Path:
@@ -52,44 +59,50 @@ def _circles(difficulty: str, polarity: str) -> Path:
     return out
 
 
-def _boards() -> Path:
+def _boards(seed: int) -> Path:
     from lightplane.simulate.render import render_chessboard_dataset
 
-    out = CACHE / "boards_realistic_n15_s1"
+    out = CACHE / f"boards_capture_realistic_n{N_BOARDS}_s{seed}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
-        render_chessboard_dataset(n=15, seed=1, difficulty="realistic").save(out, force=True)
+        render_chessboard_dataset(n=N_BOARDS, seed=seed, difficulty="realistic").save(out, force=True)
     return out
 
 
-def _calibrated_camera(boards: Path) -> Camera:
+def _calibrated_camera(boards: Path):
     import cv2
 
     from lightplane.intrinsics import calibrate_camera
 
     truth = json.loads((boards / "truth.json").read_text())
     imgs = [read_image(boards / v["file"]) for v in truth["views"]]
-    ic = calibrate_camera(imgs, tuple(truth["board"]["inner_corners"]), truth["board"]["square_mm"],
-                          flags=cv2.CALIB_FIX_K3)
-    return ic.camera
+    return calibrate_camera(imgs, tuple(truth["board"]["inner_corners"]), truth["board"]["square_mm"],
+                            flags=cv2.CALIB_FIX_K3)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--boards-seed", type=int, default=1)
     args = ap.parse_args()
     if hasattr(os, "getloadavg"):
         print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs (wall times inflate under load)")
     CACHE.mkdir(parents=True, exist_ok=True)
     sets = [(d, p, _circles(d, p)) for d in ("realistic", "hard") for p in ("light", "dark")]
-    boards = _boards()
-    cam_cal = _calibrated_camera(boards)
-    print(f"camera from 15 rendered 9x6 chessboards of 8 mm squares (k3 fixed): fx {cam_cal.fx:.2f} px, cx {cam_cal.cx:.2f}, "
-          f"cy {cam_cal.cy:.2f} px, rms {cam_cal.rms_px:.3f} px")
-
+    boards = _boards(args.boards_seed)
+    ic = _calibrated_camera(boards)
+    cam_cal = ic.camera
+    cam_ref = Camera.load(boards / "camera.json")
+    bt = json.loads((boards / "truth.json").read_text())["board"]
+    print(f"camera from {len(ic.used)} rendered {bt['inner_corners'][0]}x{bt['inner_corners'][1]} chessboards of "
+          f"{bt['square_mm']:g} mm squares (seed {args.boards_seed}, k3 fixed), rms {ic.rms_px:.4f} px; "
+          "error vs the renderer's camera (OpenCV std):")
+    print("  " + "  ".join(f"{k} {getattr(cam_cal, k) - getattr(cam_ref, k):+.3f} ({ic.std[k]:.3f}) px"
+                           for k in ("fx", "fy", "cx", "cy"))
+          + f"  fx {100 * (cam_cal.fx / cam_ref.fx - 1):+.4f} %")
     print("\nAccuracy (12 images each; angle deg, offset mm at the optical axis, triangulation RMS mm over "
-          "380-520 mm; 'aligned' = after the best rigid alignment)")
+          "380-520 mm in the camera frame (checked) and 'aligned' = after the best rigid alignment (info))")
     hdr = (f"{'data set':<20} {'camera':<10} {'method':<7} {'used':>5} {'angle':>8} {'offset':>8} "
            f"{'tri RMS':>8} {'aligned':>8} {'sigma pred':>10}  verdict")
     print(hdr)
@@ -114,8 +127,10 @@ def main() -> None:
                     ok = (acc["angle_deg"] <= scale * BARS["angle_deg"] and abs(acc["offset_mm"]) <= scale * BARS["offset_mm"]
                           and acc["tri_rms_mm"] <= scale * BARS["tri_rms_mm"])
                 else:
-                    ok = acc["tri_rms_aligned_mm"] <= scale * BAR_CALIBRATED_MM
-                verdict = ("PASS" if ok else "FAIL") if method == "ml" else "(info)"
+                    ok = acc["tri_rms_mm"] <= scale * BAR_CALIBRATED_MM
+                bar = scale * (BARS["tri_rms_mm"] if cam_label == "true" else BAR_CALIBRATED_MM)
+                verdict = (("PASS" if ok else "FAIL") + f" ({acc['tri_rms_mm'] / bar:.2f}x bar)") if method == "ml" \
+                    else "(info)"
                 pred = acc.get("point_sigma_rms_mm")
                 print(f"{diff + ' ' + pol:<20} {cam_label:<10} {method:<7} {cal.n_used:>2}/{len(files):<2} "
                       f"{acc['angle_deg']:>8.4f} {acc['offset_mm']:>+8.4f} {acc['tri_rms_mm']:>8.4f} "
