@@ -341,6 +341,7 @@ class PlaneCalibration:
             "ambiguity": None if self.ambiguity is None else self.ambiguity.to_dict(),
             "warnings": list(self.warnings),
             "iterations": self.iterations,
+            "noise_model": self.plane.meta.get("noise_model"),
             "images": [p.to_dict() for p in self.placements],
         }
 
@@ -953,7 +954,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
                                 max_rim_rms_px: float = 3.0, min_normal_spread_deg: float = 5.0,
                                 max_exhaustive: int = 16, min_placements: int = 3, strict: bool = True,
                                 paper_rel_change: float = 1e-3,
-                                rng: np.random.Generator | None = None) -> PlaneCalibration:
+                                rng: np.random.Generator | None = None,
+                                ml_options: dict | None = None) -> PlaneCalibration:
     """Calibrate the light plane from rim and stripe points of a circular target (paper §2.2, SPEC §7).
 
     Parameters
@@ -997,6 +999,11 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         ``paper``: the stopping rule, relative change of ``(a, b, c, d)`` (the paper's 0.1 %).
     rng : numpy Generator, optional
         For the sampling beyond ``max_exhaustive`` placements (default: seed 0).
+    ml_options : dict, optional
+        ``ml``: keyword options for :func:`lightplane.refine.refine_ml` (``noise``,
+        ``correlated``, ``huber_c``, ``rounds``, ``max_iter``).  The noise model it
+        found (rim and stripe sigmas in px, their correlation factors along the
+        curves, outliers) is kept in ``plane.meta["noise_model"]``.
 
     Tolerances (derived from the noise, see the notes above ``PlacementResult``):
     a candidate chord's expected RMS offset from the light plane is
@@ -1133,7 +1140,15 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
             raise LightplaneError(f"method 'ml' is not available ({e}); use 'global' or 'paper'") from None
         g_plane = LightPlane(normal, d)
         res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
-                                                             for i in used], g_plane, [poses_final[i] for i in used])
+                                                             for i in used], g_plane, [poses_final[i] for i in used],
+                        **(ml_options or {}))
+        noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
+                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe") if hasattr(res, k)}
+        if hasattr(res, "n_outliers"):
+            noise_model["n_outliers"] = int(res.n_outliers)
+        if not getattr(res, "converged", True):
+            warnings.append(f"the maximum-likelihood refinement stopped after {res.iterations} iterations "
+                            "without converging")
         plane = LightPlane(res.plane.normal, res.plane.d, res.covariance, meta={"method": "ml"})
         covariance = plane.covariance
         sigma_est = float(res.sigma_px)
@@ -1164,6 +1179,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         if not c.usable:
             warnings.append(f"placement {c.index} not used: {c.reason}")
     meta = {"method": method, "sigma_px": sigma_est, "n_used": len(used)}
+    if method == "ml":
+        meta["noise_model"] = noise_model
     if sigma_px is not None:
         meta["sigma_px_assumed"] = float(sigma_px)
     plane = LightPlane(plane.normal, plane.d, covariance, meta=meta)
