@@ -237,23 +237,29 @@ class Camera:
                 xy[redo] = self._newton_undistort(xy0.reshape(-1, 2).astype(np.float64), target[redo])
         return xy
 
+    def distortion_jacobian(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Entries ``(j11, j12, j21, j22)`` of ∂(x_d, y_d)/∂(x, y) at normalised undistorted ``xy`` (N, 2).
+
+        The derivative of the plumb-bob model of SPEC §3 (``j12 == j21``).
+        """
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+        j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+        j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+        j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+        return j11, j12, j12, j22
+
     def _newton_undistort(self, xy: np.ndarray, target: np.ndarray, iters: int = 20) -> np.ndarray:
         """Solve distort(xy) = target by Newton's method, starting from ``xy``."""
-        k1, k2, p1, p2, k3 = self.dist
         for _ in range(iters):
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-            fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - target[:, 0]
-            fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - target[:, 1]
-            j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-            j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-            j21 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-            j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+            f = self.distort_normalized(xy) - target
+            j11, j12, j21, j22 = self.distortion_jacobian(xy)
             det = j11 * j22 - j12 * j21
-            dx = (j22 * fx - j12 * fy) / det
-            dy = (-j21 * fx + j11 * fy) / det
+            dx = (j22 * f[:, 0] - j12 * f[:, 1]) / det
+            dy = (-j21 * f[:, 0] + j11 * f[:, 1]) / det
             xy = xy - np.column_stack([dx, dy])
             if not np.nanmax(np.abs(np.concatenate([dx, dy])), initial=0.0) > 1e-16:
                 break

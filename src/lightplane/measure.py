@@ -280,7 +280,7 @@ class ProfileMeasurer:
             uv = np.column_stack([ll.ravel(), sg.ravel()]) if self.axis == "columns" \
                 else np.column_stack([sg.ravel(), ll.ravel()])
             xy = self.camera.undistort_points(uv, normalized=True)
-            j11, j12, j21, j22 = _distortion_jacobian(self.camera.dist, xy)
+            j11, j12, j21, j22 = self.camera.distortion_jacobian(xy)
             det = j11 * j22 - j12 * j21
             d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
             n = ll.shape[0]
@@ -372,19 +372,6 @@ def smooth_centres(uv: np.ndarray, valid: np.ndarray, axis: str, window: int) ->
         if b - a >= window:
             out[a:b, k] = savgol_filter(uv[a:b, k], window, 2, mode="interp")
     return out
-
-
-def _distortion_jacobian(dist: np.ndarray, xy: np.ndarray):
-    """Entries (j11, j12, j21, j22) of d(distorted)/d(undistorted) at normalised ``xy`` (SPEC §3)."""
-    k1, k2, p1, p2, k3 = dist
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-    return j11, j12, j12, j22
 
 
 def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,

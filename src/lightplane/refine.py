@@ -154,14 +154,7 @@ def _tangent_basis(n: np.ndarray) -> np.ndarray:
 
 def _pixel_jacobian_inv_t(camera: Camera, xy: np.ndarray) -> np.ndarray:
     """(N, 2, 2): ``J⁻ᵀ`` with ``J = ∂(u, v)/∂(x, y)`` (distortion and K) at normalised ``xy``."""
-    k1, k2, p1, p2, k3 = camera.dist
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    j11, j12, _, j22 = camera.distortion_jacobian(xy)
     K = camera.K
     # J = [[fx, s], [0, fy]] @ [[j11, j12], [j12, j22]]
     a11 = K[0, 0] * j11 + K[0, 1] * j12
