@@ -33,7 +33,7 @@ __all__ = ["run_demo", "plane_accuracy", "fit_sphere", "DEMO_SETTINGS"]
 
 #: Sizes of the rendered data set (kept small: the demo runs in about a minute on 2 cores).
 DEMO_SETTINGS = {
-    "chessboards": 12,
+    "chessboards": 30,
     "circles": 12,
     "circle_difficulty": "realistic",
     "circle_polarity": "light",
@@ -42,8 +42,14 @@ DEMO_SETTINGS = {
     "scan_frames": 31,
     "scan_step_mm": 2.0,
     "diameter_mm": 50.0,
-    "board": (9, 6),
+    "board": (9, 6),  # the striped boards (Zhou's method, cross ratios)
     "square_mm": 8.0,
+    # the camera's chessboards: the calibration capture of lightplane.simulate.render
+    # (CALIBRATION_CAPTURE: 15x11 corners of 8 mm, tilted 25-55 deg, over the whole image),
+    # which fixes cx, cy to ~0.3 / 0.2 px (OpenCV std, 30 views) where 12 views of the small
+    # 9x6 board left them 1-4 px off (0.1 mm per px at 450 mm in the camera frame)
+    "camera_board": (15, 11),
+    "camera_square_mm": 8.0,
 }
 
 
@@ -146,8 +152,8 @@ def _render_job(kind: str, folder: str, seed: int, settings: dict) -> list[str]:
     from .simulate import render as R
 
     if kind == "chessboards":
-        ds = R.render_chessboard_dataset(n=settings["chessboards"], seed=seed + 1, board=settings["board"],
-                                         square_mm=settings["square_mm"], difficulty="realistic")
+        ds = R.render_chessboard_dataset(n=settings["chessboards"], seed=seed + 1, board=settings["camera_board"],
+                                         square_mm=settings["camera_square_mm"], difficulty="realistic")
     elif kind == "circles":
         ds = R.render_circle_dataset(n=settings["circles"], seed=seed, difficulty=settings["circle_difficulty"],
                                      polarity=settings["circle_polarity"], diameter_mm=settings["diameter_mm"])
@@ -283,7 +289,7 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
         from .intrinsics import calibrate_camera
 
         truth, files, imgs = _load_set(data / "chessboards")
-        ic = calibrate_camera(imgs, tuple(cfg["board"]), cfg["square_mm"], names=[f.name for f in files],
+        ic = calibrate_camera(imgs, tuple(cfg["camera_board"]), cfg["camera_square_mm"], names=[f.name for f in files],
                               flags=cv2.CALIB_FIX_K3)
         return ic
 
@@ -296,9 +302,10 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             camera.save_json(out / "camera.json", force=True)
             errs = {"fx_px": camera.fx - camera_true.fx, "fy_px": camera.fy - camera_true.fy,
                     "cx_px": camera.cx - camera_true.cx, "cy_px": camera.cy - camera_true.cy}
-            summary["camera"] = {"rms_px": ic.rms_px, "views": len(ic.used), "error_vs_truth_px": errs}
-            say(f"    RMS reprojection {ic.rms_px:.3f} px over {len(ic.used)} views; vs truth: "
-                + ", ".join(f"{k[:-3]} {v:+.2f} px" for k, v in errs.items()))
+            summary["camera"] = {"rms_px": ic.rms_px, "views": len(ic.used), "error_vs_truth_px": errs,
+                                 "std_px": {k: ic.std[k] for k in ("fx", "fy", "cx", "cy")}}
+            say(f"    RMS reprojection {ic.rms_px:.3f} px over {len(ic.used)} views; vs truth (OpenCV std): "
+                + ", ".join(f"{k[:-3]} {v:+.2f} ({ic.std[k[:-3]]:.2f}) px" for k, v in errs.items()))
     summary["camera_source"] = camera_source
 
     # ---- 4. light plane from circle images
