@@ -272,13 +272,16 @@ dt = time.perf_counter() - t
 stop = True
 time.sleep(0.2)
 me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-workers = sorted(hwm.values())[-2:]  # the two pool workers (the resource tracker is small)
-print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {max(workers):.0f} {me + sum(workers):.0f} {peak['total']:.0f}")
+workers = sorted(hwm.values())[-2:]  # pool worker processes, if any (none when threads are used)
+print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {max(workers, default=0):.0f} {me + sum(workers):.0f} {peak['total']:.0f}")
 """
 
 
 def memory(n_frames: int = 10_000) -> None:
-    print(f"== memory ({n_frames}-frame scan to binary PLY, 2 worker processes, fresh subprocess) ==")
+    from lightplane.scan import kernels_release_gil
+
+    how = "2 worker threads in one process" if kernels_release_gil() else "2 worker processes"
+    print(f"== memory ({n_frames}-frame scan to binary PLY, {how}, fresh subprocess) ==")
     speed_frames()
     src = CACHE / "speed_sphere_8.pkl"
     with tempfile.TemporaryDirectory() as d:
@@ -292,7 +295,7 @@ def memory(n_frames: int = 10_000) -> None:
         size = out.stat().st_size / 2**20
     print(f"{n} frames, {pts} points ({size:.0f} MB PLY) in {float(dt):.1f} s ({int(n) / float(dt):.0f} frames/s incl. "
           f"writing); peak RSS: main process {float(me):.0f} MB (getrusage; target < 500 MB: {float(me) / 500:.2f}x), "
-          f"worker peak {float(wk):.0f} MB (VmHWM), main + 2 workers {float(tot):.0f} MB ({float(tot) / 500:.2f}x of "
+          f"worker process peak {float(wk):.0f} MB (VmHWM; 0: threads), main + workers {float(tot):.0f} MB ({float(tot) / 500:.2f}x of "
           f"500 MB; largest simultaneous sum sampled every 0.1 s: {float(sampled):.0f} MB; shared pages count in each)")
 
 
