@@ -314,6 +314,10 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
             ("images used", f"{cal.n_used} of {len(cal.images)}"),
             ("target diameter", f"{cal.diameter_mm:g} mm"),
             ("estimated image noise σ", f"{_f(cal.sigma_px, '.3f')} px")]
+    nm = cal.plane.meta.get("noise_model") or {}
+    if nm.get("sigma_rim_px") is not None and nm.get("sigma_stripe_px") is not None:
+        rows.append(("noise model (ML)", f"rim {nm['sigma_rim_px']:.3f} px, stripe {nm['sigma_stripe_px']:.3f} px; "
+                                         f"correlation factors {nm.get('tau_rim', 1):.1f} / {nm.get('tau_stripe', 1):.1f}"))
     if unc:
         rows += [("normal σ (two principal directions)",
                   f"{unc['normal_sigma_deg'][0]:.4f} deg, {unc['normal_sigma_deg'][1]:.4f} deg"),
@@ -372,7 +376,10 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
         if u is not None:
             parts += ["<h2>Uncertainty of measured points</h2>",
                       "<p class=small>σ (µm) of a point triangulated at each pixel, from the plane's covariance "
-                      "only (image noise of the stripe centre, camera errors and model errors are not included).</p>",
+                      "only: it covers the image noise of the calibration images (rim and stripe, white or "
+                      "correlated along the curves); it does not include the noise of the measured stripe centre "
+                      "itself, errors of the camera intrinsics, systematic edge or stripe biases, a wrong "
+                      "diameter or a non-flat target.</p>",
                       _img_tag(u, "Point σ map (µm) over the image (px)")]
     for s in extra_sections:
         parts.append(f"<h2>{html.escape(s.title)}</h2>")

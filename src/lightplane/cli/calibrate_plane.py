@@ -81,7 +81,12 @@ def calibrate_plane_cmd(
             console.print(f"  RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm: {unc['point_sigma_rms_mm']:.4f} mm")
     else:
         console.print("  (no covariance with this method; use --method ml for the uncertainty)")
-    console.print(f"  image noise σ {cal.sigma_px:.3f} px; {cal.n_used} of {len(cal.images)} images used; "
+    nm = cal.plane.meta.get("noise_model") or {}
+    if nm.get("sigma_rim_px") is not None and nm.get("sigma_stripe_px") is not None:
+        console.print(f"  image noise σ: rim {nm['sigma_rim_px']:.3f} px, stripe {nm['sigma_stripe_px']:.3f} px "
+                      f"(correlation along the curves ×{nm.get('tau_rim', 1):.1f} / ×{nm.get('tau_stripe', 1):.1f}, "
+                      f"counted in σ above)")
+    console.print(f"  image noise σ {cal.sigma_px:.3f} px (pooled); {cal.n_used} of {len(cal.images)} images used; "
                   f"{cal.seconds:.2f} s")
     t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe centres, "
                                      "chord's RMS distance to the plane (µm)", title_justify="left")
