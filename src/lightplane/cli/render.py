@@ -21,15 +21,16 @@ def render_cmd(
     scene: str = typer.Argument(..., help="What to render: circle, chessboard or scan."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
     n: Optional[int] = typer.Option(None, "--n", help="Number of images (scan: frames). Default: 12 circle, "
-                                    "15 chessboard, 41 sphere / 21 step or plane frames."),
+                                    "20 chessboard, 41 sphere / 21 step or plane frames."),
     seed: int = typer.Option(0, "--seed", help="Random seed: same seed, same bytes."),
     difficulty: Optional[str] = typer.Option(None, "--difficulty", help="clean, realistic or hard "
                                              "(default: realistic; clean for chessboards)."),
     polarity: str = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
                                  "printed disc on a light board."),
     diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
-    board: str = typer.Option("9x6", "--board", help="chessboard: inner corners COLSxROWS."),
-    square: float = typer.Option(8.0, "--square", help="chessboard: square size in mm."),
+    board: Optional[str] = typer.Option(None, "--board", help="chessboard: inner corners COLSxROWS (default: 15x11 "
+                                        "for the calibration capture, 9x6 with --stripe)."),
+    square: Optional[float] = typer.Option(None, "--square", help="chessboard: square size in mm (default 8)."),
     stripe: bool = typer.Option(False, "--stripe", help="chessboard: laser on, stripe crossing every board."),
     laser_off: bool = typer.Option(False, "--laser-off", help="circle, and chessboard with --stripe: also a "
                                    "laser-off image of every pose."),
@@ -62,11 +63,11 @@ def render_cmd(
         raise LightplaneError(f"--kind must be sphere, step or plane; got {kind!r}")
     if not diameter > 0:
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
-    if not square > 0:
+    if square is not None and not square > 0:
         raise LightplaneError(f"--square must be positive, got {square} mm")
     if step is not None and not step > 0:
         raise LightplaneError(f"--step must be positive, got {step} mm")
-    cols_rows = parse_board(board)
+    cols_rows = parse_board(board) if board is not None else None
     # fail before the long render: the folder must be writable and hold no result files
     check_output_dir(out, ["camera.json", "truth.json"], force)
 
@@ -83,7 +84,7 @@ def render_cmd(
                                        polarity=polarity, diameter_mm=diameter, laser_off=laser_off,
                                        progress=progress)
         elif scene == "chessboard":
-            ds = render_chessboard_dataset(n=15 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
+            ds = render_chessboard_dataset(n=20 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
                                            with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
                                            progress=progress)
         else:
@@ -99,7 +100,8 @@ def render_cmd(
         console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
                       f"{len(ds.truth['images']) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
     elif scene == "chessboard":
-        console.print(f"board {cols_rows[0]}x{cols_rows[1]} inner corners, square {square:g} mm"
+        b = ds.truth["board"]
+        console.print(f"board {b['inner_corners'][0]}x{b['inner_corners'][1]} inner corners, square {b['square_mm']:g} mm"
                       + (", laser stripe on" if stripe else ""))
     else:
         m = ds.truth["motion"]
