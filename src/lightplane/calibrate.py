@@ -39,7 +39,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .plane import PlaneCalibration, calibrate_plane_from_points
+from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -477,16 +477,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
         reason), placements too alike, or an unresolvable ambiguity.
     """
     t_start = time.perf_counter()
-    if method not in ("ml", "global", "paper"):
-        raise LightplaneError(f"method must be 'ml', 'global' or 'paper', got {method!r}")
-    if not isinstance(camera, Camera):
-        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
-    try:
-        diameter = float(diameter_mm)
-    except (TypeError, ValueError):
-        raise LightplaneError(f"diameter_mm must be a number, got {diameter_mm!r}") from None
-    if not (math.isfinite(diameter) and diameter > 0):
-        raise LightplaneError(f"diameter_mm must be positive, got {diameter_mm}")
+    diameter = check_calibration_args(method, camera, diameter_mm)
     if isinstance(images, (str, os.PathLike, np.ndarray)):
         images = [images]
     images = list(images)

@@ -949,6 +949,23 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
 
 
 # ------------------------------------------------------------------ public entry
+def check_calibration_args(method: str, camera, diameter_mm) -> float:
+    """Check the arguments every light-plane calibration shares; return the diameter (mm)."""
+    from .camera import Camera
+
+    if method not in ("ml", "global", "paper"):
+        raise LightplaneError(f"method must be 'ml', 'global' or 'paper', got {method!r}")
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    try:
+        diameter = float(diameter_mm)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"diameter_mm must be a number, got {diameter_mm!r}") from None
+    if not (np.isfinite(diameter) and diameter > 0):
+        raise LightplaneError(f"diameter_mm must be positive, got {diameter_mm}")
+    return diameter
+
+
 def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.ndarray], stripes: Sequence[np.ndarray],
                                 method: str = "ml", *, sigma_px: float | None = None, min_stripe_points: int = 10,
                                 max_rim_rms_px: float = 3.0, min_normal_spread_deg: float = 5.0,
@@ -1029,18 +1046,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         Bad input (naming the placement), fewer than 3 usable placements, placements
         too alike, or an unresolvable ambiguity (paper method).
     """
-    from .camera import Camera
-
-    if method not in ("ml", "global", "paper"):
-        raise LightplaneError(f"method must be 'ml', 'global' or 'paper', got {method!r}")
-    if not isinstance(camera, Camera):
-        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
-    try:
-        diameter = float(diameter_mm)
-    except (TypeError, ValueError):
-        raise LightplaneError(f"diameter_mm must be a number, got {diameter_mm!r}") from None
-    if not (np.isfinite(diameter) and diameter > 0):
-        raise LightplaneError(f"diameter_mm must be positive, got {diameter_mm}")
+    diameter = check_calibration_args(method, camera, diameter_mm)
     rims, stripes = list(rims), list(stripes)
     if len(rims) != len(stripes):
         raise LightplaneError(f"rims and stripes must have one entry per placement, got {len(rims)} and {len(stripes)}")
