@@ -693,7 +693,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     prob = _Problem(camera, radius_mm, rims, stripes, plane0, list(poses0))
     if prob.m <= prob.p:
         raise LightplaneError(f"refine_ml: {prob.m} points cannot determine {prob.p} parameters")
-    m_rim, m_st = prob.m_rim, prob.m - prob.m_rim
+    m_rim = prob.m_rim
     is_rim = np.arange(prob.m) < m_rim
     # noise groups: one sigma each
     if noise == "shared":

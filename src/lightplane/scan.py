@@ -23,7 +23,6 @@ stops the scan (wrong camera file) and nothing is written.
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from collections import deque

@@ -44,7 +44,7 @@ import numpy as np
 
 from ..errors import LightplaneError
 from .edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
-from .model import Ellipse, fit_ellipse_direct
+from .model import Ellipse
 
 __all__ = ["detect_ellipses", "arc_support_segments", "arc_groups"]
 
