@@ -201,3 +201,44 @@ def test_wrong_size_frame_mid_scan_stops_worker_processes_cleanly():
     frames = [img] * 3 + [img[:240, :320]] + [img] * 3
     with pytest.raises(LightplaneError, match="calibrated for 640x480"):
         scan_points(ArrayFrames(frames), CAM, PLANE, width_px=3.5, workers=2, executor="process")
+
+
+def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
+    n_s, d_s = surface()
+    _, u_c = stripe_image(n_s, d_s)
+    rows = np.arange(CAM.height)
+    on = np.isfinite(u_c)
+    sigma = np.full(CAM.height, 1.5)
+    narrow = on & (rows >= 100) & (rows < 130)  # FWHM 0.5x the rest: below the default 0.8x
+    wide = on & (rows >= 300) & (rows < 320)  # 3x: above the default 2x
+    sigma[narrow], sigma[wide] = 0.75, 4.5
+    u = np.arange(CAM.width, dtype=float)[None, :]
+    img = 10.0 + np.where(on[:, None], 200.0 * np.exp(-0.5 * ((u - u_c[:, None]) / sigma[:, None]) ** 2), 0.0)
+    img = img.astype(np.float32)
+    off = ProfileMeasurer(CAM, PLANE, width_px=3.5, min_width_ratio=0.0, max_width_ratio=np.inf)(img)
+    assert not off.width_rejected.any()
+    # lines 2 rows away from a width change: the smoothing scale blurs the boundary
+    core = lambda m: m & ~np.convolve(~m & on, np.ones(7), "same").astype(bool)  # noqa: E731
+    assert off.valid[core(narrow) | core(wide)].all()  # the extractor itself keeps them
+    prof = ProfileMeasurer(CAM, PLANE, width_px=3.5)(img)
+    assert prof.width_rejected[core(narrow)].all() and prof.width_rejected[core(wide)].all()
+    assert not prof.valid[prof.width_rejected].any() and np.isnan(prof.points[prof.width_rejected]).all()
+    # elsewhere (uniform width) nothing is dropped and the points are untouched
+    rest = interior(off.valid) & ~np.convolve(narrow | wide, np.ones(15), "same").astype(bool)
+    assert not prof.width_rejected[rest].any()
+    assert np.array_equal(prof.points[rest], off.points[rest], equal_nan=True)
+    assert prof.n_valid == off.n_valid - int(prof.width_rejected.sum())
+    # measure_profile filters the same way
+    assert np.array_equal(measure_profile(img, CAM, PLANE, width_px=3.5).width_rejected, prof.width_rejected)
+
+
+def test_width_filter_needs_enough_lines_and_valid_ratios():
+    n_s, d_s = surface()
+    img, u_c = stripe_image(n_s, d_s)
+    img[np.flatnonzero(np.isfinite(u_c))[15:]] = 10.0  # keep only 15 stripe rows: too few for a median
+    m = ProfileMeasurer(CAM, PLANE, width_px=3.5, min_width_ratio=0.99, max_width_ratio=1.01)
+    prof = m(img)
+    assert 0 < prof.n_valid < 20 and not prof.width_rejected.any()
+    for lo, hi in ((-0.1, 2.0), (1.0, 2.0), (0.5, 1.0), (0.5, np.nan)):
+        with pytest.raises(LightplaneError, match="width_ratio"):
+            ProfileMeasurer(CAM, PLANE, min_width_ratio=lo, max_width_ratio=hi)
