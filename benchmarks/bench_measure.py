@@ -105,12 +105,12 @@ def calibrated_plane():
     return cal.plane
 
 
-def scan(kind: str, plane, ds):
+def scan(kind: str, plane, ds, **options):
     from lightplane.scan import ArrayFrames, Motion, scan_points
 
     mo = ds.truth["motion"]
     rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, plane, motion=Motion.linear(mo["step_mm"], mo["direction"]),
-                            workers=1)
+                            workers=1, **options)
     # the static table (z = 600 mm in the camera frame) is not the object: drop it by its camera-frame depth
     zc = xyz(rec) + np.array(mo["direction"])[None, :] * mo["step_mm"] * rec["frame"][:, None].astype(float)
     obj = zc[:, 2] < 560.0
@@ -148,6 +148,13 @@ def accuracy_scans(difficulty: str, planes: dict) -> None:
             if label not in planes:
                 continue
             p, summ = scan(kind, planes[label] if label == "calibrated" else tp, ds)
+            if label == "true":  # what the per-point stripe-width filter (ProfileMeasurer's default) drops
+                p_all, _ = scan(kind, tp, ds, min_width_ratio=0.0, max_width_ratio=np.inf)
+                print(f"  {kind:6s} width filter dropped {len(p_all) - len(p)} of {len(p_all)} object points "
+                      f"({100 * (len(p_all) - len(p)) / max(len(p_all), 1):.1f} %)", end="")
+                if kind == "sphere":
+                    print(f"; without it: radius error {fit_sphere(p_all)[1] - 25.4:+.4f} mm", end="")
+                print()
             if kind == "sphere":
                 c, r, keep = fit_sphere(p)
                 e = np.linalg.norm(p[keep] - c, axis=1) - r

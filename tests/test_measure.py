@@ -11,7 +11,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
-from lightplane import Camera, LightPlane, LightplaneError  # noqa: E402
+from lightplane import LightPlane, LightplaneError  # noqa: E402
 from lightplane.measure import ProfileMeasurer, measure_profile, points_sigma_mm, profile_axis  # noqa: E402
 from lightplane.scan import ArrayFrames, Motion, scan_points  # noqa: E402
 
