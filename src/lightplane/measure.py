@@ -230,7 +230,10 @@ class ProfileMeasurer:
         (``benchmarks/bench_measure.py accuracy``); ``0`` and ``inf`` switch the
         filter off.  No correction of the bias from the width is applied: the bias
         depends on the local curvature and view angle together, which one width does
-        not determine.
+        not determine.  Not caught: frames where the sheet meets a curved surface
+        at a low angle everywhere (the sphere's ends along the scan: stripe ~12 px
+        against ~7 px, points ~0.03 mm outside), since the reference is the frame's
+        own median; with them the clean sphere's fitted radius is still ~0.018 mm low.
     **stripe_options : passed to :func:`lightplane.stripe.extract_profile`
         (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ``min_cos`` — the
         stripe's own limit on how obliquely it may cross a line, ...).
