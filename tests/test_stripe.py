@@ -405,3 +405,46 @@ def test_renders_of_the_simulator(difficulty, rms_max, bias_max):
             e = e[on_disc]
             assert np.sqrt(np.mean(e**2)) < rms_max
             assert abs(e.mean()) < bias_max
+
+
+# ----------------------------------------------------------------------------------------
+# saturated (whitish) stretch: midpoint of the whitish run
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_profile_saturated_centre_midpoint_of_whitish_run(backend):
+    """A hot spot whose core is grey-white (R = G = B) and dips in red, as a bloomed sensor renders it.
+
+    Red: Gaussian stripe, FWHM 5 px, slightly tilted, except on columns 120-180
+    where the pixels with ``|d| < 1.6 px`` (pixel centre) are grey (110, 110, 110)
+    and the red around them is a broad glow (FWHM 12 px): the red channel has no
+    peak at the centre there.  The whitish run is symmetric about the true line,
+    so its midpoint is off by at most half a pixel (the run's ends are whole
+    pixels here), and on average over the tilted line by much less.
+    """
+    rng = np.random.default_rng(21)
+    dist = straight(0.05, (150.0, 60.3))
+    H, W = 120, 300
+    red = render((H, W), dist, 5, rng=rng).astype(float)
+    glow = render((H, W), dist, 12, amplitude=150, rng=rng).astype(float)
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    hot = (u >= 120) & (u < 180)
+    core = hot & (np.abs(dist(u, v)) < 1.6)
+    red = np.where(hot, glow, red)
+    bgr = np.zeros((H, W, 3), np.uint8)
+    bgr[:, :, 2] = np.clip(np.round(red), 0, 255)
+    bgr[core] = 110
+    kw = dict(width_px=5, channel="red", min_chroma=0.5, backend=backend)
+    plain = extract_profile(bgr, **kw)
+    cols = plain.lines
+    in_hot = (cols >= 120) & (cols < 180)
+    assert plain.valid[in_hot].mean() < 0.2                        # flagged / lost without it
+    sat = extract_profile(bgr, saturated_centre=True, **kw)
+    assert sat.valid[in_hot].mean() >= 0.95
+    far = (cols < 120 - 15) | (cols >= 180 + 15)       # beyond the curvature correction's reach
+    np.testing.assert_array_equal(sat.uv[far], plain.uv[far])          # elsewhere unchanged
+    e = errors(dist, sat.uv[in_hot & sat.valid])
+    assert np.all(np.abs(e) <= 0.55)
+    assert abs(e.mean()) < 0.1
+    # grey images or no min_chroma: the option does nothing
+    np.testing.assert_array_equal(extract_profile(bgr[:, :, 2], width_px=5, saturated_centre=True).uv,
+                                  extract_profile(bgr[:, :, 2], width_px=5).uv)

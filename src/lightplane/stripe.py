@@ -23,7 +23,9 @@ On real laser stripes (speckle, saturation) a scale larger than Steger's minimum
 helps: ``sigma_px`` ~2 px and, for profiles, ``sigma_along_px`` ~5 px of smoothing
 along the stripe (straight stripes stay unbiased at any tilt).  Where a specular
 hot spot blooms the sensor, ``channel="sum"`` keeps the stripe (the bloom is in
-the other channels) and ``min_chroma`` flags whitish stretches instead.
+the other channels), ``min_chroma`` flags whitish stretches, and with
+``saturated_centre`` :func:`extract_profile` centres them on the midpoint of the
+whitish (saturated) run across the stripe instead.
 
 Sub-pixel centre: where we depart from Steger's one-step formula
 ------------------------------------------------------------------
@@ -76,6 +78,7 @@ import threading
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 from . import _stripe_kernels as K
 from .errors import LightplaneError
@@ -345,8 +348,8 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
                     max_width_px: float | None = None, sigma_px: float | None = None,
                     sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
                     correct_curvature: bool = True,
-                    min_chroma: float | None = None, backend: str = "numba",
-                    parallel: bool = True) -> StripeProfile:
+                    min_chroma: float | None = None, saturated_centre: bool = False,
+                    backend: str = "numba", parallel: bool = True) -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
     Per line: the highest sample (and the highest one farther than twice the width
@@ -390,6 +393,12 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         (a specular hot spot), where the centre found is not the stripe's.  Off by
         default (ambient white light on a raw frame lowers it too); 0.5 suits
         background-subtracted frames.
+    saturated_centre : with ``min_chroma``: instead of dropping whitish lines,
+        centre them on the midpoint of the whitish run across the stripe (a
+        saturated core turns grey-white; its midpoint is the standard centre of a
+        saturated stripe), searched within ``w + 2`` px of the centre expected
+        from the valid lines around; status ``OK`` then.  Recovers a specular
+        hot spot in the laser's own channel (tests/test_stripe_real.py).
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
     parallel : numba backend: split the frame over numba's threads (default).
         ``False`` runs one thread: the better choice when other processes keep
@@ -420,7 +429,7 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         from ._stripe_numpy import profile_numpy
 
         raw = profile_numpy(A, w0, w1, w2, params)
-    return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend)
+    return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend, saturated_centre)
 
 
 def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px, sigma_along_px,
@@ -455,12 +464,13 @@ def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, 
         min_cos=float(min_cos),
         xw=K.edge_kernels_cached(sigma_al),
     )
-    setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, sigma=sigma,
+    setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, S=S, sigma=sigma,
                  sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak)
     return A, setup
 
 
-def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend) -> StripeProfile:
+def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend,
+                    saturated_centre=False) -> StripeProfile:
     """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature)."""
     centre, normal, strength, intensity, width, status = raw
     line0, sample0, L = setup["line0"], setup["sample0"], setup["L"]
@@ -468,6 +478,9 @@ def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, back
     if min_chroma is not None:
         status = _chroma_check(image, axis, centre, status, line0, sample0, float(min_chroma),
                                int(math.ceil(w)))
+        if saturated_centre:
+            centre, status = _whitish_centres(image, axis, centre, status, line0, sample0, setup["S"],
+                                              float(min_chroma), w, setup["params"]["max_width"])
     valid = status == K.OK
     lines = np.arange(L, dtype=np.int64) + line0
     uv = np.full((L, 2), np.nan)
@@ -498,7 +511,7 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
                      roi=None, min_peak: float | None = None, max_width_px: float | None = None,
                      sigma_px: float | None = None, sigma_along_px: float | None = None,
                      continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
-                     min_chroma: float | None = None) -> list[StripeProfile]:
+                     min_chroma: float | None = None, saturated_centre: bool = False) -> list[StripeProfile]:
     """:func:`extract_profile` of many frames at once (a scan): one parallel launch per stage.
 
     ``frames``: (N, H, W) / (N, H, W, 3) array or a sequence of equally sized
@@ -547,7 +560,7 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
                             params["max_width"], params["min_cos"], centre, normal, strength, intensity, width,
                             status)
     return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
-                            setup, min_chroma, correct_curvature, "numba") for f in range(N)]
+                            setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -582,6 +595,70 @@ def _chroma_check(image, axis, centre, status, line0, sample0, min_chroma, half)
     chroma = _chroma(image, rows, cols)
     status[ok[~(chroma >= min_chroma)]] = K.WHITISH
     return status
+
+
+def _whitish_centres(image, axis, centre, status, line0, sample0, S, min_chroma, w, max_width):
+    """Centres of saturated (whitish) stretches: midpoint of the whitish run across the stripe.
+
+    Where a laser stripe saturates the sensor, the camera renders its core grey-white
+    (R ~ G ~ B) and the laser's own channel no longer peaks there (it may even dip
+    below the red glow around it), so the Hessian centre is lost or flagged.  The
+    core's extent is still sharp: per invalid line (any status but ``EDGE``: in a
+    hot spot the red glow's normal can be anything),
+    within ``w + 2`` samples of the centre expected from the valid lines on either
+    side (linear interpolation, strays off their running median left out), the run of bright pixels with chroma below
+    ``min_chroma`` (bright: as in :func:`_chroma`); its ends are refined to where
+    the chroma crosses ``min_chroma`` (linear interpolation with the outer
+    neighbour) and the midpoint is the centre (the usual centre of a saturated,
+    flat-topped stripe).  Runs longer than ``max_width`` or touching the search
+    window's ends (glare, not a stripe core) are left invalid.
+    """
+    centre = centre.copy()
+    status = status.copy()
+    good = status == K.OK
+    todo = np.flatnonzero(~good & (status != K.EDGE))
+    if todo.size == 0 or good.sum() < 2:
+        return centre, status
+    idx = np.flatnonzero(good)
+    # expected centre: the valid lines, less those off the running median of 15 (strays)
+    c = centre[idx]
+    keep = np.abs(c - median_filter(c, size=15, mode="nearest")) <= max(w, 2.0)
+    expect = np.interp(todo, idx[keep], c[keep])
+    reach = int(math.ceil(w)) + 2
+    n_s = image.shape[0 if axis == "columns" else 1]
+    k = np.arange(-reach - 1, reach + 2)
+    base = np.round(expect).astype(np.int64) + sample0 - reach - 1   # sample of k[0]
+    s = base[:, None] + (k[None, :] + reach + 1)
+    inside = (s >= sample0) & (s < sample0 + S)
+    s = np.clip(s, 0, n_s - 1)
+    ln = np.broadcast_to((todo + line0)[:, None], s.shape)
+    rows, cols = (s, ln) if axis == "columns" else (ln, s)
+    px = image[rows, cols, :3].astype(np.float64)            # (N, K, 3)
+    hi = px.max(axis=2)
+    lo = px.min(axis=2)
+    bright = (hi >= 0.3 * hi.max(axis=1, keepdims=True)) & (hi > 0) & inside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chroma = np.where(hi > 0, (hi - lo) / hi, 1.0)
+    white = bright & (chroma < min_chroma)
+    white[:, 0] = white[:, -1] = False                       # guard samples
+    mid = reach + 1
+    for i in range(todo.size):
+        runs = np.flatnonzero(np.diff(white[i].astype(np.int8)))  # starts (0->1) and ends (1->0)
+        if runs.size < 2:
+            continue
+        a, b = runs[0::2] + 1, runs[1::2]                     # run i covers a..b
+        j = int(np.argmin(np.abs(0.5 * (a + b) - mid)))
+        a, b = int(a[j]), int(b[j])
+        if a <= 1 or b >= k.size - 2 or b - a + 1 > max_width:
+            continue
+        c = chroma[i]
+        ea = a - 0.5 if c[a - 1] == c[a] else a - (min_chroma - c[a]) / (c[a - 1] - c[a])
+        eb = b + 0.5 if c[b + 1] == c[b] else b + (min_chroma - c[b]) / (c[b + 1] - c[b])
+        ea = min(max(ea, a - 1.0), float(a))
+        eb = min(max(eb, float(b)), b + 1.0)
+        centre[todo[i]] = base[i] - sample0 + 0.5 * (ea + eb)
+        status[todo[i]] = K.OK
+    return centre, status
 
 
 # ----------------------------------------------------------------------------------------
