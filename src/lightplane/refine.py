@@ -399,12 +399,8 @@ class _Normal:
         di = np.einsum("nij,nj->ni", Dinv, gi - np.einsum("nji,j->ni", B, dp))
         return np.concatenate([dp / sp, (di / si).ravel()])
 
-    def inverse(self) -> np.ndarray:
-        """Dense ``H⁻¹`` (p, p) from the Schur complement on the plane block (no LAPACK on p x p).
-
-        Raises :class:`LightplaneError` when ``H`` is (numerically) singular.
-        """
-        A, B, D, sp, si = self._scaled(0.0)
+    def _check_rank(self, sp: np.ndarray, si: np.ndarray) -> None:
+        """Raise when the scaled normal matrix is (numerically) singular: eigenvalues only, cheap."""
         Hs = self.dense() / np.outer(np.concatenate([sp, si.ravel()]), np.concatenate([sp, si.ravel()]))
         w = np.linalg.eigvalsh(Hs)
         if not w[0] > 1e-13 * w[-1]:
@@ -412,6 +408,14 @@ class _Normal:
                 "refine_ml: the placements do not determine the light plane (the joint problem is singular; "
                 "are all stripes parallel or the targets all alike?)"
             )
+
+    def inverse(self) -> np.ndarray:
+        """Dense ``H⁻¹`` (p, p) from the Schur complement on the plane block (no LAPACK on p x p).
+
+        Raises :class:`LightplaneError` when ``H`` is (numerically) singular.
+        """
+        A, B, D, sp, si = self._scaled(0.0)
+        self._check_rank(sp, si)
         n = len(D)
         Dinv = np.linalg.inv(D)
         F = np.einsum("nij,njk->nik", B, Dinv)  # B_i D_i⁻¹ (n, 3, 5)
@@ -434,14 +438,7 @@ class _Normal:
     def covariance(self, sigma: float) -> tuple[np.ndarray, np.ndarray]:
         """``sigma² (JᵀJ)⁻¹``: the plane block (3, 3) and the pose blocks (n, 5, 5)."""
         A, B, D, sp, si = self._scaled(0.0)
-        # rank check on the whole (scaled) matrix: eigenvalues only, cheap
-        Hs = self.dense() / np.outer(np.concatenate([sp, si.ravel()]), np.concatenate([sp, si.ravel()]))
-        w = np.linalg.eigvalsh(Hs)
-        if not w[0] > 1e-13 * w[-1]:
-            raise LightplaneError(
-                "refine_ml: the placements do not determine the light plane (the joint problem is singular; "
-                "are all stripes parallel or the targets all alike?)"
-            )
+        self._check_rank(sp, si)
         Dinv = np.linalg.inv(D)
         BDinv = np.einsum("nij,njk->nik", B, Dinv)
         Sinv = np.linalg.inv(A - np.einsum("nij,nkj->ik", BDinv, B))
