@@ -59,13 +59,13 @@ def _circles(difficulty: str, polarity: str) -> Path:
     return out
 
 
-def _boards(seed: int) -> Path:
+def _boards(seed: int, n: int = N_BOARDS) -> Path:
     from lightplane.simulate.render import render_chessboard_dataset
 
-    out = CACHE / f"boards_capture_realistic_n{N_BOARDS}_s{seed}"
+    out = CACHE / f"boards_capture_realistic_n{n}_s{seed}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
-        render_chessboard_dataset(n=N_BOARDS, seed=seed, difficulty="realistic").save(out, force=True)
+        render_chessboard_dataset(n=n, seed=seed, difficulty="realistic").save(out, force=True)
     return out
 
 
@@ -85,12 +85,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--boards-seed", type=int, default=1)
+    ap.add_argument("--boards", type=int, default=N_BOARDS, help="number of rendered chessboard views")
     args = ap.parse_args()
     if hasattr(os, "getloadavg"):
         print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs (wall times inflate under load)")
     CACHE.mkdir(parents=True, exist_ok=True)
     sets = [(d, p, _circles(d, p)) for d in ("realistic", "hard") for p in ("light", "dark")]
-    boards = _boards(args.boards_seed)
+    boards = _boards(args.boards_seed, args.boards)
     ic = _calibrated_camera(boards)
     cam_cal = ic.camera
     cam_ref = Camera.load(boards / "camera.json")
