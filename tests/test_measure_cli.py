@@ -135,3 +135,15 @@ def test_bad_input_exit_2_nothing_written(scan_dir, tmp_path):
     assert "--step needs --direction" in one_error_line(run(frames, "--camera", cam, "--plane", plane,
                                                             "-o", tmp_path / "e.ply", "--step", "1"))
     assert outputs(tmp_path) == ["pos.csv"]  # no cloud, no spool left behind
+
+
+def test_no_stripe_anywhere_is_an_error(scan_dir, tmp_path):
+    """Frames without any stripe (laser off): one clear line, exit 2, no cloud written."""
+    cam, plane = scan_dir / "camera.json", scan_dir / "plane.json"
+    dark = tmp_path / "dark"
+    dark.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(dark / f"f{k}.png"), np.full((480, 640), 20, np.uint8))
+    line = one_error_line(run(dark, "--camera", cam, "--plane", plane, "-o", tmp_path / "x.ply"))
+    assert "no stripe found in any of the 3 readable frames" in line
+    assert outputs(tmp_path) == []

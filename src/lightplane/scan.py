@@ -731,6 +731,9 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
                 raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
                 raise LightplaneError(f"none of the {n} frames could be read")
+            if spool.count == 0:
+                raise LightplaneError(f"no stripe found in any of the {n - len(skipped)} readable frames "
+                                      "(laser off, wrong --channel or --roi?); nothing written")
             opts = {"axis": axis, "roi": roi, "width_px": width_px, "channel": channel, "motion": motion.to_dict(),
                     "frames": n, "skipped": len(skipped)}
             prov = provenance([getattr(source, "description", "")], opts)
