@@ -99,3 +99,13 @@ def test_bad_board_argument(tmp_path):
     synthetic_board(tmp_path / "b.png")
     r = run("calibrate-camera", tmp_path / "b.png", "--board", "nine", "--square", "10", "-o", tmp_path / "c.json")
     assert r.returncode == 2 and "COLSxROWS" in r.stderr
+
+
+def test_fix_k3_keeps_k3_zero(shared_data, tmp_path):
+    folder = shared_data / "ciclop" / "camera_calibration_captures"
+    out = tmp_path / "camera.json"
+    r = run("calibrate-camera", folder, "--board", "11x6", "--square", "13", "--rotate", "90", "-o", out, "--fix-k3")
+    assert r.returncode == 0, r.stderr
+    cam = Camera.load(out)
+    assert cam.dist[4] == 0.0 and cam.dist[0] != 0.0
+    assert json.loads(out.read_text())["provenance"]["options"]["fix_k3"] is True

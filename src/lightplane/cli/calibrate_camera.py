@@ -23,9 +23,15 @@ def calibrate_camera_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="Camera file to write (.json; .yaml for ROS, .xml for OpenCV)."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a residual plot (PNG/PDF/SVG)."),
+    fix_k3: bool = typer.Option(False, "--fix-k3", help="Keep k3 = 0 (advisable for narrow lenses, where k3 is "
+                                "poorly determined)."),
+    zero_tangent: bool = typer.Option(False, "--zero-tangent", help="Keep p1 = p2 = 0 (only if the lens has no "
+                                      "tangential distortion: otherwise the principal point is biased)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
+    import cv2
+
     from ..intrinsics import INTRINSIC_NAMES, calibrate_camera, plot_residuals
 
     cols, rows = parse_board(board)
@@ -44,7 +50,8 @@ def calibrate_camera_cmd(
     with Progress(TextColumn("finding corners"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
         task = bar.add_task("corners", total=len(files))
-        result = calibrate_camera([str(f) for f in files], (cols, rows), square, rotate_deg=rotate,
+        flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
+        result = calibrate_camera([str(f) for f in files], (cols, rows), square, rotate_deg=rotate, flags=flags,
                                   progress=lambda i, n: bar.update(task, completed=i))
 
     cam = result.camera
@@ -69,7 +76,8 @@ def calibrate_camera_cmd(
     extra = {
         "calibration": result.to_dict(),
         "provenance": provenance(files, {"board": f"{cols}x{rows}", "square_mm": square, "rotate_deg": rotate,
-                                         "flags": result.flags, "detector": "findChessboardCornersSB+cornerSubPix",
+                                         "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
+                                         "detector": "findChessboardCornersSB+refine_corners",
                                          "solver": "calibrateCameraExtended"}),
     }
     suffix = output.suffix.lower()
