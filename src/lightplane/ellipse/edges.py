@@ -202,16 +202,23 @@ def normal_edge_samples(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: f
                         polarity: int = 0, min_mag: float = 0.0, max_angle_rad: float = math.radians(30),
                         ) -> NormalEdgeSamples:
     """As :func:`normal_edge_points`, with the normals and the profile widths."""
+    t, p, nrm, polarity = _normals_setup(grad, ellipse, n, band_px, step_px, polarity)
+    uv, ok, pk, w2 = edge_peaks_along_normals(grad, p, nrm, np.full(len(t), float(polarity)), band_px=band_px,
+                                              step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad,
+                                              return_width=True)
+    return NormalEdgeSamples(uv[ok], t[ok], pk[ok], nrm[ok], w2[ok], int(polarity))
+
+
+def _normals_setup(grad: Gradients, ellipse: Ellipse, n: int, band_px: float, step_px: float, polarity: int):
+    """``n`` (at least 8) equally spaced parametric angles, their points and outward
+    normals, and the polarity (0: the sign with the stronger total response)."""
     n = int(max(n, 8))
     t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
     p = ellipse.points_at(t)
     nrm = ellipse.normals_at(t)  # outward
     if polarity == 0:
         polarity = _stronger_polarity(grad, p, nrm, band_px, step_px)
-    uv, ok, pk, w2 = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
-                                              step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad,
-                                              return_width=True)
-    return NormalEdgeSamples(uv[ok], t[ok], pk[ok], nrm[ok], w2[ok], int(polarity))
+    return t, p, nrm, polarity
 
 
 def _stronger_polarity(grad: Gradients, p: np.ndarray, nrm: np.ndarray, band_px: float, step_px: float) -> int:
@@ -231,12 +238,7 @@ def normal_edge_points(grad: Gradients, ellipse: Ellipse, *, n: int, band_px: fl
     Returns ``(uv (M, 2) px, t (M,) parametric angles rad, peak (M,) gradient magnitude,
     polarity used)``.
     """
-    n = int(max(n, 8))
-    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
-    p = ellipse.points_at(t)
-    nrm = ellipse.normals_at(t)  # outward
-    if polarity == 0:
-        polarity = _stronger_polarity(grad, p, nrm, band_px, step_px)
-    uv, ok, pk = edge_peaks_along_normals(grad, p, nrm, np.full(n, float(polarity)), band_px=band_px,
+    t, p, nrm, polarity = _normals_setup(grad, ellipse, n, band_px, step_px, polarity)
+    uv, ok, pk = edge_peaks_along_normals(grad, p, nrm, np.full(len(t), float(polarity)), band_px=band_px,
                                           step_px=step_px, min_mag=min_mag, max_angle_rad=max_angle_rad)
     return uv[ok], t[ok], pk[ok], int(polarity)
