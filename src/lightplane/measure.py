@@ -167,18 +167,6 @@ class Profile:
         return int(np.count_nonzero(self.valid))
 
 
-def _check_roi(roi, width: int, height: int) -> tuple[int, int, int, int]:
-    if roi is None:
-        return 0, 0, width, height
-    try:
-        x, y, w, h = (int(t) for t in roi)
-    except (TypeError, ValueError):
-        raise LightplaneError(f"roi must be (x, y, width, height) in px, got {roi!r}") from None
-    if w < 3 or h < 3 or x < 0 or y < 0 or x + w > width or y + h > height:
-        raise LightplaneError(f"roi {roi!r} (x, y, width, height) is empty or outside the {width}x{height} image")
-    return x, y, w, h
-
-
 class ProfileMeasurer:
     """Stripe images → :class:`Profile`, with the per-camera work done once.
 
@@ -256,7 +244,9 @@ class ProfileMeasurer:
         self.camera = camera
         self.plane = plane
         self.axis = axis
-        self.roi = _check_roi(roi, camera.width, camera.height)
+        from .stripe import check_roi
+
+        self.roi = check_roi(roi, camera.width, camera.height, min_size=3)
         self.min_ray_cos = float(min_ray_cos)
         k = int(smooth_lines)
         if k != smooth_lines or k < 0 or (k and (k < 5 or k % 2 == 0)):

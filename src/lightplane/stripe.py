@@ -302,20 +302,26 @@ def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str |
 # ----------------------------------------------------------------------------------------
 # extract_profile
 
+def check_roi(roi, width: int, height: int, min_size: int = 1) -> tuple[int, int, int, int]:
+    """``roi`` ``(x, y, width, height)`` px checked against a ``width`` x ``height`` image
+    (None: the whole image); each side at least ``min_size`` px."""
+    if roi is None:
+        return 0, 0, width, height
+    try:
+        x, y, w, h = (int(t) for t in roi)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"roi must be (x, y, width, height) in px, got {roi!r}") from None
+    if w < min_size or h < min_size or x < 0 or y < 0 or x + w > width or y + h > height:
+        raise LightplaneError(f"roi {roi!r} (x, y, width, height) is empty or outside the {width}x{height} image")
+    return x, y, w, h
+
+
 def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]:
     """Sample-major array A[s, l] for the roi, and the (line, sample) offsets."""
     import cv2
 
     H, W = img.shape
-    if roi is None:
-        x, y, w, h = 0, 0, W, H
-    else:
-        try:
-            x, y, w, h = (int(t) for t in roi)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"roi must be (x, y, width, height) in px, got {roi!r}") from None
-        if w < 1 or h < 1 or x < 0 or y < 0 or x + w > W or y + h > H:
-            raise LightplaneError(f"roi {roi!r} is empty or outside the {W}x{H} image")
+    x, y, w, h = check_roi(roi, W, H)
     sub = img[y:y + h, x:x + w]
     if axis == "columns":
         return np.ascontiguousarray(sub), x, y
