@@ -190,6 +190,18 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     return C, keep, res
 
 
+def _fit_edge_points(uv: np.ndarray, geometric: bool, what: str):
+    """Robust conic fit of edge points -> ``(conic, inlier mask, Ellipse)``; LightplaneError if none fits."""
+    fit = fit_conic_robust(uv, geometric=geometric)
+    if fit is None:
+        raise LightplaneError(f"refine_ellipse: no ellipse fits {what}")
+    C, keep, _ = fit
+    try:
+        return C, keep, Ellipse.from_conic(C)
+    except LightplaneError as exc:
+        raise LightplaneError(f"refine_ellipse: {exc}") from exc
+
+
 def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px: float | None = None,
                    sigma_px: float = 0.8, polarity: str | int | None = None, iterations: int = 3,
                    min_inliers: int = 20, correct_curvature: bool = True) -> RefinedEllipse:
@@ -261,14 +273,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
         if len(pts) < min_inliers:
             raise LightplaneError(f"refine_ellipse: only {len(pts)} edge points found near the ellipse")
         last = it == max(1, iterations) - 1
-        fit = fit_conic_robust(pts, geometric=last and camera is None)
-        if fit is None:
-            raise LightplaneError("refine_ellipse: no ellipse fits the edge points")
-        C, keep, _ = fit
-        try:
-            new_local = Ellipse.from_conic(C)
-        except LightplaneError as exc:
-            raise LightplaneError(f"refine_ellipse: {exc}") from exc
+        C, keep, new_local = _fit_edge_points(pts, last and camera is None, "the edge points")
         if np.hypot(*(new_local.centre - local.centre)) > max(band, 0.5 * ellipse.b):
             raise LightplaneError("refine_ellipse: the fit moved away from the given ellipse")
         local = new_local
@@ -282,14 +287,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
         kappa = ellipse_curvature(sampled_on, samples.t)
         shift = curvature_bias_px(kappa, samples.normal, blur, sigma_px)
         uv = uv + shift[:, None] * samples.normal
-        fit = fit_conic_robust(uv, geometric=camera is None)
-        if fit is None:
-            raise LightplaneError("refine_ellipse: no ellipse fits the curvature-corrected edge points")
-        C, keep, _ = fit
-        try:
-            local = Ellipse.from_conic(C)
-        except LightplaneError as exc:
-            raise LightplaneError(f"refine_ellipse: {exc}") from exc
+        C, keep, local = _fit_edge_points(uv, camera is None, "the curvature-corrected edge points")
         shift_mean = float(np.mean(shift[keep]))
     uv_px = uv[keep] + off
     if int(keep.sum()) < min_inliers:
