@@ -23,7 +23,6 @@ from .errors import LightplaneError
 
 __all__ = [
     "LightPlane",
-    "undistort_normalized_fast",
     "PlacementResult",
     "Ambiguity",
     "PlaneCalibration",
@@ -403,16 +402,6 @@ def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tu
     return c, nrm, inl
 
 
-def undistort_normalized_fast(camera, uv: np.ndarray) -> np.ndarray:
-    """Normalised undistorted coordinates of (N, 2) distorted pixels.
-
-    Kept for the solvers' call sites: ``Camera.undistort_points`` itself now runs
-    Newton's method from the linear guess and only falls back to OpenCV where that
-    does not converge to 1e-9 px.
-    """
-    return camera.undistort_points(as_points(uv, 2, "uv"), normalized=True)
-
-
 @_dataclass(frozen=True)
 class PlacementCandidates:
     """One placement prepared for the solvers: both poses and both candidate chords.
@@ -475,7 +464,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     if not np.all(np.isfinite(st)):
         raise LightplaneError(f"{name}: stripe points contain NaN or infinite values")
     if rim_xy is None:
-        rim_xy = undistort_normalized_fast(camera, rim)
+        rim_xy = camera.undistort_points(rim, normalized=True)
     rim_und = camera.normalized_to_pixels(rim_xy, distort=False)
     if not np.all(np.isfinite(rim_und)):
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
@@ -507,7 +496,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
                                    usable=False, reason=f"too few stripe points ({len(st)} < {min_stripe_points})",
                                    **base)
     if stripe_xy is None:
-        stripe_xy = undistort_normalized_fast(camera, st)
+        stripe_xy = camera.undistort_points(st, normalized=True)
     st_und = camera.normalized_to_pixels(stripe_xy, distort=False)
     ok = np.all(np.isfinite(st_und), axis=1)
     # the chord is a straight line in undistorted pixels: robust line fit, residuals -> noise
@@ -1070,7 +1059,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
             raise LightplaneError(f"placement {i}: rim or stripe points contain NaN or infinite values")
     # undistort everything at once (one vectorised call), then split per placement
     sizes = [len(a) for pair in zip(rims, stripes) for a in pair]
-    xy_all = undistort_normalized_fast(camera, np.concatenate([a for pair in zip(rims, stripes) for a in pair]))
+    xy_all = camera.undistort_points(np.concatenate([a for pair in zip(rims, stripes) for a in pair]), normalized=True)
     parts = np.split(xy_all, np.cumsum(sizes)[:-1])
     # ellipse fits and circle poses of all placements in one vectorised pass each
     from .circle_pose import CirclePose, circle_poses_batch, fit_conics
