@@ -23,6 +23,7 @@ from lightplane.stripe import (
     extract_profile,
     extract_profiles,
     extract_stripe,
+    sigma_for_width,
 )
 
 AMPLITUDE = 200.0
@@ -370,41 +371,67 @@ def test_asymmetry_correction_reduces_bar_bias():
 # ----------------------------------------------------------------------------------------
 # realistic renders (speckle, PSF, vignetting, shot noise) from lightplane.simulate.render
 
-@pytest.mark.parametrize("difficulty,rms_max,bias_max", [("clean", 0.02, 0.01), ("realistic", 0.2, 0.03)])
-def test_renders_of_the_simulator(difficulty, rms_max, bias_max):
+@pytest.mark.parametrize("difficulty,speckle_settings,rms_max,bias_max", [
+    ("clean", False, 0.02, 0.005), ("realistic", False, 0.15, 0.01), ("realistic", True, 0.1, 0.01)])
+def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_max):
     """Stripe on the target disc vs the projected true chord (light plane ∩ target plane).
 
     ``clean`` (PSF 0.6 px, low noise, no speckle): the method's own accuracy on an
-    independent renderer.  ``realistic``: speckle (multiplicative, correlated ~1 px,
-    30 %) dominates: SPEC §5.2 expects 0.1-0.3 px per point from it; both functions
-    are held to 0.2 px RMS per point and 0.03 px bias over each stripe.
+    independent renderer (measured 0.025 px over 24 images).  ``realistic``: laser
+    speckle (a multiplicative modulation of the sheet of 20 %, correlated over ~1 px)
+    dominates; at Steger's minimum scale it gives 0.115 px per point (24 images),
+    inside SPEC §5.2's physical 0.1–0.3 px.  Issue #6's bar, <= 0.1 px on realistic
+    renders, holds with the scales the module docstring recommends for speckled
+    stripes: ``sigma_px`` 1.5x Steger's minimum for :func:`extract_stripe` (0.082 px),
+    ``sigma_along_px`` 2x for :func:`extract_profile` (0.086 px).  Only centres whose
+    stripe lies wholly on the disc are scored: farther from the projected rim than
+    1.5 stripe widths (a stripe cut by the rim is biased by the truncation, not by the
+    extractor).
     """
     render = pytest.importorskip("lightplane.simulate.render")
-    ds = render.render_circle_dataset(n=3, seed=3, difficulty=difficulty)
+    ds = render.render_circle_dataset(n=8, seed=0, difficulty=difficulty)
     cam = ds.camera
+    errs = {"stripe": [], "profile": []}
     for img, im in zip(ds.images, ds.truth["images"]):
-        chord = np.asarray(im["target"]["chord_mm"], float)
+        tg = im["target"]
+        chord = np.asarray(tg["chord_mm"], float)
         s = np.linspace(0.0, 1.0, 4001)[:, None]
         poly = cam.project(chord[0] + s * (chord[1] - chord[0]))       # distorted px
+        centre, normal = np.asarray(tg["center_mm"], float), np.asarray(tg["normal"], float)
+        e1 = np.cross(normal, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(normal, e1)
+        phi = np.linspace(0.0, 2 * np.pi, 1000, endpoint=False)[:, None]
+        rim = cam.project(centre + 0.5 * tg["diameter_mm"] * (np.cos(phi) * e1 + np.sin(phi) * e2))
 
         def signed_distance(uv):
             d = np.linalg.norm(uv[:, None, :] - poly[None, ::4, :], axis=2)
             j = np.clip(np.argmin(d, axis=1) * 4, 1, len(poly) - 2)
             t = poly[j + 1] - poly[j - 1]
             t /= np.linalg.norm(t, axis=1, keepdims=True)
-            return np.sum((uv - poly[j]) * np.column_stack([-t[:, 1], t[:, 0]]), axis=1), j / len(poly)
+            return np.sum((uv - poly[j]) * np.column_stack([-t[:, 1], t[:, 0]]), axis=1)
 
         duv = poly[-1] - poly[0]
         axis = "columns" if abs(duv[0]) > abs(duv[1]) else "rows"
-        x0, y0, x1, y1 = im["target"]["rim_bbox_px"]
+        x0, y0, x1, y1 = tg["rim_bbox_px"]
         roi = (int(x0), int(y0), int(x1 - x0), int(y1 - y0))
-        for pts in (extract_stripe(img).uv, extract_profile(img, axis=axis, roi=roi, sigma_along_px=5.0).points):
-            e, f = signed_distance(pts)
-            on_disc = (f > 0.1) & (f < 0.9) & (np.abs(e) < 3.0)       # away from the rim
-            assert on_disc.sum() > 100
-            e = e[on_disc]
-            assert np.sqrt(np.mean(e**2)) < rms_max
-            assert abs(e.mean()) < bias_max
+        width = float(np.median(extract_stripe(img).width))
+        if speckle_settings:
+            sig = sigma_for_width(width)
+            found = {"stripe": extract_stripe(img, width, sigma_px=1.5 * sig).uv,
+                     "profile": extract_profile(img, axis=axis, roi=roi, width_px=width, sigma_along_px=2 * sig).points}
+        else:
+            found = {"stripe": extract_stripe(img).uv, "profile": extract_profile(img, axis=axis, roi=roi).points}
+        for name, pts in found.items():
+            e = signed_distance(pts)
+            d_rim = np.min(np.linalg.norm(pts[:, None, :] - rim[None], axis=2), axis=1)
+            on_disc = (d_rim > 1.5 * width) & (np.abs(e) < 3.0)
+            errs[name].append(e[on_disc])
+    for name, e in errs.items():
+        e = np.concatenate(e)
+        assert e.size > 1500, name
+        assert np.sqrt(np.mean(e**2)) < rms_max, name
+        assert abs(e.mean()) < bias_max, name
 
 
 # ----------------------------------------------------------------------------------------

@@ -12,11 +12,14 @@ Difficulty levels (:data:`DIFFICULTIES`):
 
 - ``clean``: PSF σ 0.6 px, no speckle, no vignetting, low noise;
 - ``realistic``: laser speckle (multiplicative, spatially correlated modulation of
-  the sheet), mild defocus (PSF σ 0.9 px), vignetting, realistic noise, and
-  exposure varying by ±15 % between images;
-- ``hard``: as realistic, plus 2–4 clutter ellipses and rectangles, the stripe partly
-  saturated on every other image, and one image whose stripe misses the disc
-  (``usable: false`` in the truth).
+  the sheet: 20 % at a point, correlated over ~1 px; it puts ~0.115 px of noise on each
+  stripe centre at Steger's minimum scale, ~0.085 px at the scales recommended for
+  speckled stripes, the low end of SPEC §5.2's physical 0.1–0.3 px), mild defocus
+  (PSF σ 0.9 px), vignetting, realistic noise, and exposure varying by ±15 % between
+  images;
+- ``hard``: as realistic but with stronger speckle (30 %: ~0.17 px per centre), plus
+  2–4 clutter ellipses and rectangles, the stripe partly saturated on every other
+  image, and one image whose stripe misses the disc (``usable: false`` in the truth).
 
 Every dataset is a :class:`Dataset` (images, camera, truth dict) that saves PNGs,
 ``camera.json`` and ``truth.json``; the truth holds everything needed to check a
@@ -88,7 +91,7 @@ multiplicative modulation at a point (before pixel averaging);
 
 _IMAGING = {
     "clean": Imaging(0.6, 0.0, 0.0, 0.1, 200.0, 0.3, 0.0),
-    "realistic": Imaging(0.9, 0.25, 0.3, 0.1, 40.0, 1.0, 0.15),
+    "realistic": Imaging(0.9, 0.25, 0.2, 0.1, 40.0, 1.0, 0.15),
     "hard": Imaging(0.9, 0.25, 0.3, 0.1, 40.0, 1.2, 0.15),
 }
 
