@@ -17,8 +17,13 @@ import numpy as np
 from .camera import Camera
 from .errors import LightplaneError
 
-__all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "board_points",
+__all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX", "board_points",
            "calibrate_camera", "plot_residuals", "INTRINSIC_NAMES"]
+
+#: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
+#: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
+#: pixel scale (see :func:`fit_corners`); sharpened camera images (halos) are not.
+MIN_BOARD_BLUR_PX = 0.6
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
@@ -154,6 +159,22 @@ def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool)
     return model, J
 
 
+def _solve_each(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solutions of the stacked systems ``A[i] x = b[i]`` (n, m, m), (n, m); NaN rows where
+    ``A[i]`` is singular."""
+    try:
+        with np.errstate(all="ignore"):
+            return np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        x = np.full(b.shape, np.nan)
+        for i in range(len(A)):
+            try:
+                x[i] = np.linalg.solve(A[i], b[i])
+            except np.linalg.LinAlgError:
+                pass
+        return x
+
+
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
                  tol_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg–Marquardt fit of :func:`_saddle_model` to ``g`` for corners with starting
@@ -183,9 +204,8 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     lin = [5, 6, 7, 8, 9, 10]
     Jl = J[:, lin]
     A = (Jl * W[:, None]) @ Jl.transpose(0, 2, 1)
-    rhs = (Jl * W[:, None]) @ img[..., None]
-    with np.errstate(all="ignore"):
-        sol = np.linalg.solve(A + 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6), rhs)[..., 0]
+    rhs = ((Jl * W[:, None]) @ img[..., None])[..., 0]
+    sol = _solve_each(A + 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6), rhs)
     P[:, lin] = np.where(np.isfinite(sol), sol, 0.0)
 
     eye = np.eye(11)
@@ -209,8 +229,7 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
             best_P[better], best_cost[better] = P[better], cost[better]
         lam = np.clip(np.where(better, 0.3 * lam, 10.0 * lam), 1e-9, 1e9)
         diag = np.einsum("nii->ni", A_best)
-        with np.errstate(all="ignore"):
-            step = np.linalg.solve(A_best + (lam[:, None] * diag)[:, :, None] * eye, g_best[..., None])[..., 0]
+        step = _solve_each(A_best + (lam[:, None] * diag)[:, :, None] * eye, g_best)
         step[~np.all(np.isfinite(step), axis=1)] = 0.0
         P = best_P + step
         if np.all(better) and np.abs(step[:, :2]).max(initial=0.0) < tol_px:
@@ -220,7 +239,7 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
 
 def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
                 max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12,
-                tol_px: float = 1e-4, chunk_size: int = 24) -> np.ndarray:
+                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24) -> np.ndarray:
     """Chessboard corners by fitting a blurred-saddle model to the image, ``(N, 2)`` px.
 
     Around each corner ``q`` the image is modelled as
@@ -264,6 +283,15 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     20°) or that move by more than a quarter of the local spacing keep their input
     position.
     """
+    return _fit_corners(gray, corners_uv, board, radius_frac=radius_frac, max_radius_px=max_radius_px,
+                        taper_px=taper_px, max_iter=max_iter, tol_px=tol_px, min_blur_px=min_blur_px,
+                        chunk_size=chunk_size)[0]
+
+
+def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
+                max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12,
+                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px and which corners were fitted (N,) bool."""
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
@@ -297,10 +325,10 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
 
     noise = np.sqrt(np.maximum(cost, 0.0))
     bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
-           | ~(P[:, 4] > 0.2) | ~(P[:, 4] < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
+           | ~(np.abs(P[:, 4]) >= min_blur_px) | ~(np.abs(P[:, 4]) < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
            | (turned(P[:, 2], e_row) > np.sin(np.radians(20))) | (turned(P[:, 3], e_col) > np.sin(np.radians(20))))
     q[bad] = q0[bad]
-    return q
+    return q, np.abs(P[:, 4]), ~bad
 
 
 def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True,
@@ -319,16 +347,35 @@ def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True
     default because the wider window also takes in a laser stripe crossing the board
     (Zhou's images): :func:`calibrate_camera`, whose boards carry no stripe, turns it on.
     Colour images are reduced to gray by :func:`lightplane.io.to_gray_float`; the saddle
-    fit runs on that float image (not on the 8-bit copy the detector gets).
+    fit runs on that float image (not on the 8-bit copy the detector gets).  The saddle
+    fit starts from Förstner's corners; corners it cannot fit keep them, and so does the
+    whole board when its edges are sharper than ``MIN_BOARD_BLUR_PX`` (median fitted blur).
     """
+    method = _refine_method(refine)
+    c, saddle, blur = _detect_board(image, board, subpix, method)
+    if saddle is not None and blur.size and np.median(blur) >= MIN_BOARD_BLUR_PX:
+        return saddle
+    return c
+
+
+def _refine_method(refine) -> str | None:
+    method = {False: None, True: "saddle", "saddle": "saddle", "forstner": "forstner"}.get(refine, "?") \
+        if isinstance(refine, (bool, str)) else "?"
+    if method == "?":
+        raise LightplaneError(f"refine must be False, True, 'saddle' or 'forstner', got {refine!r}")
+    return method
+
+
+def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
+                  method: str | None) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """:func:`find_board`'s steps: the corners up to Förstner's refinement (or None when
+    the board is not found), the saddle fit's corners (None unless ``method`` is
+    ``"saddle"``; unfitted corners keep Förstner's) and the blur (px) of the fitted ones."""
     import cv2
 
     from .io import to_gray_float
 
-    method = {False: None, True: "saddle", "saddle": "saddle", "forstner": "forstner"}.get(refine, "?") \
-        if isinstance(refine, (bool, str)) else "?"
-    if method == "?":
-        raise LightplaneError(f"find_board: refine must be False, True, 'saddle' or 'forstner', got {refine!r}")
+    none = (None, None, np.zeros(0))
     gray = image if image.ndim == 2 else to_gray_float(image)
     gray_in = gray
     if gray.dtype != np.uint8:
@@ -338,21 +385,25 @@ def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True
     flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
     found, corners = cv2.findChessboardCornersSB(gray, tuple(board), flags=flags)
     if not found or corners is None:
-        return None
+        return none
     c = corners.reshape(-1, 2).astype(np.float32)
-    if subpix:
-        cols, rows = board
-        grid = c.reshape(rows, cols, 2)
-        spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
-                      np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
-        half = int(np.clip(np.floor(0.3 * spacing), 2, 11))
-        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
-        c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
-        if method == "saddle" and spacing >= 8:
-            return fit_corners(gray_in, c.astype(np.float64), tuple(board))
-        if method == "forstner" and spacing >= 8:
-            return refine_corners(gray, c, float(spacing))
-    return c.astype(np.float64)
+    if not subpix:
+        return c.astype(np.float64), None, np.zeros(0)
+    cols, rows = board
+    grid = c.reshape(rows, cols, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+                  np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
+    half = int(np.clip(np.floor(0.3 * spacing), 2, 11))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
+    c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
+    c = c.astype(np.float64)
+    if method is None or spacing < 8:
+        return c, None, np.zeros(0)
+    c = refine_corners(gray, c, float(spacing))
+    if method != "saddle":
+        return c, None, np.zeros(0)
+    q, blur, ok = _fit_corners(gray_in, c, tuple(board))  # corners it cannot fit keep Förstner's position
+    return c, q, blur[ok]
 
 
 @dataclass(frozen=True)
@@ -454,7 +505,10 @@ def calibrate_camera(
         raise LightplaneError("no images given")
     if names is None:
         names = [str(im) if isinstance(im, (str, Path)) else f"image {i}" for i, im in enumerate(images)]
+    method = _refine_method(refine)
     views: list[BoardView] = []
+    saddles: list[np.ndarray | None] = []
+    blurs: list[np.ndarray] = []
     size = None
     for i, (im, name) in enumerate(zip(images, names)):
         img = read_image(im, rotate_deg=rotate_deg) if isinstance(im, (str, Path)) else np.asarray(im)
@@ -465,9 +519,19 @@ def calibrate_camera(
             size = (w, h)
         elif size != (w, h):
             raise LightplaneError(f"{name}: size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px")
-        views.append(BoardView(name, find_board(img, board, refine=refine), (w, h)))
+        c, saddle, blur = _detect_board(img, board, True, method)
+        views.append(BoardView(name, c, (w, h)))
+        saddles.append(saddle)
+        blurs.append(blur)
         if progress:
             progress(i + 1, len(images))
+    blur_all = np.concatenate(blurs)
+    median_blur = float(np.median(blur_all)) if blur_all.size else float("nan")
+    if method == "saddle":
+        if median_blur >= MIN_BOARD_BLUR_PX:  # one method for the whole capture
+            views = [BoardView(v.name, s, v.image_size) if s is not None else v for v, s in zip(views, saddles)]
+        else:
+            method = "forstner"
     found = [v for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     if not found:
@@ -508,7 +572,7 @@ def calibrate_camera(
         board=tuple(board),
         square_mm=float(square_mm),
         flags=int(flags),
-        options={"rotate_deg": rotate_deg, "refine": refine},
+        options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur},
     )
 
 
