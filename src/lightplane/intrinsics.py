@@ -23,7 +23,7 @@ __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners",
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
 #: pixel scale (see :func:`fit_corners`); sharpened camera images (halos) are not.
-MIN_BOARD_BLUR_PX = 0.6
+MIN_BOARD_BLUR_PX = 0.55
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
