@@ -20,9 +20,13 @@ corners of 8 mm, tilted 25–55°, over the whole image), then:
   workers, processes and threads, median of ``--repeats`` runs; target <= 3 s.
 
 With this 16 mm lens (17° field of view) the principal point is nearly interchangeable
-with a camera rotation plus tangential distortion; OpenCV's std of cx, cy with 30 views
-is ~0.3 px, i.e. ~0.03 mm at 450 mm: the calibrated-camera bar sits at the edge of what
-a planar-board calibration of this camera gives (see the report's rows and std).
+with a camera rotation plus tangential distortion, so its error scales with the corner
+error (~0.1 mm at 450 mm per px of cx or cy).  The corners come from
+:func:`lightplane.intrinsics.fit_corners` (blurred-saddle fit, 0.006 px RMS on these
+renders): with 30 views OpenCV's std of cx, cy is 0.09, 0.06 px and the camera-frame
+triangulation error 0.008–0.011 mm; with Förstner's corners (0.019 px) it was 0.28,
+0.19 px and 0.041 mm, over the 0.03 mm bar.  The calibration's time (corner detection
+and fit included, ~0.45 s per 1280x960 view) is printed with the camera row.
 
     .venv/bin/python benchmarks/bench_calibrate.py [--repeats 3] [--no-speed] [--boards-seed 1]
 """
@@ -92,13 +96,16 @@ def main() -> None:
     CACHE.mkdir(parents=True, exist_ok=True)
     sets = [(d, p, _circles(d, p)) for d in ("realistic", "hard") for p in ("light", "dark")]
     boards = _boards(args.boards_seed, args.boards)
+    t0 = time.perf_counter()
     ic = _calibrated_camera(boards)
+    t_cal = time.perf_counter() - t0
     cam_cal = ic.camera
     cam_ref = Camera.load(boards / "camera.json")
     bt = json.loads((boards / "truth.json").read_text())["board"]
     print(f"camera from {len(ic.used)} rendered {bt['inner_corners'][0]}x{bt['inner_corners'][1]} chessboards of "
-          f"{bt['square_mm']:g} mm squares (seed {args.boards_seed}, k3 fixed), rms {ic.rms_px:.4f} px; "
-          "error vs the renderer's camera (OpenCV std):")
+          f"{bt['square_mm']:g} mm squares (seed {args.boards_seed}, k3 fixed, corners: {ic.options['refine']}, "
+          f"median blur {ic.options['median_blur_px']:.2f} px), rms {ic.rms_px:.4f} px; "
+          f"calibration {t_cal:.1f} s; error vs the renderer's camera (OpenCV std):")
     print("  " + "  ".join(f"{k} {getattr(cam_cal, k) - getattr(cam_ref, k):+.3f} ({ic.std[k]:.3f}) px"
                            for k in ("fx", "fy", "cx", "cy"))
           + f"  fx {100 * (cam_cal.fx / cam_ref.fx - 1):+.4f} %")

@@ -255,7 +255,8 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     fitted per corner by Levenberg–Marquardt, all corners at once (vectorised), over the
     pixel centres within a disc about the *current* ``q`` (radius ``radius_frac`` × the
     distance to the nearest parallel grid line, at most ``max_radius_px``; the weight
-    falls smoothly to 0 over its last ``taper_px``).
+    falls smoothly to 0 over its last ``taper_px``; near the image border the radius
+    shrinks so that the disc stays inside the image).
 
     Why it is unbiased: the blurred ideal saddle is point-symmetric about ``q``, so is
     the model, so is the weight; the residual of any symmetric misfit (the erf product is
@@ -306,7 +307,10 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     if not np.all(np.isfinite(q0)):
         raise LightplaneError("fit_corners: corners_uv holds non-finite values")
     gap, e_row, e_col = _grid_geometry(q0, (cols, rows))
-    radius = np.clip(radius_frac * gap, 2.0, max_radius_px)
+    # the window stays inside the image (a cut window would not be symmetric about q)
+    h, w = g.shape
+    border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
+    radius = np.clip(np.minimum(radius_frac * gap, border), 2.0, max_radius_px)
     n = len(q0)
     P = np.zeros((n, 11))
     P[:, :2] = q0
