@@ -152,3 +152,16 @@ def test_bad_input():
     bad[1, 0] = np.nan
     with pytest.raises(LightplaneError, match="non-finite"):
         fit_corners(img, bad, (2, 2))
+
+
+def test_corners_near_the_image_border():
+    """Corners 9-18 px from the top edge, closer than the window radius (18 px): the window
+    shrinks to stay inside the image, and symmetric, so they stay unbiased (measured max
+    error 3e-5 px, noise-free; with the window cut by the border instead: 8e-4 px)."""
+    origin = np.array([55.4, -15.3])
+    img = affine_board(origin, 0.9)
+    t = truth_corners(origin)
+    near = t[:, 1] < 18
+    assert 3 <= near.sum() and t[:, 1].min() > 6
+    q = fit_corners(img, t + 0.1, BOARD)
+    assert np.abs(q - t).max() < 2e-4
