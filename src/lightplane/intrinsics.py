@@ -475,6 +475,9 @@ class IntrinsicsCalibration:
             "views_board_not_found": list(self.not_found),
             "board": {"cols": self.board[0], "rows": self.board[1], "square_mm": self.square_mm},
             "flags": self.flags,
+            "corners": {"refine": self.options.get("refine"),
+                        "median_blur_px": (float(self.options["median_blur_px"])
+                                           if np.isfinite(self.options.get("median_blur_px", np.nan)) else None)},
         }
 
 
