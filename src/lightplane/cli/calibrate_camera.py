@@ -67,6 +67,10 @@ def calibrate_camera_cmd(
     console.print(t)
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
                   f"({cam.width}x{cam.height} px)")
+    method = {"saddle": "blurred-saddle model fit", "forstner": "Förstner (gradient orthogonality)"}.get(
+        str(result.options.get("refine")), "cornerSubPix only")
+    blur = result.options.get("median_blur_px")
+    console.print(f"Corners: {method}" + (f"; median edge blur {blur:.2f} px" if blur is not None else ""))
     console.print("Per-view RMS, worst first:")
     for name, e in result.ranked_views():
         console.print(f"  {e:.4f} px  {name}")
@@ -77,7 +81,9 @@ def calibrate_camera_cmd(
         "calibration": result.to_dict(),
         "provenance": provenance(files, {"board": f"{cols}x{rows}", "square_mm": square, "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
-                                         "detector": "findChessboardCornersSB+refine_corners",
+                                         "detector": "findChessboardCornersSB+cornerSubPix+"
+                                                     + {"saddle": "fit_corners", "forstner": "refine_corners"}.get(
+                                                         str(result.options.get("refine")), "none"),
                                          "solver": "calibrateCameraExtended"}),
     }
     suffix = output.suffix.lower()
