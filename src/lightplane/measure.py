@@ -204,13 +204,14 @@ class ProfileMeasurer:
         or above ``max_width_ratio`` times the frame's typical width (median over its
         valid lines, at least :data:`WIDTH_FILTER_MIN_LINES` of them) is dropped
         (``valid`` False, ``width_rejected`` True).  Why: the light sheet has a
-        Gaussian thickness (σ ≈ 0.35 mm in the renders), and its footprint is seen
+        Gaussian thickness (σ = 0.2 mm in the renders), and its footprint is seen
         foreshortened by cos(view angle).  A stripe much narrower than the frame's
         typical one is a surface seen nearly edge-on (near a curved object's
         silhouette); there the footprint's projection is compressed unevenly across
         the stripe, so the intensity centre is not the sheet's mid-plane crossing and
         the point lands inside the surface (clean rendered sphere, R 25.4 mm, true
-        plane: mean residual +0.004 mm for view angles < 60°, -0.015 mm at 60–70°,
+        plane, a σ 0.35 mm sheet — the bias grows as σ², ~3x smaller at 0.2 mm:
+        mean residual +0.004 mm for view angles < 60°, -0.015 mm at 60–70°,
         -0.023 at 70–80°, -0.042 beyond 80°, where widths are 0.9, 0.8 and 0.7 × the
         frame median).  A stripe much wider than typical is a surface nearly parallel
         to the sheet, where the thickness is smeared across the surface.  Defaults
@@ -221,7 +222,8 @@ class ProfileMeasurer:
         not determine.  Not caught: frames where the sheet meets a curved surface
         at a low angle everywhere (the sphere's ends along the scan: stripe ~12 px
         against ~7 px, points ~0.03 mm outside), since the reference is the frame's
-        own median; with them the clean sphere's fitted radius is still ~0.018 mm low.
+        own median; with them the clean sphere's fitted radius was still ~0.018 mm low
+        with the 0.35 mm sheet (~0.006 mm with 0.2 mm).
     **stripe_options : passed to :func:`lightplane.stripe.extract_profile`
         (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ``min_cos`` — the
         stripe's own limit on how obliquely it may cross a line, ...).

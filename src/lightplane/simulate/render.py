@@ -12,12 +12,12 @@ Difficulty levels (:data:`DIFFICULTIES`):
 
 - ``clean``: PSF σ 0.6 px, no speckle, no vignetting, low noise;
 - ``realistic``: laser speckle (multiplicative, spatially correlated modulation of
-  the sheet: 20 % at a point, correlated over ~1 px; it puts ~0.115 px of noise on each
-  stripe centre at Steger's minimum scale, ~0.085 px at the scales recommended for
-  speckled stripes, the low end of SPEC §5.2's physical 0.1–0.3 px), mild defocus
+  the sheet: 25 % at a point, correlated over ~1 px; it puts ~0.11 px of noise on each
+  stripe centre at Steger's minimum scale, ~0.08 px at the scales recommended for
+  speckled stripes: the low end of SPEC §5.2's physical 0.1–0.3 px), mild defocus
   (PSF σ 0.9 px), vignetting, realistic noise, and exposure varying by ±15 % between
   images;
-- ``hard``: as realistic but with stronger speckle (30 %: ~0.17 px per centre), plus
+- ``hard``: as realistic but with stronger speckle (30 %: ~0.13 px per centre), plus
   2–4 clutter ellipses and rectangles, the stripe partly saturated on every other
   image, and one image whose stripe misses the disc (``usable: false`` in the truth).
 
@@ -76,7 +76,12 @@ multiplicative modulation at a point (before pixel averaging);
     speckle_corr_mm: its correlation length on the surface; gain_e_per_dn: electrons per
     grey level (shot noise); read_noise_dn: Gaussian read noise (grey levels);
     exposure_jitter: relative random spread of ambient and laser power between images;
-    sheet_sigma_mm: the light sheet's Gaussian half-thickness σ (mm).
+    sheet_sigma_mm: the light sheet's Gaussian half-thickness σ (mm): 0.2 mm, a focused
+    line of 0.47 mm FWHM (~5.5 px wide on the default sensor at 450 mm), as metrology
+    line lasers have.  A thicker sheet biases points on steeply curved surfaces: its
+    footprint there is seen unevenly foreshortened, so the stripe's centre is not the
+    mid-plane crossing (clean sphere scan, true plane: fitted radius -0.017 mm low
+    with σ 0.35 mm, -0.006 mm with 0.2 mm, -0.004 mm with 0.15 mm).
     """
 
     psf_sigma_px: float
@@ -86,12 +91,12 @@ multiplicative modulation at a point (before pixel averaging);
     gain_e_per_dn: float
     read_noise_dn: float
     exposure_jitter: float
-    sheet_sigma_mm: float = 0.35
+    sheet_sigma_mm: float = 0.2
 
 
 _IMAGING = {
     "clean": Imaging(0.6, 0.0, 0.0, 0.1, 200.0, 0.3, 0.0),
-    "realistic": Imaging(0.9, 0.25, 0.2, 0.1, 40.0, 1.0, 0.15),
+    "realistic": Imaging(0.9, 0.25, 0.25, 0.1, 40.0, 1.0, 0.15),
     "hard": Imaging(0.9, 0.25, 0.3, 0.1, 40.0, 1.2, 0.15),
 }
 
