@@ -10,7 +10,7 @@ by default).  Prints medians with units and the ratio to each target:
   10.000 ± 0.02 mm; tilted plane flatness RMS <= 0.015 mm.  All targets are checked on
   ``clean`` scans; on ``realistic`` scans (laser speckle) the radius and the step are,
   while the per-point RMS and flatness are printed for information: speckle puts
-  ~0.115 px on each centre, ~0.03 mm of depth at this geometry, above those two
+  ~0.11 px on each centre, ~0.025 mm of depth at this geometry, above those two
   per-point targets (SPEC §5.2: 0.1–0.3 px per centre is physics).  The same numbers with the
   true plane are printed alongside (what the calibration costs).
 - speed: >= 500 frames/s of 1280x960 8-bit frames from memory (profile + triangulation
@@ -129,9 +129,9 @@ def accuracy() -> None:
         print(f"calibrate_plane unavailable ({e}): using the true plane only")
     print("== clean scans (no speckle, low noise): every target applies ==")
     accuracy_scans("clean", planes)
-    print("== realistic scans (laser speckle 20 %, ~0.115 px per centre): the radius and step targets apply; "
+    print("== realistic scans (laser speckle 25 %, ~0.11 px per centre): the radius and step targets apply; "
           "the per-point RMS and flatness are set by speckle (SPEC 5.2: 0.1-0.3 px per centre is physics; "
-          "~0.29 mm of depth per px here), printed for information ==")
+          "~0.23 mm of depth per px here), printed for information ==")
     accuracy_scans("realistic", planes)
     print("== the realistic scans with the centres smoothed along the stripe (measure --smooth 9; info) ==")
     accuracy_scans("realistic", planes, smooth_lines=9)

@@ -377,13 +377,14 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
     """Stripe on the target disc vs the projected true chord (light plane ∩ target plane).
 
     ``clean`` (PSF 0.6 px, low noise, no speckle): the method's own accuracy on an
-    independent renderer (measured 0.025 px over 24 images).  ``realistic``: laser
-    speckle (a multiplicative modulation of the sheet of 20 %, correlated over ~1 px)
-    dominates; at Steger's minimum scale it gives 0.115 px per point (24 images),
-    inside SPEC §5.2's physical 0.1–0.3 px.  Issue #6's bar, <= 0.1 px on realistic
-    renders, holds with the scales the module docstring recommends for speckled
-    stripes: ``sigma_px`` 1.5x Steger's minimum for :func:`extract_stripe` (0.082 px),
-    ``sigma_along_px`` 2x for :func:`extract_profile` (0.086 px).  Only centres whose
+    independent renderer (measured 0.012-0.013 px over 24 images,
+    benchmarks/bench_stripe_accuracy.py).  ``realistic``: laser speckle (a
+    multiplicative modulation of the sheet of 25 %, correlated over ~1 px) dominates; at
+    Steger's minimum scale it gives 0.111 px per point (24 images), inside SPEC §5.2's
+    physical 0.1–0.3 px.  Issue #6's bar, <= 0.1 px on realistic renders, holds with the
+    scales the module docstring recommends for speckled stripes: ``sigma_px`` 1.5x
+    Steger's minimum for :func:`extract_stripe` (0.081 px), ``sigma_along_px`` 2x for
+    :func:`extract_profile` (0.089 px).  Only centres whose
     stripe lies wholly on the disc are scored: farther from the projected rim than
     1.5 stripe widths (a stripe cut by the rim is biased by the truncation, not by the
     extractor).
