@@ -307,12 +307,12 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
         lowered ``ml``'s triangulation error by 10-25 %.  :func:`lightplane.refine.refine_ml`
         now weighs each point type by its own long-run variance (sigma² times the
         integrated autocorrelation time: speckle makes a stripe's centres correlated along
-        it, tau ~ 10 for raw centres on the realistic renders), so the averaging is no
+        it, tau ~ 6 for raw centres on the realistic renders), so the averaging is no
         longer needed for accuracy.  Measured on 10 seeds x 2 polarities of 12-image
         realistic renders (benchmarks/bench_uncertainty.py): ``auto`` and ``1`` give the
-        same errors (RMS triangulation 0.0048 vs 0.0049 mm, angle 0.0026 vs 0.0028 deg)
-        and equally honest predicted sigmas (predicted / actual 0.98 vs 1.01); ``auto``
-        stays the default because its solve is ~20 % faster (125 vs 149 ms).  ``1`` gives
+        same errors (RMS triangulation 0.0043 vs 0.0046 mm, angle 0.0023 vs 0.0025 deg)
+        and equally honest predicted sigmas (predicted / actual 0.95 vs 0.91); ``auto``
+        stays the default because its solve is ~15 % faster (130 vs 153 ms).  ``1`` gives
         the solver the raw centres.  The chord is straight, so averaging along it loses
         nothing but resolution of the noise's correlation.
 

@@ -670,8 +670,8 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     ``covariance_white`` is what a white-noise model with the same sigmas would claim,
     ``(Σ_g J_gᵀJ_g / sigma_g²)⁻¹``: on the renders 2–3x too small in sigma.
     Measured (benchmarks/bench_uncertainty.py, 10 seeds x 2 polarities of 12-image
-    realistic renders, true camera): predicted / actual RMS triangulation error 0.98–1.02
-    (one shared white sigma: 0.32–0.53).
+    realistic renders, true camera): predicted / actual RMS triangulation error 0.91–0.99
+    (one shared white sigma: 0.39–0.60).
 
     Returns
     -------
