@@ -11,7 +11,7 @@ maximum-likelihood estimate minimises the weighted sum of squared image distance
 
 over the plane ``(n, d)`` (3 degrees of freedom) and every pose ``(C_i, N_i)``
 (5 each).  Rim and stripe points have their own noise sigma (a laser stripe's
-centres scatter 3–4x more than edge points, and speckle correlates them along the
+centres scatter 2–4x more than edge points, and speckle correlates them along the
 stripe), each estimated from its residuals with its degrees of freedom, Huber-robust;
 weights ``1/(tau sigma²)`` with ``tau`` the residuals' integrated autocorrelation time;
 covariance from a sandwich that stays honest under that correlation (see
@@ -628,7 +628,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
         consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
         share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
-        3–4x more than the rim's edge points (speckle), so one shared sigma
+        2–4x more than the rim's edge points (speckle), so one shared sigma
         under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
         all points (the original model; no reweighting).  ``per_placement``: a sigma per type
         *and* placement (stripes differ in brightness, width and speckle from image to image).
