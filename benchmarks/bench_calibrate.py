@@ -56,7 +56,9 @@ N_BOARDS = 30
 def _circles(difficulty: str, polarity: str) -> Path:
     from lightplane.simulate.render import render_circle_dataset
 
-    out = CACHE / f"circle_{difficulty}_{polarity}_n12_s0"
+    from lightplane.simulate.render import settings_tag
+
+    out = CACHE / f"circle_{difficulty}_{polarity}_n12_s0_{settings_tag()}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
         render_circle_dataset(n=12, seed=0, difficulty=difficulty, polarity=polarity).save(out, force=True)
@@ -66,7 +68,9 @@ def _circles(difficulty: str, polarity: str) -> Path:
 def _boards(seed: int, n: int = N_BOARDS) -> Path:
     from lightplane.simulate.render import render_chessboard_dataset
 
-    out = CACHE / f"boards_capture_realistic_n{n}_s{seed}"
+    from lightplane.simulate.render import settings_tag
+
+    out = CACHE / f"boards_capture_realistic_n{n}_s{seed}_{settings_tag()}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
         render_chessboard_dataset(n=n, seed=seed, difficulty="realistic").save(out, force=True)

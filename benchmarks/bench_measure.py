@@ -40,9 +40,16 @@ SCANS = {"sphere": dict(n_frames=21, step_mm=3.0), "step": dict(n_frames=11, ste
          "plane": dict(n_frames=11, step_mm=4.0)}
 
 
+def cache_file(name: str) -> Path:
+    """The cache file of a rendered data set, named with the renderer's settings tag (stale ones are not reused)."""
+    from lightplane.simulate.render import settings_tag
+
+    return CACHE / f"{name}_{settings_tag()}.pkl"
+
+
 def cached(name: str, make):
     CACHE.mkdir(parents=True, exist_ok=True)
-    f = CACHE / f"{name}.pkl"
+    f = cache_file(name)
     if f.exists():
         with open(f, "rb") as fh:
             return pickle.load(fh)
@@ -298,7 +305,7 @@ def memory(n_frames: int = 10_000) -> None:
     how = "2 worker threads in one process" if kernels_release_gil() else "2 worker processes"
     print(f"== memory ({n_frames}-frame scan to binary PLY, {how}, fresh subprocess) ==")
     speed_frames()
-    src = CACHE / "speed_sphere_8.pkl"
+    src = cache_file("speed_sphere_8")
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "cloud.ply"
         r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(src), str(out), str(n_frames)],

@@ -50,7 +50,9 @@ CONFIGS = {
 
 def _dataset(cache: Path, seed: int, polarity: str):
     """(images, camera, true plane), rendered once and cached as .npz."""
-    f = cache / f"circle_realistic_{polarity}_n12_s{seed}.npz"
+    from lightplane.simulate.render import settings_tag
+
+    f = cache / f"circle_realistic_{polarity}_n12_s{seed}_{settings_tag()}.npz"
     if f.exists():
         z = np.load(f, allow_pickle=False)
         meta = json.loads(str(z["meta"]))

@@ -156,3 +156,17 @@ def test_disc_edge_through_distorted_camera():
     print("distorted edge points", res.size, "rms", np.sqrt(np.mean(res**2)), "mean", res.mean(), "max", np.abs(res).max())
     assert res.size > 200
     assert np.sqrt(np.mean(res**2)) <= 0.03
+
+
+def test_settings_tag_follows_the_image_formation_settings(monkeypatch):
+    """Benchmark caches are named with it: any change of a level's settings must change it."""
+    import dataclasses
+
+    from lightplane.simulate import render as r
+
+    tag = r.settings_tag()
+    assert len(tag) == 8 and tag == r.settings_tag()
+    changed = dict(r._IMAGING)
+    changed["realistic"] = dataclasses.replace(changed["realistic"], sheet_sigma_mm=changed["realistic"].sheet_sigma_mm + 0.01)
+    monkeypatch.setattr(r, "_IMAGING", changed)
+    assert r.settings_tag() != tag

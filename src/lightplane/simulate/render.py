@@ -55,6 +55,7 @@ __all__ = [
     "render_chessboard_dataset",
     "render_scan_dataset",
     "check_output_dir",
+    "settings_tag",
     "sample_board_poses",
     "board_corners",
     "CALIBRATION_CAPTURE",
@@ -103,6 +104,22 @@ _IMAGING = {
 # Scene brightness (grey levels per unit albedo): ambient light and laser power at 450 mm.
 _LIGHT = {"disc": 0.76, "background": 0.12, "ambient": 150.0, "laser": 150.0}
 _DARK = {"board": 0.8, "disc": 0.25, "background": 0.1, "ambient": 140.0, "laser": 140.0}
+
+
+def settings_tag() -> str:
+    """Short hash (8 hex digits) of the image-formation settings of every difficulty level
+    and of the scene brightness.
+
+    Caches of rendered data sets (the benchmarks') put it in their names, so a change of
+    the renderer's settings (speckle, sheet thickness, noise, ...) renders afresh instead
+    of measuring stale images.  Changes of the rendering code itself are not covered.
+    """
+    import hashlib
+    import json
+
+    blob = json.dumps({"imaging": {k: v.__dict__ for k, v in _IMAGING.items()}, "light": _LIGHT, "dark": _DARK},
+                      sort_keys=True)
+    return hashlib.sha1(blob.encode()).hexdigest()[:8]
 
 
 def _check_choice(value: str, choices: tuple[str, ...], name: str) -> str:
