@@ -6,9 +6,13 @@ Study (SPEC §9 sensor: 1280x960, 16 mm lens, light plane 25° oblique crossing 
 optical axis at 450 mm): per trial, random target placements
 (:func:`lightplane.simulate.geometry.sample_placements`), exact rim and stripe pixels
 (:func:`~lightplane.simulate.geometry.synthetic_observations`) with Gaussian noise of
-the size measured on the realistic renders (1000 rim points at 0.06 px; 30 stripe
-points at 0.06 px, i.e. ~300 stripe centres at ~0.2 px averaged in groups, as
-:func:`lightplane.calibrate.observe_image` does), then
+the size measured on the realistic renders, as white noise carrying the same
+information as the measured correlated noise (``benchmarks/bench_uncertainty.py``,
+2026-11-24: rim sigma 0.053 px with autocorrelation time tau 1.46 over ~1200 rim
+points, i.e. 1000 points at 0.06 px; raw stripe centres 0.126 px with tau 6.1 over
+~330 centres, or ~65 averages of ~5 centres at 0.102 px with tau 1.55 as
+:func:`lightplane.calibrate.observe_image` gives the solver, i.e. 30 stripe points
+at 0.09 px), then
 :func:`lightplane.plane.calibrate_plane_from_points` (``ml``).  Reported: the RMS over
 trials of the triangulation error over the working volume 380–520 mm (mm), and the
 share of trials that failed (an error was raised, e.g. an unresolved ambiguity, or
@@ -31,7 +35,7 @@ from lightplane.simulate.geometry import default_camera, default_plane, sample_p
 from lightplane.uncertainty import rms_triangulation_error_mm, working_volume_grid
 
 OUT = Path(__file__).resolve().parent / "figures"
-SIGMA_RIM, SIGMA_STRIPE, N_RIM, N_STRIPE = 0.06, 0.06, 1000, 30
+SIGMA_RIM, SIGMA_STRIPE, N_RIM, N_STRIPE = 0.06, 0.09, 1000, 30
 
 
 def trial(rng, n=12, tilt=(15.0, 55.0), dist=(380.0, 520.0), diameter=50.0, cam=None, plane=None, vol=None):
