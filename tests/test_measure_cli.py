@@ -147,3 +147,24 @@ def test_no_stripe_anywhere_is_an_error(scan_dir, tmp_path):
     line = one_error_line(run(dark, "--camera", cam, "--plane", plane, "-o", tmp_path / "x.ply"))
     assert "no stripe found in any of the 3 readable frames" in line
     assert outputs(tmp_path) == []
+
+
+def test_sigma_along_option(scan_dir, tmp_path):
+    """--sigma-along reaches the stripe extractor: a straight stripe stays where it is (same points within
+    0.01 mm), and an impossible scale is refused with one line, nothing written."""
+    base, smooth = tmp_path / "a.npy", tmp_path / "b.npy"
+    common = ("--camera", scan_dir / "camera.json", "--plane", scan_dir / "plane.json")
+    assert run(scan_dir / "frames", *common, "-o", base).returncode == 0
+    r = run(scan_dir / "frames", *common, "-o", smooth, "--sigma-along", "4")
+    assert r.returncode == 0, r.stderr
+    a, b = read_cloud(base), read_cloud(smooth)
+    key = lambda rec: {(int(f), round(float(v))): np.array([x, y, z]) for f, v, x, y, z in  # noqa: E731
+                       zip(rec["frame"], rec["v"], rec["x"], rec["y"], rec["z"])}
+    ka, kb = key(a), key(b)
+    common_keys = [k for k in ka if k in kb]
+    assert len(common_keys) > 0.9 * len(ka)
+    d = np.array([np.linalg.norm(ka[k] - kb[k]) for k in common_keys])
+    assert np.median(d) < 0.01 and not np.all(d == 0)
+    bad = tmp_path / "c.npy"
+    one_error_line(run(scan_dir / "frames", *common, "-o", bad, "--sigma-along", "0.1"))
+    assert not bad.exists()
