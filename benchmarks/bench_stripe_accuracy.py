@@ -22,33 +22,10 @@ import argparse
 import numpy as np
 
 from lightplane.simulate.render import render_circle_dataset
+from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
 from lightplane.stripe import extract_profile, extract_stripe, sigma_for_width
 
 BAR_REALISTIC_PX = 0.1
-
-
-def score_image(img: np.ndarray, camera, target: dict, pts: np.ndarray, width_px: float) -> tuple[np.ndarray, int]:
-    """Signed distances (px) of the scored centres to the projected chord, and the number of gross errors."""
-    chord = np.asarray(target["chord_mm"], float)
-    s = np.linspace(0.0, 1.0, 4001)[:, None]
-    poly = camera.project(chord[0] + s * (chord[1] - chord[0]))
-    centre, normal = np.asarray(target["center_mm"], float), np.asarray(target["normal"], float)
-    e1 = np.cross(normal, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    phi = np.linspace(0.0, 2 * np.pi, 1000, endpoint=False)[:, None]
-    rim = camera.project(centre + 0.5 * target["diameter_mm"] * (np.cos(phi) * e1 + np.sin(phi) * e2))
-    if len(pts) == 0:
-        return np.empty(0), 0
-    d = np.linalg.norm(pts[:, None, :] - poly[None, ::4, :], axis=2)
-    j = np.clip(np.argmin(d, axis=1) * 4, 1, len(poly) - 2)
-    t = poly[j + 1] - poly[j - 1]
-    t /= np.linalg.norm(t, axis=1, keepdims=True)
-    e = np.sum((pts - poly[j]) * np.column_stack([-t[:, 1], t[:, 0]]), axis=1)
-    d_rim = np.min(np.linalg.norm(pts[:, None, :] - rim[None], axis=2), axis=1)
-    on_disc = d_rim > 1.5 * width_px
-    gross = on_disc & (np.abs(e) >= 3.0)
-    return e[on_disc & ~gross], int(gross.sum())
 
 
 def main() -> None:
@@ -67,11 +44,7 @@ def main() -> None:
                 if not im["usable"]:
                     continue
                 tg = im["target"]
-                chord = np.asarray(tg["chord_mm"], float)
-                duv = np.diff(ds.camera.project(chord), axis=0)[0]
-                axis = "columns" if abs(duv[0]) > abs(duv[1]) else "rows"
-                x0, y0, x1, y1 = tg["rim_bbox_px"]
-                roi = (int(x0), int(y0), int(x1 - x0), int(y1 - y0))
+                axis, roi = profile_axis_and_roi(ds.camera, tg)
                 width = float(np.median(extract_stripe(img).width))
                 sig = sigma_for_width(width)
                 runs = {
@@ -82,7 +55,7 @@ def main() -> None:
                         img, axis=axis, roi=roi, width_px=width, sigma_along_px=2 * sig).points,
                 }
                 for key, fn in runs.items():
-                    e, gross = score_image(img, ds.camera, tg, fn(), width)
+                    e, gross = stripe_chord_errors(ds.camera, tg, fn(), width)
                     res.setdefault(key, []).append((e, gross))
         for (fn_name, scales), items in res.items():
             e = np.concatenate([x[0] for x in items])

@@ -390,32 +390,13 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
     extractor).
     """
     render = pytest.importorskip("lightplane.simulate.render")
+    from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
+
     ds = render.render_circle_dataset(n=8, seed=0, difficulty=difficulty)
-    cam = ds.camera
     errs = {"stripe": [], "profile": []}
     for img, im in zip(ds.images, ds.truth["images"]):
         tg = im["target"]
-        chord = np.asarray(tg["chord_mm"], float)
-        s = np.linspace(0.0, 1.0, 4001)[:, None]
-        poly = cam.project(chord[0] + s * (chord[1] - chord[0]))       # distorted px
-        centre, normal = np.asarray(tg["center_mm"], float), np.asarray(tg["normal"], float)
-        e1 = np.cross(normal, [0.0, 0.0, 1.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(normal, e1)
-        phi = np.linspace(0.0, 2 * np.pi, 1000, endpoint=False)[:, None]
-        rim = cam.project(centre + 0.5 * tg["diameter_mm"] * (np.cos(phi) * e1 + np.sin(phi) * e2))
-
-        def signed_distance(uv):
-            d = np.linalg.norm(uv[:, None, :] - poly[None, ::4, :], axis=2)
-            j = np.clip(np.argmin(d, axis=1) * 4, 1, len(poly) - 2)
-            t = poly[j + 1] - poly[j - 1]
-            t /= np.linalg.norm(t, axis=1, keepdims=True)
-            return np.sum((uv - poly[j]) * np.column_stack([-t[:, 1], t[:, 0]]), axis=1)
-
-        duv = poly[-1] - poly[0]
-        axis = "columns" if abs(duv[0]) > abs(duv[1]) else "rows"
-        x0, y0, x1, y1 = tg["rim_bbox_px"]
-        roi = (int(x0), int(y0), int(x1 - x0), int(y1 - y0))
+        axis, roi = profile_axis_and_roi(ds.camera, tg)
         width = float(np.median(extract_stripe(img).width))
         if speckle_settings:
             sig = sigma_for_width(width)
@@ -424,10 +405,9 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
         else:
             found = {"stripe": extract_stripe(img).uv, "profile": extract_profile(img, axis=axis, roi=roi).points}
         for name, pts in found.items():
-            e = signed_distance(pts)
-            d_rim = np.min(np.linalg.norm(pts[:, None, :] - rim[None], axis=2), axis=1)
-            on_disc = (d_rim > 1.5 * width) & (np.abs(e) < 3.0)
-            errs[name].append(e[on_disc])
+            e, gross = stripe_chord_errors(ds.camera, tg, pts, width)
+            assert gross == 0, name
+            errs[name].append(e)
     for name, e in errs.items():
         e = np.concatenate(e)
         assert e.size > 1500, name
