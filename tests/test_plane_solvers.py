@@ -335,3 +335,19 @@ def test_paper_stopping_rule_and_reasons():
     assert _true_candidates_chosen(every, ps, 1.0)
     # more chords, better plane (on average; here with 10 vs few placements)
     assert _angle(every.plane, plane) < np.deg2rad(0.05)
+
+
+def test_tls_line_recovers_a_line_and_its_normal():
+    """Points on u = 3 + 0.5 t, v = -2 + t (t spread over 200 px) with 0.01 px noise across: direction and normal
+    of the line to ~1e-4 rad, centroid on the line within the noise, normal orthogonal to the direction."""
+    from lightplane.plane import tls_line
+
+    rng = np.random.default_rng(4)
+    t = rng.uniform(-100, 100, 400)
+    d_true = np.array([0.5, 1.0]) / np.hypot(0.5, 1.0)
+    n_true = np.array([-d_true[1], d_true[0]])
+    p = np.array([3.0, -2.0]) + t[:, None] * d_true + rng.normal(0, 0.01, 400)[:, None] * n_true
+    m, d, n = tls_line(p)
+    assert abs(abs(d @ d_true) - 1) < 1e-8 and abs(abs(n @ n_true) - 1) < 1e-8
+    assert abs(d @ n) < 1e-12 and abs(np.linalg.norm(d) - 1) < 1e-12
+    assert abs((m - [3.0, -2.0]) @ n_true) < 0.005

@@ -39,7 +39,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
+from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args, tls_line
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -188,9 +188,8 @@ def _bin_along_line(uv: np.ndarray, k: int, min_bins: int = 12) -> tuple[np.ndar
     k = int(max(1, min(k, n // min_bins if n >= min_bins else 1)))
     if k == 1:
         return uv, 1
-    m = uv.mean(axis=0)
-    _, _, vt = np.linalg.svd(uv - m, full_matrices=False)
-    order = np.argsort((uv - m) @ vt[0])
+    m, direction, _ = tls_line(uv)
+    order = np.argsort((uv - m) @ direction)
     nb = n // k
     # spread the remainder: bins of k or k+1 points covering all points
     edges = np.linspace(0, n, nb + 1).round().astype(int)
@@ -220,10 +219,8 @@ def _robust_line(uv: np.ndarray, tol_px: float) -> np.ndarray:
     for _ in range(3):
         if keep.sum() < 3:
             break
-        q = uv[keep]
-        m = q.mean(axis=0)
-        _, _, vt = np.linalg.svd(q - m, full_matrices=False)
-        r = (uv - m) @ vt[1]
+        m, _, nrm = tls_line(uv[keep])
+        r = (uv - m) @ nrm
         mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
         keep = np.abs(r) <= max(4.0 * mad, tol_px)
     return keep
@@ -398,9 +395,8 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     if len(uv) >= 3:
         if stripe_bin == "auto":
             und = camera.undistort_points(uv)
-            m = und.mean(axis=0)
-            _, _, vt = np.linalg.svd(und - m, full_matrices=False)
-            r = (und - m) @ vt[1]
+            m, _, nrm = tls_line(und)
+            r = (und - m) @ nrm
             s_stripe = 1.4826 * float(np.median(np.abs(r - np.median(r))))
             k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
         else:

@@ -35,7 +35,7 @@ import numpy as np
 from .camera import Camera, as_points
 from .errors import LightplaneError
 from .measure import triangulate_normalized
-from .plane import LightPlane
+from .plane import LightPlane, tls_line
 
 __all__ = [
     "DistanceErrors",
@@ -156,13 +156,6 @@ def point_from_cross_ratio(cr, A, B, C):
     return (k * A - B) / (k - 1.0)
 
 
-def _fit_line(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Total-least-squares line through ``(N, 2)`` points: (centre, unit direction)."""
-    m = uv.mean(axis=0)
-    _, _, vt = np.linalg.svd(uv - m, full_matrices=False)
-    return m, vt[0]
-
-
 def _line_map(X: np.ndarray, s: np.ndarray) -> tuple[float, float, float]:
     """1D homography ``s = (p X + q) / (r X + 1)`` fitted to corners (least squares, algebraic).
 
@@ -216,7 +209,7 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
             continue
         X = np.flatnonzero(line_ok).astype(np.float64)  # board coordinate in squares
         line = full_line[line_ok]
-        m, t = _fit_line(line)
+        m, t, _ = tls_line(line)
         if (line[-1] - line[0]) @ t < 0:
             t = -t  # along increasing board coordinate
         nrm = np.array([-t[1], t[0]])
@@ -231,7 +224,7 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
             continue
         q = np.column_stack([s[near], h[near]])
         for _ in range(4):  # fit the (locally straight) stripe, drop points beyond 3 robust sigma
-            qm, qd = _fit_line(q)
+            qm, qd, _ = tls_line(q)
             res = np.abs((q - qm) @ np.array([-qd[1], qd[0]]))
             keep = res <= max(3.0 * 1.4826 * np.median(res), 0.05)
             if keep.all() or np.count_nonzero(keep) < min_stripe_points:

@@ -33,6 +33,7 @@ __all__ = [
     "backproject_to_plane",
     "fit_plane_points",
     "fit_line_2d",
+    "tls_line",
 ]
 
 
@@ -379,6 +380,17 @@ def fit_plane_points(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     lam, V = np.linalg.eigh(S)
     n = V[:, 0]
     return n, -float(n @ c), float(max(lam[0], 0.0))
+
+
+def tls_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total-least-squares line through (K, 2) points: ``(centroid (2,), unit direction (2,), unit normal (2,))``.
+
+    Direction and normal are the right singular vectors of the centred points (largest
+    and smallest spread); their signs are LAPACK's.
+    """
+    m = p.mean(axis=0)
+    vt = np.linalg.svd(p - m, full_matrices=False)[2]
+    return m, vt[0], vt[1]
 
 
 def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

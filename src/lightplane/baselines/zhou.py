@@ -22,7 +22,7 @@ import numpy as np
 
 from ..camera import Camera, as_points
 from ..errors import LightplaneError
-from ..plane import LightPlane
+from ..plane import LightPlane, tls_line
 
 __all__ = [
     "BoardPose",
@@ -112,10 +112,9 @@ def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarr
     had to be found in the laser-on image.
     """
     uv = camera.undistort_points(as_points(stripe_uv, 2, "stripe_uv"))
-    m = uv.mean(axis=0)
-    _, _, vt = np.linalg.svd(uv - m, full_matrices=False)
+    m, _, nrm = tls_line(uv)
     c = camera.undistort_points(pose.corners_uv)
-    return np.abs((c - m) @ vt[1]) > clearance_px
+    return np.abs((c - m) @ nrm) > clearance_px
 
 
 def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], square_mm: float, *,
@@ -322,9 +321,8 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
     for it in range(5):  # refine on the inliers (total least squares), then tighten to 3 robust sigma
         if inl.sum() < 3:
             break
-        m = uv[inl].mean(axis=0)
-        _, _, vt = np.linalg.svd(uv[inl] - m, full_matrices=False)
-        r = np.abs((uv - m) @ vt[1])
+        m, _, nrm = tls_line(uv[inl])
+        r = np.abs((uv - m) @ nrm)
         tol = tol_px if it == 0 else min(tol_px, max(3.0 * 1.4826 * float(np.median(r[inl])), min_tol_px))
         new = r < tol
         if np.array_equal(new, inl):

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LightplaneError
+from ..plane import tls_line
 from .edges import prepare_gray
 from .model import Ellipse
 
@@ -87,10 +88,7 @@ def _line_ransac(pts: np.ndarray, rng: np.random.Generator, tol_px: float, iters
     dist = np.abs((pts[:, 0] - p0[0]) * d[1] - (pts[:, 1] - p0[1]) * d[0])
     inl = dist <= tol_px
     # total least squares refit on the inliers
-    q = pts[inl]
-    m = q.mean(axis=0)
-    _, _, vt = np.linalg.svd(q - m, full_matrices=False)
-    d = vt[0]
+    m, d, _ = tls_line(pts[inl])
     dist = np.abs((pts[:, 0] - m[0]) * d[1] - (pts[:, 1] - m[1]) * d[0])
     return m, d, dist <= tol_px
 
