@@ -14,6 +14,11 @@ from ..io import check_output, expand_inputs, provenance
 from ._common import app, console, handles_errors, parse_board
 
 
+#: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
+_CORNER_METHODS = {"saddle": ("blurred-saddle model fit", "fit_corners"),
+                   "forstner": ("Förstner (gradient orthogonality)", "refine_corners")}
+
+
 @app.command("calibrate-camera")
 @handles_errors
 def calibrate_camera_cmd(
@@ -67,10 +72,9 @@ def calibrate_camera_cmd(
     console.print(t)
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
                   f"({cam.width}x{cam.height} px)")
-    method = {"saddle": "blurred-saddle model fit", "forstner": "Förstner (gradient orthogonality)"}.get(
-        str(result.options.get("refine")), "cornerSubPix only")
+    label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
     blur = result.options.get("median_blur_px")
-    console.print(f"Corners: {method}" + (f"; median edge blur {blur:.2f} px" if blur is not None else ""))
+    console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if blur is not None else ""))
     console.print("Per-view RMS, worst first:")
     for name, e in result.ranked_views():
         console.print(f"  {e:.4f} px  {name}")
@@ -81,9 +85,7 @@ def calibrate_camera_cmd(
         "calibration": result.to_dict(),
         "provenance": provenance(files, {"board": f"{cols}x{rows}", "square_mm": square, "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
-                                         "detector": "findChessboardCornersSB+cornerSubPix+"
-                                                     + {"saddle": "fit_corners", "forstner": "refine_corners"}.get(
-                                                         str(result.options.get("refine")), "none"),
+                                         "detector": f"findChessboardCornersSB+cornerSubPix+{refiner}",
                                          "solver": "calibrateCameraExtended"}),
     }
     suffix = output.suffix.lower()
