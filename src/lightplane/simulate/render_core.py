@@ -4,8 +4,10 @@ A scene is a few analytic primitives in the camera frame (mm):
 
 - *planar patches*, rows of a ``(P, PATCH_COLS)`` float64 array: origin, two unit
   in-plane axes ``e1, e2``, unit normal, a region (infinite, ellipse or rectangle
-  in the patch's ``(u, v)`` coordinates), an albedo and an optional chessboard
-  texture; coplanar patches (a printed disc on its board) are resolved by the
+  in the patch's ``(u, v)`` coordinates), an albedo and an optional texture (a
+  chessboard; a binary bitmap of square cells, looked up by nearest cell, e.g. a
+  ChArUco board; a grid of dots, symmetric or staggered, e.g. a circle-grid target);
+  coplanar patches (a printed disc on its board) are resolved by the
   ``layer`` column, the higher one wins;
 - *spheres*, rows of a ``(Q, SPHERE_COLS)`` array: centre, radius, albedo.
 
@@ -37,7 +39,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-PATCH_COLS = 24
+PATCH_COLS = 26
 SPHERE_COLS = 5
 LASER_COLS = 12
 
@@ -45,9 +47,10 @@ LASER_COLS = 12
 _O, _E1, _E2, _N = 0, 3, 6, 9
 _SHAPE, _R0, _R1, _R2, _R3 = 12, 13, 14, 15, 16
 _ALB, _TEX, _SQ, _NSX, _NSY, _ALB2, _LAYER = 17, 18, 19, 20, 21, 22, 23
+_TP0, _TP1 = 24, 25  # texture parameters: bitmap (offset in the texel pool, -), dots (radius, staggered)
 
 SHAPE_INFINITE, SHAPE_ELLIPSE, SHAPE_RECT = 0, 1, 2
-TEX_NONE, TEX_CHECKER = 0, 1
+TEX_NONE, TEX_CHECKER, TEX_BITMAP, TEX_DOTS = 0, 1, 2, 3
 
 
 def make_patch(
@@ -60,6 +63,8 @@ def make_patch(
     albedo: float = 0.5,
     layer: int = 0,
     checker: tuple[float, int, int, float] | None = None,
+    bitmap: tuple[float, int, int, float, int] | None = None,
+    dots: tuple[float, int, int, float, float, bool] | None = None,
 ) -> np.ndarray:
     """One patch row.
 
@@ -67,6 +72,17 @@ def make_patch(
     ``(u_min, u_max, v_min, v_max)`` (mm).  ``checker=(square_mm, n_x, n_y, dark_albedo)``
     paints ``n_x x n_y`` squares starting at ``(-square, -square)``, the first one dark, so
     that the inner corners are at ``(i·square, j·square)`` (OpenCV's board frame).
+
+    ``bitmap=(cell_mm, n_x, n_y, ink_albedo, offset)``: a binary texture of ``n_x x n_y``
+    square cells of ``cell_mm``, cell ``(iu, iv)`` covering ``[iu, iu + 1) x [iv, iv + 1)``
+    cells from the patch origin; its texels (1 = ink) are ``pool[offset + iv * n_x + iu]``
+    of the texel pool given to :func:`render_radiance`.  Exact for any layout whose edges
+    lie on the cell grid (a board of squares and square markers).
+
+    ``dots=(pitch_mm, cols, rows, ink_albedo, radius_mm, staggered)``: ink discs of
+    ``radius_mm`` centred at ``(i·pitch, j·pitch)`` (``i < cols, j < rows``), or, staggered,
+    at ``((2 i + j mod 2)·pitch, j·pitch)`` (OpenCV's asymmetric circle grid); exact discs
+    as long as they do not overlap (radius < pitch/2, staggered: < pitch/√2).
     """
     e1 = np.asarray(e1, dtype=np.float64)
     e2 = np.asarray(e2, dtype=np.float64)
@@ -85,6 +101,18 @@ def make_patch(
     if checker is not None:
         row[_TEX] = TEX_CHECKER
         row[_SQ], row[_NSX], row[_NSY], row[_ALB2] = checker
+    if bitmap is not None:
+        row[_TEX] = TEX_BITMAP
+        row[_SQ], row[_NSX], row[_NSY], row[_ALB2], row[_TP0] = bitmap
+    if dots is not None:
+        pitch, cols, rows, ink, radius, staggered = dots
+        if not 0 < radius < pitch * (np.sqrt(0.5) if staggered else 0.5):
+            raise ValueError(f"dots of radius {radius} mm overlap at pitch {pitch} mm")
+        row[_TEX] = TEX_DOTS
+        row[_SQ], row[_NSX], row[_NSY], row[_ALB2] = pitch, cols, rows, ink
+        row[_TP0], row[_TP1] = radius, float(bool(staggered))
+    if sum(x is not None for x in (checker, bitmap, dots)) > 1:
+        raise ValueError("a patch has one texture")
     return row
 
 
@@ -260,7 +288,51 @@ def _occluded(patches, spheres, px, py, pz, lx, ly, lz):
 
 
 @nb.njit(**_jit)
-def _shade(patches, spheres, laser, ambient, x, y):
+def _bitmap_ink(row, tex, u, v):
+    """Is the bitmap texel under (u, v) ink?  (Nearest cell; outside the bitmap: no.)"""
+    cell = row[19]
+    iu = int(np.floor(u / cell))
+    iv = int(np.floor(v / cell))
+    nx = int(row[20])
+    if iu < 0 or iv < 0 or iu >= nx or iv >= int(row[21]):
+        return False
+    return tex[int(row[24]) + iv * nx + iu] != 0
+
+
+@nb.njit(**_jit)
+def _dot_ink(row, u, v):
+    """Is (u, v) inside one of the grid's dots?  The two nearest rows (and, unstaggered, the
+    two nearest columns) hold the only dot a point can be in when the dots do not overlap."""
+    p = row[19]
+    cols = int(row[20])
+    rows = int(row[21])
+    r2 = row[24] * row[24]
+    fu = u / p
+    fv = v / p
+    j0 = int(np.floor(fv))
+    for j in range(j0, j0 + 2):
+        if j < 0 or j >= rows:
+            continue
+        dv = v - j * p
+        if row[25] != 0.0:
+            sh = j % 2
+            i = int(np.floor((fu - sh) * 0.5 + 0.5))
+            if i >= 0 and i < cols:
+                du = u - (2 * i + sh) * p
+                if du * du + dv * dv < r2:
+                    return True
+        else:
+            i0 = int(np.floor(fu))
+            for i in range(i0, i0 + 2):
+                if i >= 0 and i < cols:
+                    du = u - i * p
+                    if du * du + dv * dv < r2:
+                        return True
+    return False
+
+
+@nb.njit(**_jit)
+def _shade(patches, spheres, laser, ambient, x, y, tex):
     """Radiance and material id seen along the ray (x, y, 1)."""
     dx, dy, dz = x, y, 1.0
     best_t = 1e300
@@ -307,6 +379,14 @@ def _shade(patches, spheres, laser, ambient, x, y):
             iu = int(np.floor((best_u + sq) / sq))
             iv = int(np.floor((best_v + sq) / sq))
             if iu >= 0 and iv >= 0 and iu < int(row[20]) and iv < int(row[21]) and (iu + iv) % 2 == 0:
+                albedo = row[22]
+                mat += 1
+        elif row[18] == 2.0:
+            if _bitmap_ink(row, tex, best_u, best_v):
+                albedo = row[22]
+                mat += 1
+        elif row[18] == 3.0:
+            if _dot_ink(row, best_u, best_v):
                 albedo = row[22]
                 mat += 1
     # face the camera
@@ -356,7 +436,7 @@ def undistort_grid(fx, fy, cx, cy, dist, width, height, offset):
 
 
 @nb.njit(parallel=True, **_jit)
-def probe_corners(corner_xy, patches, spheres, laser, ambient):
+def probe_corners(corner_xy, patches, spheres, laser, ambient, tex):
     """Material id and signed distance to the light plane (mm) seen at every pixel corner.
 
     ``corner_xy``: ``(H+1, W+1, 2)`` rays of the corners (corner (i, j) is at pixel
@@ -367,14 +447,14 @@ def probe_corners(corner_xy, patches, spheres, laser, ambient):
     dst = np.empty((h1, w1))
     for i in nb.prange(h1):
         for j in range(w1):
-            r, m, d = _shade(patches, spheres, laser, ambient, corner_xy[i, j, 0], corner_xy[i, j, 1])
+            r, m, d = _shade(patches, spheres, laser, ambient, corner_xy[i, j, 0], corner_xy[i, j, 1], tex)
             mat[i, j] = m
             dst[i, j] = d
     return mat, dst
 
 
 @nb.njit(**_jit)
-def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient, S, salt):
+def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient, S, salt, tex):
     """S x S stratified jittered samples over pixel (u, v): (mean radiance, mixed materials?)."""
     inv_s = 1.0 / S
     acc = 0.0
@@ -388,7 +468,7 @@ def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, l
             xd = (u - 0.5 + (i + ju) * inv_s - cx) / fx
             yd = (v - 0.5 + (j + jv) * inv_s - cy) / fy
             x, y = _undistort(xd, yd, x0, y0, k1, k2, p1, p2, k3, 4)
-            r, mat, d = _shade(patches, spheres, laser, ambient, x, y)
+            r, mat, d = _shade(patches, spheres, laser, ambient, x, y, tex)
             acc += r
             if mat0 == -2:
                 mat0 = mat
@@ -398,7 +478,7 @@ def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, l
 
 
 @nb.njit(parallel=True, **_jit)
-def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt):
+def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt, tex):
     """Integrate every pixel by its mode: 0 uniform (one sample is the exact mean), 1 S x S
     samples (upgraded to F x F if they see several materials), 2 F x F samples."""
     height, width = mode.shape
@@ -410,17 +490,17 @@ def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambie
             y0 = centre_xy[v, u, 1]
             md = mode[v, u]
             if md == 0:
-                r, mat, d = _shade(patches, spheres, laser, ambient, x0, y0)
+                r, mat, d = _shade(patches, spheres, laser, ambient, x0, y0, tex)
                 img[v, u] = r
                 continue
             if md == 1:
                 r, mix = _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient,
-                                S, salt)
+                                S, salt, tex)
                 if not mix:
                     img[v, u] = r
                     continue
             r, mix = _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient,
-                            F, salt)
+                            F, salt, tex)
             img[v, u] = r
     return img
 
@@ -444,7 +524,8 @@ def _ray_maps(camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.ndarray, ambient: float, *,
-                    samples: int = 4, edge_samples: int = 16, salt: int = 0, return_modes: bool = False):
+                    samples: int = 4, edge_samples: int = 16, salt: int = 0, return_modes: bool = False,
+                    texels: np.ndarray | None = None):
     """Pixel-integrated radiance ``(H, W)`` float64 of a scene seen by ``camera`` (distorted).
 
     Every pixel is the mean over ``samples x samples`` stratified jittered sub-pixel
@@ -454,7 +535,8 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     and no laser light has a constant radiance over its area: there one sample is the
     S x S mean exactly and is what is computed.  ``laser`` as made by
     :func:`make_laser` (power 0: laser off).  ``return_modes``: also return the
-    per-pixel mode (0 uniform, 1 S x S, 2 F x F).
+    per-pixel mode (0 uniform, 1 S x S, 2 F x F).  ``texels``: the pool of bitmap
+    texels (uint8, 1 = ink) that ``bitmap`` patches index (see :func:`make_patch`).
     """
     import cv2
 
@@ -470,7 +552,12 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     dist = np.ascontiguousarray(camera.dist, dtype=np.float64)
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     centre_xy, corner_xy = _ray_maps(camera)
-    mat, dst = probe_corners(corner_xy, patches, spheres, laser, float(ambient))
+    tex = np.zeros(1, np.uint8) if texels is None else np.ascontiguousarray(texels, dtype=np.uint8).ravel()
+    for row in patches[patches[:, _TEX] == TEX_BITMAP]:
+        if row[_TP0] < 0 or row[_TP0] + row[_NSX] * row[_NSY] > tex.size:
+            raise LightplaneError(f"a bitmap patch indexes texels {row[_TP0]:.0f}..{row[_TP0] + row[_NSX] * row[_NSY]:.0f}"
+                                  f" of a pool of {tex.size}")
+    mat, dst = probe_corners(corner_xy, patches, spheres, laser, float(ambient), tex)
     # a pixel is on an edge when its four corners disagree
     edge = ((mat[:-1, :-1] != mat[:-1, 1:]) | (mat[:-1, :-1] != mat[1:, :-1]) | (mat[:-1, :-1] != mat[1:, 1:]))
     # near the sheet: a corner within 8 sigma of it, or corners on both sides of it
@@ -488,5 +575,5 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     mode = np.maximum(cv2.dilate(np.maximum(lit.astype(np.uint8), edge8), kernel), 2 * edge8)
     mode = np.ascontiguousarray(mode.astype(np.uint8))
     img = render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, float(ambient), mode, int(samples),
-                       int(max(edge_samples, samples)), int(salt))
+                       int(max(edge_samples, samples)), int(salt), tex)
     return (img, mode) if return_modes else img
