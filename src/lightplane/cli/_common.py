@@ -31,12 +31,30 @@ def fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def quiet_native_logs() -> None:
+    """Keep OpenCV's log lines and the image decoders' (libpng, libjpeg, libtiff) own
+    complaints off stderr, so that a bad image gives only our one line; the reason of
+    each skipped image is in the summary and the result file.  Once per process."""
+    global _QUIETED
+    if not _QUIETED:
+        from ..io import quiet_opencv
+
+        quiet_opencv()
+        _QUIETED = True
+
+
+_QUIETED = False
+
+
 def handles_errors(fn: F) -> F:
-    """Turn LightplaneError / missing files into one stderr line and exit 2."""
+    """Turn LightplaneError / missing files into one stderr line and exit 2.
+
+    Also quiets OpenCV's own logging first (:func:`quiet_native_logs`)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
+            quiet_native_logs()
             return fn(*args, **kwargs)
         except LightplaneError as e:
             fail(str(e))
