@@ -53,6 +53,13 @@ __all__ = [
     "render_circle_image",
     "render_circle_dataset",
     "render_chessboard_dataset",
+    "render_target_dataset",
+    "target_spec",
+    "target_object_points",
+    "TargetSpec",
+    "TARGET_KINDS",
+    "TARGET_CAPTURES",
+    "dot_image_centres",
     "render_scan_dataset",
     "check_output_dir",
     "settings_tag",
@@ -557,7 +564,8 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
                        distance_mm: tuple[float, float] = (330.0, 560.0), tilt_deg: tuple[float, float] = (10.0, 45.0),
                        plane: LightPlane | None = None, min_stripe_frac: float = 0.5,
                        margin_px: float = 15.0, centre_frac: float = 0.4, spin_deg: float = 30.0,
-                       max_tries: int = 20000) -> list[tuple[np.ndarray, np.ndarray]]:
+                       max_tries: int = 20000, outline: tuple[float, float, float, float] | None = None,
+                       centre_mm: tuple[float, float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Random chessboard poses ``(R_cam_board (3, 3), t_cam_board (3,) mm)``, whole board in view.
 
     The board (inner corners ``board = (cols, rows)``, plus a white margin of one
@@ -568,12 +576,18 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
     ``margin_px``) are redrawn.  With ``plane``, only poses where the stripe crosses the
     inner-corner area over at least ``min_stripe_frac`` of the board's width (or height)
     are kept.  :data:`CALIBRATION_CAPTURE` holds the design used for camera calibration.
+    Other targets (circle grids, ChArUco): ``outline = (u0, u1, v0, v1)``, the board's
+    rectangle in its frame (mm), and ``centre_mm``, the point put on the drawn ray
+    (default: the chessboard's, from ``board`` and ``square_mm``).
     """
     camera = default_camera() if camera is None else camera
     cols, rows = board
-    u0, u1, v0, v1 = _board_outline(board, square_mm, square_mm)
+    u0, u1, v0, v1 = _board_outline(board, square_mm, square_mm) if outline is None else outline
     outline = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
-    centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
+    if centre_mm is None:
+        centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
+    else:
+        centre_b = np.array([float(centre_mm[0]), float(centre_mm[1]), 0.0])
     out = []
     for _ in range(max_tries):
         if len(out) == n:
@@ -720,6 +734,368 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
         "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
                     "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
                     "with_stripe": with_stripe, "laser_off": laser_off, "difficulty": difficulty},
+        "views": views,
+    }
+    return Dataset(images, names, camera, truth)
+
+
+# ----------------------------------------------------------------------------- other targets
+TARGET_KINDS = ("chessboard", "circles", "acircles", "charuco")
+
+#: Calibration-capture targets of about the chessboard's size (~130 x 100 mm with margins on
+#: the default camera's ~135 x 100 mm field at 450 mm), for :func:`render_target_dataset`
+#: with :data:`CALIBRATION_CAPTURE`'s poses: dict form of each target.
+TARGET_CAPTURES = {
+    "chessboard": {"kind": "chessboard", "cols": 15, "rows": 11, "square_mm": 8.0},
+    "circles": {"kind": "circles", "cols": 11, "rows": 8, "square_mm": 11.0},
+    "acircles": {"kind": "acircles", "cols": 6, "rows": 11, "square_mm": 9.0},
+    "charuco": {"kind": "charuco", "cols": 11, "rows": 8, "square_mm": 12.0, "marker_mm": 9.0,
+                "dictionary": "DICT_4X4_50"},
+}
+
+_BOARD_ALBEDO, _INK_ALBEDO, _BACKGROUND_ALBEDO = 0.86, 0.06, 0.25
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """A calibration target as the renderer reads it (the fields of ``lightplane.targets.Target``).
+
+    ``kind``: ``chessboard`` (``cols x rows`` inner corners), ``circles`` (OpenCV's symmetric
+    grid of ``cols x rows`` dots), ``acircles`` (OpenCV's asymmetric grid, ``cols`` dots per
+    row, ``rows`` rows) or ``charuco`` (``cols x rows`` squares, OpenCV's ``CharucoBoard``);
+    ``square_mm``: the square, or the dots' pitch; ``marker_mm`` and ``dictionary`` (e.g.
+    ``"DICT_4X4_50"``): ChArUco only; ``dot_mm``: dot diameter (None: half the pitch).
+    """
+
+    kind: str
+    cols: int
+    rows: int
+    square_mm: float
+    marker_mm: float | None = None
+    dictionary: str | None = None
+    dot_mm: float | None = None
+
+    @property
+    def dot_diameter_mm(self) -> float | None:
+        if self.kind not in ("circles", "acircles"):
+            return None
+        return 0.5 * self.square_mm if self.dot_mm is None else float(self.dot_mm)
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "cols": self.cols, "rows": self.rows, "square_mm": self.square_mm,
+                "marker_mm": self.marker_mm, "dictionary": self.dictionary, "dot_mm": self.dot_mm}
+
+
+_SPEC_FIELDS = ("kind", "cols", "rows", "square_mm", "marker_mm", "dictionary", "dot_mm")
+
+
+def target_spec(target) -> TargetSpec:
+    """Read a target given as an object with the attributes of :class:`TargetSpec` (e.g.
+    ``lightplane.targets.Target``), a dict of them, a tuple ``(kind, cols, rows, square_mm)``
+    (+ ``marker_mm, dictionary`` for ChArUco, + ``dot_mm`` for circle grids) or a
+    :data:`TARGET_CAPTURES` name; checked."""
+    if isinstance(target, TargetSpec):
+        spec = target
+    else:
+        if isinstance(target, str):
+            if target not in TARGET_CAPTURES:
+                raise LightplaneError(f"target name must be one of {', '.join(TARGET_CAPTURES)}; got {target!r}")
+            target = TARGET_CAPTURES[target]
+        if isinstance(target, dict):
+            unknown = set(target) - set(_SPEC_FIELDS)
+            if unknown:
+                raise LightplaneError(f"target: unknown field(s) {', '.join(sorted(unknown))}")
+            d = dict(target)
+        elif isinstance(target, (tuple, list)):
+            t = list(target)
+            if len(t) < 4:
+                raise LightplaneError(f"target tuple needs (kind, cols, rows, square_mm, ...); got {target!r}")
+            d = dict(zip(("kind", "cols", "rows", "square_mm"), t[:4]))
+            extra = ("marker_mm", "dictionary") if t[0] == "charuco" else ("dot_mm",)
+            if len(t) > 4 + len(extra):
+                raise LightplaneError(f"target tuple has too many fields for {t[0]!r}: {target!r}")
+            d.update(zip(extra, t[4:]))
+        else:
+            d = {k: getattr(target, k) for k in _SPEC_FIELDS if hasattr(target, k)}
+        for k in ("kind", "cols", "rows", "square_mm"):
+            if k not in d:
+                raise LightplaneError(f"target has no {k!r}: {target!r}")
+        kind = d["kind"]
+        kind = getattr(kind, "value", kind)  # an Enum's value
+        opt = lambda k: None if d.get(k) is None else d[k]  # noqa: E731
+        try:
+            spec = TargetSpec(str(kind), int(d["cols"]), int(d["rows"]), float(d["square_mm"]),
+                              None if opt("marker_mm") is None else float(d["marker_mm"]),
+                              None if opt("dictionary") is None else str(d["dictionary"]),
+                              None if opt("dot_mm") is None else float(d["dot_mm"]))
+        except (TypeError, ValueError) as e:
+            raise LightplaneError(f"target: {e}") from None
+    _check_choice(spec.kind, TARGET_KINDS, "target kind")
+    if spec.cols < 2 or spec.rows < 2:
+        raise LightplaneError(f"target needs cols, rows >= 2; got {spec.cols}x{spec.rows}")
+    if not (np.isfinite(spec.square_mm) and spec.square_mm > 0):
+        raise LightplaneError(f"square_mm must be positive, got {spec.square_mm}")
+    if spec.kind == "charuco":
+        if spec.marker_mm is None or spec.dictionary is None:
+            raise LightplaneError("a charuco target needs marker_mm and dictionary")
+        if not 0 < spec.marker_mm < spec.square_mm:
+            raise LightplaneError(f"marker_mm must be in (0, square_mm); got {spec.marker_mm}")
+    if spec.kind in ("circles", "acircles"):
+        r = 0.5 * spec.dot_diameter_mm
+        limit = spec.square_mm * (np.sqrt(0.5) if spec.kind == "acircles" else 0.5)
+        if not 0 < r < limit:
+            raise LightplaneError(f"dot_mm {2 * r:g} overlaps its neighbours (must be in (0, {2 * limit:g}) mm)")
+    return spec
+
+
+def target_object_points(target) -> np.ndarray:
+    """``(N, 3)`` points of a target in its board frame (mm, z = 0), in id order: chessboard
+    inner corners and ChArUco chessboard corners ``j * (cols') + i`` at ``(i, j) * square``
+    (ChArUco: ``((i + 1), (j + 1)) * square``, its own frame), circle-grid dot centres
+    ``(i, j) * pitch``, or staggered ``((2 i + j mod 2), j) * pitch``; ``i`` fastest."""
+    spec = target_spec(target)
+    s = spec.square_mm
+    if spec.kind == "charuco":
+        j, i = np.mgrid[0:spec.rows - 1, 0:spec.cols - 1]
+        return np.column_stack([(i.ravel() + 1) * s, (j.ravel() + 1) * s, np.zeros(i.size)])
+    j, i = np.mgrid[0:spec.rows, 0:spec.cols]
+    i, j = i.ravel(), j.ravel()
+    if spec.kind == "acircles":
+        return np.column_stack([(2 * i + j % 2) * s, j * s, np.zeros(i.size)]).astype(np.float64)
+    return np.column_stack([i * s, j * s, np.zeros(i.size)]).astype(np.float64)
+
+
+def _target_outline(spec: TargetSpec) -> np.ndarray:
+    """The board's rectangle ``(u0, u1, v0, v1)`` in its frame (mm): a white margin of one
+    square (pitch) around the squares (chessboard, ChArUco) or the outer dot centres."""
+    s = spec.square_mm
+    if spec.kind == "chessboard":
+        return _board_outline((spec.cols, spec.rows), s, s)
+    if spec.kind == "charuco":
+        return np.array([-s, (spec.cols + 1) * s, -s, (spec.rows + 1) * s])
+    obj = target_object_points(spec)
+    return np.array([obj[:, 0].min() - s, obj[:, 0].max() + s, obj[:, 1].min() - s, obj[:, 1].max() + s])
+
+
+def _fraction_gcd(values: list[float]) -> float:
+    """Largest cell whose multiples hit every value (mm) exactly (values rational to 1e-9)."""
+    from fractions import Fraction
+    from math import gcd
+
+    fr = []
+    for x in values:
+        f = Fraction(x).limit_denominator(100000)
+        if abs(float(f) - x) > 1e-9 * max(1.0, abs(x)):
+            raise LightplaneError(f"charuco: {x} mm is not a simple fraction of a millimetre; no exact texel grid")
+        fr.append(f)
+    den = 1
+    for f in fr:
+        den = den * f.denominator // gcd(den, f.denominator)
+    g = 0
+    for f in fr:
+        g = gcd(g, int(f * den))
+    return g / den
+
+
+def _charuco_layout(spec: TargetSpec) -> dict:
+    """The ChArUco board of OpenCV (``cv2.aruco.CharucoBoard``, non-legacy pattern): its marker
+    ids and corners, its chessboard corners, and its albedo as a binary texture of square cells
+    (1 = ink) over ``[0, cols·s] x [0, rows·s]`` (board frame; x along the image columns of
+    ``generateImage``, y down its rows).  The geometry is OpenCV's, recomputed exactly in
+    float64 (OpenCV keeps float32) and checked against it; the marker bits come from
+    ``generateImageMarker`` with one pixel per bit."""
+    import cv2
+
+    try:
+        dict_id = getattr(cv2.aruco, spec.dictionary)
+    except AttributeError:
+        raise LightplaneError(f"charuco: unknown dictionary {spec.dictionary!r} (e.g. DICT_4X4_50)") from None
+    dictionary = cv2.aruco.getPredefinedDictionary(dict_id)
+    board = cv2.aruco.CharucoBoard((spec.cols, spec.rows), spec.square_mm, spec.marker_mm, dictionary)
+    s, m, nb = spec.square_mm, spec.marker_mm, int(dictionary.markerSize)
+    off = (s - m) / 2
+    ids = np.asarray(board.getIds()).ravel().astype(int)
+    cv_corners = [np.asarray(c, dtype=np.float64).reshape(4, 3) for c in board.getObjPoints()]
+    cell = _fraction_gcd([s, off, m / (nb + 2)])
+    k, o, q = (int(round(x / cell)) for x in (s, off, m / (nb + 2)))
+    nx, ny = spec.cols * k, spec.rows * k
+    if nx * ny > 16_000_000:
+        raise LightplaneError(f"charuco: texel grid {nx}x{ny} too fine (cell {cell} mm)")
+    ink = np.ones((spec.rows, spec.cols), bool)  # squares without a marker are black
+    tex = np.zeros((ny, nx), np.uint8)
+    marker_corners = []
+    for mid, c in zip(ids, cv_corners):
+        ix, iy = (int(np.floor(x / s)) for x in c[:, :2].mean(axis=0))
+        x0, y0 = ix * s + off, iy * s + off
+        exact = np.array([[x0, y0, 0], [x0 + m, y0, 0], [x0 + m, y0 + m, 0], [x0, y0 + m, 0]])
+        if not np.allclose(exact, c, atol=1e-3):
+            raise LightplaneError(f"charuco: marker {mid} of OpenCV's board is not where expected ({c.tolist()})")
+        marker_corners.append(exact)
+        ink[iy, ix] = False
+        bits = cv2.aruco.generateImageMarker(dictionary, int(mid), nb + 2, borderBits=1) == 0
+        r0, c0 = iy * k + o, ix * k + o
+        tex[r0:r0 + (nb + 2) * q, c0:c0 + (nb + 2) * q] = np.kron(bits, np.ones((q, q), np.uint8))
+    for iy, ix in zip(*np.nonzero(ink)):
+        tex[iy * k:(iy + 1) * k, ix * k:(ix + 1) * k] = 1
+    obj = target_object_points(spec)
+    cv_obj = np.asarray(board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+    if cv_obj.shape != obj.shape or not np.allclose(cv_obj, obj, atol=1e-3):
+        raise LightplaneError("charuco: OpenCV's chessboard corners are not at ((i + 1), (j + 1)) * square")
+    return {"texels": tex, "cell_mm": cell, "marker_ids": ids, "marker_corners_mm": np.array(marker_corners),
+            "board": board}
+
+
+def _target_patch(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None) -> np.ndarray:
+    u0, u1, v0, v1 = _target_outline(spec)
+    s = spec.square_mm
+    common = dict(shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=_BOARD_ALBEDO, layer=1)
+    if spec.kind == "chessboard":
+        return rc.make_patch(t, R[:, 0], R[:, 1], checker=(s, spec.cols + 1, spec.rows + 1, _INK_ALBEDO), **common)
+    if spec.kind == "charuco":
+        tex = layout["texels"]
+        return rc.make_patch(t, R[:, 0], R[:, 1], bitmap=(layout["cell_mm"], tex.shape[1], tex.shape[0],
+                                                          _INK_ALBEDO, 0), **common)
+    return rc.make_patch(t, R[:, 0], R[:, 1], dots=(s, spec.cols, spec.rows, _INK_ALBEDO, 0.5 * spec.dot_diameter_mm,
+                                                    spec.kind == "acircles"), **common)
+
+
+def dot_image_centres(camera: Camera, R: np.ndarray, t: np.ndarray, centres_mm: np.ndarray, radius_mm: float,
+                      n_rim: int = 720) -> dict:
+    """Where the dots of a circle grid appear (px), exactly.
+
+    A disc's perspective image is an ellipse whose centre is not the image of the disc's
+    centre: with ``H = [r1 r2 t]`` (board plane to normalised image), the ellipse's dual
+    conic is ``H C* Hᵀ`` with ``C* = [[c1² - r², c1 c2, c1], [c1 c2, c2² - r², c2], [c1, c2, 1]]``
+    and its centre is ``H C* Hᵀ (0, 0, 1)ᵀ``.  Returns ``ellipse_centres_undistorted_px``
+    (pinhole image), ``ellipse_centres_px`` (that point through the distortion) and
+    ``blob_centroids_px``: the area centroid of the *distorted* image of each disc (Green's
+    theorem on ``n_rim`` projected rim points), what a blob's moments measure;
+    ``projected_centres_px``: the dots' true centres projected (distorted).
+    """
+    H = np.column_stack([R[:, 0], R[:, 1], t])
+    c = np.asarray(centres_mm, dtype=np.float64)[:, :2]
+    r2 = float(radius_mm) ** 2
+    Cs = np.zeros((len(c), 3, 3))
+    Cs[:, 0, 0] = c[:, 0] ** 2 - r2
+    Cs[:, 1, 1] = c[:, 1] ** 2 - r2
+    Cs[:, 0, 1] = Cs[:, 1, 0] = c[:, 0] * c[:, 1]
+    Cs[:, 0, 2] = Cs[:, 2, 0] = c[:, 0]
+    Cs[:, 1, 2] = Cs[:, 2, 1] = c[:, 1]
+    Cs[:, 2, 2] = 1.0
+    e = np.einsum("ij,njk,k->ni", H, np.einsum("njk,lk->njl", Cs, H), np.array([0.0, 0.0, 1.0]))
+    xy1 = np.column_stack([e[:, 0] / e[:, 2], e[:, 1] / e[:, 2], np.ones(len(e))])
+    ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+    rim_b = c[:, None, :] + np.sqrt(r2) * np.stack([np.cos(ang), np.sin(ang)], axis=1)[None]
+    rim_cam = rim_b[..., 0:1] * R[:, 0] + rim_b[..., 1:2] * R[:, 1] + t
+    uv = camera.project(rim_cam.reshape(-1, 3)).reshape(len(c), n_rim, 2)
+    x, y = uv[..., 0], uv[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * yn - xn * y
+    area = 0.5 * cross.sum(axis=1)
+    cen = np.column_stack([((x + xn) * cross).sum(axis=1), ((y + yn) * cross).sum(axis=1)]) / (6.0 * area[:, None])
+    centres_cam = np.column_stack([c, np.zeros(len(c))]) @ R.T + t
+    return {"ellipse_centres_undistorted_px": camera.project(xy1, distort=False),
+            "ellipse_centres_px": camera.project(xy1), "blob_centroids_px": cen,
+            "projected_centres_px": camera.project(centres_cam)}
+
+
+def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = "clean", *,
+                          camera: Camera | None = None, noise: bool = True, samples: int = 4, edge_samples: int = 16,
+                          distance_mm: tuple[float, float] | None = None, tilt_deg: tuple[float, float] | None = None,
+                          centre_frac: float | None = None, spin_deg: float | None = None,
+                          progress=None) -> Dataset:
+    """``n`` views of a calibration target (chessboard, circle grid, asymmetric circle grid or
+    ChArUco board) in the calibration-capture style, with exact truth.
+
+    ``target``: see :func:`target_spec` (a ``lightplane.targets.Target``, a dict, a tuple or a
+    :data:`TARGET_CAPTURES` name).  The board (white, albedo 0.86, ink 0.06, with a margin of
+    one square or pitch) is posed as by :func:`sample_board_poses` with
+    :data:`CALIBRATION_CAPTURE`'s distances, tilts, centring and spin (override with the
+    keywords), whole in view, 250 mm in front of a grey background, laser off.  A chessboard
+    target gives the same images as :func:`render_chessboard_dataset` with the same seed.
+    Circle dots are exact discs, ChArUco boards OpenCV's own layout (bit-exact texture).
+
+    Truth per view: ``file``, ``T_cam_board`` (``R``, ``t`` mm), ``ids`` (0..N-1) and
+    ``points_px`` / ``points_undistorted_px``: :func:`target_object_points` projected, in id
+    order; circle grids also ``ellipse_centres_px``, ``ellipse_centres_undistorted_px`` and
+    ``blob_centroids_px`` (where the dots' images are centred, see
+    :func:`dot_image_centres`) and ``centre_bias_px`` (``|ellipse centre - projected
+    centre|`` per dot, distorted px); ChArUco also ``marker_ids`` and ``marker_corners_px``
+    ``(M, 4, 2)``.
+    """
+    spec = target_spec(target)
+    design = CALIBRATION_CAPTURE
+    distance_mm = design["distance_mm"] if distance_mm is None else tuple(distance_mm)
+    tilt_deg = design["tilt_deg"] if tilt_deg is None else tuple(tilt_deg)
+    centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
+    spin_deg = design["spin_deg"] if spin_deg is None else float(spin_deg)
+    n = _check_n(n)
+    _check_choice(difficulty, DIFFICULTIES, "difficulty")
+    camera = default_camera() if camera is None else camera
+    imaging = _IMAGING[difficulty]
+    obj = target_object_points(spec)
+    outline = _target_outline(spec)
+    centre = 0.5 * (obj[:, :2].min(axis=0) + obj[:, :2].max(axis=0))
+    layout = _charuco_layout(spec) if spec.kind == "charuco" else None
+    texels = None if layout is None else layout["texels"]
+    rng = np.random.default_rng(seed)
+    poses = sample_board_poses(n, rng, camera=camera, board=(spec.cols, spec.rows), square_mm=spec.square_mm,
+                               distance_mm=distance_mm, tilt_deg=tilt_deg, centre_frac=centre_frac,
+                               spin_deg=spin_deg, outline=tuple(outline), centre_mm=tuple(centre))
+    plane = default_plane()  # the laser is off; its row still takes the same draws as the chessboard's
+    images, names, views = [], [], []
+    for i, (R, t) in enumerate(poses):
+        img_rng = np.random.default_rng([seed, i])
+        bg = rc.make_patch([0, 0, float(t[2] + 250.0)], [1, 0, 0], [0, 1, 0], albedo=_BACKGROUND_ALBEDO)
+        patches = np.array([_target_patch(spec, R, t, layout), bg])
+        jit = imaging.exposure_jitter
+        ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
+        img_rng.uniform(-jit, jit)  # the chessboard data set's laser power draw, kept for identical images
+        salt = int(img_rng.integers(0, 2**31 - 1))
+        laser = _laser_row(plane, imaging, 0.0, img_rng)
+        rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
+                                 samples=samples, edge_samples=edge_samples, salt=salt, texels=texels)
+        images.append(_finish(rad, camera, imaging, img_rng, noise=noise))
+        name = f"{spec.kind}_{i:03d}.png"
+        names.append(name)
+        pc = obj @ R.T + t
+        entry = {"file": name, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
+                 "points_px": camera.project(pc), "points_undistorted_px": camera.project(pc, distort=False),
+                 "ambient_dn": ambient}
+        if spec.kind in ("circles", "acircles"):
+            dc = dot_image_centres(camera, R, t, obj, 0.5 * spec.dot_diameter_mm)
+            entry.update({k: v for k, v in dc.items() if k != "projected_centres_px"})
+            entry["centre_bias_px"] = np.linalg.norm(dc["ellipse_centres_px"] - entry["points_px"], axis=1)
+        if layout is not None:
+            mc = layout["marker_corners_mm"]
+            entry["marker_ids"] = layout["marker_ids"]
+            entry["marker_corners_px"] = camera.project(mc.reshape(-1, 3) @ R.T + t).reshape(-1, 4, 2)
+        views.append(entry)
+        if progress is not None:
+            progress(i + 1, n)
+    order = {"chessboard": "inner corners (i, j) * square, id j * cols + i",
+             "charuco": "chessboard corners ((i + 1), (j + 1)) * square (OpenCV's CharucoBoard frame), "
+                        "id j * (cols - 1) + i",
+             "circles": "dot centres (i, j) * pitch, id j * cols + i",
+             "acircles": "dot centres ((2 i + j mod 2), j) * pitch, id j * cols + i"}[spec.kind]
+    tinfo = {**spec.to_dict(), "object_points_mm": obj, "point_order": order, "outline_board_mm": outline,
+             "board_albedo": _BOARD_ALBEDO, "ink_albedo": _INK_ALBEDO}
+    if spec.kind in ("circles", "acircles"):
+        tinfo["dot_diameter_mm"] = spec.dot_diameter_mm
+    if layout is not None:
+        tinfo.update(marker_ids=layout["marker_ids"], marker_corners_mm=layout["marker_corners_mm"],
+                     texel_mm=layout["cell_mm"])
+    truth = {
+        "scene": "target",
+        "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
+        "frame": "camera",
+        "target": tinfo,
+        "difficulty": difficulty,
+        "imaging": imaging.__dict__,
+        "seed": seed,
+        "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": difficulty,
+                    "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
+                    "spin_deg": spin_deg, "samples": samples, "edge_samples": edge_samples, "noise": noise},
         "views": views,
     }
     return Dataset(images, names, camera, truth)
