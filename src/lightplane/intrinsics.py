@@ -16,6 +16,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
+from .targets import Target, as_target, correct_circle_centres
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
            "board_points",
@@ -422,11 +423,13 @@ def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
 
 @dataclass(frozen=True)
 class BoardView:
-    """One image's board detection: ``corners_uv`` (N, 2) px or None when not found."""
+    """One image's board detection: ``corners_uv`` (N, 2) px or None when not found; ``ids`` (N,)
+    the target's point ids (None: all points, id order)."""
 
     name: str
     corners_uv: np.ndarray | None
     image_size: tuple[int, int]  # (width, height)
+    ids: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -435,7 +438,9 @@ class IntrinsicsCalibration:
 
     ``std`` holds the standard deviations of ``INTRINSIC_NAMES`` (px for fx..cy,
     unitless for the distortion); ``per_view_rms_px`` the RMS reprojection error of
-    each used view (same order as ``used``); ``residuals_px`` per used view (N, 2).
+    each used view (same order as ``used``); ``residuals_px`` per used view (N, 2);
+    ``ids`` per used view, the target's point ids of ``corners_uv`` (partial ChArUco
+    views have fewer); ``skipped`` maps every image not used to its reason.
     """
 
     camera: Camera
@@ -452,6 +457,9 @@ class IntrinsicsCalibration:
     square_mm: float
     flags: int
     options: dict = field(default_factory=dict)
+    target: Target | None = None
+    ids: tuple[np.ndarray, ...] = ()
+    skipped: dict = field(default_factory=dict)
 
     def ranked_views(self) -> list[tuple[str, float]]:
         """(view name, RMS px), worst first."""
@@ -468,23 +476,29 @@ class IntrinsicsCalibration:
         return T
 
     def to_dict(self) -> dict:
+        target = self.target or as_target(self.board, self.square_mm)
         return {
             "std": self.std,
             "per_view_rms_px": dict(zip(self.used, map(float, self.per_view_rms_px))),
             "views_used": list(self.used),
             "views_board_not_found": list(self.not_found),
+            "views_skipped": dict(self.skipped),
+            "points_per_view": dict(zip(self.used, (len(c) for c in self.corners_uv))),
             "board": {"cols": self.board[0], "rows": self.board[1], "square_mm": self.square_mm},
+            "target": target.to_dict(),
             "flags": self.flags,
             "corners": {"refine": self.options.get("refine"),
                         "median_blur_px": (float(self.options["median_blur_px"])
-                                           if np.isfinite(self.options.get("median_blur_px", np.nan)) else None)},
+                                           if np.isfinite(self.options.get("median_blur_px", np.nan)) else None),
+                        "dot_mm": self.options.get("dot_mm"),
+                        "circle_centre_correction_px": self.options.get("circle_centre_correction_px")},
         }
 
 
 def calibrate_camera(
     images: Sequence,
-    board: tuple[int, int],
-    square_mm: float,
+    board: "tuple[int, int] | Target",
+    square_mm: float | None = None,
     *,
     names: Sequence[str] | None = None,
     flags: int = 0,
@@ -493,17 +507,18 @@ def calibrate_camera(
     refine: bool | str = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsCalibration:
-    """Zhang calibration from chessboard images (SPEC §3).
+    """Zhang calibration from images of a planar target (SPEC §3).
 
     Parameters
     ----------
     images : sequence of image arrays or paths
-    board : (cols, rows) inner corners
-    square_mm : square size, mm (sets the scale of the poses only)
+    board : a :class:`lightplane.targets.Target` (chessboard, circle grid or ChArUco), or
+        ``(cols, rows)`` chessboard inner corners with ``square_mm``
+    square_mm : chessboard square size, mm, with a ``(cols, rows)`` board (sets the scale of the poses only)
     flags : ``cv2.CALIB_*`` flags for ``calibrateCameraExtended`` (0: 5 coefficients, as OpenCV's default)
     rotate_deg : clockwise rotation applied to path inputs on reading (0/90/180/270)
-    min_views : fewer usable views raise :class:`LightplaneError`
-    refine : polish the corners (see :func:`find_board`): True or ``"saddle"`` fits the
+    min_views : fewer usable views raise :class:`LightplaneError` (saying why the others were not usable)
+    refine : chessboards: polish the corners (see :func:`find_board`): True or ``"saddle"`` fits the
         blurred saddle of :func:`fit_corners`, ``"forstner"`` runs :func:`refine_corners`,
         False keeps cornerSubPix's.  On the rendered calibration capture (realistic
         imaging, 16 mm lens, k3 fixed) corner errors of 0.031 / 0.019 / 0.006 px RMS
@@ -511,38 +526,60 @@ def calibrate_camera(
         (0.28, 0.19) / (0.09, 0.06) px with 30 views, and the principal-point error
         drops to <= 0.06 px; the saddle fit costs ~0.3 s per 1280x960 view of 165 corners
 
-    All images must have one size.  Views where the board is not found are listed
-    in ``not_found``.
+    Circle grids: the dots' centroids are moved to the projected circle centres
+    (:func:`lightplane.targets.correct_circle_centres`) with the poses of a first
+    calibration, then the calibration is solved again.  ChArUco: partial views are used
+    (at least 6 corners, not on one line).  An image that cannot be read, has another
+    size than the first readable one, or shows no usable board is skipped with its
+    reason (``skipped``; board not found also in ``not_found``).
     """
     import cv2
 
     from .io import read_image
 
+    target = as_target(board, square_mm)
     if len(images) == 0:
         raise LightplaneError("no images given")
     if names is None:
         names = [str(im) if isinstance(im, (str, Path)) else f"image {i}" for i, im in enumerate(images)]
-    method = _refine_method(refine)
+    method = _refine_method(refine) if target.kind == "chessboard" else None
     views: list[BoardView] = []
     saddles: list[np.ndarray | None] = []
     blurs: list[np.ndarray] = []
+    dots: list[float] = []
+    skipped: dict[str, str] = {}
     size = None
+    gray_by_view: dict[str, np.ndarray] = {}
     for i, (im, name) in enumerate(zip(images, names)):
-        img = read_image(im, rotate_deg=rotate_deg) if isinstance(im, (str, Path)) else np.asarray(im)
-        if img.ndim not in (2, 3):
-            raise LightplaneError(f"{name}: not an image (shape {img.shape})")
-        h, w = img.shape[:2]
-        if size is None:
-            size = (w, h)
-        elif size != (w, h):
-            raise LightplaneError(f"{name}: size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px")
-        c, saddle, blur = _detect_board(img, board, True, method)
-        views.append(BoardView(name, c, (w, h)))
-        saddles.append(saddle)
-        blurs.append(blur)
+        try:
+            img = read_image(im, rotate_deg=rotate_deg) if isinstance(im, (str, Path)) else np.asarray(im)
+        except LightplaneError as e:
+            skipped[name] = str(e).removeprefix(f"{Path(str(im))}: ")
+            img = None
+        if img is not None and img.ndim not in (2, 3):
+            skipped[name] = f"not an image (shape {img.shape})"
+            img = None
+        if img is not None:
+            h, w = img.shape[:2]
+            if size is None:
+                size = (w, h)
+            if size != (w, h):
+                skipped[name] = f"size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px"
+            elif target.kind == "chessboard":
+                c, saddle, blur = _detect_board(img, (target.cols, target.rows), True, method)
+                views.append(BoardView(name, c, (w, h)))
+                saddles.append(saddle)
+                blurs.append(blur)
+            else:
+                det = target.detect(img)
+                views.append(BoardView(name, None if det is None else det.uv, (w, h),
+                                       None if det is None else det.ids))
+                saddles.append(None)
+                if det is not None and target.kind in ("circles", "acircles"):
+                    dots.append(_dot_diameter(img, det, target))
         if progress:
             progress(i + 1, len(images))
-    blur_all = np.concatenate(blurs)
+    blur_all = np.concatenate(blurs) if blurs else np.zeros(0)
     median_blur = float(np.median(blur_all)) if blur_all.size else float("nan")
     if method == "saddle":
         if median_blur >= MIN_BOARD_BLUR_PX:  # one method for the whole capture
@@ -551,19 +588,31 @@ def calibrate_camera(
             method = "forstner"
     found = [v for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
-    if not found:
-        raise LightplaneError(f"the {board[0]}x{board[1]} board was found in none of the {len(views)} images")
+    for n in not_found:
+        skipped[n] = f"{target.describe()} not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
     if len(found) < min_views:
-        raise LightplaneError(
-            f"the board was found in only {len(found)} image(s); at least {min_views} usable views are needed"
-        )
-    obj = board_points(board, square_mm).astype(np.float32)
-    objpoints = [obj] * len(found)
+        raise LightplaneError(too_few_message(len(found), len(names), min_views, "views", skipped))
+    objs = [target.object_points(v.ids).astype(np.float32) for v in found]
     imgpoints = [v.corners_uv.astype(np.float32).reshape(-1, 1, 2) for v in found]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = cv2.calibrateCameraExtended(
-        objpoints, imgpoints, size, None, None, flags=flags, criteria=crit
-    )
+
+    def solve(imgpoints):
+        return cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
+
+    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
+    dot_mm, shift = None, None
+    if target.kind in ("circles", "acircles"):
+        # centroids -> projected centres at the poses found, then solve again (twice: the poses move a little)
+        dot_mm = float(target.dot_mm or np.median(dots))
+        raw = [v.corners_uv for v in found]
+        for _ in range(2):
+            cam = Camera(K, np.asarray(dist, np.float64).ravel()[:5], size[0], size[1])
+            fixed = [correct_circle_centres(cam, target, u, v.ids, cv2.Rodrigues(rv)[0], tv.ravel(), dot_mm)
+                     for u, v, rv, tv in zip(raw, found, rvecs, tvecs)]
+            imgpoints = [f.astype(np.float32).reshape(-1, 1, 2) for f in fixed]
+            rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
+        shift = float(np.sqrt(np.mean(np.concatenate([np.sum((f - u) ** 2, axis=1) for f, u in zip(fixed, raw)]))))
+        found = [BoardView(v.name, f, v.image_size, v.ids) for v, f in zip(found, fixed)]
     dist = np.asarray(dist, dtype=np.float64).ravel()
     if dist.size > 5 and np.allclose(dist[5:], 0):
         dist = dist[:5]
@@ -571,8 +620,8 @@ def calibrate_camera(
     std_int = np.asarray(std_int).ravel()
     std = {n: float(s) for n, s in zip(INTRINSIC_NAMES, std_int)}
     residuals, corners = [], []
-    for v, rv, tv in zip(found, rvecs, tvecs):
-        proj, _ = cv2.projectPoints(obj.astype(np.float64), rv, tv, K, dist)
+    for v, o, rv, tv in zip(found, objs, rvecs, tvecs):
+        proj, _ = cv2.projectPoints(o.astype(np.float64), rv, tv, K, dist)
         residuals.append(v.corners_uv - proj.reshape(-1, 2))
         corners.append(v.corners_uv)
     return IntrinsicsCalibration(
@@ -586,11 +635,38 @@ def calibrate_camera(
         corners_uv=tuple(corners),
         rvecs=tuple(np.asarray(r).ravel() for r in rvecs),
         tvecs=tuple(np.asarray(t).ravel() for t in tvecs),
-        board=tuple(board),
-        square_mm=float(square_mm),
+        board=(target.cols, target.rows),
+        square_mm=float(target.square_mm),
         flags=int(flags),
-        options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur},
+        options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur,
+                 "dot_mm": dot_mm, "circle_centre_correction_px": shift},
+        target=target,
+        ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
+        skipped=skipped,
     )
+
+
+def too_few_message(n_usable: int, n_total: int, minimum: int, what: str, skipped: dict) -> str:
+    """One line: how many of the inputs are usable, the minimum, and why the others are not
+    (reasons grouped, most frequent first)."""
+    from collections import Counter
+
+    reasons = Counter(skipped.values())
+
+    def one(reason: str, n: int) -> str:
+        if n <= 2:  # few: name them
+            return "; ".join(f"{Path(k).name}: {r}" for k, r in skipped.items() if r == reason)
+        return f"{n} {reason}"
+
+    why = "; ".join(one(r, n) for r, n in reasons.most_common())
+    return (f"only {n_usable} of {n_total} images usable, at least {minimum} {what} needed"
+            + (f" ({why})" if why else ""))
+
+
+def _dot_diameter(img, det, target) -> float:
+    from .targets import dot_diameter_mm
+
+    return dot_diameter_mm(img, det, target)
 
 
 def plot_residuals(result: IntrinsicsCalibration, path: str) -> None:

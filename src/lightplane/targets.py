@@ -37,7 +37,7 @@ import numpy as np
 
 from .errors import LightplaneError
 
-__all__ = ["KINDS", "Target", "Detection", "parse_target", "correct_circle_centres", "to_gray8"]
+__all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "correct_circle_centres", "to_gray8"]
 
 KINDS = ("chessboard", "circles", "acircles", "charuco")
 _MIN_CHARUCO_CORNERS = 6
@@ -304,6 +304,21 @@ class Target:
                 uv = _dot_centroids(image, centres.reshape(-1, 2).astype(np.float64), self, dark=colour == 0)
                 return Detection(ids, uv, self.object_points(ids))
         return None
+
+
+def as_target(board, square_mm: float | None = None) -> Target:
+    """A :class:`Target` as it is, or a chessboard from ``(cols, rows)`` inner corners and ``square_mm``."""
+    if isinstance(board, Target):
+        if square_mm is not None and not np.isclose(square_mm, board.square_mm):
+            raise LightplaneError(f"square_mm {square_mm} differs from the target's {board.square_mm} mm")
+        return board
+    try:
+        cols, rows = (int(v) for v in board)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"board must be a Target or (cols, rows), got {board!r}") from None
+    if square_mm is None:
+        raise LightplaneError("a (cols, rows) board needs square_mm")
+    return Target("chessboard", cols, rows, float(square_mm))
 
 
 def _dictionary_name(name: str) -> str:

@@ -77,3 +77,23 @@ def parse_board(text: str) -> tuple[int, int]:
     if cols < 2 or rows < 2:
         raise LightplaneError(f"--board needs at least 2x2 inner corners, got {text!r}")
     return cols, rows
+
+
+# The board options, the same in every command that takes a board (calibrate-camera,
+# calibrate-plane-board, evaluate): parsed by target_from_options.
+BOARD_HELP = ("Board, KIND:COLSxROWS: chessboard (default kind; inner corners, e.g. 9x6), circles (symmetric grid, "
+              "dots), acircles (asymmetric grid, OpenCV's convention) or charuco (squares, with --marker, --dictionary).")
+board_option = typer.Option(None, "--board", help=BOARD_HELP)
+square_option = typer.Option(None, "--square", help="Square size in mm (circle grids: the centre pitch).")
+marker_option = typer.Option(None, "--marker", help="ChArUco marker size in mm.")
+dictionary_option = typer.Option(None, "--dictionary", help="ChArUco ArUco dictionary, e.g. DICT_5X5_100 "
+                                 "(default DICT_4X4_50).")
+dot_option = typer.Option(None, "--dot", help="Circle grids: dot diameter in mm (default: measured in the images).")
+target_option = typer.Option(None, "--target", help="Target file (JSON) naming the board once, instead of --board/--square.")
+
+
+def target_from_options(board, square, marker=None, dictionary=None, dot=None, target_file=None):
+    """The :class:`lightplane.targets.Target` named on the command line."""
+    from ..targets import parse_target
+
+    return parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot, target_file=target_file)

@@ -1,17 +1,19 @@
-"""``lightplane calibrate-camera``: Zhang intrinsic calibration from chessboard images."""
+"""``lightplane calibrate-camera``: Zhang intrinsic calibration from images of a planar target."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import List, Optional
 
+import numpy as np
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import app, console, handles_errors, parse_board
+from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
+                      square_option, target_from_options, target_option)
 
 
 #: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
@@ -22,9 +24,13 @@ _CORNER_METHODS = {"saddle": ("blurred-saddle model fit", "fit_corners"),
 @app.command("calibrate-camera")
 @handles_errors
 def calibrate_camera_cmd(
-    images: List[str] = typer.Argument(..., help="Chessboard images (files, folders or glob patterns)."),
-    board: str = typer.Option(..., "--board", help="Inner corners, COLSxROWS (e.g. 9x6)."),
-    square: float = typer.Option(..., "--square", help="Square size in mm."),
+    images: List[str] = typer.Argument(..., help="Images of the board (files, folders or glob patterns)."),
+    board: Optional[str] = board_option,
+    square: Optional[float] = square_option,
+    marker: Optional[float] = marker_option,
+    dictionary: Optional[str] = dictionary_option,
+    dot: Optional[float] = dot_option,
+    target_file: Optional[Path] = target_option,
     output: Path = typer.Option(..., "-o", "--output", help="Camera file to write (.json; .yaml for ROS, .xml for OpenCV)."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a residual plot (PNG/PDF/SVG)."),
@@ -39,24 +45,21 @@ def calibrate_camera_cmd(
 
     from ..intrinsics import INTRINSIC_NAMES, calibrate_camera, plot_residuals
 
-    cols, rows = parse_board(board)
-    if square <= 0:
-        raise LightplaneError(f"--square must be positive, got {square} mm")
+    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
     check_output(output, force)
     if plot is not None:
         check_output(plot, force)
-    for f in files:  # fail early, before the long corner search, on a missing file
-        if not f.is_file():
-            raise LightplaneError(f"{f}: no such file")
+    if len(files) == 1 and not files[0].exists():  # a single missing file: say so (several: skipped one by one)
+        raise LightplaneError(f"{files[0]}: no such file")
 
     with Progress(TextColumn("finding corners"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
         task = bar.add_task("corners", total=len(files))
         flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
-        result = calibrate_camera([str(f) for f in files], (cols, rows), square, rotate_deg=rotate, flags=flags,
+        result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags,
                                   progress=lambda i, n: bar.update(task, completed=i))
 
     cam = result.camera
@@ -71,21 +74,39 @@ def calibrate_camera_cmd(
         t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", f"{result.std.get(name, float('nan')):.2g}", unit)
     console.print(t)
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
-                  f"({cam.width}x{cam.height} px)")
-    label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
-    blur = result.options.get("median_blur_px")
-    console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if blur is not None else ""))
-    console.print("Per-view RMS, worst first:")
+                  f"({cam.width}x{cam.height} px); board: {target.describe()}")
+    if target.kind == "chessboard":
+        label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
+        blur = result.options.get("median_blur_px")
+        console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if np.isfinite(blur) else ""))
+        detector = f"findChessboardCornersSB+cornerSubPix+{refiner}"
+    elif target.kind == "charuco":
+        console.print("Corners: cv2.aruco.CharucoDetector, then cornerSubPix inside the marker gap; "
+                      "partial views used")
+        detector = "CharucoDetector+cornerSubPix"
+    else:
+        o = result.options
+        console.print(f"Dots: findCirclesGrid, darkness-weighted centroids moved to the projected circle centres "
+                      f"(dot {o['dot_mm']:.2f} mm; RMS shift {o['circle_centre_correction_px']:.3f} px)")
+        detector = "findCirclesGrid+weighted-centroid+perspective-correction"
+    v = Table(title="Per image (RMS reprojection error, worst first; skipped images with their reason)",
+              show_edge=False)
+    for c, j in (("image", "left"), ("status", "left"), ("points", "right"), ("RMS px", "right"),
+                 ("reason", "left")):
+        v.add_column(c, justify=j)
+    npts = dict(zip(result.used, (len(c) for c in result.corners_uv)))
     for name, e in result.ranked_views():
-        console.print(f"  {e:.4f} px  {name}")
-    if result.not_found:
-        console.print(f"Board not found in {len(result.not_found)} view(s): " + ", ".join(result.not_found))
+        v.add_row(Path(name).name, "used", str(npts[name]), f"{e:.4f}", "")
+    for name, why in result.skipped.items():
+        v.add_row(Path(name).name, "skipped", "-", "-", why)
+    console.print(v)
 
     extra = {
         "calibration": result.to_dict(),
-        "provenance": provenance(files, {"board": f"{cols}x{rows}", "square_mm": square, "rotate_deg": rotate,
+        "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
+                                         "target": target.to_dict(), "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
-                                         "detector": f"findChessboardCornersSB+cornerSubPix+{refiner}",
+                                         "detector": detector,
                                          "solver": "calibrateCameraExtended"}),
     }
     suffix = output.suffix.lower()
