@@ -22,7 +22,8 @@ Then all placements go to :func:`lightplane.plane.calibrate_plane_from_points`
 (``paper``, ``global`` or ``ml``; SPEC §7) with the rim edge points and the stripe
 points, both in distorted pixels.  Every image's outcome is recorded: used, or
 rejected with its reason (no target ellipse, no stripe crossing it, too few stripe
-points, or the solver's reason).
+points, or the solver's reason); a file that cannot be read (truncated, corrupt, not an
+image) is skipped the same way, with its reason, rather than stopping the calibration.
 """
 
 from __future__ import annotations
@@ -54,9 +55,10 @@ class ImageObservation:
     index : position in the input list.
     source : file path, or ``"image[i]"`` for an array.
     ok : True when a target and enough stripe points were found (the image went to the solver).
-    reason : why the image was rejected ("" when ``ok``), e.g. "no target ellipse found".
+    reason : why the image was skipped ("" when ``ok``), e.g. "no target ellipse found",
+        "not a readable image (truncated)".
     used : True when its chord entered the final plane (set after the solver).
-    shape : (H, W) of the image.
+    shape : (H, W) of the image (``()`` when the file could not be read).
     ellipse : the target's image ellipse (distorted px) or None.
     conic_undistorted : (3, 3) the refined rim conic in undistorted px, or None.
     rim_uv : (M, 2) sub-pixel rim edge points, distorted px (empty if none).
@@ -91,8 +93,8 @@ class ImageObservation:
 
     @property
     def status(self) -> str:
-        """``"used"`` or ``"rejected"``."""
-        return "used" if self.used else "rejected"
+        """``"used"`` or ``"skipped"`` (see ``reason``)."""
+        return "used" if self.used else "skipped"
 
     @property
     def name(self) -> str:
@@ -165,13 +167,15 @@ class ImagePlaneCalibration(PlaneCalibration):
 
 
 # ------------------------------------------------------------------------ per image
-def _load(source, index: int) -> tuple[np.ndarray, str]:
-    from .io import read_image
+def _load(source, index: int) -> tuple[np.ndarray | None, str, str]:
+    """``(image, name, "")``, or ``(None, name, reason)`` for a file that cannot be read."""
+    from .io import try_read_image
 
     if isinstance(source, np.ndarray):
-        return source, f"image[{index}]"
+        return source, f"image[{index}]", ""
     if isinstance(source, (str, os.PathLike)):
-        return read_image(source), str(source)
+        img, reason = try_read_image(source)
+        return img, str(source), reason
     raise LightplaneError(f"images[{index}] must be a file path or an image array, got {type(source).__name__}")
 
 
@@ -314,14 +318,17 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
         nothing but resolution of the noise's correlation.
 
     Returns an :class:`ImageObservation` (``ok=False`` with a reason when the image
-    cannot be used).  Raises :class:`LightplaneError` only for unreadable files and
-    images whose size differs from the camera's.
+    cannot be used, its file unreadable included).  Raises :class:`LightplaneError` only
+    for an image whose size differs from the camera's (a wrong camera, not a bad image).
     """
     from .ellipse import detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
     from .stripe import extract_stripe
 
     t0 = time.perf_counter()
-    img, name = _load(source, index)
+    img, name, problem = _load(source, index)
+    if img is None:
+        return ImageObservation(index=index, source=name, ok=False, reason=problem,
+                                seconds=time.perf_counter() - t0)
     try:
         camera.check_image(img)
     except LightplaneError as e:
@@ -468,9 +475,11 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     Raises
     ------
     LightplaneError
-        No images, an unreadable file, an image whose size differs from the camera's,
-        fewer than ``min_placements`` usable images (the message lists each image's
-        reason), placements too alike, or an unresolvable ambiguity.
+        No images, a missing file among the paths, an image whose size
+        differs from the camera's, fewer than ``min_placements`` usable images (the
+        message counts them and groups the others' reasons, unreadable files included),
+        placements too alike, or an unresolvable ambiguity.  An unreadable, truncated or
+        non-image file is skipped with its reason like an image without the target.
     """
     t_start = time.perf_counter()
     diameter = check_calibration_args(method, camera, diameter_mm)
@@ -485,10 +494,8 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     for i, src in enumerate(images):  # cheap checks first: a missing file fails before any work
         if isinstance(src, (str, os.PathLike)):
             p = Path(src)
-            if not p.exists():
+            if not p.exists():  # a mistyped name; a folder or a bad file is skipped with its reason
                 raise LightplaneError(f"{p}: no such file")
-            if p.is_dir():
-                raise LightplaneError(f"{p}: is a folder, not an image")
         elif not isinstance(src, np.ndarray):
             raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
     obs = observe_images(images, camera, diameter, workers=workers, executor=executor, progress=progress,
@@ -503,7 +510,8 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
                    **observe_options) -> list[ImageObservation]:
     """:func:`observe_image` on every image, in parallel (``workers`` processes or threads).
 
-    Raises :class:`LightplaneError` for the first unreadable image or wrong image size.
+    Unreadable files give skipped observations; raises :class:`LightplaneError` for the
+    first image whose size differs from the camera's.
     """
     if executor not in ("process", "thread"):
         raise LightplaneError(f"executor must be 'process' or 'thread', got {executor!r}")
@@ -555,9 +563,10 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     t_start = time.perf_counter()
     ok = [o for o in obs if o.ok]
     if len(ok) < min_placements:
-        why = "; ".join(f"{o.name}: {o.reason}" for o in obs if not o.ok)
-        raise LightplaneError(f"only {len(ok)} of {n} images show the target crossed by the stripe, "
-                              f"need at least {min_placements}" + (f" ({why})" if why else ""))
+        from .io import too_few_images_message
+
+        raise LightplaneError(too_few_images_message("images", len(ok), min_placements,
+                                                     [(o.name, o.reason) for o in obs if not o.ok]))
     try:
         cal = calibrate_plane_from_points(camera, diameter, [o.rim_uv for o in ok], [o.stripe_uv for o in ok],
                                           method=method, min_placements=min_placements, **solver_options)

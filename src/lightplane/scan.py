@@ -200,11 +200,20 @@ class FrameSource:
 
 def load_frame(payload) -> np.ndarray:
     """An image array as is, or read from a path (raises LightplaneError if unreadable)."""
-    if isinstance(payload, np.ndarray):
-        return payload
-    from .io import read_image
+    img, reason = try_load_frame(payload)
+    if img is None:
+        raise LightplaneError(f"{payload}: {reason}")
+    return img
 
-    return read_image(payload)
+
+def try_load_frame(payload) -> tuple[np.ndarray | None, str]:
+    """``(image, "")``, or ``(None, reason)`` for a file that cannot be read (truncated,
+    corrupt, not an image...: :func:`lightplane.io.try_read_image`)."""
+    if isinstance(payload, np.ndarray):
+        return payload, ""
+    from .io import try_read_image
+
+    return try_read_image(payload)
 
 
 class ImageFiles(FrameSource):
@@ -360,10 +369,9 @@ class FrameProcessor:
 
         A frame of the wrong size raises (a camera mismatch is not a bad frame).
         """
-        try:
-            image = load_frame(payload)
-        except LightplaneError as e:
-            return FrameResult(index, name, None, str(e))
+        image, reason = try_load_frame(payload)
+        if image is None:
+            return FrameResult(index, name, None, reason)
         return FrameResult(index, name, self.process(index, image))
 
     def run_batch(self, batch: list) -> list[FrameResult]:
@@ -629,13 +637,15 @@ def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
         rep.description = source.description
         rep.exact_count = False
         return first[2], rep
-    for k, (_, _, payload) in enumerate(source.items()):
-        try:
-            return load_frame(payload), source
-        except LightplaneError:
-            if k >= 50:
-                break
-    raise LightplaneError("none of the first input frames can be read as an image")
+    from .io import too_few_images_message
+
+    skipped = []
+    for _, name, payload in source.items():  # nothing usable is fatal: say why for each frame
+        img, reason = try_load_frame(payload)
+        if img is not None:
+            return img, source
+        skipped.append((name, reason))
+    raise LightplaneError(too_few_images_message("frames", 0, 1, skipped))
 
 
 def _prepare(source, camera, plane, motion, axis, width_px, channel):
@@ -730,7 +740,9 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             if motion.n_frames is not None and motion.n_frames != n:
                 raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
-                raise LightplaneError(f"none of the {n} frames could be read")
+                from .io import too_few_images_message
+
+                raise LightplaneError(too_few_images_message("frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
             if spool.count == 0:
                 raise LightplaneError(f"no stripe found in any of the {n - len(skipped)} readable frames "
                                       "(laser off, wrong --channel or --roi?); nothing written")
@@ -741,7 +753,8 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
                      + (", object at frame 0" if motion.kind != "none" else "") + ")",
                      f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",
                      f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
-                     f"options: {opts}", *comments]
+                     f"options: {opts}",
+                     *(f"skipped frame {i} ({Path(nm).name}): {why}" for i, nm, why in skipped), *comments]
             write_cloud(out, spool, fmt=fmt, ascii=ascii, force=force, comments=lines)
             n_points = spool.count
     finally:

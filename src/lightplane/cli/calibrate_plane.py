@@ -46,9 +46,9 @@ def calibrate_plane_cmd(
     files = expand_inputs(images)
     if not files:
         raise LightplaneError(f"no images found in {' '.join(images)}")
-    for f in files:
-        if not f.is_file():
-            raise LightplaneError(f"{f}: no such file" if not f.exists() else f"{f}: not a file")
+    for f in files:  # a mistyped name stops here; a folder, an unreadable or truncated file is skipped with its reason
+        if not f.exists():
+            raise LightplaneError(f"{f}: no such file")
     # every output is checked before any work: nothing is written on bad input
     check_output(output, force)
     if report is not None:

@@ -111,6 +111,11 @@ def measure_cmd(
                   f"({s.n_points / max(s.n_frames_used, 1):.0f} per frame), axis {s.axis}, "
                   f"stripe width {s.width_px:.2f} px, motion {s.motion['kind']}, {s.seconds:.1f} s "
                   f"({s.n_frames / max(s.seconds, 1e-9):.0f} frames/s)")
+    if s.skipped:
+        from ..io import summarize_reasons
+
+        console.print(f"{s.n_frames_used} of {s.n_frames} frames used, {s.n_skipped} skipped: "
+                      + summarize_reasons([(name, reason) for _, name, reason in s.skipped]))
     if s.frames_without_points:
         console.print(f"{s.frames_without_points} frames had no stripe points")
     for w in s.warnings:
