@@ -1,8 +1,9 @@
 """Zhou's planar-target light-plane calibration (paper ref. [14]; SPEC §8), the baseline.
 
-Per image, a chessboard with the laser stripe across it: the board pose
-``T_cam_board`` comes from its corners (``cv2.findChessboardCornersSB`` and a
-distortion-aware ``cv2.solvePnP``); stripe centres inside the board are
+Per image, a planar target (chessboard, circle grid or ChArUco: :mod:`lightplane.targets`)
+with the laser stripe across it: the board pose ``T_cam_board`` comes from its points
+(found in the image, in a laser-off frame or in a separate lit pattern frame of the
+same pose, then a distortion-aware ``cv2.solvePnP``); stripe centres inside the board are
 back-projected and intersected with the board plane, which gives 3D points of
 the light plane.  With two or more board poses the points span the plane, and
 one plane is fitted to all of them by total least squares.
@@ -35,6 +36,8 @@ __all__ = [
     "ZhouCalibration",
     "plane_from_board_stripes",
     "board_views_and_stripes",
+    "BoardViews",
+    "find_board_views",
     "straight_stripe_inliers",
     "calibrate_plane_board",
 ]
@@ -53,6 +56,8 @@ class BoardPose:
     name : str, where it came from.
     corner_ok : (cols·rows,) bool or None; False for corners left out of the pose (and of the
         cross-ratio) because the laser stripe runs over them; None: all used.
+    ids : (N,) the target's point ids of ``corners_uv`` (None: all, in id order).
+    object_mm : (N, 3) board coordinates of ``corners_uv`` (mm).
     """
 
     corners_uv: np.ndarray
@@ -61,6 +66,8 @@ class BoardPose:
     reprojection_rms_px: float
     name: str = ""
     corner_ok: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    object_mm: np.ndarray | None = None
 
     @property
     def normal_cam(self) -> np.ndarray:
@@ -76,22 +83,28 @@ class BoardPose:
                 "corners_left_out": 0 if self.corner_ok is None else int(np.count_nonzero(~self.corner_ok))}
 
 
-def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, int], square_mm: float,
-                      name: str = "", corner_ok: np.ndarray | None = None) -> BoardPose:
-    """Board pose from its detected corners: ``cv2.solvePnP`` with the camera's distortion, then LM refinement.
+def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board, square_mm: float | None = None,
+                      name: str = "", corner_ok: np.ndarray | None = None, ids=None) -> BoardPose:
+    """Board pose from its detected points: ``cv2.solvePnP`` with the camera's distortion, then LM refinement.
 
-    ``corner_ok`` (N,) bool: only these corners are used (all when None).
+    ``board``: a :class:`lightplane.targets.Target` or ``(cols, rows)`` chessboard inner corners
+    (with ``square_mm``); ``ids``: the target's ids of ``corners_uv`` (default: all, id order);
+    ``corner_ok`` (N,) bool: only these points are used (all when None).
     """
     import cv2
 
-    from ..intrinsics import board_points
+    from ..targets import as_target
 
-    obj = board_points(tuple(board), square_mm)
+    target = as_target(board, square_mm)
     uv = as_points(corners_uv, 2, "corners_uv")
+    ids_ = np.arange(target.n_points) if ids is None else np.asarray(ids, dtype=np.intp).ravel()
+    obj = target.object_points(ids_)
     if len(uv) != len(obj):
-        raise LightplaneError(f"{name or 'corners_uv'}: {len(uv)} corners, board {board[0]}x{board[1]} needs {len(obj)}")
+        raise LightplaneError(f"{name or 'corners_uv'}: {len(uv)} points, but {len(obj)} ids for {target.describe()}")
     use = np.ones(len(uv), bool) if corner_ok is None else np.asarray(corner_ok, bool)
     o, u = obj[use], uv[use]
+    if len(o) < 4:
+        raise LightplaneError(f"{name or 'board'}: {len(o)} points, a pose needs at least 4")
     ok, rvec, tvec = cv2.solvePnP(o, u, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         raise LightplaneError(f"{name or 'board'}: solvePnP failed")
@@ -100,7 +113,8 @@ def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board: tuple[int, 
     t = tvec.ravel().astype(np.float64)
     res = camera.project(o @ R.T + t) - u
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    return BoardPose(uv, R, t, rms, name, None if corner_ok is None else use)
+    return BoardPose(uv, R, t, rms, name, None if corner_ok is None else use,
+                     None if ids is None else ids_, obj)
 
 
 def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarray, *,
@@ -117,45 +131,61 @@ def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarr
     return np.abs((c - m) @ nrm) > clearance_px
 
 
-def find_board_pose(image: np.ndarray, camera: Camera, board: tuple[int, int], square_mm: float, *,
+def find_board_pose(image: np.ndarray, camera: Camera, board, square_mm: float | None = None, *,
                     name: str = "image", channel: str | None = None) -> BoardPose:
-    """Find the chessboard (inner corners ``board = (cols, rows)``) and solve its pose.
+    """Find the target (a :class:`lightplane.targets.Target`, or ``(cols, rows)`` chessboard inner
+    corners with ``square_mm``) and solve its pose.
 
     With ``channel`` (e.g. "red" under a red laser and dim light) the board is
-    looked for in that channel, contrast-stretched.  Raises LightplaneError naming
-    the image when the board is not found.
+    looked for in that channel, contrast-stretched.  Circle grids: the dots' centroids
+    are moved to the projected circle centres at the pose found, and the pose solved
+    again.  Raises LightplaneError naming the image when the board is not found.
     """
-    from ..intrinsics import find_board
     from ..io import to_gray_float
+    from ..targets import as_target, correct_circle_centres, dot_diameter_mm
 
+    target = as_target(board, square_mm)
     camera.check_image(image, name)
     if channel is not None:
-        image = to_gray_float(image, channel)  # float: find_board stretches it to 8 bits
-    corners = find_board(image, tuple(board))
-    if corners is None:
-        raise LightplaneError(f"{name}: chessboard with {board[0]}x{board[1]} inner corners not found")
-    return pose_from_corners(camera, corners, board, square_mm, name)
+        image = to_gray_float(image, channel)  # float: the detectors stretch it to 8 bits
+    det = target.detect(image)
+    if det is None:
+        raise LightplaneError(f"{name}: {target.describe()} not found")
+    ids = None if not target.partial_views else det.ids
+    pose = pose_from_corners(camera, det.uv, target, name=name, ids=ids)
+    if target.kind in ("circles", "acircles"):
+        dot = dot_diameter_mm(image, det, target)
+        for _ in range(2):
+            uv = correct_circle_centres(camera, target, det.uv, det.ids, pose.R_cam_board, pose.t_cam_board, dot)
+            pose = pose_from_corners(camera, uv, target, name=name)
+    return pose
 
 
-def board_polygon_mask(camera: Camera, pose: BoardPose, board: tuple[int, int], square_mm: float, *,
-                       margin_squares: float = 0.9, samples_per_edge: int = 20) -> np.ndarray:
-    """uint8 mask (H, W) of the board area: the inner-corner rectangle grown by ``margin_squares``.
+def board_polygon_mask(camera: Camera, pose: BoardPose, board, square_mm: float | None = None, *,
+                       margin_squares: float | None = None, samples_per_edge: int = 20) -> np.ndarray:
+    """uint8 mask (H, W) of the board area where stripe points are taken.
 
-    The outline is sampled along each edge and projected with distortion, so it
-    follows curved edges.  The outer squares reach one square beyond the inner
-    corners, so 0.9 square keeps to the printed squares of any chessboard.
+    The rectangle is :meth:`lightplane.targets.Target.outline_mm` (chessboard: the
+    inner-corner rectangle grown by 0.9 square — the outer squares reach one square
+    beyond the inner corners, so it keeps to the printed squares; ``margin_squares``
+    overrides the 0.9).  The outline is sampled along each edge and projected with
+    distortion, so it follows curved edges.
     """
     import cv2
 
-    cols, rows = board
-    m = margin_squares
-    x0, x1, y0, y1 = -m, cols - 1 + m, -m, rows - 1 + m
+    from ..targets import as_target
+
+    target = as_target(board, square_mm)
+    x0, x1, y0, y1 = target.outline_mm()
+    if margin_squares is not None and target.kind == "chessboard":
+        m, s_ = margin_squares * target.square_mm, target.square_mm
+        x0, x1, y0, y1 = -m, (target.cols - 1) * s_ + m, -m, (target.rows - 1) * s_ + m
     t = np.linspace(0.0, 1.0, samples_per_edge, endpoint=False)
     edges = [np.column_stack([x0 + (x1 - x0) * t, np.full_like(t, y0)]),
              np.column_stack([np.full_like(t, x1), y0 + (y1 - y0) * t]),
              np.column_stack([x1 - (x1 - x0) * t, np.full_like(t, y1)]),
              np.column_stack([np.full_like(t, x0), y1 - (y1 - y0) * t])]
-    xy = np.vstack(edges) * square_mm
+    xy = np.vstack(edges)
     p_cam = np.column_stack([xy, np.zeros(len(xy))]) @ pose.R_cam_board.T + pose.t_cam_board
     uv = camera.project(p_cam)
     mask = np.zeros((camera.height, camera.width), np.uint8)
@@ -384,70 +414,166 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     return uv
 
 
-def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, board: tuple[int, int],
-                            square_mm: float, background_images: Sequence[np.ndarray] | None = None,
-                            image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
-                            channel: str | None = None, progress: Callable[[int], None] | None = None):
-    """Board pose and on-board stripe centres for each image → (poses, stripes_uv, names).
+@dataclass(frozen=True)
+class BoardViews:
+    """Per image: the board pose and the stripe centres on it, or why the image was skipped.
 
-    The board is looked for in the laser-off frame when one is given (the stripe
-    cannot disturb the corners there), else in the image itself.  Raises
-    LightplaneError naming the image where the board is not found.
+    poses, stripes, names : the usable images (same order as given); skipped : image name → reason.
     """
+
+    poses: list
+    stripes: list
+    names: list
+    skipped: dict
+
+
+def find_board_views(images: Sequence, camera: Camera, board, square_mm: float | None = None, *,
+                     background_images: Sequence | None = None, pattern_images: Sequence | None = None,
+                     image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
+                     channel: str | None = None, skip: bool = True, min_stripe_points: int = 0,
+                     progress: Callable[[int], None] | None = None) -> BoardViews:
+    """Board pose and on-board stripe centres for each image.
+
+    ``board``: a :class:`lightplane.targets.Target` or ``(cols, rows)`` chessboard with ``square_mm``.
+    Where the board is looked for: in ``pattern_images[k]`` (the lit board, laser off, of
+    image ``k``'s pose; the laser image may then be a dark frame in which the board
+    cannot be seen), else in the laser-off ``background_images[k]`` (one per image,
+    also subtracted before stripe extraction; a single one is only subtracted), else
+    in the image itself (corners the stripe runs over are then left out of the pose).
+    The same pattern frame object given for several images is searched once.
+    ``images[k]`` may be None (unreadable: pass its reason in a skipped entry upstream).
+
+    With ``skip`` an image whose board is not found, or with fewer than
+    ``min_stripe_points`` stripe centres on the board, is skipped with its reason;
+    without it the first such image raises LightplaneError.
+    """
+    from ..targets import as_target
+
+    target = as_target(board, square_mm)
     names = list(image_names) if image_names is not None else [f"image {i}" for i in range(len(images))]
     if len(names) != len(images):
         raise LightplaneError(f"{len(images)} images but {len(names)} names")
     if background_images is not None and len(background_images) not in (1, len(images)):
         raise LightplaneError(f"give one background image, or one per image ({len(images)}); "
                               f"got {len(background_images)}")
-    poses, stripes = [], []
+    if pattern_images is not None and len(pattern_images) != len(images):
+        raise LightplaneError(f"give one pattern frame per laser image ({len(images)}); got {len(pattern_images)}")
+    out = BoardViews([], [], [], {})
+    pattern_poses: dict[int, BoardPose | str] = {}
     for k, img in enumerate(images):
-        bg = None
-        if background_images is not None:
-            bg = background_images[k if len(background_images) > 1 else 0]
-        per_image = bg is not None and len(background_images) == len(images)
-        pose = find_board_pose(bg if per_image else img, camera, board,
-                               square_mm, name=names[k], channel=channel)
-        mask = board_polygon_mask(camera, pose, board, square_mm)
-        stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
-        if not per_image and len(stripe) >= 2:
-            # corners found in the laser-on image: leave out those the stripe runs over
-            spacing = float(np.median(np.linalg.norm(np.diff(pose.corners_uv, axis=0), axis=1)))
-            clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * spacing)
-            if not clear.all() and np.count_nonzero(clear) >= 6:
-                pose = pose_from_corners(camera, pose.corners_uv, board, square_mm, names[k], corner_ok=clear)
-        stripes.append(stripe)
-        poses.append(pose)
+        try:
+            if img is None:
+                raise LightplaneError(f"{names[k]}: not a readable image")
+            bg = None
+            if background_images is not None:
+                bg = background_images[k if len(background_images) > 1 else 0]
+            per_image = bg is not None and len(background_images) == len(images)
+            if pattern_images is not None:
+                pat = pattern_images[k]
+                if pat is None:
+                    raise LightplaneError(f"{names[k]}: no usable pattern frame for this laser frame")
+                if id(pat) not in pattern_poses:
+                    try:
+                        pattern_poses[id(pat)] = find_board_pose(pat, camera, target, name=names[k], channel=channel)
+                    except LightplaneError as e:
+                        pattern_poses[id(pat)] = str(e).removeprefix(f"{names[k]}: ")
+                pose = pattern_poses[id(pat)]
+                if isinstance(pose, str):
+                    raise LightplaneError(f"{names[k]}: pattern frame: {pose}")
+                camera.check_image(img, names[k])
+                pose = BoardPose(*(getattr(pose, f) for f in ("corners_uv", "R_cam_board", "t_cam_board",
+                                                               "reprojection_rms_px")), names[k], pose.corner_ok,
+                                 pose.ids, pose.object_mm)
+            else:
+                pose = find_board_pose(bg if per_image else img, camera, target, name=names[k], channel=channel)
+            mask = board_polygon_mask(camera, pose, target)
+            stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
+            if pattern_images is None and not per_image and len(stripe) >= 2:
+                # corners found in the laser-on image: leave out those the stripe runs over
+                spacing = float(np.median(np.linalg.norm(np.diff(pose.corners_uv, axis=0), axis=1)))
+                clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * spacing)
+                if not clear.all() and np.count_nonzero(clear) >= 6:
+                    pose = pose_from_corners(camera, pose.corners_uv, target, name=names[k], corner_ok=clear,
+                                             ids=pose.ids)
+            if len(stripe) < min_stripe_points:
+                raise LightplaneError(f"{names[k]}: " + (f"only {len(stripe)} stripe points on the board"
+                                                         if len(stripe) else "no stripe on the board"))
+        except LightplaneError as e:
+            if not skip:
+                raise
+            out.skipped[names[k]] = str(e).removeprefix(f"{names[k]}: ")
+        else:
+            out.stripes.append(stripe)
+            out.poses.append(pose)
+            out.names.append(names[k])
         if progress is not None:
             progress(k)
-    return poses, stripes, names
+    return out
 
 
-def calibrate_plane_board(images: Sequence[np.ndarray], camera: Camera, board: tuple[int, int], square_mm: float, *,
+def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, board, square_mm: float | None = None,
+                            background_images: Sequence[np.ndarray] | None = None,
+                            image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
+                            channel: str | None = None, progress: Callable[[int], None] | None = None):
+    """Board pose and on-board stripe centres for each image → (poses, stripes_uv, names).
+
+    :func:`find_board_views` without skipping: raises LightplaneError naming the
+    first image where the board is not found.
+    """
+    v = find_board_views(images, camera, board, square_mm, background_images=background_images,
+                         image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=False,
+                         progress=progress)
+    return v.poses, v.stripes, v.names
+
+
+def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: float | None = None, *,
                           background_images: Sequence[np.ndarray] | None = None,
+                          pattern_images: Sequence | None = None,
                           image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
-                          channel: str | None = None, min_points_per_view: int = 10,
+                          channel: str | None = None, min_points_per_view: int = 10, min_views: int = 2,
+                          skipped: dict | None = None,
                           progress: Callable[[int], None] | None = None) -> ZhouCalibration:
-    """Zhou's planar-target light-plane calibration from chessboard images with the stripe.
+    """Zhou's planar-target light-plane calibration from images of a board with the stripe.
 
     Parameters
     ----------
-    images : laser-on images (gray or BGR arrays), the board in a different pose in each.
+    images : laser images (gray or BGR arrays; None for one that could not be read), the board
+        in a different pose in each (or several laser frames per pose with ``pattern_images``).
     camera : the calibrated camera.
-    board : (cols, rows) inner corners.  square_mm : square size (mm).
+    board : a :class:`lightplane.targets.Target` (chessboard, circle grid, ChArUco), or
+        ``(cols, rows)`` chessboard inner corners with ``square_mm`` (mm).
     background_images : laser-off frames, one per image (same pose) or one for all;
         subtracted before stripe extraction (and used to find the board when one per image).
+    pattern_images : per laser image, the lit board frame (laser off) of its pose, in which
+        the board is found (the laser frames may be dark, low-exposure ones).
     stripe_width_px, channel : passed to :func:`lightplane.stripe.extract_stripe`.
+    min_points_per_view : fewer stripe points on a board skip the image.
+    min_views : fewer usable images raise LightplaneError, saying why the others were skipped.
+    skipped : name → reason of images already skipped by the caller (unreadable files); counted
+        in that message and stored in the result.
 
     Returns
     -------
-    ZhouCalibration; its ``plane`` has the fit covariance and ``meta["images"]``
-    per-image diagnostics (pose, stripe points used, residual RMS).
+    ZhouCalibration; its ``plane`` has the covariance and ``meta["images"]`` per-image
+    diagnostics (pose, stripe points used, residual RMS), ``meta["skipped"]`` the
+    images not used with their reason.
     """
-    if len(images) < 2:
-        raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(images)}")
-    poses, stripes, _ = board_views_and_stripes(
-        images, camera, board=board, square_mm=square_mm, background_images=background_images,
-        image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, progress=progress)
-    return plane_from_board_stripes(camera, poses, stripes, min_points_per_view=min_points_per_view,
-                                    meta={"board": list(board), "square_mm": float(square_mm)})
+    from ..intrinsics import too_few_message
+    from ..targets import as_target
+
+    target = as_target(board, square_mm)
+    pre = dict(skipped or {})
+    v = find_board_views(images, camera, target, background_images=background_images, pattern_images=pattern_images,
+                         image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=True,
+                         min_stripe_points=min_points_per_view, progress=progress)
+    why = {**pre, **v.skipped}
+    n_total = len(images) + len(set(pre) - set(image_names or []))
+    if len(v.poses) < max(2, min_views):
+        raise LightplaneError("Zhou's method: " + too_few_message(len(v.poses), n_total, max(2, min_views),
+                                                                  "board poses with the stripe", why))
+    return plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=min_points_per_view,
+                                    meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
+                                          "target": target.to_dict(), "skipped": why,
+                                          "laser_frames": "pattern frames" if pattern_images is not None else
+                                          ("background-subtracted" if background_images is not None
+                                           else "laser-on only")})
