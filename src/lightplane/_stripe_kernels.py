@@ -33,6 +33,15 @@ ALONG_LINE = 5    # the stripe runs along the scan line (normal nearly across it
 EDGE = 6          # centre closer than the kernel radius to the first/last sample
 WHITISH = 7       # whitish pixels on the stripe (glare, sensor bloom); set by stripe.py
 
+# Flat (clipped) tops.  A line's top is flat when the run of samples within
+# FLAT_TOL of its contrast (peak - background) below the peak is at least 3 samples
+# and longer than FLAT_RUN_PER_FWHM * FWHM + 1.5: an unclipped Gaussian keeps
+# |d| <= s sqrt(2 FLAT_TOL) = 0.24 FWHM / 2 within that band, i.e. at most
+# floor(0.24 FWHM) + 1 samples, so it never qualifies (noise aside).  Clipped at
+# 1/a of its amplitude the run is 2 s sqrt(2 ln a) wide: detected from a ~ 1.2.
+FLAT_TOL = 0.04
+FLAT_RUN_PER_FWHM = 0.24
+
 
 @lru_cache(maxsize=64)
 def _kernels_cached(sigma_milli: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -329,6 +338,45 @@ def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
 
 
 @njit(cache=True)
+def _is_flat(A, l, p, fw, best, bg, half):
+    """Whether line ``l`` has a flat (clipped) top at sample ``p`` (see FLAT_TOL)."""
+    if not (fw == fw) or best - bg <= 0.0:
+        return False
+    S = A.shape[0]
+    thr = best - FLAT_TOL * (best - bg)
+    n = 1
+    k = p + 1
+    while k < S and k <= p + 2 * half and float(A[k, l]) >= thr:
+        n += 1
+        k += 1
+    k = p - 1
+    while k >= 0 and k >= p - 2 * half and float(A[k, l]) >= thr:
+        n += 1
+        k -= 1
+    return n >= 3 and n > FLAT_RUN_PER_FWHM * fw + 1.5
+
+
+@njit(cache=True)
+def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
+    """Midpoint of the half-level crossings of line ``l`` smoothed across the lines
+    (kernel ``xw[re, 0]``), around sample ``p``; NaN where a flank is missing."""
+    S, L = A.shape
+    RX = (xw.shape[2] - 1) // 2
+    H2 = half + qpeak + 2
+    k0 = xw[re, 0]
+    for m in range(2 * H2 + 1):
+        row = A[_clamp(c - H2 + m, S)]
+        a0 = 0.0
+        for jj in range(2 * re + 1):
+            a0 += k0[RX - re + jj] * float(row[l - re + jj])
+        Y[m, 0] = a0
+    fw, left, right, best, bg = _fwhm_line(Y[:2 * H2 + 1], 0, p - c + H2, half, 0.0)
+    if not (fw == fw):
+        return np.nan
+    return c - H2 + 0.5 * (left + right)
+
+
+@njit(cache=True)
 def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status):
     """One line of :func:`profile_centres` (a separate serial function: numba's
@@ -356,6 +404,7 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     if c - 1 - R < 0 or c + 1 + R > S - 1:
         status[l] = EDGE
         return
+    flat = _is_flat(A, l, p, fw, best, bg, half)
     # 2. across the lines first (rows of A are contiguous): X_k[m] for the 2R+3
     #    samples c-1-R .. c+1+R, then along the line at c-1, c, c+1
     re = min(RX, l, L - 1 - l)
@@ -413,36 +462,51 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     if best - bg < min_peak:
         status[l] = NO_PEAK
         return
-    if lam >= 0.0:
-        status[l] = NOT_RIDGE
-        return
-    if abs(ns) < min_cos:
-        status[l] = ALONG_LINE
-        return
     # 3. zero crossing of g = n . grad r along the line
-    g0 = nl * rl[0] + ns * rs[0]
-    g1 = nl * rl[1] + ns * rs[1]
-    g2 = nl * rl[2] + ns * rs[2]
-    d0 = nl * rls[0] + ns * rss[0]
-    d1 = nl * rls[1] + ns * rss[1]
-    d2 = nl * rls[2] + ns * rss[2]
-    if g1 == 0.0:
-        cc = float(c)
+    st = OK
+    cc = np.nan
+    if lam >= 0.0:
+        st = NOT_RIDGE
+    elif abs(ns) < min_cos:
+        st = ALONG_LINE
     else:
-        lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
-        hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
-        if lo_ok and hi_ok:
-            # both sides bracket a root (should not happen on a ridge): take the nearer
-            t_lo = _hermite_root(g0, d0, g1, d1)
-            t_hi = _hermite_root(g1, d1, g2, d2)
-            cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
-        elif lo_ok:
-            cc = c - 1 + _hermite_root(g0, d0, g1, d1)
-        elif hi_ok:
-            cc = c + _hermite_root(g1, d1, g2, d2)
+        g0 = nl * rl[0] + ns * rs[0]
+        g1 = nl * rl[1] + ns * rs[1]
+        g2 = nl * rl[2] + ns * rs[2]
+        d0 = nl * rls[0] + ns * rss[0]
+        d1 = nl * rls[1] + ns * rss[1]
+        d2 = nl * rls[2] + ns * rss[2]
+        if g1 == 0.0:
+            cc = float(c)
         else:
-            status[l] = NO_CROSSING
+            lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
+            hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+            if lo_ok and hi_ok:
+                # both sides bracket a root (should not happen on a ridge): take the nearer
+                t_lo = _hermite_root(g0, d0, g1, d1)
+                t_hi = _hermite_root(g1, d1, g2, d2)
+                cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
+            elif lo_ok:
+                cc = c - 1 + _hermite_root(g0, d0, g1, d1)
+            elif hi_ok:
+                cc = c + _hermite_root(g1, d1, g2, d2)
+            else:
+                st = NO_CROSSING
+    if st != OK:
+        if not flat:
+            status[l] = st
             return
+        # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
+        # Centre = midpoint of the half-level crossings of the flanks, smoothed across
+        # the lines (along the stripe)
+        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[8:9].T)
+        if not (cc == cc):
+            status[l] = TOO_WIDE
+            return
+        if st == NOT_RIDGE or st == ALONG_LINE:
+            normal[l, 0] = 0.0
+            normal[l, 1] = 1.0
+            ns = 1.0
     # 4. width across the stripe
     width[l] = fw * ns
     if not (fw == fw) or fw * ns > max_width:
@@ -482,7 +546,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
     R = (w0.shape[0] - 1) // 2
     nch = (L + _CHUNK - 1) // _CHUNK
     for ch in prange(nch):
-        tmp = np.empty((8, 2 * R + 3))      # scratch, allocated once per task
+        tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))   # scratch, once per task
         for l in range(ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK)):
             _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                          centre, normal, strength, intensity, width, status)
@@ -782,7 +846,7 @@ def _candidates_frame(A, sep, p1, v1, p2, v2):
 def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                    centre, normal, strength, intensity, width, status):
     R = (w0.shape[0] - 1) // 2
-    tmp = np.empty((8, 2 * R + 3))
+    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
     for l in range(A.shape[1]):
         _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                      centre, normal, strength, intensity, width, status)

@@ -174,9 +174,25 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     crossing = (g1 == 0.0) | lo_ok | hi_ok
     width = fw * ns
     too_wide = ~np.isfinite(fw) | (width > max_width)
+    # clipped (flat) tops where Steger's ridge test fails: midpoint of the smoothed
+    # half-level crossings (as in _stripe_kernels._centre_line)
+    steger_fail = (lam >= 0.0) | (np.abs(ns) < min_cos) | ~crossing
+    flat = flat_numpy(A, p, fw, best, bg, half) & has & ~edge & (best - bg >= min_peak) & steger_fail
+    cc_flat = np.full(L, np.nan)
+    if flat.any():
+        f = np.flatnonzero(flat)
+        cc_flat[f] = flat_centre_numpy(A, f, p[f], c[f], xw, re[f], qpeak, half)
+    no_normal = flat & ((lam >= 0.0) | (np.abs(ns) < min_cos))
+    nl = np.where(no_normal, 0.0, nl)
+    ns = np.where(no_normal, 1.0, ns)
+    width = np.where(flat, fw * ns, width)
+    too_wide = ~np.isfinite(fw) | (width > max_width)
+    cc = np.where(flat, cc_flat, cc)
     status = np.select(
-        [~has, edge, best - bg < min_peak, lam >= 0.0, np.abs(ns) < min_cos, ~crossing, too_wide],
-        [K.NO_PEAK, K.EDGE, K.NO_PEAK, K.NOT_RIDGE, K.ALONG_LINE, K.NO_CROSSING, K.TOO_WIDE],
+        [~has, edge, best - bg < min_peak, flat & ~np.isfinite(cc_flat), flat & too_wide, flat,
+         lam >= 0.0, np.abs(ns) < min_cos, ~crossing, too_wide],
+        [K.NO_PEAK, K.EDGE, K.NO_PEAK, K.TOO_WIDE, K.TOO_WIDE, K.OK,
+         K.NOT_RIDGE, K.ALONG_LINE, K.NO_CROSSING, K.TOO_WIDE],
         K.OK,
     ).astype(np.uint8)
     ok = status == K.OK
@@ -192,6 +208,36 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     normal[nopeak | edge] = np.nan
     del early
     return centre, normal, strength, intensity, width, status
+
+
+def flat_numpy(A, p, fw, best, bg, half):
+    """Vectorised :func:`_stripe_kernels._is_flat`."""
+    S, L = A.shape
+    ln = np.arange(L)
+    thr = best - K.FLAT_TOL * (best - bg)
+    ks = np.arange(1, 2 * half + 1)
+    n = np.ones(L)
+    for sgn in (1, -1):
+        kk = p[:, None] + sgn * ks[None, :]
+        inside = (kk >= 0) & (kk < S)
+        ge = inside & (_take(A, kk, ln[:, None]) >= thr[:, None])
+        n += np.cumprod(ge, axis=1).sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(fw) & (best - bg > 0.0) & (n >= 3) & (n > K.FLAT_RUN_PER_FWHM * fw + 1.5)
+
+
+def flat_centre_numpy(A, lines, p, c, xw, re, qpeak, half):
+    """Vectorised :func:`_stripe_kernels._flat_centre` for the given ``lines``."""
+    S, L = A.shape
+    RX = (xw.shape[2] - 1) // 2
+    H2 = half + qpeak + 2
+    jj = np.arange(-RX, RX + 1)
+    cols = np.clip(lines[:, None] + jj[None, :], 0, L - 1)                     # (n, 2RX+1)
+    rows = np.clip(c[:, None] + np.arange(-H2, H2 + 1)[None, :], 0, S - 1)   # (n, M)
+    P = A[rows[:, :, None], cols[:, None, :]].astype(np.float64)              # (n, M, 2RX+1)
+    Y = np.einsum("nmj,nj->nm", P, xw[re, 0])
+    fw, _, _, left, right = fwhm_numpy(np.ascontiguousarray(Y.T), p - c + H2, half)
+    return c - H2 + 0.5 * (left + right)
 
 
 def profile_numpy(A, w0, w1, w2, params):

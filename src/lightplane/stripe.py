@@ -186,7 +186,8 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
     ``"blue"``, or ``"sum"`` (unweighted B + G + R: a laser that saturates its own
     channel blooms into the others, which carry the stripe on).  The full scale is
     255 for 8-bit, 65535 for 16-bit, 1 or 255 for float (by the maximum), times 3
-    for ``"sum"``.
+    for ``"sum"``.  16-bit data that stays within 10, 12 or 14 bits (a 12-bit sensor
+    in a 16-bit container) gets that range as its full scale (1023, 4095, 16383).
     """
     import cv2
 
@@ -203,7 +204,9 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
     if image.dtype == np.uint8:
         fs = 255.0
     elif image.dtype == np.uint16:
-        fs = 65535.0
+        # 10-, 12- or 14-bit data in a 16-bit container: the smallest such range that holds the image
+        top = int(image.max()) if image.size else 0
+        fs = next(float(2**b - 1) for b in (10, 12, 14, 16) if top <= 2**b - 1)
     elif image.dtype.kind == "f":
         fs = 1.0 if (image.size == 0 or float(np.max(image)) <= 1.0) else 255.0
     else:
