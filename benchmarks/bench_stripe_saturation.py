@@ -1,0 +1,62 @@
+"""Centres of saturated (clipped) stripes with the default settings: bias and RMS per condition.
+
+Renders of lightplane.simulate.saturated_stripe (straight Gaussian stripe, FWHM
+5 px, tilt 0.06 rad, blur 0.7 px, noise 1 % of the clip level), peak 1x-8x the clip
+level, uniform or as a hot spot (0.7x elsewhere), 8-bit / 16-bit / 12-bit in a
+16-bit container; plus a symmetric halo, an asymmetric halo, a reflection 12 px
+away and a laser-minus-background frame.  Errors: centre row minus the true
+crossing of the centre line with the point's column (px).  Bars (issue):
+|bias| <= 0.05 px, RMS <= 0.1 px.
+
+Run: ``.venv/bin/python benchmarks/bench_stripe_saturation.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
+from lightplane.stripe import extract_profile, extract_stripe
+
+
+def errors(img, truth):
+    out = {}
+    prof = extract_profile(img)
+    uv = prof.points
+    out["extract_profile"] = (uv[:, 1] - truth(uv[:, 0]), prof.valid.mean())
+    uv = extract_stripe(img).uv
+    uv = uv[(uv[:, 0] > 10) & (uv[:, 0] < img.shape[1] - 10) & (np.abs(uv[:, 1] - truth(uv[:, 0])) < 6.0)]
+    out["extract_stripe"] = (uv[:, 1] - truth(uv[:, 0]), len(uv) / (img.shape[1] - 20))
+    return out
+
+
+def main() -> None:
+    hdr = f"{'condition':<44} {'function':<16} {'found':>6} {'bias':>8} {'RMS':>7} {'max':>6}  verdict"
+    print(hdr)
+    print("-" * len(hdr))
+    conds = []
+    for name, dtype, clip in (("8-bit", np.uint8, 255.0), ("16-bit", np.uint16, 65535.0),
+                              ("12-bit in 16", np.uint16, 4095.0)):
+        for a in (1.0, 2.0, 4.0, 8.0):
+            for kind in ("uniform", "hot spot"):
+                amp = hot_spot(a) if kind == "hot spot" else a
+                conds.append((f"{name} {a:g}x {kind}", dict(amplitude=amp, clip=clip, dtype=dtype,
+                                                              rng=np.random.default_rng(int(a * 10)))))
+    for a in (2.0, 8.0):
+        for name, kw in (("halo 15% FWHM 25 symmetric", dict(halo=(0.15, 25.0, 0.0))),
+                         ("halo 15% FWHM 25 offset 6 px", dict(halo=(0.15, 25.0, 6.0))),
+                         ("reflection 40% at 12 px", dict(secondary=(0.4, 12.0))),
+                         ("laser minus background (20%)", dict(subtract=True, background=0.2))):
+            conds.append((f"8-bit {a:g}x hot spot, {name}", dict(amplitude=hot_spot(a), rng=np.random.default_rng(5),
+                                                                **kw)))
+    for label, kw in conds:
+        img, truth = render_saturated(**kw)
+        for fn, (e, found) in errors(img, truth).items():
+            rms = float(np.sqrt(np.mean(e**2)))
+            ok = abs(e.mean()) <= 0.05 and rms <= 0.1
+            print(f"{label:<44} {fn:<16} {found:>6.2f} {e.mean():>+8.4f} {rms:>7.4f} {np.abs(e).max():>6.3f}  "
+                  f"{'PASS' if ok else 'FAIL'}")
+
+
+if __name__ == "__main__":
+    main()
