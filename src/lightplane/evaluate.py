@@ -27,7 +27,7 @@ Distances are frame-independent, so ideal points stay in the board frame
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -192,12 +192,13 @@ class CrossRatioPoints:
         return len(self.p_board_mm)
 
 
-def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, square_mm: float,
+def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe: np.ndarray, square_mm: float,
                family: str, corners_used: str, window_px: float | None, min_angle_deg: float,
-               min_stripe_points: int, corner_ok: np.ndarray) -> CrossRatioPoints:
-    cols, rows = board
-    grid = corners.reshape(rows, cols, 2)
-    okg = corner_ok.reshape(rows, cols)
+               min_stripe_points: int) -> CrossRatioPoints:
+    """Crossings of the stripe with the lattice lines: ``grid`` (ny, nx, 2) points (undistorted px),
+    ``okg`` (ny, nx) which of them exist and are usable, lattice point (x, y) at
+    ``origin_mm + (x, y)·square_mm`` on the board."""
+    rows, cols = okg.shape
     if family == "rows":
         lines = [(grid[j], okg[j]) for j in range(rows)]
     else:
@@ -246,7 +247,8 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
             sd = (s_d - s_c[0]) / step
             x_d = x0 + (sd - q_) / (p_ - r_ * sd)
         along, fixed = x_d * square_mm, li * square_mm
-        pts.append([along, fixed, 0.0] if family == "rows" else [fixed, along, 0.0])
+        pts.append([along + origin_mm[0], fixed + origin_mm[1], 0.0] if family == "rows"
+                   else [fixed + origin_mm[0], along + origin_mm[1], 0.0])
         uvs.append(m + s_d * t)
         idx.append(li)
         angles.append(angle)
@@ -261,21 +263,29 @@ def _crossings(corners: np.ndarray, board: tuple[int, int], stripe: np.ndarray, 
     )
 
 
-def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], stripe_uv_undist: np.ndarray, *,
-                       square_mm: float, lines: str = "auto", corners_used: str = "all",
+def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: np.ndarray, *,
+                       square_mm: float | None = None, lines: str = "auto", corners_used: str = "all",
                        window_px: float | None = None, min_angle_deg: float = 15.0,
-                       min_stripe_points: int = 4, corner_ok: np.ndarray | None = None) -> CrossRatioPoints:
-    """Ideal points where the stripe crosses the chessboard's corner lines (paper §4.3, Eq. 16).
+                       min_stripe_points: int = 4, corner_ok: np.ndarray | None = None,
+                       ids=None) -> CrossRatioPoints:
+    """Ideal points where the stripe crosses the target's lines of points (paper §4.3, Eq. 16).
+
+    The lines are the rows and columns of the target's lattice
+    (:meth:`lightplane.targets.Target.lattice_index`): chessboard and ChArUco corners,
+    the dots of circle grids (an asymmetric grid's rows hold every other lattice point,
+    its columns every other row).
 
     Parameters
     ----------
-    corners_uv_undist : (cols·rows, 2) float
-        Inner corners in *undistorted* pixels, OpenCV order (row by row, ``cols`` per
-        row); corner ``k`` has board coordinates ``((k % cols)·square, (k // cols)·square, 0)``.
-    board : (cols, rows), inner corners.
+    corners_uv_undist : (N, 2) float
+        The target's points in *undistorted* pixels, in the order of ``ids`` (default: all
+        points in id order; for a chessboard OpenCV's order, row by row, ``cols`` per row,
+        corner ``k`` at board coordinates ``((k % cols)·square, (k // cols)·square, 0)``).
+    board : a :class:`lightplane.targets.Target`, or (cols, rows) chessboard inner corners.
+    ids : (N,) the target's ids of the points (partial ChArUco views).
     stripe_uv_undist : (N, 2) float
         Stripe centre points in undistorted pixels, on the board only (mask first).
-    square_mm : float, the square size.
+    square_mm : float, the square size (with a (cols, rows) board).
     lines : "rows", "columns" or "auto" (the family the stripe crosses more often;
         ties go to the steeper crossing).
     corners_used : "three" — the paper's construction with A, B, C = first, middle
@@ -289,42 +299,56 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board: tuple[int, int], st
         (e.g. 1.5 square spacings) for a board that is not flat.
     min_angle_deg : crossings flatter than this are skipped (ill-conditioned).
     min_stripe_points : fewest stripe points for one crossing.
-    corner_ok : (cols·rows,) bool, corners to use (e.g. not those the stripe runs over);
-        a line needs three usable corners.  Default: all.
+    corner_ok : (N,) bool, points to use (e.g. not those the stripe runs over);
+        a line needs three usable points.  Default: all.
 
     Returns
     -------
     CrossRatioPoints (possibly empty: the caller decides whether that is an error).
     """
+    from .targets import as_target
+
     if lines not in ("rows", "columns", "auto"):
         raise LightplaneError(f"lines must be 'rows', 'columns' or 'auto', got {lines!r}")
     if corners_used not in ("three", "all"):
         raise LightplaneError(f"corners_used must be 'three' or 'all', got {corners_used!r}")
-    try:
-        cols, rows = (int(x) for x in board)
-    except (TypeError, ValueError):
-        raise LightplaneError(f"board must be (cols, rows), got {board!r}") from None
-    if cols < 3 or rows < 2:
-        raise LightplaneError(f"board needs at least 3 corners per row and 2 rows, got {cols}x{rows}")
+    if not isinstance(board, tuple) and not hasattr(board, "lattice_index"):
+        try:
+            board = tuple(int(x) for x in board)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"board must be a Target or (cols, rows), got {board!r}") from None
+    if isinstance(board, tuple) and (len(board) != 2 or not all(isinstance(x, (int, np.integer)) for x in board)):
+        raise LightplaneError(f"board must be (cols, rows), got {board!r}")
+    if square_mm is not None and not (np.isfinite(square_mm) and square_mm > 0):
+        raise LightplaneError(f"square_mm must be positive, got {square_mm}")
+    target = as_target(board, square_mm)
+    nx, ny = target.lattice_shape
+    if nx < 3 or ny < 2:
+        raise LightplaneError(f"board needs at least 3 points per row and 2 rows, got {nx}x{ny}")
     corners = as_points(corners_uv_undist, 2, "corners_uv_undist")
-    if len(corners) != cols * rows:
-        raise LightplaneError(f"corners_uv_undist has {len(corners)} points, board {cols}x{rows} needs {cols * rows}")
+    ids_ = np.arange(target.n_points) if ids is None else np.asarray(ids, dtype=np.intp).ravel()
+    if len(corners) != len(ids_):
+        raise LightplaneError(f"corners_uv_undist has {len(corners)} points, "
+                              f"{'the ids say' if ids is not None else target.describe() + ' needs'} {len(ids_)}")
     stripe = as_points(stripe_uv_undist, 2, "stripe_uv_undist")
     stripe = stripe[np.all(np.isfinite(stripe), axis=1)]
-    if not (np.isfinite(square_mm) and square_mm > 0):
-        raise LightplaneError(f"square_mm must be positive, got {square_mm}")
     ok = np.ones(len(corners), bool) if corner_ok is None else np.asarray(corner_ok, bool).ravel()
     if ok.shape != (len(corners),):
         raise LightplaneError(f"corner_ok must have {len(corners)} entries, got {np.shape(corner_ok)}")
-    args = (corners, (cols, rows), stripe, float(square_mm))
+    lat = target.lattice_index(ids_)
+    grid = np.full((ny, nx, 2), np.nan)
+    okg = np.zeros((ny, nx), bool)
+    grid[lat[:, 1], lat[:, 0]] = corners
+    okg[lat[:, 1], lat[:, 0]] = ok & np.all(np.isfinite(corners), axis=1)
+    args = (grid, okg, target.lattice_origin_mm, stripe, float(target.square_mm))
     kw = dict(corners_used=corners_used, window_px=window_px, min_angle_deg=min_angle_deg,
-              min_stripe_points=min_stripe_points, corner_ok=ok)
+              min_stripe_points=min_stripe_points)
     if lines != "auto":
-        if lines == "columns" and rows < 3:
+        if lines == "columns" and ny < 3:
             raise LightplaneError("lines='columns' needs at least 3 rows of corners")
         return _crossings(*args, lines, **kw)
     cand = [_crossings(*args, "rows", **kw)]
-    if rows >= 3:
+    if ny >= 3:
         cand.append(_crossings(*args, "columns", **kw))
     return max(cand, key=lambda c: (len(c), float(np.mean(c.crossing_angle_deg)) if len(c) else 0.0))
 
@@ -346,7 +370,7 @@ def first_point_pairs(groups: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------ pipeline
 @dataclass(frozen=True)
 class Evaluation:
-    """Cross-ratio evaluation of one or more light planes on chessboard views.
+    """Cross-ratio evaluation of one or more light planes on board views.
 
     Attributes
     ----------
@@ -360,6 +384,8 @@ class Evaluation:
     errors : tuple of DistanceErrors, per plane.
     point_error_mm : tuple of (M,), per plane, |measured − ideal_cam| (depends on the pose too).
     labels : tuple of str, a name per plane.
+    views : per view, its diagnostics; view_names : the views' names (``view_index`` indexes them);
+    skipped : image name → reason, for the images not used (:func:`evaluate_images`).
     """
 
     ideal_board_mm: np.ndarray
@@ -373,6 +399,8 @@ class Evaluation:
     point_error_mm: tuple
     labels: tuple
     views: tuple = field(default=(), repr=False)
+    skipped: dict = field(default_factory=dict)
+    view_names: tuple = ()
 
     def to_dict(self) -> dict:
         return {
@@ -385,11 +413,13 @@ class Evaluation:
             ],
             "planes": {lab: e.to_dict() for lab, e in zip(self.labels, self.errors)},
             "views": list(self.views),
+            "view_names": list(self.view_names),
+            "skipped": dict(self.skipped),
         }
 
 
 def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence, stripes: Sequence[np.ndarray], *,
-                   board: tuple[int, int], square_mm: float, labels: Sequence[str] | None = None,
+                   board, square_mm: float | None = None, labels: Sequence[str] | None = None,
                    lines: str = "auto", corners_used: str = "all", view_names: Sequence[str] | None = None
                    ) -> Evaluation:
     """Cross-ratio evaluation from detected boards and stripe points (paper §4.3).
@@ -402,7 +432,7 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
         ``R_cam_board`` (3, 3) and ``t_cam_board`` (3,) mm (see
         :func:`lightplane.baselines.zhou.find_board`).
     stripes : per view, (N, 2) stripe centres in distorted pixels, on the board.
-    board, square_mm : the chessboard (inner corners) and its square size.
+    board : a :class:`lightplane.targets.Target`, or (cols, rows) chessboard inner corners with ``square_mm``.
 
     Raises LightplaneError when the stripe crosses no corner line in any view, or
     when no view gives two points (no pair to measure).
@@ -419,7 +449,8 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
         corners_u = camera.undistort_points(view.corners_uv)
         stripe_u = camera.undistort_points(as_points(stripe, 2, "stripe")) if len(stripe) else np.zeros((0, 2))
         cr = cross_ratio_points(corners_u, board, stripe_u, square_mm=square_mm, lines=lines,
-                                corners_used=corners_used, corner_ok=getattr(view, "corner_ok", None))
+                                corners_used=corners_used, corner_ok=getattr(view, "corner_ok", None),
+                                ids=getattr(view, "ids", None))
         diag.append({"view": names[k], "n_points": len(cr), "family": cr.family,
                      "lines": cr.line_index.tolist()})
         if len(cr) == 0:
@@ -452,22 +483,33 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
                       labels, tuple(diag))
 
 
-def evaluate_images(images: Sequence[np.ndarray], camera: Camera, planes: Sequence[LightPlane], *,
-                    board: tuple[int, int], square_mm: float, background_images: Sequence[np.ndarray] | None = None,
+def evaluate_images(images: Sequence, camera: Camera, planes: Sequence[LightPlane], *,
+                    board, square_mm: float | None = None, background_images: Sequence[np.ndarray] | None = None,
                     labels: Sequence[str] | None = None, image_names: Sequence[str] | None = None,
                     stripe_width_px: float | None = None, channel: str | None = None, lines: str = "auto",
-                    corners_used: str = "all", progress=None) -> Evaluation:
-    """Cross-ratio evaluation from chessboard images with the stripe (paper §4.3).
+                    corners_used: str = "all", skipped: dict | None = None, progress=None) -> Evaluation:
+    """Cross-ratio evaluation from images of a board with the stripe (paper §4.3).
 
-    Per image: the board is found and its pose solved (:func:`lightplane.baselines.zhou.find_board`),
-    stripe centres are extracted inside the board (after subtracting the laser-off
-    ``background_images`` when given), then :func:`evaluate_views`.
+    Per image: the board (a :class:`lightplane.targets.Target`, or (cols, rows) chessboard
+    inner corners with ``square_mm``) is found and its pose solved, stripe centres are
+    extracted inside the board (after subtracting the laser-off ``background_images``
+    when given: :func:`lightplane.baselines.zhou.find_board_views`), then
+    :func:`evaluate_views`.  Images where the board is not found or the stripe is
+    missing are skipped with their reason (``Evaluation.skipped``, with the caller's
+    ``skipped``); fewer than one usable image raises LightplaneError saying why.
     ``progress(i)`` is called after each image.
     """
-    from .baselines.zhou import board_views_and_stripes
+    from .baselines.zhou import find_board_views
+    from .io import too_few_images_message
+    from .targets import as_target
 
-    views, stripes, names = board_views_and_stripes(
-        images, camera, board=board, square_mm=square_mm, background_images=background_images,
-        image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, progress=progress)
-    return evaluate_views(camera, planes, views, stripes, board=board, square_mm=square_mm, labels=labels,
-                          lines=lines, corners_used=corners_used, view_names=names)
+    target = as_target(board, square_mm)
+    v = find_board_views(images, camera, target, background_images=background_images, image_names=image_names,
+                         stripe_width_px=stripe_width_px, channel=channel, skip=True, min_stripe_points=2,
+                         progress=progress)
+    why = {**(skipped or {}), **v.skipped}
+    if not v.poses:
+        raise LightplaneError(too_few_images_message("images", 0, 1, why.items()))
+    ev = evaluate_views(camera, planes, v.poses, v.stripes, board=target, labels=labels,
+                        lines=lines, corners_used=corners_used, view_names=v.names)
+    return replace(ev, skipped=why, view_names=tuple(v.names))

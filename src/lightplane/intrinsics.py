@@ -535,7 +535,7 @@ def calibrate_camera(
     """
     import cv2
 
-    from .io import read_image
+    from .io import too_few_images_message, try_read_image
 
     target = as_target(board, square_mm)
     if len(images) == 0:
@@ -549,13 +549,15 @@ def calibrate_camera(
     dots: list[float] = []
     skipped: dict[str, str] = {}
     size = None
-    gray_by_view: dict[str, np.ndarray] = {}
     for i, (im, name) in enumerate(zip(images, names)):
-        try:
-            img = read_image(im, rotate_deg=rotate_deg) if isinstance(im, (str, Path)) else np.asarray(im)
-        except LightplaneError as e:
-            skipped[name] = str(e).removeprefix(f"{Path(str(im))}: ")
-            img = None
+        if isinstance(im, (str, Path)):
+            img, reason = try_read_image(im, rotate_deg=rotate_deg)
+            if img is None:
+                skipped[name] = reason
+        else:
+            img = None if im is None else np.asarray(im)
+            if img is None:
+                skipped[name] = "not a readable image"
         if img is not None and img.ndim not in (2, 3):
             skipped[name] = f"not an image (shape {img.shape})"
             img = None
@@ -591,7 +593,7 @@ def calibrate_camera(
     for n in not_found:
         skipped[n] = f"{target.describe()} not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
     if len(found) < min_views:
-        raise LightplaneError(too_few_message(len(found), len(names), min_views, "views", skipped))
+        raise LightplaneError(too_few_images_message("images", len(found), min_views, skipped.items()))
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]
     imgpoints = [v.corners_uv.astype(np.float32).reshape(-1, 1, 2) for v in found]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -644,23 +646,6 @@ def calibrate_camera(
         ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
         skipped=skipped,
     )
-
-
-def too_few_message(n_usable: int, n_total: int, minimum: int, what: str, skipped: dict) -> str:
-    """One line: how many of the inputs are usable, the minimum, and why the others are not
-    (reasons grouped, most frequent first)."""
-    from collections import Counter
-
-    reasons = Counter(skipped.values())
-
-    def one(reason: str, n: int) -> str:
-        if n <= 2:  # few: name them
-            return "; ".join(f"{Path(k).name}: {r}" for k, r in skipped.items() if r == reason)
-        return f"{n} {reason}"
-
-    why = "; ".join(one(r, n) for r, n in reasons.most_common())
-    return (f"only {n_usable} of {n_total} images usable, at least {minimum} {what} needed"
-            + (f" ({why})" if why else ""))
 
 
 def _dot_diameter(img, det, target) -> float:

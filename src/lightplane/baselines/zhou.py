@@ -558,7 +558,7 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
     diagnostics (pose, stripe points used, residual RMS), ``meta["skipped"]`` the
     images not used with their reason.
     """
-    from ..intrinsics import too_few_message
+    from ..io import too_few_images_message
     from ..targets import as_target
 
     target = as_target(board, square_mm)
@@ -567,10 +567,9 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
                          image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=True,
                          min_stripe_points=min_points_per_view, progress=progress)
     why = {**pre, **v.skipped}
-    n_total = len(images) + len(set(pre) - set(image_names or []))
     if len(v.poses) < max(2, min_views):
-        raise LightplaneError("Zhou's method: " + too_few_message(len(v.poses), n_total, max(2, min_views),
-                                                                  "board poses with the stripe", why))
+        raise LightplaneError("Zhou's method: " + too_few_images_message("images", len(v.poses), max(2, min_views),
+                                                                         why.items()))
     return plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=min_points_per_view,
                                     meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
                                           "target": target.to_dict(), "skipped": why,

@@ -11,19 +11,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ..errors import LightplaneError
-from ..io import check_output, expand_inputs, provenance, read_image
-from ._common import app, console, handles_errors, parse_board
-
-
-def read_images(items: List[str], what: str, rotate: int) -> tuple[list[Path], list[np.ndarray]]:
-    """Expand and read images; LightplaneError naming ``what`` when none match."""
-    files = expand_inputs(items)
-    if not files:
-        raise LightplaneError(f"no {what} given (no files matched)")
-    for f in files:
-        if not f.is_file():
-            raise LightplaneError(f"{f}: no such file")
-    return files, [read_image(f, rotate_deg=rotate) for f in files]
+from ..io import check_output, expand_inputs, provenance
+from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
+                      square_option, target_from_options, target_option)
 
 
 def check_background(files: list[Path], bg_files: list[Path]) -> None:
@@ -34,44 +24,133 @@ def check_background(files: list[Path], bg_files: list[Path]) -> None:
                               "file, or one folder or quoted glob)")
 
 
+def pair_pattern_frames(files: list[Path], pattern_files: list[Path] | None, cycle: str | None
+                        ) -> tuple[list[Path], list[Path] | None]:
+    """Laser frames and, for each, the pattern frame of its pose.
+
+    ``cycle`` (e.g. ``P,L,-``): the images, in order, repeat this sequence of roles per pose
+    (P the lit pattern frame, L a laser frame to use, - a frame to leave out).
+    ``pattern_files``: one lit frame per pose; the laser frames, in order, are shared out
+    evenly, the first k to the first pattern frame and so on.
+    """
+    if cycle is not None and pattern_files:
+        raise LightplaneError("give either --pattern or --cycle, not both")
+    if cycle is not None:
+        roles = [r.strip().upper() for r in cycle.split(",")]
+        if roles.count("P") != 1 or "L" not in roles or set(roles) - {"P", "L", "-"}:
+            raise LightplaneError(f"--cycle must list one P (pattern frame), one or more L (laser frames) and any "
+                                  f"- (left out), e.g. P,L,- ; got {cycle!r}")
+        if len(files) % len(roles):
+            raise LightplaneError(f"--cycle {cycle}: {len(files)} images are not a whole number of "
+                                  f"{len(roles)}-frame poses")
+        lasers, patterns = [], []
+        for g in range(0, len(files), len(roles)):
+            group = files[g:g + len(roles)]
+            pat = group[roles.index("P")]
+            for f, r in zip(group, roles):
+                if r == "L":
+                    lasers.append(f)
+                    patterns.append(pat)
+        return lasers, patterns
+    if pattern_files:
+        if len(files) % len(pattern_files):
+            raise LightplaneError(f"--pattern: {len(files)} laser frames cannot be shared out evenly over "
+                                  f"{len(pattern_files)} pattern frames (the same number of laser frames per pose)")
+        k = len(files) // len(pattern_files)
+        return files, [pattern_files[i // k] for i in range(len(files))]
+    return files, None
+
+
+def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
+    """Each file read once (``cache``: path -> image or reason); None stands for an unreadable one."""
+    from ..io import try_read_image
+
+    out = []
+    for f in files:
+        if f not in cache:
+            img, reason = try_read_image(f, rotate_deg=rotate)
+            cache[f] = img if img is not None else reason
+        out.append(cache[f] if not isinstance(cache[f], str) else None)
+    return out
+
+
 @app.command("calibrate-plane-board")
 @handles_errors
 def calibrate_plane_board_cmd(
-    images: List[str] = typer.Argument(..., help="Laser-on chessboard images, one board pose each (files, folders, globs)."),
+    images: List[str] = typer.Argument(..., help="Laser images of the board, one pose each, or with --pattern / "
+                                       "--cycle several per pose (files, folders, globs)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
-    board: str = typer.Option(..., "--board", help="Inner corners, COLSxROWS (e.g. 9x6)."),
-    square: float = typer.Option(..., "--square", help="Square size in mm."),
+    board: Optional[str] = board_option,
+    square: Optional[float] = square_option,
+    marker: Optional[float] = marker_option,
+    dictionary: Optional[str] = dictionary_option,
+    dot: Optional[float] = dot_option,
+    target_file: Optional[Path] = target_option,
     output: Path = typer.Option(..., "-o", "--output", help="Light-plane JSON file to write."),
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; "
                                                    "repeat the option): one per image, same order, or one for all."),
+    pattern: Optional[List[str]] = typer.Option(None, "--pattern", help="Lit board frames (laser off), one per pose, "
+                                                "in which the board is found; the laser images (possibly dark) are "
+                                                "shared out over them in order, the same number per pose."),
+    cycle: Optional[str] = typer.Option(None, "--cycle", help="The images repeat this sequence of frames per pose: "
+                                        "P the lit pattern frame, L a laser frame, - a frame left out; e.g. P,L,- "
+                                        "(FabScan's laser 0) or P,-,L (its laser 1)."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
 ) -> None:
-    """Calibrate the light plane with a chessboard in two or more poses (Zhou's method, the paper's baseline)."""
+    """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline)."""
     from ..baselines.zhou import calibrate_plane_board
     from ..camera import Camera
 
-    cols, rows = parse_board(board)
-    if not square > 0:
-        raise LightplaneError(f"--square must be positive, got {square} mm")
+    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     check_output(output, force)
     cam = Camera.load(camera)
-    files, imgs = read_images(images, "images", rotate)
-    if len(files) < 2:
-        raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(files)}")
-    bg_files, bgs = read_images(background, "background images", rotate) if background else ([], None)
-    check_background(files, bg_files)
-    if bgs is not None and len(bgs) not in (1, len(imgs)):
-        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(imgs)}), got {len(bgs)}")
+    files = expand_inputs(images)
+    if not files:
+        raise LightplaneError("no images given (no files matched)")
+    pattern_files = expand_inputs(pattern) if pattern else None
+    if pattern and not pattern_files:
+        raise LightplaneError("no pattern frames given (no files matched --pattern)")
+    if background and (pattern or cycle):
+        raise LightplaneError("--background is for laser-on images of a lit board; with --pattern / --cycle the "
+                              "board is found in the pattern frames")
+    lasers, patterns = pair_pattern_frames(files, pattern_files, cycle)
+    if len(lasers) < 2:
+        raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(lasers)}")
+    bg_files = expand_inputs(background) if background else []
+    if background and not bg_files:
+        raise LightplaneError("no background images given (no files matched)")
+    check_background(lasers, bg_files)
+    if bg_files and len(bg_files) not in (1, len(lasers)):
+        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(lasers)}), "
+                              f"got {len(bg_files)}")
+    cache: dict = {}
+    imgs = read_frames(lasers, rotate, cache)
+    pats = read_frames(patterns, rotate, cache) if patterns is not None else None
+    bgs = read_frames(bg_files, rotate, cache) if bg_files else None
+    skipped = {}
+    for k, f in enumerate(lasers):  # unreadable laser, pattern or background frame: that image is skipped
+        for what, g in (("", f), ("pattern frame ", patterns[k] if patterns else None),
+                        ("background ", bg_files[k if len(bg_files) > 1 else 0] if bg_files else None)):
+            if g is not None and isinstance(cache[g], str) and str(f) not in skipped:
+                skipped[str(f)] = f"{what}{Path(g).name + ': ' if what else ''}{cache[g]}"
+    names = [str(f) for f in lasers]
+    keep = [k for k, n in enumerate(names) if n not in skipped]
+    if bgs is not None and len(bgs) == 1 and bgs[0] is None:
+        raise LightplaneError(f"{bg_files[0]}: {cache[bg_files[0]]}")
 
     with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
-        task = bar.add_task("images", total=len(imgs))
-        res = calibrate_plane_board(imgs, cam, (cols, rows), square, background_images=bgs,
-                                    image_names=[str(f) for f in files], stripe_width_px=stripe_width,
-                                    channel=channel, progress=lambda i: bar.update(task, completed=i + 1))
+        task = bar.add_task("images", total=len(keep))
+        res = calibrate_plane_board([imgs[k] for k in keep], cam, target,
+                                    background_images=None if bgs is None else
+                                    (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
+                                    pattern_images=None if pats is None else [pats[k] for k in keep],
+                                    image_names=[names[k] for k in keep], stripe_width_px=stripe_width,
+                                    channel=channel, skipped=skipped,
+                                    progress=lambda i: bar.update(task, completed=i + 1))
 
     pl = res.plane
     sd = np.sqrt(np.diag(pl.covariance))
@@ -84,17 +163,23 @@ def calibrate_plane_board_cmd(
     sigma_deg = float(np.degrees(np.sqrt(np.trace(pl.covariance[:3, :3]))))
     console.print(f"normal direction σ ≈ {sigma_deg:.4f} deg (covariance: {pl.meta['covariance_method']})")
     console.print(f"{len(res.points_cam_mm)} stripe points from {len(set(res.view_index.tolist()))} board poses, "
-                  f"residual RMS {res.residual_rms_mm:.4f} mm")
+                  f"residual RMS {res.residual_rms_mm:.4f} mm; board: {target.describe()}")
     v = Table(title="Per image", show_edge=False)
-    for c in ("image", "stripe points", "pose RMS (px)", "residual RMS (mm)", "board distance (mm)"):
-        v.add_column(c, justify="left" if c == "image" else "right")
+    for c in ("image", "status", "stripe points", "pose RMS (px)", "residual RMS (mm)", "board distance (mm)",
+              "reason"):
+        v.add_column(c, justify="left" if c in ("image", "status", "reason") else "right")
     for im in pl.meta["images"]:
         r = im.get("residual_rms_mm")
-        v.add_row(Path(im["name"]).name, str(im["n_stripe_points"]) + ("" if im["used"] else " (unused)"),
+        v.add_row(Path(im["name"]).name, "used" if im["used"] else "skipped", str(im["n_stripe_points"]),
                   f"{im['reprojection_rms_px']:.3f}", "-" if r is None else f"{r:.4f}",
-                  f"{np.linalg.norm(im['t_cam_board_mm']):.1f}")
+                  f"{np.linalg.norm(im['t_cam_board_mm']):.1f}", "" if im["used"] else "too few stripe points")
+    for name, why in pl.meta["skipped"].items():
+        v.add_row(Path(name).name, "skipped", "-", "-", "-", "-", why)
     console.print(v)
-    opts = {"board": f"{cols}x{rows}", "square_mm": square, "stripe_width_px": stripe_width, "channel": channel,
-            "rotate_deg": rotate, "background": [str(f) for f in bg_files], "camera": str(camera)}
-    pl.save(output, force=force, extra={"provenance": provenance(files, opts)})
+    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
+            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
+            "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
+            "cycle": cycle, "camera": str(camera)}
+    inputs = list(dict.fromkeys([*lasers, *(patterns or [])]))
+    pl.save(output, force=force, extra={"provenance": provenance(inputs, opts)})
     console.print(f"wrote {output}")

@@ -1,4 +1,4 @@
-"""``lightplane evaluate``: cross-ratio accuracy check of light planes on a chessboard (paper §4.3, Table 2)."""
+"""``lightplane evaluate``: cross-ratio accuracy check of light planes on a board (paper §4.3, Table 2)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ..errors import LightplaneError
-from ..io import atomic_write, check_output, dumps_json, provenance
-from ._common import app, console, handles_errors, parse_board
-from .calibrate_plane_board import check_background, read_images
+from ..io import atomic_write, check_output, dumps_json, expand_inputs, provenance
+from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
+                      square_option, target_from_options, target_option)
+from .calibrate_plane_board import check_background, read_frames
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -25,11 +26,15 @@ def _labels(paths: List[Path]) -> list[str]:
 @app.command("evaluate")
 @handles_errors
 def evaluate_cmd(
-    images: List[str] = typer.Argument(..., help="Laser-on chessboard images (files, folders, globs)."),
+    images: List[str] = typer.Argument(..., help="Laser-on images of the board (files, folders, globs)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
     plane: List[Path] = typer.Option(..., "--plane", help="Light-plane JSON file to evaluate (repeat to compare)."),
-    board: str = typer.Option(..., "--board", help="Inner corners, COLSxROWS (e.g. 9x6)."),
-    square: float = typer.Option(..., "--square", help="Square size in mm."),
+    board: Optional[str] = board_option,
+    square: Optional[float] = square_option,
+    marker: Optional[float] = marker_option,
+    dictionary: Optional[str] = dictionary_option,
+    dot: Optional[float] = dot_option,
+    target_file: Optional[Path] = target_option,
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write per plane its pairs (dt, dm, delta, mm) and RMS."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", help="Write the table as CSV (mm)."),
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; repeat the option): one per image or one for all."),
@@ -45,13 +50,11 @@ def evaluate_cmd(
     from ..evaluate import evaluate_images
     from ..plane import LightPlane
 
-    cols, rows = parse_board(board)
+    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     if lines not in ("rows", "columns", "auto"):
         raise LightplaneError(f"--lines must be rows, columns or auto, got {lines!r}")
     if corners_used not in ("three", "all"):
         raise LightplaneError(f"--corners must be three or all, got {corners_used!r}")
-    if not square > 0:
-        raise LightplaneError(f"--square must be positive, got {square} mm")
     for out in (json_out, csv_out):
         if out is not None:
             check_output(out, force)
@@ -60,19 +63,40 @@ def evaluate_cmd(
     cam = Camera.load(camera)
     planes = [LightPlane.load(p) for p in plane]
     labels = _labels(plane)
-    files, imgs = read_images(images, "images", rotate)
-    bg_files, bgs = read_images(background, "background images", rotate) if background else ([], None)
+    files = expand_inputs(images)
+    if not files:
+        raise LightplaneError("no images given (no files matched)")
+    bg_files = expand_inputs(background) if background else []
+    if background and not bg_files:
+        raise LightplaneError("no background images given (no files matched)")
     check_background(files, bg_files)
-    if bgs is not None and len(bgs) not in (1, len(imgs)):
-        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(imgs)}), got {len(bgs)}")
+    if bg_files and len(bg_files) not in (1, len(files)):
+        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(files)}), "
+                              f"got {len(bg_files)}")
+    cache: dict = {}
+    imgs = read_frames(files, rotate, cache)
+    bgs = read_frames(bg_files, rotate, cache) if bg_files else None
+    if bgs is not None and len(bgs) == 1 and bgs[0] is None:
+        raise LightplaneError(f"{bg_files[0]}: {cache[bg_files[0]]}")
+    skipped = {}
+    for k, f in enumerate(files):  # an unreadable image or background frame: that image is skipped
+        g = bg_files[k] if len(bg_files) > 1 else None
+        if isinstance(cache[f], str):
+            skipped[str(f)] = cache[f]
+        elif g is not None and isinstance(cache[g], str):
+            skipped[str(f)] = f"background {g.name}: {cache[g]}"
+    keep = [k for k, f in enumerate(files) if str(f) not in skipped]
 
     with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
-        task = bar.add_task("images", total=len(imgs))
-        ev = evaluate_images(imgs, cam, planes, board=(cols, rows), square_mm=square, background_images=bgs,
-                             labels=labels, image_names=[str(f) for f in files], stripe_width_px=stripe_width,
-                             channel=channel, lines=lines, corners_used=corners_used,
+        task = bar.add_task("images", total=len(keep))
+        ev = evaluate_images([imgs[k] for k in keep], cam, planes, board=target,
+                             background_images=None if bgs is None else (bgs if len(bgs) == 1 else
+                                                                         [bgs[k] for k in keep]),
+                             labels=labels, image_names=[str(files[k]) for k in keep], stripe_width_px=stripe_width,
+                             channel=channel, lines=lines, corners_used=corners_used, skipped=skipped,
                              progress=lambda i: bar.update(task, completed=i + 1))
+    used_names = list(ev.view_names)
 
     # the paper's Table 2: dm1, dm2, ... and Δ(dt, dm1), ... ; short headers keep it within 80 columns
     t = Table(title="Cross-ratio evaluation, paper Table 2 layout (all distances in mm)", show_edge=False)
@@ -83,7 +107,7 @@ def evaluate_cmd(
     for k in range(len(labels)):
         t.add_column(f"Δ{k + 1}", justify="right")
     for k, (i, j) in enumerate(ev.pairs):
-        t.add_row(str(k + 1), Path(files[ev.view_index[i]]).stem, f"{i + 1}-{j + 1}", f"{ev.errors[0].dt_mm[k]:.3f}",
+        t.add_row(str(k + 1), Path(used_names[ev.view_index[i]]).stem, f"{i + 1}-{j + 1}", f"{ev.errors[0].dt_mm[k]:.3f}",
                   *[f"{e.dm_mm[k]:.3f}" for e in ev.errors], *[f"{e.delta_mm[k]:+.3f}" for e in ev.errors])
     t.add_section()
     t.add_row("RMS", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.3f}" for e in ev.errors])
@@ -91,12 +115,15 @@ def evaluate_cmd(
     for k, (lab, p) in enumerate(zip(labels, plane)):
         console.print(f"  dm{k + 1}, Δ{k + 1} = dt - dm{k + 1}: {p}")
     console.print(f"{len(ev.ideal_board_mm)} stripe crossings in {len(set(ev.view_index.tolist()))} of {len(files)} "
-                  f"images, {len(ev.pairs)} pairs (each image's first crossing with the others)")
+                  f"images, {len(ev.pairs)} pairs (each image's first crossing with the others); "
+                  f"board: {target.describe()}")
+    for name, why in ev.skipped.items():
+        console.print(f"  skipped {Path(name).name}: {why}")
     for lab, e, pe in zip(labels, ev.errors, ev.point_error_mm):
         console.print(f"{lab}: RMS Δ {e.rms_mm:.4f} mm, max |Δ| {e.max_abs_mm:.4f} mm; 3D point error vs the "
                       f"board pose: RMS {float((pe**2).mean() ** 0.5):.4f} mm")
 
-    opts = {"board": f"{cols}x{rows}", "square_mm": square, "lines": lines, "corners": corners_used,
+    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(), "lines": lines, "corners": corners_used,
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate, "camera": str(camera),
             "background": [str(f) for f in bg_files]}
     if json_out is not None:
@@ -113,7 +140,7 @@ def evaluate_cmd(
         w.writerow(["no", "image", "i", "j", "dt_mm", *[f"dm_mm[{lab}]" for lab in labels],
                     *[f"delta_mm[{lab}]" for lab in labels]])
         for k, (i, j) in enumerate(ev.pairs):
-            w.writerow([k + 1, files[ev.view_index[i]], i + 1, j + 1, f"{ev.errors[0].dt_mm[k]:.6f}",
+            w.writerow([k + 1, used_names[ev.view_index[i]], i + 1, j + 1, f"{ev.errors[0].dt_mm[k]:.6f}",
                         *[f"{e.dm_mm[k]:.6f}" for e in ev.errors], *[f"{e.delta_mm[k]:.6f}" for e in ev.errors]])
         w.writerow(["rms", "", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.6f}" for e in ev.errors]])
         atomic_write(csv_out, buf.getvalue(), force=force)
