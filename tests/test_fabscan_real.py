@@ -1,0 +1,279 @@
+"""Real photographs of a FabScanPi: camera, Zhou's laser planes and scan stripes.
+
+Data: ``shared/data/fabscan`` (see its README; GPL test data, read from there, never
+copied into the repository).  A Raspberry Pi camera, 1640x1232 JPEGs stored
+unrotated; everything here works in the frame rotated 90 degrees clockwise
+(``read_image(path, rotate_deg=90)``), the frame of FabScan's published calibration.
+The chessboard has 8 x 10 inner corners of 7 mm; in the rotated frame it shows 10
+corners along the image rows and 8 down the columns, so it is ``(10, 8)`` as
+``(cols, rows)``.  (``findChessboardCornersSB`` also accepts ``(8, 10)`` on these
+images: it returns the same 80 corners in transposed order, and the calibration is the
+same to 1e-5 px.)
+
+Frames 67-117 are 17 turntable positions of three frames each: the lit board (laser
+off), laser 0 alone in a dark frame, laser 1 alone in a dark frame.  Checked: 67, 70,
+... 115 are the lit boards (mean grey ~160-240); in 68, 71, ... the stripe is on the
+right of the image (columns ~1050 -> 745 as the board turns), in 69, 72, ... on the
+left (~395 -> 100); laser 0 is the one of the ``1_1`` scan, whose stripe is also the
+right one.  Frame 68 (laser 0, first position) is black: laser 0 misses the board there.
+
+Measured figures and how they were obtained: docs/real-data-fabscan.md.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from lightplane.baselines.zhou import calibrate_plane_board
+from lightplane.intrinsics import calibrate_camera
+from lightplane.io import read_image
+from lightplane.plane import LightPlane, tls_line
+from lightplane.stripe import extract_stripe
+
+pytestmark = pytest.mark.realdata
+
+BOARD = (10, 8)            # (cols, rows) inner corners in the rotated frame
+SQUARE_MM = 7.0
+ROTATE = 90
+
+# FabScan's published calibration (fabscan-config.json; rotated frame).
+PUBLISHED_FX, PUBLISHED_FY = 1319.597, 1322.35
+PUBLISHED_CX, PUBLISHED_CY = 625.54, 808.36
+# FabScan's plane is normal . X = distance; ours is a x + b y + c z + d = 0, so d = -distance.
+PUBLISHED_PLANE_0 = LightPlane(np.array([0.788195, -0.025909, 0.614880]), -77.479)
+PLATFORM_CENTRE_MM = np.array([-5.431, 43.628, 135.607])  # turntable origin, FabScan's camera frame
+
+# The lit-board frames (frames 0-66 and 118-133, and the lit frame of each of the 17
+# laser positions): 100 frames.  Calibrating from all of them takes ~80 s on a loaded
+# 2-core machine; the test uses every third one (34 frames, from frame 0 on), of which
+# the board is found in 25 (the others show the board edge-on).
+LIT = list(range(0, 67)) + list(range(67, 118, 3)) + list(range(118, 134))
+CAMERA_FRAMES = LIT[::3]
+
+# Scan frames whose stripe coverage is checked (both scans; frame 0 of 1_1 is stale).
+SCAN_FRAMES = (1, 13, 25, 38, 50, 63, 75, 88)
+SCAN_ROWS = (400, 1280)    # rows between the wall's stripe (ends <= row 395) and the turntable's (from row >= 1286)
+LIT_LEVEL = 60             # red level (8 bit) of a row's brightest pixel for "the laser lights the object here"
+
+
+def _calib(shared_data, i: int):
+    return shared_data / "fabscan" / "calibration_8x10" / f"calibration_{i:03d}.jpg"
+
+
+@pytest.fixture(scope="module")
+def fabscan(shared_data):
+    root = shared_data / "fabscan"
+    if not root.is_dir():
+        pytest.skip(f"real-data test: {root} is absent")
+    return shared_data
+
+
+@pytest.fixture(scope="module")
+def camera_cal(fabscan):
+    t = time.perf_counter()
+    cal = calibrate_camera([_calib(fabscan, i) for i in CAMERA_FRAMES], BOARD, SQUARE_MM, rotate_deg=ROTATE)
+    return cal, time.perf_counter() - t
+
+
+def test_camera_matches_published_focal_lengths(camera_cal):
+    """Default options (saddle-fit corners, 5 distortion coefficients), 25 views of 34:
+    fx, fy within 1 % of FabScan's published 1319.597 / 1322.35 (measured: +0.08 %, -0.02 %).
+
+    cx, cy and the distortion are reported, not bounded: nothing states FabScan computed
+    its numbers from these frames (measured cx 618.0 / cy 823.4 against 625.5 / 808.4;
+    k1..k3 0.19, -0.28, -0.08 against 0.145, 0.154, -1.15: k2 and k3 trade off).
+    """
+    cal, seconds = camera_cal
+    K = cal.camera.K
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    print(f"\ncamera from {len(cal.used)} of {len(CAMERA_FRAMES)} frames in {seconds:.1f} s: "
+          f"fx {fx:.2f} fy {fy:.2f} cx {cx:.2f} cy {cy:.2f} (published {PUBLISHED_FX} {PUBLISHED_FY} "
+          f"{PUBLISHED_CX} {PUBLISHED_CY}); dist {np.round(cal.camera.dist, 4).tolist()}; RMS {cal.rms_px:.3f} px; "
+          f"worst views {[(n.rsplit('_', 1)[-1], round(r, 2)) for n, r in cal.ranked_views()[:3]]}")
+    assert len(cal.used) >= 20, f"board found in only {len(cal.used)} of {len(CAMERA_FRAMES)} frames"
+    assert abs(fx / PUBLISHED_FX - 1) < 0.01, f"fx {fx:.2f} vs published {PUBLISHED_FX}"
+    assert abs(fy / PUBLISHED_FY - 1) < 0.01, f"fy {fy:.2f} vs published {PUBLISHED_FY}"
+
+
+@pytest.fixture(scope="module")
+def planes(fabscan, camera_cal):
+    """Zhou's plane of each laser from the 17 positions: the board pose from each lit frame,
+    the stripe from the laser's dark frame (default stripe extraction)."""
+    cam = camera_cal[0].camera
+    lit = [read_image(_calib(fabscan, 67 + 3 * k), rotate_deg=ROTATE) for k in range(17)]
+    out = {}
+    for laser in (0, 1):
+        idx = [68 + 3 * k + laser for k in range(17)]
+        dark = [read_image(_calib(fabscan, i), rotate_deg=ROTATE) for i in idx]
+        out[laser] = calibrate_plane_board(dark, cam, BOARD, SQUARE_MM, pattern_images=lit,
+                                           image_names=[f"{i:03d}" for i in idx])
+    return cam, out
+
+
+def _per_pose(cam, z):
+    """Per used pose: (name, points, residual RMS mm, RMS predicted from the stripe noise mm).
+
+    The stripe noise of a pose is the RMS distance of its centres from their own straight
+    line (undistorted px; the board is flat, so the stripe on it is straight).  Moving a
+    centre by 1 px across the stripe moves its point on the board plane, and its distance
+    to the light plane by g mm (computed per point); the prediction is noise x RMS(g).
+    """
+    K = cam.K
+    Kinv = np.linalg.inv(K)
+    nL, dL = z.plane.normal, z.plane.d
+    rows = []
+    for k, pose in enumerate(z.poses):
+        sel = z.view_index == k
+        if not sel.any():
+            continue
+        X = z.points_cam_mm[sel]
+        uv = (X[:, :2] / X[:, 2:]) @ K[:2, :2].T + K[:2, 2]  # undistorted px of the centres
+        m, _, nrm = tls_line(uv)
+        noise_px = float(np.sqrt(np.mean(((uv - m) @ nrm) ** 2)))
+        nB, t = pose.normal_cam, pose.t_cam_board
+
+        def on_board(p):
+            r = np.column_stack([p, np.ones(len(p))]) @ Kinv.T
+            return r * ((nB @ t) / (r @ nB))[:, None]
+
+        g = ((on_board(uv + 0.1 * nrm) - on_board(uv)) @ nL) / 0.1
+        res = X @ nL + dL
+        rows.append((pose.name, int(sel.sum()), float(np.sqrt(np.mean(res**2))),
+                     noise_px * float(np.sqrt(np.mean(g**2))), noise_px, float(res.mean())))
+    return rows
+
+
+def _report(laser, z, rows):
+    print(f"\nlaser {laser}: {z.plane}, {len(rows)} poses, {len(z.residual_mm)} points, "
+          f"RMS {z.residual_rms_mm:.4f} mm; skipped {z.plane.meta.get('skipped')}")
+    for name, n, rms, pred, noise_px, mean in rows:
+        print(f"   {name}: {n:4d} pts  stripe noise {noise_px:.3f} px  residual RMS {rms:.4f} mm "
+              f"(mean {mean:+.4f})  predicted {pred:.4f} mm  ratio {rms / pred:.2f}")
+
+
+# Measured with the default stripe extraction: laser 0 has the stripe on the board's
+# printed squares in positions 6-17 (in 1-5 it runs on the white margin right of the
+# squares, outside the board mask, or misses the board), laser 1 in positions 1-15.
+MIN_POSES = {0: 12, 1: 15}
+
+
+@pytest.mark.parametrize("laser", [0, 1])
+def test_zhou_planes_noise_limited(planes, laser):
+    """One plane per laser from the 17 positions; the typical pose is limited by the stripe noise.
+
+    Bar, derived from the stripe noise: a pose whose residuals come from the stripe noise
+    alone has residual RMS / predicted RMS ~1 (``_per_pose``; >= 100 points per pose,
+    so the RMS itself scatters by < 10 %); the board pose adds an offset per pose (70 corners
+    at 0.7 px RMS: ~0.02 mm, against ~0.03 mm of noise), so the median pose must stay
+    within 2x the noise.  Measured: median 1.35 (laser 0), 1.85 (laser 1); overall RMS
+    0.080 / 0.087 mm; stripe noise 0.26-0.56 px per pose.
+    """
+    cam, zs = planes
+    z = zs[laser]
+    rows = _per_pose(cam, z)
+    _report(laser, z, rows)
+    assert len(rows) >= MIN_POSES[laser], f"only {len(rows)} usable poses: {z.plane.meta.get('skipped')}"
+    ratio = np.array([r[2] / r[3] for r in rows])
+    assert np.median(ratio) <= 2.0, f"median pose residual / stripe-noise prediction {np.median(ratio):.2f}"
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: 6 of 27 poses have residuals 4-17x what their stripe noise explains, from a "
+    "constant offset of the pose's whole stripe off the common plane (0.15-0.26 mm): laser 0 "
+    "frames 089 (stripe along a column of corners, ratio 16.8) and 092 (5.0); laser 1 frames "
+    "093 (5.4), 105 (4.9), 108 (4.0), 111 (11.0, 122 points at the board's edge)"))
+@pytest.mark.parametrize("laser", [0, 1])
+def test_zhou_every_pose_noise_limited(planes, laser):
+    """Every pose within 3x the residual its stripe noise predicts (see test_zhou_planes_noise_limited)."""
+    cam, zs = planes
+    rows = _per_pose(cam, zs[laser])
+    bad = [(r[0], round(r[2] / r[3], 2)) for r in rows if r[2] > 3.0 * r[3]]
+    assert not bad, f"poses beyond 3x their stripe-noise residual: {bad}"
+
+
+def test_laser0_plane_near_published(planes):
+    """Laser 0 against FabScan's published plane: a sanity bound, not an accuracy bar.
+
+    The published plane need not come from these frames: the README notes the scans were
+    taken in another geometry than the calibration frames (the stripe on the turntable sits
+    16-20 px elsewhere, ~2 mm at the turntable's 136 mm).  Measured: 1.71 deg between the
+    normals; the published plane lies 0.61 mm (mean) from our stripe points (z 102-114 mm),
+    and 1.9 mm (~19 px) to the side of ours at the turntable centre.  Bound: 5 deg and
+    3 mm, which catch a wrong laser (laser 1 is 70 deg away), a mirrored or unrotated frame
+    or a scale error, none of which a session change can produce.
+    """
+    _, zs = planes
+    p = zs[0].plane
+    pub = PUBLISHED_PLANE_0
+    angle = float(np.degrees(np.arccos(min(1.0, abs(p.normal @ pub.normal)))))
+    dist = pub.signed_distance(zs[0].points_cam_mm)
+    # lateral offset (x) of the two planes at the turntable centre's y, z
+    y, zc = PLATFORM_CENTRE_MM[1:]
+    x_ours = -(p.normal[1] * y + p.normal[2] * zc + p.d) / p.normal[0]
+    x_pub = -(pub.normal[1] * y + pub.normal[2] * zc + pub.d) / pub.normal[0]
+    print(f"\nlaser 0 {p} vs published {pub}: angle {angle:.3f} deg, d {p.d - pub.d:+.3f} mm, "
+          f"published plane from our points {dist.mean():+.3f} mm (RMS {np.sqrt(np.mean(dist**2)):.3f}), "
+          f"x at the turntable centre {x_ours:.2f} vs {x_pub:.2f} mm")
+    other = float(np.degrees(np.arccos(abs(zs[1].plane.normal @ pub.normal))))
+    print(f"laser 1 {zs[1].plane}: {other:.1f} deg from the published laser-0 plane")
+    assert angle < 5.0
+    assert abs(dist.mean()) < 3.0
+
+
+def _lit_rows(red: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows where the laser draws a line on the object, and each row's brightest column.
+
+    A row counts when its brightest red pixel reaches ``LIT_LEVEL`` and stands out of
+    the profile 20-30 px to either side by a quarter of its level: that keeps the narrow
+    and the blooming (saturated, 15-45 px wide) stripe and leaves out rows where the
+    laser only washes a grazed surface with diffuse light (a 100 px plateau, no line).
+    """
+    pk = red.max(axis=1)
+    col = red.argmax(axis=1)
+    w = red.shape[1]
+    ok = np.zeros(len(red), bool)
+    for k in np.nonzero(pk >= LIT_LEVEL)[0]:
+        c = col[k]
+        left = red[k, max(c - 30, 0):max(c - 20, 1)].mean()
+        right = red[k, min(c + 21, w - 1):min(c + 31, w)].mean()
+        ok[k] = pk[k] - max(left, right) >= 0.25 * pk[k]
+    return ok, col
+
+
+@pytest.mark.parametrize("scan", ["1_1", "1_2"])
+def test_scan_stripe_coverage(fabscan, scan):
+    """Default ``extract_stripe`` on the turntable scans: centres along the object.
+
+    In the rotated frame the stripe on the object runs roughly down the image (rows
+    ~430-1300): the fraction of rows in which the laser draws a line on the object
+    (``_lit_rows``, rows 400-1280: below the wall's stripe, above the turntable's) that
+    hold a stripe centre within 15 px of that row's brightest red pixel.  A user scanning
+    an object expects the profile wherever the laser visibly lights it: at least 90 % of
+    those rows in every frame (one-in-ten rows lost is already a visible hole in the
+    mesh), and 95 % on average.  Measured over frames 1, 13, ... 88: 1_1 0.904-1.000
+    (mean 0.979), 1_2 0.940-1.000 (mean 0.981).  The worst, 1_1 frame 13, loses rows
+    889-995: a clear 4 px stripe (red contrast 50-90) whose centres form fragments
+    shorter than ``min_length`` at the estimated width (7.6 px); they are found with
+    ``width_px=6`` or ``min_length=2``.
+    """
+    files = sorted((fabscan / "fabscan" / scan).glob("*.jpg"))
+    v0, v1 = SCAN_ROWS
+    cov = []
+    for i in SCAN_FRAMES:
+        img = read_image(files[i], rotate_deg=ROTATE)
+        lit, col = _lit_rows(img[v0:v1, :, 2].astype(np.float64))
+        uv = np.asarray(extract_stripe(img).uv, dtype=np.float64).reshape(-1, 2)
+        v = np.round(uv[:, 1]).astype(int)
+        sel = (v >= v0) & (v < v1)
+        k = v[sel] - v0
+        near = np.abs(uv[sel, 0] - col[k]) <= 15
+        has = np.zeros(v1 - v0, bool)
+        has[k[near]] = True
+        cov.append(float(has[lit].mean()))
+        assert lit.sum() > 500, f"{scan} frame {i}: the laser lights only {lit.sum()} rows"
+    print(f"\n{scan} coverage per frame {dict(zip(SCAN_FRAMES, np.round(cov, 3)))}; mean {np.mean(cov):.3f}")
+    assert min(cov) >= 0.90, f"{scan}: coverage {dict(zip(SCAN_FRAMES, np.round(cov, 3)))}"
+    assert np.mean(cov) >= 0.95
