@@ -73,7 +73,7 @@ def test_no_board_anywhere(tmp_path):
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"blank{i}.png"), np.full((120, 160), 90 + i, np.uint8))
     r = run("calibrate-camera", tmp_path, "--board", "9x6", "--square", "10", "-o", tmp_path / "c.json")
-    assert r.returncode == 2 and "none of the 3 images usable" in r.stderr and "3 chessboard 9x6" in r.stderr
+    assert r.returncode == 2 and "none of the 3 images usable" in r.stderr and "3 chessboard:9x6 board not found" in r.stderr
     assert "not found" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "c.json").exists()
 

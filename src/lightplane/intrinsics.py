@@ -591,7 +591,7 @@ def calibrate_camera(
     found = [v for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     for n in not_found:
-        skipped[n] = f"{target.describe()} not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
+        skipped[n] = f"{target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
     if len(found) < min_views:
         raise LightplaneError(too_few_images_message("images", len(found), min_views, skipped.items()))
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]

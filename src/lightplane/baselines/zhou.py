@@ -150,7 +150,7 @@ def find_board_pose(image: np.ndarray, camera: Camera, board, square_mm: float |
         image = to_gray_float(image, channel)  # float: the detectors stretch it to 8 bits
     det = target.detect(image)
     if det is None:
-        raise LightplaneError(f"{name}: {target.describe()} not found")
+        raise LightplaneError(f"{name}: {target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else ""))
     ids = None if not target.partial_views else det.ids
     pose = pose_from_corners(camera, det.uv, target, name=name, ids=ids)
     if target.kind in ("circles", "acircles"):

@@ -40,13 +40,10 @@ def pair_pattern_frames(files: list[Path], pattern_files: list[Path] | None, cyc
         if roles.count("P") != 1 or "L" not in roles or set(roles) - {"P", "L", "-"}:
             raise LightplaneError(f"--cycle must list one P (pattern frame), one or more L (laser frames) and any "
                                   f"- (left out), e.g. P,L,- ; got {cycle!r}")
-        if len(files) % len(roles):
-            raise LightplaneError(f"--cycle {cycle}: {len(files)} images are not a whole number of "
-                                  f"{len(roles)}-frame poses")
         lasers, patterns = [], []
         for g in range(0, len(files), len(roles)):
-            group = files[g:g + len(roles)]
-            pat = group[roles.index("P")]
+            group = files[g:g + len(roles)]  # the last one may be incomplete
+            pat = group[roles.index("P")] if roles.index("P") < len(group) else None
             for f, r in zip(group, roles):
                 if r == "L":
                     lasers.append(f)
@@ -67,6 +64,9 @@ def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
 
     out = []
     for f in files:
+        if f is None:
+            out.append(None)
+            continue
         if f not in cache:
             img, reason = try_read_image(f, rotate_deg=rotate)
             cache[f] = img if img is not None else reason
@@ -132,9 +132,11 @@ def calibrate_plane_board_cmd(
     bgs = read_frames(bg_files, rotate, cache) if bg_files else None
     skipped = {}
     for k, f in enumerate(lasers):  # unreadable laser, pattern or background frame: that image is skipped
+        if patterns is not None and patterns[k] is None:
+            skipped[str(f)] = f"no matching pattern frame (the last --cycle {cycle} is incomplete)"
         for what, g in (("", f), ("pattern frame ", patterns[k] if patterns else None),
                         ("background ", bg_files[k if len(bg_files) > 1 else 0] if bg_files else None)):
-            if g is not None and isinstance(cache[g], str) and str(f) not in skipped:
+            if g is not None and isinstance(cache.get(g), str) and str(f) not in skipped:
                 skipped[str(f)] = f"{what}{Path(g).name + ': ' if what else ''}{cache[g]}"
     names = [str(f) for f in lasers]
     keep = [k for k, n in enumerate(names) if n not in skipped]
@@ -180,6 +182,6 @@ def calibrate_plane_board_cmd(
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
             "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
             "cycle": cycle, "camera": str(camera)}
-    inputs = list(dict.fromkeys([*lasers, *(patterns or [])]))
+    inputs = list(dict.fromkeys([*lasers, *(p for p in patterns or [] if p is not None)]))
     pl.save(output, force=force, extra={"provenance": provenance(inputs, opts)})
     console.print(f"wrote {output}")
