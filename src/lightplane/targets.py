@@ -7,7 +7,7 @@ of the points found, their image positions (distorted px) and their board
 coordinates (mm).  Partial views (ChArUco boards half hidden by the laser or a
 hand) are detections with fewer ids.
 
-Board frames (mm, z = 0 on the board, z away from the camera; see docs/conventions.md):
+Board frames (mm, z = 0 on the board, z away from the camera; see docs/targets.md):
 
 - ``chessboard`` COLSxROWS *inner corners*, square ``s``: corner ``(i, j)`` at
   ``(i s, j s)``, id ``j·cols + i`` (OpenCV's order);
