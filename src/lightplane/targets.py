@@ -374,8 +374,9 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
     The window around each dot is the image of a disc of 0.46 spacings on the board
     (through the local Jacobian of a homography fitted to all dots), so it holds the
     whole blurred dot and none of its neighbours at any tilt.  Weights are the
-    contrast to the board's level there (the 90th percentile of the window, 10th for
-    light dots), clipped at zero.  A blurred dot's weighted centroid is its area
+    contrast to the board's level there (a plane fitted to the window's board pixels,
+    so shading and vignetting do not pull the centre), divided by that level (shading
+    scales the dot's contrast too), and zero below three times the board's noise.  A blurred dot's weighted centroid is its area
     centroid: blur is a convolution with a centred kernel and keeps first moments.
     """
     from .io import to_gray_float
@@ -405,8 +406,22 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
             vals = patch[inside]
             if vals.size < 9:
                 break
-            level = np.percentile(vals, 90 if dark else 10)
-            wgt = np.clip((level - vals) if dark else (vals - level), 0, None)
+            # the board's level around the dot as a plane (shading and vignetting tilt it), fitted to
+            # the board pixels of the window; its noise sets the threshold below which a pixel is board
+            lo, hi = np.percentile(vals, [5, 95])
+            board = (vals > 0.5 * (lo + hi)) if dark else (vals < 0.5 * (lo + hi))
+            X = np.column_stack([np.ones(vals.size), xx[inside] - c[0], yy[inside] - c[1]])
+            if board.sum() < 6:
+                break
+            coef, *_ = np.linalg.lstsq(X[board], vals[board], rcond=None)
+            level = X @ coef
+            resid = vals[board] - level[board]
+            noise = 1.4826 * np.median(np.abs(resid - np.median(resid)))
+            contrast = (level - vals) if dark else (vals - level)
+            # shading multiplies the dot's contrast too: divide by the local illumination (the board's
+            # level for dark dots, the dot's for light ones) so the weights are the albedo step alone
+            light = level if dark else level + (hi - lo)
+            wgt = np.where(contrast > max(3.0 * noise, 0.02 * abs(hi - lo)), contrast / np.maximum(light, 1e-6), 0.0)
             s = wgt.sum()
             if not s > 0:
                 break
