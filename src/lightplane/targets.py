@@ -300,9 +300,39 @@ class Target:
             found, centres = cv2.findCirclesGrid(gray, (self.cols, self.rows), flags=flags,
                                                  blobDetector=cv2.SimpleBlobDetector_create(p))
             if found and centres is not None and len(centres) == self.n_points:
+                c = self._grid_order(centres.reshape(-1, 2).astype(np.float64))
+                if c is None:
+                    continue
                 ids = np.arange(self.n_points)
-                uv = _dot_centroids(image, centres.reshape(-1, 2).astype(np.float64), self, dark=colour == 0)
+                uv = _dot_centroids(image, c, self, dark=colour == 0)
                 return Detection(ids, uv, self.object_points(ids))
+        return None
+
+    def _grid_order(self, uv: np.ndarray) -> np.ndarray | None:
+        """``findCirclesGrid``'s centres in id order, or None when no ordering fits the board.
+
+        An asymmetric grid with an even number of rows looks the same turned by 180°, and
+        OpenCV then numbers it in an order that is no view of the board (row pairs swapped):
+        such an order is recognised by its homography residual and renumbered."""
+        import cv2
+
+        def fits(c):
+            H, _ = cv2.findHomography(self.object_points()[:, :2], c, 0)
+            if H is None:
+                return False
+            p = cv2.perspectiveTransform(self.object_points()[:, :2].reshape(-1, 1, 2), H).reshape(-1, 2)
+            spacing = np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))
+            return np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))) < 0.1 * spacing
+
+        if fits(uv):
+            return uv
+        if self.kind == "acircles" and self.rows % 2 == 0:
+            grid = uv.reshape(self.rows, self.cols, 2)
+            j = np.arange(self.rows)
+            src = np.where(j % 2 == 0, self.rows - 2 - j, self.rows - j)  # the detected row holding board row j
+            c = grid[src, ::-1].reshape(-1, 2)
+            if fits(c):
+                return c
         return None
 
 

@@ -1003,7 +1003,8 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
                           camera: Camera | None = None, noise: bool = True, samples: int = 4, edge_samples: int = 16,
                           distance_mm: tuple[float, float] | None = None, tilt_deg: tuple[float, float] | None = None,
                           centre_frac: float | None = None, spin_deg: float | None = None,
-                          progress=None) -> Dataset:
+                          with_stripe: bool = False, laser_off: bool = False, dark_laser: bool = False,
+                          plane: LightPlane | None = None, progress=None) -> Dataset:
     """``n`` views of a calibration target (chessboard, circle grid, asymmetric circle grid or
     ChArUco board) in the calibration-capture style, with exact truth.
 
@@ -1015,6 +1016,12 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     target gives the same images as :func:`render_chessboard_dataset` with the same seed.
     Circle dots are exact discs, ChArUco boards OpenCV's own layout (bit-exact texture).
 
+    ``with_stripe``: the laser is on and every board is posed so that the stripe crosses
+    its points (:data:`STRIPE_CAPTURE`'s distances, tilts and centring unless overridden;
+    for Zhou's method and the cross-ratio check); ``laser_off`` adds, per view, the same
+    pose with the laser off (``*_off.png``: a laser-off frame or a lit pattern frame);
+    ``dark_laser`` renders the laser frames with 3 % of the ambient light (dark,
+    low-exposure laser frames in which the board cannot be found, as FabScan takes them).
     Truth per view: ``file``, ``T_cam_board`` (``R``, ``t`` mm), ``ids`` (0..N-1) and
     ``points_px`` / ``points_undistorted_px``: :func:`target_object_points` projected, in id
     order; circle grids also ``ellipse_centres_px``, ``ellipse_centres_undistorted_px`` and
@@ -1024,7 +1031,7 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     ``(M, 4, 2)``.
     """
     spec = target_spec(target)
-    design = CALIBRATION_CAPTURE
+    design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
     distance_mm = design["distance_mm"] if distance_mm is None else tuple(distance_mm)
     tilt_deg = design["tilt_deg"] if tilt_deg is None else tuple(tilt_deg)
     centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
@@ -1038,11 +1045,15 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     centre = 0.5 * (obj[:, :2].min(axis=0) + obj[:, :2].max(axis=0))
     layout = _charuco_layout(spec) if spec.kind == "charuco" else None
     texels = None if layout is None else layout["texels"]
+    plane = default_plane() if plane is None else plane  # laser off: its row still takes the chessboard's draws
     rng = np.random.default_rng(seed)
-    poses = sample_board_poses(n, rng, camera=camera, board=(spec.cols, spec.rows), square_mm=spec.square_mm,
+    # the stripe check clips to [0, (cols-1) s] x [0, (rows-1) s]: the points' rectangle of each kind
+    stripe_box = {"acircles": (2 * spec.cols, spec.rows), "charuco": (spec.cols + 1, spec.rows + 1)}.get(
+        spec.kind, (spec.cols, spec.rows))
+    poses = sample_board_poses(n, rng, camera=camera, board=stripe_box, square_mm=spec.square_mm,
                                distance_mm=distance_mm, tilt_deg=tilt_deg, centre_frac=centre_frac,
-                               spin_deg=spin_deg, outline=tuple(outline), centre_mm=tuple(centre))
-    plane = default_plane()  # the laser is off; its row still takes the same draws as the chessboard's
+                               spin_deg=spin_deg, outline=tuple(outline), centre_mm=tuple(centre),
+                               plane=plane if with_stripe else None)
     images, names, views = [], [], []
     for i, (R, t) in enumerate(poses):
         img_rng = np.random.default_rng([seed, i])
@@ -1050,16 +1061,22 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
         patches = np.array([_target_patch(spec, R, t, layout), bg])
         jit = imaging.exposure_jitter
         ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
-        img_rng.uniform(-jit, jit)  # the chessboard data set's laser power draw, kept for identical images
+        power = 180.0 * (1.0 + img_rng.uniform(-jit, jit))
         salt = int(img_rng.integers(0, 2**31 - 1))
-        laser = _laser_row(plane, imaging, 0.0, img_rng)
-        rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
-                                 samples=samples, edge_samples=edge_samples, salt=salt, texels=texels)
-        images.append(_finish(rad, camera, imaging, img_rng, noise=noise))
-        name = f"{spec.kind}_{i:03d}.png"
-        names.append(name)
+        variants = [("", power if with_stripe else 0.0, 0.03 if (dark_laser and with_stripe) else 1.0)]
+        if laser_off and with_stripe:
+            variants.append(("_off", 0.0, 1.0))
+        files = {}
+        for suffix, pw, amb in variants:
+            laser = _laser_row(plane, imaging, pw, img_rng)
+            rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient * amb,
+                                     samples=samples, edge_samples=edge_samples, salt=salt, texels=texels)
+            images.append(_finish(rad, camera, imaging, img_rng, noise=noise))
+            name = f"{spec.kind}_{i:03d}{suffix}.png"
+            names.append(name)
+            files["file" if suffix == "" else "file_laser_off"] = name
         pc = obj @ R.T + t
-        entry = {"file": name, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
+        entry = {**files, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
                  "points_px": camera.project(pc), "points_undistorted_px": camera.project(pc, distort=False),
                  "ambient_dn": ambient}
         if spec.kind in ("circles", "acircles"):
@@ -1070,6 +1087,9 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
             mc = layout["marker_corners_mm"]
             entry["marker_ids"] = layout["marker_ids"]
             entry["marker_corners_px"] = camera.project(mc.reshape(-1, 3) @ R.T + t).reshape(-1, 4, 2)
+        if with_stripe:
+            entry["laser_power_dn"] = power
+            entry["stripe_on_board_mm"] = _board_stripe(plane, R, t, stripe_box, spec.square_mm)
         views.append(entry)
         if progress is not None:
             progress(i + 1, n)
@@ -1090,12 +1110,16 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
         "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
         "frame": "camera",
         "target": tinfo,
+        "plane": plane.to_dict() if with_stripe else None,
+        "laser_source_mm": laser_source(plane) if with_stripe else None,
+        "with_stripe": bool(with_stripe),
         "difficulty": difficulty,
         "imaging": imaging.__dict__,
         "seed": seed,
         "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": difficulty,
                     "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
-                    "spin_deg": spin_deg, "samples": samples, "edge_samples": edge_samples, "noise": noise},
+                    "spin_deg": spin_deg, "samples": samples, "edge_samples": edge_samples, "noise": noise,
+                    "with_stripe": with_stripe, "laser_off": laser_off, "dark_laser": dark_laser},
         "views": views,
     }
     return Dataset(images, names, camera, truth)
