@@ -850,3 +850,71 @@ def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     for l in range(A.shape[1]):
         _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                      centre, normal, strength, intensity, width, status)
+
+
+@njit(cache=True)
+def saturated_core_runs(bgr, ch, min_chroma, bright_sum, bright_max, laser_min, max_len, reach, out_c, out_len):
+    """Whitish (saturated) stripe cores down each column of a BGR image.
+
+    A whitish pixel: B + G + R >= ``bright_sum``, max channel >= ``bright_max`` and
+    colour saturation ``(max - min) / max < min_chroma``.  A laser pixel: channel ``ch``
+    the largest, >= ``laser_min``, saturation >= ``min_chroma``.  A run of whitish pixels
+    down a column, at most ``max_len`` long, with a laser pixel within ``reach`` px
+    beyond each end (only non-whitish pixels between), is a core: its midpoint (ends
+    refined where the saturation crosses ``min_chroma``) is written to ``out_c`` at the
+    midpoint's pixel (row) and its length to ``out_len``; elsewhere both stay as given.
+    """
+    H, W = bgr.shape[0], bgr.shape[1]
+    chroma = np.empty(H)
+    white = np.zeros(H, np.bool_)
+    laser = np.zeros(H, np.bool_)
+    for u in range(W):
+        for v in range(H):
+            b = float(bgr[v, u, 0])
+            g = float(bgr[v, u, 1])
+            r = float(bgr[v, u, 2])
+            hi = max(b, max(g, r))
+            lo = min(b, min(g, r))
+            c = (hi - lo) / hi if hi > 0 else 0.0
+            chroma[v] = c
+            white[v] = (b + g + r >= bright_sum) and (hi >= bright_max) and (c < min_chroma)
+            x = float(bgr[v, u, ch])
+            laser[v] = (x >= hi) and (x >= laser_min) and (c >= min_chroma)
+        v = 0
+        while v < H:
+            if not white[v]:
+                v += 1
+                continue
+            a = v
+            while v < H and white[v]:
+                v += 1
+            e = v - 1
+            n = e - a + 1
+            if n > max_len or a == 0 or e == H - 1:
+                continue
+            up = False
+            for t in range(a - 1, max(-1, a - 1 - reach), -1):
+                if white[t]:
+                    break
+                if laser[t]:
+                    up = True
+                    break
+            dn = False
+            for t in range(e + 1, min(H, e + 1 + reach)):
+                if white[t]:
+                    break
+                if laser[t]:
+                    dn = True
+                    break
+            if not (up and dn):
+                continue
+            ca, cp = chroma[a], chroma[a - 1]
+            ea = a - 0.5 if cp == ca else a - (min_chroma - ca) / (cp - ca)
+            ea = min(max(ea, a - 1.0), float(a))
+            ce, cn = chroma[e], chroma[e + 1]
+            eb = e + 0.5 if cn == ce else e + (min_chroma - ce) / (cn - ce)
+            eb = min(max(eb, float(e)), e + 1.0)
+            mid = 0.5 * (ea + eb)
+            p = int(math.floor(mid + 0.5))
+            out_c[p, u] = mid
+            out_len[p, u] = eb - ea
