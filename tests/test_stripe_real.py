@@ -183,14 +183,6 @@ def test_extract_stripe_real(frames, frame):
 
 BOARD = (11, 6)
 SQUARE_MM = 13.0
-# measured with the defaults at the last change (inliers within 1 px, inlier RMS px, coverage);
-# the hot spot (saturated core, default colour cue) and the reflections (suppress_weaker) are
-# solved; what is left is speckle at Steger's minimum scale
-DEFAULT_NOT_MET = {
-    ("laser-0-255-255-8", 1): "inlier RMS 0.353 px (speckle at the default scale; 0.996 within 1 px)",
-    ("laser-0-255-255-8-x", 0): "inlier RMS 0.370 px (speckle at the default scale; 0.965 within 1 px)",
-    ("laser-0-255-255-8-x", 1): "inlier RMS 0.381 px (speckle at the default scale; 0.980 within 1 px)",
-}
 @pytest.mark.parametrize("frame,k", CASES)
 def test_extract_stripe_defaults_on_board(frames, frame, k):
     """Default ``extract_stripe(diff, channel="red")`` on the flat board: >= 95 % of the
@@ -227,9 +219,6 @@ def test_extract_stripe_defaults_on_board(frames, frame, k):
     coverage = have[on_board].mean()
     rms = np.sqrt(np.mean(r[inl] ** 2))
     print(f"{frame} stripe {k} defaults: within 1 px {inl.mean():.3f} rms {rms:.3f} coverage {coverage:.3f}")
-    ok = inl.mean() >= MIN_INLIER_FRACTION and rms <= MAX_RMS_PX and coverage >= MIN_COVERAGE
-    if (frame, k) in DEFAULT_NOT_MET and not ok:
-        pytest.xfail("not met yet: " + DEFAULT_NOT_MET[(frame, k)])
     assert inl.mean() >= MIN_INLIER_FRACTION
     assert rms <= MAX_RMS_PX
     assert coverage >= MIN_COVERAGE

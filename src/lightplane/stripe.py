@@ -134,7 +134,7 @@ PROFILE_STATUS = {
 _DEFAULT_WIDTH_PX = 5.0
 _MIN_SIGMA_PX = 1.0
 _SHADOW_REACH_WIDTHS = 12.0
-_ALONG_WIDTHS = 0.0   # along-curve smoothing off by default: breaks the curved-stripe accuracy tests (see report)
+_ALONG_WIDTHS = 2.0   # default along-curve smoothing of extract_stripe, in stripe widths
 
 
 def _default_sigma_along(width_px: float, sigma: float) -> float:
@@ -829,19 +829,17 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     correct_curvature : remove the inward shift ``sigma^2 kappa / 2`` of curved
         stripes (module docstring), ``kappa`` from the linked curve (plus the
         along-curve smoothing's own shift).
-    sigma_along_px : Gaussian smoothing of the centres along their curve (points,
-        ~px): each point's offset along its normal is averaged with its neighbours'
-        (window truncated symmetrically at curve ends, so straight lines stay
-        unbiased; the inward shift on curves is removed with the curvature
-        correction).  Default 0 (off): at ``1.5 * width_px`` it brings real Ciclop
-        photos within the 0.35 px bar, but the curved-stripe accuracy tests then fail
-        (0.016-0.115 px vs 0.015-0.02 px: the curvature bookkeeping of the smoothing is
-        not right yet).  Laser speckle on real photographs
+    sigma_along_px : smoothing of the centres along their curve (points, ~px): each
+        point's offset along its normal is replaced by the intercept of a local quadratic
+        fitted, with Gaussian weights of this scale, to its neighbours' offsets (window
+        truncated symmetrically at curve ends; the scale shrinks where the line bends, and
+        the part of a circle beyond the quadratic is taken off, so straight and curved
+        lines stay unbiased).  Default ``2 * width_px``: laser speckle on real photographs
         is correlated over a few px along the stripe, and Steger's minimum scale
-        (``sigma_for_width``) does not average it (Ciclop board photos: inlier RMS
-        0.35-0.38 px -> 0.29-0.34 px); unlike a larger ``sigma_px`` it does not widen
-        the profile across the stripe (no mixing of albedo edges, no extra border),
-        and on clean rendered stripes it changes nothing measurable.  0 turns it off.
+        (``sigma_for_width``) does not average it (Ciclop board photos, inlier RMS about a
+        straight line: 0.35-0.38 px without, 0.29-0.33 px with it); unlike a larger
+        ``sigma_px`` it does not widen the profile across the stripe (no mixing of albedo
+        edges, no extra border).  0 turns it off.
     suppress_weaker : drop a curve when, along its normal (``1.5 w + 2`` to ``12 w``
         px away) for most of its points, a curve at least ``1 / suppress_weaker``
         times stronger (median ridge strength) and twice as long runs alongside:
@@ -1200,13 +1198,16 @@ def _correct_asymmetry(gray, uv, nrm, width, bg, sigma):
 
 
 def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along: float):
-    """Average each point's offset along its normal over its curve's neighbours (Gaussian, ``sigma_along`` points).
+    """Smooth each point's offset along its normal over its curve's neighbours: a local quadratic.
 
-    ``p_i + n_i sum_j g_j ((p_j - p_i) . n_i) / sum_j g_j`` over the points ``j`` of the same
-    curve within ``3 sigma_along`` of ``i`` in order, the window truncated symmetrically at
-    the curve's ends (a straight line stays exactly where it is; a curved one moves
-    ``v kappa / 2`` inwards, ``v`` the weighted mean squared distance to the neighbours,
-    returned per point for the curvature correction).
+    For point ``i``, its neighbours ``j`` on the same curve within ``3 sigma_along`` (in
+    order; the window truncated symmetrically at the curve's ends) give tangential
+    coordinates ``t_j = (p_j - p_i)·tau_i`` and normal offsets ``h_j = (p_j - p_i)·n_i``;
+    ``h = a + b t + c t^2`` is fitted with Gaussian weights and the point moves by ``a``
+    along its normal.  A quadratic absorbs the curve's own bend (``c = kappa / 2``), so
+    straight and curved lines alike stay where they are (no inward shift to correct);
+    only the noise of the offsets is averaged.  Returns the points and zeros (no extra
+    variance for the curvature correction).
     """
     N = uv.shape[0]
     R = int(math.ceil(3.0 * sigma_along))
@@ -1219,25 +1220,50 @@ def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along:
     idx = np.arange(N)
     s = np.repeat(starts, n_per)
     e = np.repeat(ends, n_per)
-    half = np.minimum(np.minimum(idx - s, e - 1 - idx), R)
-    num = np.zeros(N)
-    var = np.zeros(N)
-    den = np.ones(N)                       # k = 0: weight 1, offset 0
+    # a quadratic is a circle only to second order: fitted with Gaussian weights of scale s to
+    # h = kappa^3 t^4 / 8, its intercept is off by -3 s^4 kappa^3 / 8.  The scale shrinks where
+    # the line bends so that this stays below ~0.001 px, and what is left of the circle's
+    # shape beyond the quadratic is fitted too and taken off (below)
+    m_k = max(5, int(math.ceil(2.0 * sigma_along)))
+    kv = _curvature_vectors(uv, starts, ends, m_k)
+    kap = np.linalg.norm(kv, axis=1)
+    side = np.sign(np.sum(kv * nrm, axis=1))  # +1 where the normal points to the centre of curvature
+    with np.errstate(divide="ignore"):
+        sig = np.minimum(sigma_along, (0.0027 / np.maximum(kap, 1e-12) ** 3) ** 0.25)
+    rad = 1.0 / np.maximum(kap, 1e-12)
+    half = np.minimum(np.minimum(np.minimum(idx - s, e - 1 - idx), R), np.ceil(3.0 * sig).astype(np.int64))
+    tau = np.column_stack([-nrm[:, 1], nrm[:, 0]])
+    M = np.zeros((N, 3, 3))
+    rhs = np.zeros((N, 3))
+    rhs_c = np.zeros((N, 3))  # the same fit to the circle of the point's curvature
+    M[:, 0, 0] = 1.0                       # k = 0: weight 1 at t = 0, h = 0
     for k in range(1, R + 1):
-        g = math.exp(-0.5 * (k / sigma_along) ** 2)
         m = np.flatnonzero(half >= k)
         if m.size == 0:
             break
-        a, b = uv[m + k] - uv[m], uv[m - k] - uv[m]
-        num[m] += g * (np.sum(a * nrm[m], axis=1) + np.sum(b * nrm[m], axis=1))
-        var[m] += g * (np.sum(a * a, axis=1) + np.sum(b * b, axis=1))
-        den[m] += 2.0 * g
+        g = np.exp(-0.5 * (k / sig[m]) ** 2)[:, None]
+        for sgn in (1, -1):
+            d = uv[m + sgn * k] - uv[m]
+            t = np.sum(d * tau[m], axis=1)
+            h = np.sum(d * nrm[m], axis=1)
+            basis = np.stack([np.ones_like(t), t, t * t], axis=1)
+            M[m] += g[:, :, None] * basis[:, :, None] * basis[:, None, :]
+            rhs[m] += g * basis * h[:, None]
+            r_ = rad[m]
+            hc = side[m] * (r_ - np.sqrt(np.maximum(r_ * r_ - t * t, 0.0)))
+            rhs_c[m] += g * basis * hc[:, None]
+    ok = half >= 2  # a quadratic needs neighbours on both sides
+    a = np.zeros(N)
+    if ok.any():
+        both = np.stack([rhs[ok], rhs_c[ok]], axis=2)  # (n, 3, 2)
+        sol = np.linalg.solve(M[ok] + 1e-12 * np.eye(3), both)
+        a[ok] = sol[:, 0, 0] - sol[:, 0, 1]
     # the shift along the normal, applied along the grid line the point lies on (the axis
     # closer to the normal), so each point stays that line's crossing (module docstring)
-    k = (np.abs(nrm[:, 0]) > np.abs(nrm[:, 1])).astype(np.int64)
+    kx = (np.abs(nrm[:, 0]) > np.abs(nrm[:, 1])).astype(np.int64)
     out = uv.copy()
-    out[idx, 1 - k] += num / den / nrm[idx, 1 - k]
-    return out, var / den
+    out[idx, 1 - kx] += a / nrm[idx, 1 - kx]
+    return out, np.zeros(N)
 
 
 def _drop_overshadowed(uv, nrm, st, cid, shape, reach, min_gap, ratio):

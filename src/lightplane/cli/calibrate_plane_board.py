@@ -16,11 +16,11 @@ from ._common import (app, board_option, console, dictionary_option, dot_option,
                       square_option, target_from_options, target_option)
 
 
-def check_background(files: list[Path], bg_files: list[Path]) -> None:
+def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
     """An option takes one value: ``--background a.png b.png`` would make b.png a laser image."""
     both = sorted(set(map(Path.resolve, files)) & set(map(Path.resolve, bg_files)))
     if both:
-        raise LightplaneError(f"{both[0]} is both a laser image and a --background frame (give --background once per "
+        raise LightplaneError(f"{both[0]} is both a laser image and a {option} frame (give {option} once per "
                               "file, or one folder or quoted glob)")
 
 
@@ -90,8 +90,9 @@ def calibrate_plane_board_cmd(
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; "
                                                    "repeat the option): one per image, same order, or one for all."),
     pattern: Optional[List[str]] = typer.Option(None, "--pattern", help="Lit board frames (laser off), one per pose, "
-                                                "in which the board is found; the laser images (possibly dark) are "
-                                                "shared out over them in order, the same number per pose."),
+                                                "in which the board is found (repeat the option per file, or give one folder or "
+                                                "quoted glob); the laser images (possibly dark) are shared out over "
+                                                "them in order, the same number per pose."),
     cycle: Optional[str] = typer.Option(None, "--cycle", help="The images repeat this sequence of frames per pose: "
                                         "P the lit pattern frame, L a laser frame, - a frame left out; e.g. P,L,- "
                                         "(FabScan's laser 0) or P,-,L (its laser 1)."),
@@ -116,6 +117,8 @@ def calibrate_plane_board_cmd(
     if background and (pattern or cycle):
         raise LightplaneError("--background is for laser-on images of a lit board; with --pattern / --cycle the "
                               "board is found in the pattern frames")
+    if pattern_files:
+        check_background(files, pattern_files, "--pattern")
     lasers, patterns = pair_pattern_frames(files, pattern_files, cycle)
     if len(lasers) < 2:
         raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(lasers)}")
