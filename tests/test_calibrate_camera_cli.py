@@ -45,7 +45,8 @@ def test_ciclop_reproduces_published_intrinsics(shared_data, tmp_path):
     assert (cam.width, cam.height) == (1280, 960)
     d = json.loads(out.read_text())
     prov = d["provenance"]
-    assert len(prov["inputs"]) == 16 and prov["options"]["board"] == "11x6" and "opencv" in prov["versions"]
+    assert len(prov["inputs"]) == 16 and prov["options"]["board"] == "chessboard:11x6" and "opencv" in prov["versions"]
+    assert prov["options"]["target"] == {"kind": "chessboard", "cols": 11, "rows": 6, "square_mm": 13.0}
     assert set(d["calibration"]["std"]) >= {"fx", "fy", "cx", "cy", "k1"}
     # the printed summary has units, the RMS and the ranked per-view errors
     assert "RMS reprojection error" in r.stdout and " px" in r.stdout and "worst first" in r.stdout

@@ -289,7 +289,8 @@ class Target:
 
         flags = cv2.CALIB_CB_SYMMETRIC_GRID if self.kind == "circles" else cv2.CALIB_CB_ASYMMETRIC_GRID
         h, w = gray.shape
-        for colour in (0, 255):  # dark dots on a light board, then light dots on a dark one
+        tries = [(colour, extra) for colour in (0, 255) for extra in (0, cv2.CALIB_CB_CLUSTERING)]
+        for colour, extra in tries:  # dark dots on a light board, then light on dark; clustering for steep views
             p = cv2.SimpleBlobDetector_Params()
             p.filterByColor, p.blobColor = True, colour
             p.minArea, p.maxArea = 8.0, 0.25 * h * w / self.n_points
@@ -297,7 +298,7 @@ class Target:
             p.filterByConvexity, p.minConvexity = True, 0.85
             p.filterByInertia, p.minInertiaRatio = True, 0.05
             p.minDistBetweenBlobs = 3.0
-            found, centres = cv2.findCirclesGrid(gray, (self.cols, self.rows), flags=flags,
+            found, centres = cv2.findCirclesGrid(gray, (self.cols, self.rows), flags=flags | extra,
                                                  blobDetector=cv2.SimpleBlobDetector_create(p))
             if found and centres is not None and len(centres) == self.n_points:
                 c = self._grid_order(centres.reshape(-1, 2).astype(np.float64))
@@ -313,12 +314,17 @@ class Target:
 
         An asymmetric grid with an even number of rows looks the same turned by 180°, and
         OpenCV then numbers it in an order that is no view of the board (row pairs swapped):
-        such an order is recognised by its homography residual and renumbered."""
+        such an order is recognised by its homography residual and renumbered.  A mirrored
+        numbering (a homography that turns the board over) is refused."""
         import cv2
 
         def fits(c):
             H, _ = cv2.findHomography(self.object_points()[:, :2], c, 0)
             if H is None:
+                return False
+            # seen from the front (board z away from the camera) the board's x, y turn as the image's
+            # u, v: a mirrored numbering fits a homography too, but with the other orientation
+            if np.linalg.det(_jacobians(H, self.object_points()[:1, :2])[0]) <= 0:
                 return False
             p = cv2.perspectiveTransform(self.object_points()[:, :2].reshape(-1, 1, 2), H).reshape(-1, 2)
             spacing = np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))
@@ -326,6 +332,10 @@ class Target:
 
         if fits(uv):
             return uv
+        if self.kind == "circles":  # mirrored numbering of a symmetric grid: read each row backwards
+            c = uv.reshape(self.rows, self.cols, 2)[:, ::-1].reshape(-1, 2)
+            if fits(c):
+                return c
         if self.kind == "acircles" and self.rows % 2 == 0:
             grid = uv.reshape(self.rows, self.cols, 2)
             j = np.arange(self.rows)

@@ -362,16 +362,10 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
 
 
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
-                    width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None,
-                    albedo_ref: np.ndarray | None = None) -> np.ndarray:
+                    width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None
+                    ) -> np.ndarray:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
-    subtracting the laser-off frame.
-
-    ``albedo_ref``: a lit frame of the board in the same pose (the laser-off or pattern frame).
-    A stripe centre is biased where the board's reflectance changes across the stripe (a
-    square's or a marker's edge, a dot's rim: the profile is the laser's times the
-    reflectance), so centres where the reference varies by more than 10 % (and more than
-    its noise) within one stripe width on either side are left out."""
+    subtracting the laser-off frame."""
     from ..io import to_gray_float
     from ..stripe import extract_stripe
 
@@ -391,7 +385,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             spacing = float(np.median(np.linalg.norm(np.diff(corners_uv.reshape(-1, 2), axis=0), axis=1)))
             k = int(max(5, round(0.35 * spacing))) | 1
             img = cv2.morphologyEx(img, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    ref_channel, channel = channel, None
+    channel = None
     sp = extract_stripe(img, width_px=width_px, mask=mask > 0, channel=channel)
     uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
     idx = np.arange(len(uv))
@@ -409,12 +403,6 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     if corners_uv is not None:
         grid = corners_uv.reshape(-1, 2)
         spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=0), axis=1)))
-    if len(uv) and albedo_ref is not None:
-        even = _uniform_reflectance(albedo_ref, ref_channel, uv, sp.normals[idx], sp.width[idx])
-        # a board with reflectance edges everywhere (ChArUco's markers) would lose its whole stripe:
-        # then keep the centres, biased as they are, rather than none
-        if spacing is None or np.count_nonzero(even) >= 2 * spacing:
-            uv, idx = uv[even], idx[even]
     if len(uv) and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
         d2 = ((uv[:, None, :] - grid[None, :, :]) ** 2).sum(axis=2).min(axis=1)
@@ -501,11 +489,9 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
             else:
                 pose = find_board_pose(bg if per_image else img, camera, target, name=names[k], channel=channel)
             mask = board_polygon_mask(camera, pose, target)
-            ref = pat if pattern_images is not None else (bg if per_image else None)
             if pattern_images is not None and bg is None and _same_exposure(img, pat, mask, channel):
                 bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
-            stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv,
-                                     albedo_ref=ref)
+            stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
             if pattern_images is None and not per_image and len(stripe) >= 2:
                 # corners found in the laser-on image: leave out those the stripe runs over
                 spacing = float(np.median(np.linalg.norm(np.diff(pose.corners_uv, axis=0), axis=1)))
@@ -538,28 +524,6 @@ def _same_exposure(image: np.ndarray, pattern: np.ndarray, mask: np.ndarray, cha
     a = float(np.median(to_gray_float(image, channel)[m]))
     b = float(np.median(to_gray_float(pattern, channel)[m]))
     return b > 0 and 0.5 < a / b < 2.0
-
-
-def _uniform_reflectance(ref: np.ndarray, channel: str | None, uv: np.ndarray, nrm: np.ndarray, w: np.ndarray,
-                         max_step: float = 0.10) -> np.ndarray:
-    """(N,) bool: the reference frame's level is even (within ``max_step`` relative, and beyond
-    four times its noise) over ±1 stripe width across each stripe centre ``uv``."""
-    import cv2
-
-    from ..io import to_gray_float
-
-    g = cv2.GaussianBlur(to_gray_float(ref, channel), (0, 0), 1.0)
-    noise = 1.4826 * float(np.median(np.abs(cv2.Laplacian(g, cv2.CV_32F, ksize=1)))) / 2.0 + 0.5
-    w = np.where(np.isfinite(w), w, np.nanmedian(w) if np.isfinite(w).any() else 4.0)
-    w = np.maximum(w, 2.0)
-    samples = []
-    for h in (-1.0, -0.5, 0.0, 0.5, 1.0):
-        q = (uv + (h * w)[:, None] * nrm).astype(np.float32)
-        samples.append(cv2.remap(g, q[:, 0].reshape(-1, 1), q[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REPLICATE).ravel())
-    S = np.stack(samples)
-    top, step = S.max(axis=0), S.max(axis=0) - S.min(axis=0)
-    return ~((step > max_step * np.maximum(top, 1e-6)) & (step > 4.0 * noise))
 
 
 def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, board, square_mm: float | None = None,

@@ -20,7 +20,7 @@ app = typer.Typer(
 )
 
 console = Console(highlight=False, soft_wrap=True)
-err_console = Console(stderr=True, highlight=False)
+err_console = Console(stderr=True, highlight=False, soft_wrap=True)  # one warning, one line
 
 F = TypeVar("F", bound=Callable)
 

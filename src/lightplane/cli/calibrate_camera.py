@@ -89,17 +89,15 @@ def calibrate_camera_cmd(
         console.print(f"Dots: findCirclesGrid, darkness-weighted centroids moved to the projected circle centres "
                       f"(dot {o['dot_mm']:.2f} mm; RMS shift {o['circle_centre_correction_px']:.3f} px)")
         detector = "findCirclesGrid+weighted-centroid+perspective-correction"
-    v = Table(title="Per image (RMS reprojection error, worst first; skipped images with their reason)",
-              show_edge=False)
-    for c, j in (("image", "left"), ("status", "left"), ("points", "right"), ("RMS px", "right"),
-                 ("reason", "left")):
+    v = Table(title="Per image used: RMS reprojection error, worst first", show_edge=False)
+    for c, j in (("image", "left"), ("points", "right"), ("RMS px", "right")):
         v.add_column(c, justify=j)
     npts = dict(zip(result.used, (len(c) for c in result.corners_uv)))
     for name, e in result.ranked_views():
-        v.add_row(Path(name).name, "used", str(npts[name]), f"{e:.4f}", "")
-    for name, why in result.skipped.items():
-        v.add_row(Path(name).name, "skipped", "-", "-", why)
+        v.add_row(Path(name).name, str(npts[name]), f"{e:.4f}")
     console.print(v)
+    for name, why in result.skipped.items():  # one line each: reasons are long, tables cut them
+        console.print(f"skipped {Path(name).name}: {why}")
 
     extra = {
         "calibration": result.to_dict(),

@@ -169,18 +169,17 @@ def calibrate_plane_board_cmd(
     console.print(f"normal direction σ ≈ {sigma_deg:.4f} deg (covariance: {pl.meta['covariance_method']})")
     console.print(f"{len(res.points_cam_mm)} stripe points from {len(set(res.view_index.tolist()))} board poses, "
                   f"residual RMS {res.residual_rms_mm:.4f} mm; board: {target.describe()}")
-    v = Table(title="Per image", show_edge=False)
-    for c in ("image", "status", "stripe points", "pose RMS (px)", "residual RMS (mm)", "board distance (mm)",
-              "reason"):
-        v.add_column(c, justify="left" if c in ("image", "status", "reason") else "right")
+    v = Table(title="Per image used", show_edge=False)
+    for c in ("image", "stripe points", "pose RMS (px)", "residual RMS (mm)", "board distance (mm)"):
+        v.add_column(c, justify="left" if c == "image" else "right")
     for im in pl.meta["images"]:
         r = im.get("residual_rms_mm")
-        v.add_row(Path(im["name"]).name, "used" if im["used"] else "skipped", str(im["n_stripe_points"]),
+        v.add_row(Path(im["name"]).name, str(im["n_stripe_points"]) + ("" if im["used"] else " (unused)"),
                   f"{im['reprojection_rms_px']:.3f}", "-" if r is None else f"{r:.4f}",
-                  f"{np.linalg.norm(im['t_cam_board_mm']):.1f}", "" if im["used"] else "too few stripe points")
-    for name, why in pl.meta["skipped"].items():
-        v.add_row(Path(name).name, "skipped", "-", "-", "-", "-", why)
+                  f"{np.linalg.norm(im['t_cam_board_mm']):.1f}")
     console.print(v)
+    for name, why in pl.meta["skipped"].items():  # one line each: reasons are long, tables cut them
+        console.print(f"skipped {Path(name).name}: {why}")
     opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
             "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
