@@ -378,7 +378,11 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
         if np.isfinite(height):
             # a stripe on a dark disc is faint: threshold relative to what this stripe shows
             contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
-    sp = extract_stripe(crop, width_px=width, mask=inside, channel=channel, min_contrast=contrast)
+    # no along-stripe smoothing: the joint fit averages hundreds of centres itself, and its noise
+    # model (white or correlated along the curve, measured from the residuals) was validated on
+    # unsmoothed centres (benchmarks/bench_uncertainty.py)
+    sp = extract_stripe(crop, width_px=width, mask=inside, channel=channel, min_contrast=contrast,
+                        sigma_along_px=0.0)
     uv = sp.uv + off
     fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
     # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
