@@ -163,10 +163,7 @@ def _report(laser, z, rows):
 MIN_POSES = {0: 12, 1: 15}
 
 
-@pytest.mark.parametrize("laser", [0, pytest.param(1, marks=pytest.mark.xfail(strict=True, reason=(
-    "measured: median pose residual / stripe-noise prediction 2.02 (bar 2.0; 1.92 before the along-stripe "
-    "smoothing became the default, which lowers the measured stripe noise while the residuals, dominated by "
-    "per-pose offsets of -0.10 to +0.17 mm, stay: overall RMS 0.090 mm either way)")))])
+@pytest.mark.parametrize("laser", [0, 1])
 def test_zhou_planes_noise_limited(planes, laser):
     """One plane per laser from the 17 positions; the typical pose is limited by the stripe noise.
 
@@ -174,10 +171,9 @@ def test_zhou_planes_noise_limited(planes, laser):
     alone has residual RMS / predicted RMS ~1 (``_per_pose``; >= 100 points per pose,
     so the RMS itself scatters by < 10 %); the board pose adds an offset per pose (70 corners
     at 0.7 px RMS: ~0.02 mm, against ~0.03 mm of noise), so the median pose must stay
-    within 2x the noise.  Measured with the default along-stripe smoothing: laser 0 passes;
-    laser 1 at 2.02 does not (its poses' mean residuals drift from -0.10 to +0.17 mm as the
-    board turns: the per-pose offsets are larger than the corner noise explains); overall
-    RMS 0.079 / 0.090 mm; stripe noise 0.23-0.57 px per pose.
+    within 2x the noise.  Measured: median 1.37 (laser 0), 1.92 (laser 1; its poses' mean
+    residuals drift from -0.07 to +0.05 mm and back as the board turns); overall RMS
+    0.080 / 0.089 mm; stripe noise 0.25-0.56 px per pose.
     """
     cam, zs = planes
     z = zs[laser]

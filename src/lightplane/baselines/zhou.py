@@ -386,7 +386,10 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             k = int(max(5, round(0.35 * spacing))) | 1
             img = cv2.morphologyEx(img, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
     channel = None
-    sp = extract_stripe(img, width_px=width_px, mask=mask > 0, channel=channel)
+    # no along-stripe smoothing: on a board the stripe crosses reflectance edges every square,
+    # and smoothing spreads their bias along it; the plane fit (and the cross-ratio line fit)
+    # average hundreds of centres anyway (clean renders: residual 0.0042 vs 0.0072 mm)
+    sp = extract_stripe(img, width_px=width_px, mask=mask > 0, channel=channel, sigma_along_px=0.0)
     uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
     idx = np.arange(len(uv))
     if len(uv):
