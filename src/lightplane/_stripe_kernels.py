@@ -918,3 +918,60 @@ def saturated_core_runs(bgr, ch, min_chroma, bright_sum, bright_max, laser_min, 
             p = int(math.floor(mid + 0.5))
             out_c[p, u] = mid
             out_len[p, u] = eb - ea
+
+
+@njit(cache=True)
+def smooth_along_quadratic(uv, nrm, first, last, sig, rmax, rad, side):
+    """Intercepts of local quadratic fits along ordered curves (see ``stripe._smooth_along``).
+
+    For point ``i`` (its curve spans ``first[i]..last[i]``), the neighbours ``i ± k``,
+    ``k <= min(i - first, last - i, rmax, ceil(3 sig_i))``, give ``t = (p - p_i)·tau_i`` and
+    ``h = (p - p_i)·n_i``; ``h = a + b u + c u^2`` (``u = t / sig_i``) is fitted with weights
+    ``exp(-k^2 / (2 sig_i^2))``, and the same fit to the circle ``side_i (r - sqrt(r^2 - t^2))``
+    of radius ``rad_i``; returns ``a - a_circle`` (0 where fewer than 2 neighbours a side).
+    """
+    n = uv.shape[0]
+    out = np.zeros(n)
+    for i in range(n):
+        half = min(i - first[i], last[i] - i, rmax, int(math.ceil(3.0 * sig[i])))
+        if half < 2:
+            continue
+        tx, ty = -nrm[i, 1], nrm[i, 0]
+        s0 = 1.0
+        s1 = s2 = s3 = s4 = 0.0
+        h0 = h1 = h2 = 0.0
+        c0 = c1 = c2 = 0.0
+        inv = 1.0 / sig[i]
+        r = rad[i]
+        for k in range(1, half + 1):
+            g = math.exp(-0.5 * (k * inv) ** 2)
+            for j in (i - k, i + k):
+                dx = uv[j, 0] - uv[i, 0]
+                dy = uv[j, 1] - uv[i, 1]
+                t = dx * tx + dy * ty
+                h = dx * nrm[i, 0] + dy * nrm[i, 1]
+                u = t * inv
+                u2 = u * u
+                s0 += g
+                s1 += g * u
+                s2 += g * u2
+                s3 += g * u2 * u
+                s4 += g * u2 * u2
+                h0 += g * h
+                h1 += g * h * u
+                h2 += g * h * u2
+                q = r * r - t * t
+                hc = side[i] * (r - math.sqrt(q if q > 0.0 else 0.0))
+                c0 += g * hc
+                c1 += g * hc * u
+                c2 += g * hc * u2
+        # Cramer's rule for the intercept of [[s0 s1 s2] [s1 s2 s3] [s2 s3 s4]] x = rhs
+        det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
+        if abs(det) < 1e-12:
+            continue
+        m0 = s2 * s4 - s3 * s3
+        m1 = s1 * s4 - s3 * s2
+        m2 = s1 * s3 - s2 * s2
+        a = (h0 - c0) * m0 - s1 * ((h1 - c1) * s4 - s3 * (h2 - c2)) + s2 * ((h1 - c1) * s3 - s2 * (h2 - c2))
+        out[i] = a / det
+    return out

@@ -1231,33 +1231,9 @@ def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along:
     with np.errstate(divide="ignore"):
         sig = np.minimum(sigma_along, (0.0027 / np.maximum(kap, 1e-12) ** 3) ** 0.25)
     rad = 1.0 / np.maximum(kap, 1e-12)
-    half = np.minimum(np.minimum(np.minimum(idx - s, e - 1 - idx), R), np.ceil(3.0 * sig).astype(np.int64))
-    tau = np.column_stack([-nrm[:, 1], nrm[:, 0]])
-    M = np.zeros((N, 3, 3))
-    rhs = np.zeros((N, 3))
-    rhs_c = np.zeros((N, 3))  # the same fit to the circle of the point's curvature
-    M[:, 0, 0] = 1.0                       # k = 0: weight 1 at t = 0, h = 0
-    for k in range(1, R + 1):
-        m = np.flatnonzero(half >= k)
-        if m.size == 0:
-            break
-        g = np.exp(-0.5 * (k / sig[m]) ** 2)[:, None]
-        for sgn in (1, -1):
-            d = uv[m + sgn * k] - uv[m]
-            t = np.sum(d * tau[m], axis=1)
-            h = np.sum(d * nrm[m], axis=1)
-            basis = np.stack([np.ones_like(t), t, t * t], axis=1)
-            M[m] += g[:, :, None] * basis[:, :, None] * basis[:, None, :]
-            rhs[m] += g * basis * h[:, None]
-            r_ = rad[m]
-            hc = side[m] * (r_ - np.sqrt(np.maximum(r_ * r_ - t * t, 0.0)))
-            rhs_c[m] += g * basis * hc[:, None]
-    ok = half >= 2  # a quadratic needs neighbours on both sides
-    a = np.zeros(N)
-    if ok.any():
-        both = np.stack([rhs[ok], rhs_c[ok]], axis=2)  # (n, 3, 2)
-        sol = np.linalg.solve(M[ok] + 1e-12 * np.eye(3), both)
-        a[ok] = sol[:, 0, 0] - sol[:, 0, 1]
+    a = K.smooth_along_quadratic(np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(nrm, dtype=np.float64),
+                                 s.astype(np.int64), (e - 1).astype(np.int64), sig.astype(np.float64), R,
+                                 rad.astype(np.float64), side.astype(np.float64))
     # the shift along the normal, applied along the grid line the point lies on (the axis
     # closer to the normal), so each point stays that line's crossing (module docstring)
     kx = (np.abs(nrm[:, 0]) > np.abs(nrm[:, 1])).astype(np.int64)
