@@ -1,4 +1,4 @@
-"""``lightplane render``: synthetic images with exact ground truth (circle, chessboard, scan)."""
+"""``lightplane render``: synthetic images with exact ground truth (circle, chessboard, any target, scan)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,17 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from ..errors import LightplaneError
-from ._common import app, console, handles_errors, parse_board
+from ._common import (app, console, dictionary_option, dot_option, handles_errors, marker_option, parse_board,
+                      target_option)
 
-SCENES = ("circle", "chessboard", "scan")
+SCENES = ("circle", "chessboard", "target", "scan")
 
 
 @app.command("render")
 @handles_errors
 def render_cmd(
-    scene: str = typer.Argument(..., help="What to render: circle, chessboard or scan."),
+    scene: str = typer.Argument(..., help="What to render: circle, chessboard, target (any board: --board "
+                                "KIND:COLSxROWS --square MM, or --target FILE) or scan."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
     n: Optional[int] = typer.Option(None, "--n", help="Number of images (scan: frames). Default: 12 circle, "
                                     "20 chessboard, 41 sphere / 21 step or plane frames."),
@@ -29,11 +31,18 @@ def render_cmd(
                                  "printed disc on a light board."),
     diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
     board: Optional[str] = typer.Option(None, "--board", help="chessboard: inner corners COLSxROWS (default: 15x11 "
-                                        "for the calibration capture, 9x6 with --stripe)."),
-    square: Optional[float] = typer.Option(None, "--square", help="chessboard: square size in mm (default 8)."),
-    stripe: bool = typer.Option(False, "--stripe", help="chessboard: laser on, stripe crossing every board."),
-    laser_off: bool = typer.Option(False, "--laser-off", help="circle, and chessboard with --stripe: also a "
-                                   "laser-off image of every pose."),
+                                        "for the calibration capture, 9x6 with --stripe); target: KIND:COLSxROWS."),
+    square: Optional[float] = typer.Option(None, "--square", help="chessboard: square size in mm (default 8); "
+                                           "target: square size or dot pitch."),
+    marker: Optional[float] = marker_option,
+    dictionary: Optional[str] = dictionary_option,
+    dot: Optional[float] = dot_option,
+    target_file: Optional[Path] = target_option,
+    stripe: bool = typer.Option(False, "--stripe", help="chessboard, target: laser on, stripe crossing every board."),
+    laser_off: bool = typer.Option(False, "--laser-off", help="circle, and chessboard/target with --stripe: also a "
+                                   "laser-off image of every pose (a laser-off or pattern frame)."),
+    dark_laser: bool = typer.Option(False, "--dark-laser", help="target with --stripe: the laser frames dark "
+                                    "(3 % of the ambient light: the board cannot be found in them)."),
     kind: str = typer.Option("sphere", "--kind", help="scan: sphere (radius 25.4 mm), step (10.000 mm gauge) "
                              "or plane (tilted)."),
     step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
@@ -49,10 +58,11 @@ def render_cmd(
         render_chessboard_dataset,
         render_circle_dataset,
         render_scan_dataset,
+        render_target_dataset,
     )
 
     if scene not in SCENES:
-        raise LightplaneError(f"unknown scene {scene!r}: choose circle, chessboard or scan")
+        raise LightplaneError(f"unknown scene {scene!r}: choose circle, chessboard, target or scan")
     if n is not None and n < 1:
         raise LightplaneError(f"--n must be at least 1, got {n}")
     if difficulty is not None and difficulty not in DIFFICULTIES:
@@ -67,7 +77,15 @@ def render_cmd(
         raise LightplaneError(f"--square must be positive, got {square} mm")
     if step is not None and not step > 0:
         raise LightplaneError(f"--step must be positive, got {step} mm")
-    cols_rows = parse_board(board) if board is not None else None
+    tgt = None
+    if scene == "target":
+        from ..targets import parse_target
+
+        tgt = parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot,
+                           target_file=target_file)
+        cols_rows = None
+    else:
+        cols_rows = parse_board(board) if board is not None else None
     # fail before the long render: the folder must be writable and hold no result files
     check_output_dir(out, ["camera.json", "truth.json"], force)
 
@@ -83,6 +101,10 @@ def render_cmd(
             ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",
                                        polarity=polarity, diameter_mm=diameter, laser_off=laser_off,
                                        progress=progress)
+        elif scene == "target":
+            ds = render_target_dataset(tgt, n=(6 if stripe else 30) if n is None else n, seed=seed,
+                                       difficulty=difficulty or "realistic", with_stripe=stripe, laser_off=laser_off,
+                                       dark_laser=dark_laser, progress=progress)
         elif scene == "chessboard":
             ds = render_chessboard_dataset(n=20 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
                                            with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
@@ -103,6 +125,9 @@ def render_cmd(
         b = ds.truth["board"]
         console.print(f"board {b['inner_corners'][0]}x{b['inner_corners'][1]} inner corners, square {b['square_mm']:g} mm"
                       + (", laser stripe on" if stripe else ""))
+    elif scene == "target":
+        console.print(f"board: {tgt.describe()}" + (", laser stripe on" if stripe else "")
+                      + (" (dark laser frames)" if dark_laser and stripe else ""))
     else:
         m = ds.truth["motion"]
         console.print(f"scan of a {kind}: {m['n_frames']} frames, {m['step_mm']:g} mm per frame")
