@@ -74,6 +74,39 @@ def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
     return out
 
 
+def read_laser_frames(lasers: list[Path], patterns: list | None, background: list[str] | None, rotate: int,
+                      cycle: str | None = None):
+    """Read the laser images, their pattern frames and the ``--background`` frames, each file once.
+
+    Returns ``(images, patterns, backgrounds, background_files, skipped)``: an unreadable laser,
+    pattern or background frame (or a laser frame without its pattern frame) makes that laser
+    image skipped with the reason (``skipped``: name -> reason; its array is None); a single
+    shared ``--background`` frame that cannot be read is an error.
+    """
+    bg_files = expand_inputs(background) if background else []
+    if background and not bg_files:
+        raise LightplaneError("no background images given (no files matched)")
+    check_background(lasers, bg_files)
+    if bg_files and len(bg_files) not in (1, len(lasers)):
+        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(lasers)}), "
+                              f"got {len(bg_files)}")
+    cache: dict = {}
+    imgs = read_frames(lasers, rotate, cache)
+    pats = read_frames(patterns, rotate, cache) if patterns is not None else None
+    bgs = read_frames(bg_files, rotate, cache) if bg_files else None
+    if bgs is not None and len(bgs) == 1 and bgs[0] is None:
+        raise LightplaneError(f"{bg_files[0]}: {cache[bg_files[0]]}")
+    skipped = {}
+    for k, f in enumerate(lasers):
+        if patterns is not None and patterns[k] is None:
+            skipped[str(f)] = f"no matching pattern frame (the last --cycle {cycle} is incomplete)"
+        for what, g in (("", f), ("pattern frame ", patterns[k] if patterns else None),
+                        ("background ", bg_files[k] if len(bg_files) > 1 else None)):
+            if g is not None and isinstance(cache.get(g), str) and str(f) not in skipped:
+                skipped[str(f)] = f"{what}{Path(g).name + ': ' if what else ''}{cache[g]}"
+    return imgs, pats, bgs, bg_files, skipped
+
+
 @app.command("calibrate-plane-board")
 @handles_errors
 def calibrate_plane_board_cmd(
@@ -122,29 +155,9 @@ def calibrate_plane_board_cmd(
     lasers, patterns = pair_pattern_frames(files, pattern_files, cycle)
     if len(lasers) < 2:
         raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(lasers)}")
-    bg_files = expand_inputs(background) if background else []
-    if background and not bg_files:
-        raise LightplaneError("no background images given (no files matched)")
-    check_background(lasers, bg_files)
-    if bg_files and len(bg_files) not in (1, len(lasers)):
-        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(lasers)}), "
-                              f"got {len(bg_files)}")
-    cache: dict = {}
-    imgs = read_frames(lasers, rotate, cache)
-    pats = read_frames(patterns, rotate, cache) if patterns is not None else None
-    bgs = read_frames(bg_files, rotate, cache) if bg_files else None
-    skipped = {}
-    for k, f in enumerate(lasers):  # unreadable laser, pattern or background frame: that image is skipped
-        if patterns is not None and patterns[k] is None:
-            skipped[str(f)] = f"no matching pattern frame (the last --cycle {cycle} is incomplete)"
-        for what, g in (("", f), ("pattern frame ", patterns[k] if patterns else None),
-                        ("background ", bg_files[k if len(bg_files) > 1 else 0] if bg_files else None)):
-            if g is not None and isinstance(cache.get(g), str) and str(f) not in skipped:
-                skipped[str(f)] = f"{what}{Path(g).name + ': ' if what else ''}{cache[g]}"
+    imgs, pats, bgs, bg_files, skipped = read_laser_frames(lasers, patterns, background, rotate, cycle)
     names = [str(f) for f in lasers]
     keep = [k for k, n in enumerate(names) if n not in skipped]
-    if bgs is not None and len(bgs) == 1 and bgs[0] is None:
-        raise LightplaneError(f"{bg_files[0]}: {cache[bg_files[0]]}")
 
     with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:

@@ -15,7 +15,7 @@ from ..errors import LightplaneError
 from ..io import atomic_write, check_output, dumps_json, expand_inputs, provenance
 from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
                       square_option, target_from_options, target_option)
-from .calibrate_plane_board import check_background, read_frames
+from .calibrate_plane_board import read_laser_frames
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -66,25 +66,7 @@ def evaluate_cmd(
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
-    bg_files = expand_inputs(background) if background else []
-    if background and not bg_files:
-        raise LightplaneError("no background images given (no files matched)")
-    check_background(files, bg_files)
-    if bg_files and len(bg_files) not in (1, len(files)):
-        raise LightplaneError(f"--background: give one laser-off frame or one per image ({len(files)}), "
-                              f"got {len(bg_files)}")
-    cache: dict = {}
-    imgs = read_frames(files, rotate, cache)
-    bgs = read_frames(bg_files, rotate, cache) if bg_files else None
-    if bgs is not None and len(bgs) == 1 and bgs[0] is None:
-        raise LightplaneError(f"{bg_files[0]}: {cache[bg_files[0]]}")
-    skipped = {}
-    for k, f in enumerate(files):  # an unreadable image or background frame: that image is skipped
-        g = bg_files[k] if len(bg_files) > 1 else None
-        if isinstance(cache[f], str):
-            skipped[str(f)] = cache[f]
-        elif g is not None and isinstance(cache[g], str):
-            skipped[str(f)] = f"background {g.name}: {cache[g]}"
+    imgs, _, bgs, bg_files, skipped = read_laser_frames(files, None, background, rotate)
     keep = [k for k, f in enumerate(files) if str(f) not in skipped]
 
     with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

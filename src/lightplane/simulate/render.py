@@ -641,6 +641,13 @@ STRIPE_CAPTURE = {"board": (9, 6), "square_mm": 8.0, "distance_mm": (330.0, 560.
                   "tilt_deg": (10.0, 45.0), "centre_frac": 0.4, "spin_deg": 30.0}
 
 
+def _laser_truth(plane: LightPlane, with_stripe: bool, difficulty: str, imaging, seed: int) -> dict:
+    """The truth entries a board data set shares: the plane and its source (with the stripe), the imaging."""
+    return {"plane": plane.to_dict() if with_stripe else None,
+            "laser_source_mm": laser_source(plane) if with_stripe else None,
+            "with_stripe": bool(with_stripe), "difficulty": difficulty, "imaging": imaging.__dict__, "seed": seed}
+
+
 def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int] | None = None,
                               square_mm: float | None = None, with_stripe: bool = False, *,
                               laser_off: bool = False, difficulty: str = "clean",
@@ -725,12 +732,7 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
                   "first_square": "dark", "margin_mm": square_mm,
                   "corners_board_mm": obj, "corner_order": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)",
                   "outline_board_mm": [u0, u1, v0, v1]},
-        "plane": plane.to_dict() if with_stripe else None,
-        "laser_source_mm": laser_source(plane) if with_stripe else None,
-        "with_stripe": bool(with_stripe),
-        "difficulty": difficulty,
-        "imaging": imaging.__dict__,
-        "seed": seed,
+        **_laser_truth(plane, with_stripe, difficulty, imaging, seed),
         "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
                     "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
                     "with_stripe": with_stripe, "laser_off": laser_off, "difficulty": difficulty},
@@ -1110,12 +1112,7 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
         "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
         "frame": "camera",
         "target": tinfo,
-        "plane": plane.to_dict() if with_stripe else None,
-        "laser_source_mm": laser_source(plane) if with_stripe else None,
-        "with_stripe": bool(with_stripe),
-        "difficulty": difficulty,
-        "imaging": imaging.__dict__,
-        "seed": seed,
+        **_laser_truth(plane, with_stripe, difficulty, imaging, seed),
         "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": difficulty,
                     "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
                     "spin_deg": spin_deg, "samples": samples, "edge_samples": edge_samples, "noise": noise,
