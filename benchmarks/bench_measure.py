@@ -11,7 +11,7 @@ by default).  Prints medians with units and the ratio to each target:
   ``clean`` scans; on ``realistic`` scans (laser speckle) the radius and the step are,
   while the per-point RMS and flatness are printed for information: speckle puts
   ~0.11 px on each centre, ~0.025 mm of depth at this geometry, above those two
-  per-point targets (SPEC §5.2: 0.1–0.3 px per centre is physics).  The same numbers with the
+  per-point targets (docs/conventions.md §Noise: 0.1–0.3 px per centre is physics).  The same numbers with the
   true plane are printed alongside (what the calibration costs).
 - speed: >= 500 frames/s of 1280x960 8-bit frames from memory (profile + triangulation
   + placement), 2 worker processes; also one process alone.
@@ -137,7 +137,7 @@ def accuracy() -> None:
     print("== clean scans (no speckle, low noise): every target applies ==")
     accuracy_scans("clean", planes)
     print("== realistic scans (laser speckle 25 %, ~0.11 px per centre): the radius and step targets apply; "
-          "the per-point RMS and flatness are set by speckle (SPEC 5.2: 0.1-0.3 px per centre is physics; "
+          "the per-point RMS and flatness are set by speckle (docs/conventions.md §Noise: 0.1-0.3 px per centre is physics; "
           "~0.23 mm of depth per px here), printed for information ==")
     accuracy_scans("realistic", planes)
     print("== the realistic scans with the centres smoothed along the stripe (measure --smooth 9; info) ==")

@@ -4,7 +4,7 @@
    on 12 placements x (200 rim + 300 stripe points), default sensor with distortion,
    sigma 0.1 px.  Target: ML <= 150 ms (2 cores).  Median wall and CPU times.
 2. Accuracy (``--trials``, default 200): default sensor geometry WITHOUT distortion
-   (SPEC §9 pinhole), sigma 0.1 px on rim and stripe points, 12 placements of a 50 mm
+   (docs/conventions.md §Default sensor, pinhole), sigma 0.1 px on rim and stripe points, 12 placements of a 50 mm
    disc drawn afresh per trial.  For paper / global / ml: RMS plane-angle error and RMS
    triangulation error over the working volume (380–520 mm), as ratios to the
    Cramér–Rao bound (RMS of the per-trial bounds); disambiguation failures; and ml's

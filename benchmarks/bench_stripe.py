@@ -1,4 +1,4 @@
-"""Speed of the stripe extractors on 1280x960 8-bit frames (SPEC §5.2; issue 6 targets).
+"""Speed of the stripe extractors on 1280x960 8-bit frames (docs/method.md §Stripe centres; issue 6 targets).
 
 Run: ``.venv/bin/python benchmarks/bench_stripe.py [--repeat N]``.  Prints the median
 (and the minimum, which shows what the code does when the shared machine is not

@@ -2,7 +2,7 @@
 
     .venv/bin/python docs/make_figures.py [--trials 40] [--seed 0]
 
-Study (SPEC §9 sensor: 1280x960, 16 mm lens, light plane 25° oblique crossing the
+Study (docs/conventions.md §Default sensor: 1280x960, 16 mm lens, light plane 25° oblique crossing the
 optical axis at 450 mm): per trial, random target placements
 (:func:`lightplane.simulate.geometry.sample_placements`), exact rim and stripe pixels
 (:func:`~lightplane.simulate.geometry.synthetic_observations`) with Gaussian noise of

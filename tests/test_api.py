@@ -1,4 +1,4 @@
-"""The stable API names of SPEC §10 are importable from ``lightplane`` and documented."""
+"""The stable API names of docs/conventions.md §Python API are importable from ``lightplane`` and documented."""
 
 import lightplane
 

@@ -1,7 +1,7 @@
 """Light-plane calibration from rendered images (issue 7): accuracy, rejections, bad input.
 
 Renders are cached on disk (keyed by the renderer's source) so the test files share
-them: 5 realistic images of the default sensor (SPEC §9), the exact truth alongside.
+them: 5 realistic images of the default sensor (docs/conventions.md §Default sensor), the exact truth alongside.
 The 12-image accuracy bars are checked by benchmarks/bench_calibrate.py.
 """
 

@@ -1,4 +1,4 @@
-"""Camera model: projection/undistortion round trip, rays, camera files (SPEC §3, §10)."""
+"""Camera model: projection/undistortion round trip, rays, camera files (docs/conventions.md §Lens model, §Camera file)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests of circle_poses (paper §2.2.2, SPEC §6) and fit_conic."""
+"""Tests of circle_poses (paper §2.2.2, docs/method.md §Circle pose) and fit_conic."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from lightplane.simulate.geometry import TargetPlacement, default_camera, sample
 
 
 def _random_placements(n, rng):
-    """Discs of 20–100 mm anywhere in the view at 200–800 mm, tilted 3–75 deg (wider than SPEC §9).
+    """Discs of 20–100 mm anywhere in the view at 200–800 mm, tilted 3–75 deg (wider than docs/conventions.md §Default sensor).
 
     (Far, tiny discs, e.g. 5 mm at 2 m — a 12 px ellipse — lose accuracy to rounding in
     the conic itself: ~1e-8 mm.)

@@ -1,5 +1,5 @@
 """Ellipse refinement and target selection on the project's rendered calibration images
-(lightplane.simulate.render: supersampled ray casting with exact truth, SPEC §9 geometry).
+(lightplane.simulate.render: supersampled ray casting with exact truth, docs/conventions.md §Default sensor geometry).
 
 Targets (issue 5): refined conic centre within 0.02 px RMS of the truth on clean renders
 and 0.05 px on realistic ones; circle poses from it within 0.05 mm and 0.05 deg; on hard

@@ -1,4 +1,4 @@
-"""Tests of the simulated sensor geometry (SPEC §9)."""
+"""Tests of the simulated sensor geometry (docs/conventions.md §Default sensor)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Profiles: stripe frames → 3D points (SPEC §4, §5.2), lookup tables, σ, scans with motion."""
+"""Profiles: stripe frames → 3D points (docs/method.md §Triangulation, §Stripe centres), lookup tables, σ, scans with motion."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 A few frames per object keep this fast; benchmarks/bench_measure.py runs the full scans
 with a plane calibrated from rendered circle images.  ``clean`` renders (no speckle) test
 the pipeline's own accuracy; ``realistic`` ones add laser speckle, whose per-point centre
-noise (~0.11 px per centre, SPEC §5.2) sets a floor of ~0.025 mm per point on these scenes.
+noise (~0.11 px per centre, docs/conventions.md §Noise) sets a floor of ~0.025 mm per point on these scenes.
 """
 
 from __future__ import annotations

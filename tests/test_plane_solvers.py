@@ -1,4 +1,4 @@
-"""Tests of the light-plane solvers (paper §2.2.3, SPEC §7): candidates, `paper`, `global`,
+"""Tests of the light-plane solvers (paper §2.2.3, docs/method.md §Light plane): candidates, `paper`, `global`,
 and the public entry `calibrate_plane_from_points`.  Ground truth from lightplane.simulate.geometry."""
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def _true_candidates_chosen(res, ps, tol_mm):
 
 # ------------------------------------------------------------------ noise-free
 def test_noise_free_paper_and_global_exact_over_1000_poses():
-    """84 scenes x 12 placements = 1008 random poses (SPEC §9 geometry, with distortion)."""
+    """84 scenes x 12 placements = 1008 random poses (docs/conventions.md §Default sensor geometry, with distortion)."""
     rng = np.random.default_rng(100)
     worst = {"paper": 0.0, "global": 0.0}
     worst_d = {"paper": 0.0, "global": 0.0}

@@ -1,4 +1,4 @@
-"""Point-cloud files: every format reads back exactly what was written (SPEC §10)."""
+"""Point-cloud files: every format reads back exactly what was written (docs/conventions.md §Point clouds)."""
 
 from __future__ import annotations
 

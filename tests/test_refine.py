@@ -1,6 +1,6 @@
 """Joint ML refinement (lightplane.refine) and point uncertainty (lightplane.uncertainty).
 
-Ground truth: lightplane's default sensor (SPEC §9) and random placements from
+Ground truth: lightplane's default sensor (docs/conventions.md §Default sensor) and random placements from
 lightplane.simulate.geometry; noise injected in pixels.
 """
 
@@ -74,7 +74,7 @@ def test_noise_free_recovers_truth_with_distortion():
     for got, p in zip(res.poses, ps):
         assert np.linalg.norm(got.center - p.center) < 1e-9 * 500
         assert _angle(got.normal, p.normal) < 1e-9
-        assert got.normal @ got.center < 0  # towards the camera (SPEC §2)
+        assert got.normal @ got.center < 0  # towards the camera (docs/conventions.md §Target pose)
     assert res.sigma_px < 1e-9
     assert np.all(res.rim_rms_px < 1e-9) and np.all(res.stripe_rms_px < 1e-9)
     assert res.covariance.shape == (4, 4)

@@ -1,4 +1,4 @@
-"""Stripe centres (SPEC §5.2) against synthetic stripes with an exact centre line.
+"""Stripe centres (docs/method.md §Stripe centres) against synthetic stripes with an exact centre line.
 
 The stripes are rendered here, independently of the code under test: the
 intensity is a function of the signed distance ``d`` to a known centre line
@@ -380,7 +380,7 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
     independent renderer (measured 0.012-0.013 px over 24 images,
     benchmarks/bench_stripe_accuracy.py).  ``realistic``: laser speckle (a
     multiplicative modulation of the sheet of 25 %, correlated over ~1 px) dominates; at
-    Steger's minimum scale it gives 0.111 px per point (24 images), inside SPEC §5.2's
+    Steger's minimum scale it gives 0.111 px per point (24 images), inside docs/conventions.md §Noise's
     physical 0.1–0.3 px.  Issue #6's bar, <= 0.1 px on realistic renders, holds with the
     scales the module docstring recommends for speckled stripes: ``sigma_px`` 1.5x
     Steger's minimum for :func:`extract_stripe` (0.081 px), ``sigma_along_px`` 2x for

@@ -8,7 +8,7 @@ about columns 260-820; we use columns 300-800.  A flat board makes each stripe a
 straight line once the lens distortion is removed (published Ciclop intrinsics
 from the data README; the calibrate-camera code reproduces them).  What remains
 about the line is physical: laser speckle, the squares' albedo steps, the board's
-flatness (SPEC §5.2: 0.1-0.3 px per point).
+flatness (docs/conventions.md §Noise: 0.1-0.3 px per point).
 
 In the ``-x`` frame the upper stripe hits the laser's specular hot spot (columns
 ~640-710): there the sensor saturates and the camera renders the stripe's core

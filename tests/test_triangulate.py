@@ -1,4 +1,4 @@
-"""LightPlane conventions and triangulation (SPEC §2, §4)."""
+"""LightPlane conventions and triangulation (docs/conventions.md §Light plane, docs/method.md §Triangulation)."""
 
 from __future__ import annotations
 

@@ -3,10 +3,10 @@
 Implements Wang & Li, "Calibration Method for Line-Structured Light
 Three-Dimensional Measurements Based on a Single Circular Target",
 Appl. Sci. 2022, 12, 588, and goes beyond it (global disambiguation, joint
-maximum-likelihood refinement, uncertainty).  Conventions: SPEC.md §2
+maximum-likelihood refinement, uncertainty).  Conventions: docs/conventions.md
 (camera frame x right, y down, z forward; mm; plane normal with d < 0).
 
-The stable API (SPEC §10): :class:`Camera`, :class:`LightPlane`,
+The stable API (docs/conventions.md §Python API): :class:`Camera`, :class:`LightPlane`,
 :func:`detect_ellipses`, :func:`extract_stripe`, :func:`circle_poses`,
 :func:`calibrate_plane`, :func:`triangulate`; also :func:`distance_errors`,
 :func:`measure_profile`, :func:`measure_scan`, :func:`read_cloud`/:func:`write_cloud`.

@@ -1,4 +1,4 @@
-"""Light-plane calibration from images of a circular target (paper §2.2, SPEC §5–§7).
+"""Light-plane calibration from images of a circular target (paper §2.2; docs/method.md §Overview to §Light plane).
 
 The user's main job: images of a flat circular target of known diameter, each with
 the laser stripe crossing it, and a calibrated camera in; the light plane with its
@@ -8,18 +8,18 @@ Per image (in parallel across cores, :func:`observe_image`):
 
 1. read it (PNG, JPEG, BMP, TIFF; 8/16-bit; gray or colour) and check its size
    against the camera;
-2. detect ellipses (arc-support segments, SPEC §5.1) of a plausible size for a disc
+2. detect ellipses (arc-support segments, docs/method.md §Ellipse) of a plausible size for a disc
    of ``diameter_mm`` seen at ``distance_range_mm``, and choose the target: the
    salient ellipse the stripe crosses (:func:`lightplane.ellipse.select_target`);
 3. refine it to sub-pixel edge points (:func:`lightplane.ellipse.refine_ellipse`);
    edge points where the stripe meets the rim are dropped (the stripe's light
    shifts the edge there);
-4. extract the stripe's centre points (Steger, SPEC §5.2) inside the ellipse shrunk
+4. extract the stripe's centre points (Steger, docs/method.md §Stripe centres) inside the ellipse shrunk
    by a margin (the rim's intensity step biases the stripe centres next to it), and
    keep those on the stripe's line through the target.
 
 Then all placements go to :func:`lightplane.plane.calibrate_plane_from_points`
-(``paper``, ``global`` or ``ml``; SPEC §7) with the rim edge points and the stripe
+(``paper``, ``global`` or ``ml``; docs/method.md §Light plane) with the rim edge points and the stripe
 points, both in distorted pixels.  Every image's outcome is recorded: used, or
 rejected with its reason (no target ellipse, no stripe crossing it, too few stripe
 points, or the solver's reason); a file that cannot be read (truncated, corrupt, not an
@@ -286,7 +286,7 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
                   distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
                   stripe_width_px: float | None = None, margin_px: float | None = None,
                   min_stripe_points: int = 20, stripe_bin: int | str = "auto") -> ImageObservation:
-    """Find the target's rim points and the stripe points on it in one image (SPEC §5).
+    """Find the target's rim points and the stripe points on it in one image (docs/method.md §Ellipse, §Stripe centres).
 
     Parameters
     ----------
@@ -460,7 +460,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
         (H, W, 3), 8/16-bit or float), one per target placement.
     camera : calibrated :class:`~lightplane.camera.Camera`; every image must have its size.
     diameter_mm : target diameter, mm (> 0).
-    method : ``"ml"`` (default), ``"global"`` or ``"paper"`` (SPEC §7; see
+    method : ``"ml"`` (default), ``"global"`` or ``"paper"`` (docs/method.md §Light plane; see
         :func:`~lightplane.plane.calibrate_plane_from_points`).
     workers : processes (or threads) for the per-image work; default: all cores;
         1 runs in this process.
@@ -555,7 +555,7 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
 def solve_observations(observations: Sequence[ImageObservation], camera: Camera, diameter_mm: float,
                        method: str = "ml", *, min_placements: int = 3, seconds: float = 0.0,
                        **solver_options) -> ImagePlaneCalibration:
-    """The light plane from per-image observations (:func:`observe_images`) (SPEC §7).
+    """The light plane from per-image observations (:func:`observe_images`) (docs/method.md §Light plane).
 
     Runs :func:`~lightplane.plane.calibrate_plane_from_points` on the images that gave
     a target and stripe points, and maps its per-placement results back to the images.

@@ -1,6 +1,6 @@
-"""Camera model: pinhole with OpenCV's plumb-bob distortion (SPEC §3, paper Eq. 1–3).
+"""Camera model: pinhole with OpenCV's plumb-bob distortion (docs/conventions.md §Lens model, paper Eq. 1–3).
 
-Conventions (SPEC §2): camera frame x right, y down, z forward; millimetres;
+Conventions (docs/conventions.md §Frames, §Units, §Pixels): camera frame x right, y down, z forward; millimetres;
 pixel (0, 0) is the centre of the top-left pixel.  Distortion is
 ``(k1, k2, p1, p2, k3)``; for normalised undistorted ``(x, y)``, ``r² = x² + y²``::
 
@@ -159,7 +159,7 @@ class Camera:
 
     # ------------------------------------------------------------- projection
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        """Apply the distortion to normalised undistorted ``(N, 2)`` coordinates (SPEC §3)."""
+        """Apply the distortion to normalised undistorted ``(N, 2)`` coordinates (docs/conventions.md §Lens model)."""
         xy = as_points(xy, 2, "xy")
         k1, k2, p1, p2, k3 = self.dist
         x, y = xy[:, 0], xy[:, 1]
@@ -203,7 +203,7 @@ class Camera:
         Returns undistorted pixels (``K`` applied again) or, with ``normalized=True``,
         normalised coordinates ``(x, y)`` such that the ray is ``(x, y, 1)``.
         OpenCV's iterative undistortion (tight criteria) gives the start; a few
-        Newton steps on the exact model (SPEC §3) take it to ~1e-12 px, even with
+        Newton steps on the exact model (docs/conventions.md §Lens model) take it to ~1e-12 px, even with
         strong distortion where the fixed-point iteration is slow.
         """
         uv = as_points(uv, 2, "uv")
@@ -240,7 +240,7 @@ class Camera:
     def distortion_jacobian(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Entries ``(j11, j12, j21, j22)`` of ∂(x_d, y_d)/∂(x, y) at normalised undistorted ``xy`` (N, 2).
 
-        The derivative of the plumb-bob model of SPEC §3 (``j12 == j21``).
+        The derivative of the plumb-bob model of docs/conventions.md §Lens model (``j12 == j21``).
         """
         k1, k2, p1, p2, k3 = self.dist
         x, y = xy[:, 0], xy[:, 1]

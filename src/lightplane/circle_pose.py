@@ -1,4 +1,4 @@
-"""The two poses of a circle of known radius from its image ellipse (paper §2.2.2, Eq. 7–15; SPEC §6).
+"""The two poses of a circle of known radius from its image ellipse (paper §2.2.2, Eq. 7–15; docs/method.md §Circle pose).
 
 The ellipse conic ``E`` (undistorted pixels, ``[u v 1] E [u v 1]ᵀ = 0``) and the
 camera matrix ``K`` give the oblique elliptical cone through the optical centre
@@ -139,7 +139,7 @@ def circle_poses_batch(conics: np.ndarray, K: np.ndarray, radius_mm: float) -> t
         neg = C[:, 2] < 0  # eigenvector signs are arbitrary
         C[neg] *= -1.0
         N[neg] *= -1.0
-        away = np.sum(N * C, axis=1) > 0  # SPEC §2: towards the camera
+        away = np.sum(N * C, axis=1) > 0  # docs/conventions.md §Target pose: towards the camera
         N[away] *= -1.0
         N /= np.linalg.norm(N, axis=1, keepdims=True)
         centers[:, j] = C
@@ -154,7 +154,7 @@ def circle_poses_batch(conics: np.ndarray, K: np.ndarray, radius_mm: float) -> t
 
 
 def circle_poses(conic: np.ndarray, K: np.ndarray, radius_mm: float) -> tuple[CirclePose, CirclePose]:
-    """The two circle poses compatible with an image ellipse (paper Eq. 7–15, SPEC §6).
+    """The two circle poses compatible with an image ellipse (paper Eq. 7–15, docs/method.md §Circle pose).
 
     Parameters
     ----------

@@ -2,7 +2,7 @@
 
 Stages (each runs if its part of lightplane exists, else it is reported as skipped):
 
-1. the sensor: lightplane's default camera and light plane (SPEC §9), the truth;
+1. the sensor: lightplane's default camera and light plane (docs/conventions.md §Default sensor), the truth;
 2. render a data set (:mod:`lightplane.simulate.render`): chessboards for the camera,
    circle-target images for the light plane, chessboards with the stripe for the
    cross-ratio check and Zhou's method, a sphere scan — two processes in parallel;

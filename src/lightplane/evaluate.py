@@ -1,4 +1,4 @@
-"""Accuracy evaluation by cross-ratio invariance (SPEC §8, paper §4.3, Eq. 16, Tables 1–2).
+"""Accuracy evaluation by cross-ratio invariance (docs/method.md §Cross-ratio check, paper §4.3, Eq. 16, Tables 1–2).
 
 A chessboard stands in the measuring volume with the laser stripe across it.
 On a line ``l`` of corners (a row, or a column) the corners A, B, C have known

@@ -1,4 +1,4 @@
-"""Zhang intrinsic calibration with OpenCV, and its diagnostics (SPEC §3).
+"""Zhang intrinsic calibration with OpenCV, and its diagnostics (docs/method.md §Camera calibration).
 
 Corners by ``cv2.findChessboardCornersSB`` (sub-pixel by construction), the
 solve by ``cv2.calibrateCameraExtended`` (standard deviations of the intrinsics,
@@ -507,7 +507,7 @@ def calibrate_camera(
     refine: bool | str = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsCalibration:
-    """Zhang calibration from images of a planar target (SPEC §3).
+    """Zhang calibration from images of a planar target (docs/method.md §Camera calibration).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Measurement: pixels to 3D points on the light plane (SPEC §4, paper Eq. 2 and 4).
+"""Measurement: pixels to 3D points on the light plane (docs/method.md §Triangulation, paper Eq. 2 and 4).
 
 pixel → undistorted normalised ``(x, y)`` → ray ``X = s (x, y, 1)`` → on the
 plane ``s = -d / (a x + b y + c)``.  Rays nearly parallel to the plane give NaN
@@ -171,12 +171,12 @@ class ProfileMeasurer:
     """Stripe images → :class:`Profile`, with the per-camera work done once.
 
     Each frame: :func:`lightplane.stripe.extract_profile` (one sub-pixel centre per
-    column or row), then pixel → undistorted normalised ray → light plane (SPEC §4,
+    column or row), then pixel → undistorted normalised ray → light plane (docs/method.md §Triangulation,
     paper Eq. 2 and 4), and σ from the plane's covariance.
 
     With ``lookup=True`` (default) the exact undistortion (``Camera.undistort_points``)
     of every pixel of the roi is computed once, with its derivative along the profile
-    direction (inverse of the distortion's Jacobian, SPEC §3).  A centre at sub-pixel
+    direction (inverse of the distortion's Jacobian, docs/conventions.md §Lens model).  A centre at sub-pixel
     position ``t`` along its column (row) then costs a cubic Hermite interpolation
     between the two bracketing pixels (error O(h⁴): below 1e-9 px for the default
     sensor's distortion), instead of an iterative undistortion per point.
@@ -194,7 +194,7 @@ class ProfileMeasurer:
         sub-pixel centres along each run of consecutive valid lines are smoothed by a
         quadratic Savitzky–Golay filter over that many lines (runs shorter than the
         window are left alone).  Laser speckle gives each centre 0.1–0.3 px of
-        independent-ish noise (SPEC §5.2); a quadratic local fit averages it away
+        independent-ish noise (docs/conventions.md §Noise); a quadratic local fit averages it away
         (noise × ~0.6 for 7 lines) without biasing curves of radius much larger than
         the window (a quadratic is reproduced exactly).  It also blurs real detail
         finer than the window (edges, steps): off for edge-sensitive measurement.
@@ -428,7 +428,7 @@ def smooth_centres(uv: np.ndarray, valid: np.ndarray, axis: str, window: int) ->
 
 def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
                     **stripe_options) -> Profile:
-    """3D profile of one stripe image (SPEC §4, §5.2): points (mm, camera frame), σ, pixels.
+    """3D profile of one stripe image (docs/method.md §Triangulation, §Stripe centres): points (mm, camera frame), σ, pixels.
 
     One stripe centre per column (``axis="columns"``) or row (``"rows"``; ``"auto"``
     picks from the plane, :func:`profile_axis`) within ``roi`` ``(x, y, width, height)``,

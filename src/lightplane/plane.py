@@ -1,4 +1,4 @@
-"""The light plane (SPEC §2, §7).
+"""The light plane (docs/conventions.md §Light plane; docs/method.md §Light plane).
 
 ``a x + b y + c z + d = 0`` in the camera frame (mm), ``(a, b, c)`` a unit
 normal, sign fixed so that ``d < 0``: the normal points from the camera towards
@@ -74,7 +74,7 @@ class LightPlane:
             raise LightplaneError("the light plane passes through the camera centre (d = 0): nothing can be triangulated")
         cov = self.covariance
         if d > 0:
-            n, d = -n, -d  # SPEC §2: d < 0; (a, b, c, d) -> -(a, b, c, d) keeps the covariance
+            n, d = -n, -d  # docs/conventions.md §Light plane: d < 0; (a, b, c, d) -> -(a, b, c, d) keeps the covariance
         if cov is not None:
             cov = np.asarray(cov, dtype=np.float64)
             if cov.shape != (4, 4) or not np.all(np.isfinite(cov)):
@@ -158,7 +158,7 @@ class LightPlane:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "LightPlane":
-        """Read a light-plane JSON file (SPEC §10)."""
+        """Read a light-plane JSON file (docs/conventions.md §Plane file)."""
         from .io import read_json
 
         return cls.from_dict(read_json(path, "plane file"), source=str(path))
@@ -174,7 +174,7 @@ class LightPlane:
 
 
 # =====================================================================================
-# Light-plane calibration from a circular target (paper §2.2.3, SPEC §7)
+# Light-plane calibration from a circular target (paper §2.2.3, docs/method.md §Light plane)
 # =====================================================================================
 #
 # Per placement i: rim points -> conic -> two circle poses (paper §2.2.2) -> stripe
@@ -663,7 +663,7 @@ class _ChordMoments:
 
 
 def _solve_global(cands, idx, sigma_px, *, max_exhaustive: int = 16, rng=None, n_samples: int = 400) -> _GlobalOutcome:
-    """Order-independent choice of one chord per placement (SPEC §7, beyond the paper).
+    """Order-independent choice of one chord per placement (docs/method.md §Global disambiguation, beyond the paper).
 
     Minimises ``J = Σ_i msd_i / tau_i²`` (the weighted plane-fit cost of the chosen
     chords; tau from the module's noise model) over all 2^n choices: exhaustively
@@ -974,7 +974,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
                                 paper_rel_change: float = 1e-3,
                                 rng: np.random.Generator | None = None,
                                 ml_options: dict | None = None) -> PlaneCalibration:
-    """Calibrate the light plane from rim and stripe points of a circular target (paper §2.2, SPEC §7).
+    """Calibrate the light plane from rim and stripe points of a circular target (paper §2.2, docs/method.md §Light plane).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Point clouds: one record per measured point, written and read as PLY, CSV or NPY (SPEC §10).
+"""Point clouds: one record per measured point, written and read as PLY, CSV or NPY (docs/conventions.md §Point clouds).
 
 A cloud is a numpy structured array of :data:`POINT_DTYPE` records (32 bytes each):
 

@@ -1,4 +1,4 @@
-"""Joint maximum-likelihood refinement of the light plane and every target pose (SPEC §7).
+"""Joint maximum-likelihood refinement of the light plane and every target pose (docs/method.md §ML refinement).
 
 Goes beyond the paper's progressive fit (§2.2.3): with Gaussian noise on the
 detected rim (ellipse edge) points and stripe centres, in *distorted* pixels, the
@@ -779,7 +779,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
                  "sigma_stripe_px": float(sig_type[1]),
                  "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise})
     plane = LightPlane(nvec, d, cov4, meta=meta)
-    # orient each normal towards the camera (SPEC §2)
+    # orient each normal towards the camera (docs/conventions.md §Target pose)
     poses = []
     for i in range(prob.n):
         Ni = N[i] if N[i] @ C[i] < 0 else -N[i]

@@ -1,4 +1,4 @@
-"""Scans: a stream of stripe frames with known motion → one point cloud (SPEC §1 item 3).
+"""Scans: a stream of stripe frames with known motion → one point cloud (docs/method.md §Scans).
 
 The object moves through the light sheet (conveyor, linear stage); every frame gives
 one profile (:class:`lightplane.measure.ProfileMeasurer`), and the known motion maps

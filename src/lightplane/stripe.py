@@ -1,6 +1,6 @@
 """Laser stripe centres: Steger's curvilinear-structure detector and fast per-column profiles.
 
-SPEC §5.2 (paper §2.2.1).  Gaussian derivatives ``r_u, r_v, r_uu, r_uv, r_vv`` of the
+docs/method.md §Stripe centres (paper §2.2.1, Eq. 5–6).  Gaussian derivatives ``r_u, r_v, r_uu, r_uv, r_vv`` of the
 image give the Hessian ``H = [[r_uu, r_uv], [r_uv, r_vv]]``; its eigenvector ``n`` of
 the most negative eigenvalue ``lambda`` is the stripe normal, ``-lambda`` the ridge
 strength.  Scale: ``sigma >= w / sqrt(3)``, ``w`` the stripe's *half*-width (Steger

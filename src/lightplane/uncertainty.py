@@ -1,4 +1,4 @@
-"""Uncertainty of triangulated points from the light plane's covariance (SPEC §7, STYLE habit 10).
+"""Uncertainty of triangulated points from the light plane's covariance (docs/method.md §Point uncertainty).
 
 A stripe pixel with undistorted normalised ray ``x̃ = (x, y, 1)`` triangulates to
 ``X = −d x̃ / (n·x̃)`` (paper Eq. 2/4).  To first order an error ``δ(a, b, c, d)`` of
@@ -103,7 +103,7 @@ def working_volume_grid(camera: Camera, plane: LightPlane, *, distance_mm: tuple
     """Sample the image on a grid and keep pixels whose ray meets the plane at a distance in ``distance_mm``.
 
     That is the region where the stripe can be seen on objects in the working volume
-    (SPEC §9: 380–520 mm).  Raises if no pixel qualifies.
+    (docs/conventions.md §Default sensor: 380–520 mm).  Raises if no pixel qualifies.
     """
     if step_px <= 0:
         raise LightplaneError(f"step_px must be positive, got {step_px}")

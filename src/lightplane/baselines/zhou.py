@@ -1,4 +1,4 @@
-"""Zhou's planar-target light-plane calibration (paper ref. [14]; SPEC §8), the baseline.
+"""Zhou's planar-target light-plane calibration (paper ref. [14]; docs/method.md §Zhou baseline), the baseline.
 
 Per image, a planar target (chessboard, circle grid or ChArUco: :mod:`lightplane.targets`)
 with the laser stripe across it: the board pose ``T_cam_board`` comes from its points

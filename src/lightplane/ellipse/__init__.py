@@ -1,4 +1,4 @@
-"""Ellipse detection (arc-support line segments) and sub-pixel refinement (SPEC §5.1).
+"""Ellipse detection (arc-support line segments) and sub-pixel refinement (docs/method.md §Ellipse).
 
 - :class:`Ellipse` — the project's one ellipse type (centre, a >= b, angle, conic).
 - :func:`detect_ellipses` — arc-support-segment detector (Lu et al. 2020, RALS).

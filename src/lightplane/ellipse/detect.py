@@ -1,4 +1,4 @@
-"""Ellipse detection with arc-support line segments (SPEC §5.1; Lu, Xia, Shao, Fu,
+"""Ellipse detection with arc-support line segments (docs/method.md §Ellipse; Lu, Xia, Shao, Fu,
 "Arc-support line segments revisited: an efficient high-quality ellipse detection",
 IEEE TIP 29, 2020 — the paper's RALS detector).
 
@@ -631,7 +631,7 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
                     min_inlier_ratio: float = 0.7, min_coverage: float = 0.7,
                     use_contours: bool | None = None, downscale: int | None = None,
                     lsd_scale: float = 0.8) -> list[Ellipse]:
-    """Detect ellipses in a gray or colour, 8-/16-bit/float image (SPEC §5.1, RALS).
+    """Detect ellipses in a gray or colour, 8-/16-bit/float image (docs/method.md §Ellipse, RALS).
 
     Parameters
     ----------

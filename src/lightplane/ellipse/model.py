@@ -1,6 +1,6 @@
-"""The project's one ellipse type, conic conversions and ellipse fitting (SPEC §5.1).
+"""The project's one ellipse type, conic conversions and ellipse fitting (docs/method.md §Ellipse).
 
-Conventions (SPEC §2): pixel ``(u, v)``, x right, y down, ``(0, 0)`` the centre of
+Conventions (docs/conventions.md §Pixels): pixel ``(u, v)``, x right, y down, ``(0, 0)`` the centre of
 the top-left pixel.  ``angle`` is the direction of the major semi-axis ``a``,
 measured from +x towards +y (the same sense as ``cv2.ellipse``), in ``[0, pi)``.
 

@@ -1,4 +1,4 @@
-"""Sub-pixel refinement of a detected ellipse for metrology (SPEC §5.1).
+"""Sub-pixel refinement of a detected ellipse for metrology (docs/method.md §Ellipse).
 
 Edge points are found along the ellipse's normals (gradient-magnitude peak, Gaussian
 fit through three samples), outliers are rejected with the median absolute deviation
@@ -19,7 +19,7 @@ gradient profiles across the rim (:func:`edge_blur_sigma`), shifts each edge poi
 outward along its normal by the predicted bias and refits.
 
 With a camera the edge points are undistorted first
-and the conic is in *undistorted* pixels, the input of ``circle_poses`` (SPEC §6).
+and the conic is in *undistorted* pixels, the input of ``circle_poses`` (docs/method.md §Circle pose).
 The conic's centre is not the image of the circle's centre under perspective: use
 the pose solution for that.
 """
@@ -205,7 +205,7 @@ def _fit_edge_points(uv: np.ndarray, geometric: bool, what: str):
 def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px: float | None = None,
                    sigma_px: float = 0.8, polarity: str | int | None = None, iterations: int = 3,
                    min_inliers: int = 20, correct_curvature: bool = True) -> RefinedEllipse:
-    """Refine ``ellipse`` on ``image`` to sub-pixel accuracy (SPEC §5.1).
+    """Refine ``ellipse`` on ``image`` to sub-pixel accuracy (docs/method.md §Ellipse).
 
     Parameters
     ----------

@@ -1,6 +1,6 @@
 """Choosing the circular target in a calibration image: the ellipse the stripe crosses.
 
-A calibration image (paper §2.2, SPEC §9) shows the target disc with the laser
+A calibration image (paper §2.2, docs/conventions.md §Default sensor) shows the target disc with the laser
 stripe crossing it along a chord, and possibly clutter: other circles and holes,
 rectangles, a saturated stripe.  The target is
 

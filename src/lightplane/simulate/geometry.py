@@ -1,8 +1,8 @@
-"""Sensor geometry and target placements with exact ground truth (SPEC §9, paper §3).
+"""Sensor geometry and target placements with exact ground truth (docs/conventions.md §Default sensor, paper §3).
 
 Two sensors are defined here:
 
-- lightplane's default sensor (SPEC §9): a 1280x960 camera with 3.75 µm pixels and
+- lightplane's default sensor (docs/conventions.md §Default sensor): a 1280x960 camera with 3.75 µm pixels and
   a 16 mm lens (``fx = fy = 16 / 0.00375 = 4266.667 px``), principal point off
   centre, moderate plumb-bob distortion; a light plane that contains the camera's
   y direction, is oblique to the optical axis by 25° and crosses it at
@@ -14,7 +14,7 @@ Two sensors are defined here:
 
 A :class:`TargetPlacement` is a flat circular disc (centre, unit normal towards the
 camera, diameter) in the camera frame; :func:`sample_placements` draws random ones
-that satisfy SPEC §9, :func:`synthetic_observations` turns one into noisy pixel
+that satisfy docs/conventions.md §Default sensor, :func:`synthetic_observations` turns one into noisy pixel
 points on the rim and on the stripe.
 
 >>> import numpy as np
@@ -57,7 +57,7 @@ _DEFAULT_AXIS_Z_MM = 450.0
 
 
 def default_camera(distortion: bool = True) -> Camera:
-    """lightplane's default camera (SPEC §9).
+    """lightplane's default camera (docs/conventions.md §Default sensor).
 
     1280x960 pixels of 3.75 µm, 16 mm lens: ``fx = fy = 16 / 0.00375 = 4266.667 px``;
     principal point (652.3, 471.8) px (off centre); distortion
@@ -71,7 +71,7 @@ def default_camera(distortion: bool = True) -> Camera:
 
 
 def default_plane() -> LightPlane:
-    """lightplane's default light plane (SPEC §9).
+    """lightplane's default light plane (docs/conventions.md §Default sensor).
 
     The plane contains the camera's y direction and the line through (0, 0, 450) mm
     with direction ``(sin 25°, 0, cos 25°)``: 25° oblique to the optical axis,
@@ -101,7 +101,7 @@ def paper_camera() -> Camera:
 def paper_plane() -> LightPlane:
     """The paper's simulated light plane ``0.9336 y - 0.3584 z + 140.04 = 0`` (§3).
 
-    Stored with ``d < 0`` (SPEC §2), i.e. ``-0.9336 y + 0.3584 z - 140.04 = 0``
+    Stored with ``d < 0`` (docs/conventions.md §Light plane), i.e. ``-0.9336 y + 0.3584 z - 140.04 = 0``
     (the coefficients' norm is 1.0000 to 4 digits; it is normalised exactly).
     It crosses the optical axis at z = 390.7 mm; the laser is 150 mm above the camera.
     """
@@ -149,7 +149,7 @@ class TargetPlacement:
             raise LightplaneError("TargetPlacement: normal must not be zero")
         n = n / nn
         if n @ c > 0:
-            n = -n  # SPEC §2: towards the camera
+            n = -n  # docs/conventions.md §Target pose: towards the camera
         c.setflags(write=False)
         n.setflags(write=False)
         object.__setattr__(self, "center", c)
@@ -231,7 +231,7 @@ def sample_placements(
     margin_px: float = 20.0,
     max_tries: int = 100000,
 ) -> list[TargetPlacement]:
-    """Draw ``n`` random disc placements that satisfy SPEC §9.
+    """Draw ``n`` random disc placements that satisfy docs/conventions.md §Default sensor.
 
     Each placement: a point P on the light plane, seen in the image, at a distance in
     ``distance_mm``; the disc centre C shifted from P within the disc plane,

@@ -1,6 +1,6 @@
 """Synthetic images with exact ground truth: circle-target, chessboard and scan scenes.
 
-The scenes use lightplane's default sensor (SPEC §9,
+The scenes use lightplane's default sensor (docs/conventions.md §Default sensor,
 :mod:`lightplane.simulate.geometry`) unless a camera and plane are given.  Images
 are made by supersampled ray casting through the *distorted* camera
 (:mod:`lightplane.simulate.render_core`: ``4 x 4`` stratified jittered samples per
@@ -14,7 +14,7 @@ Difficulty levels (:data:`DIFFICULTIES`):
 - ``realistic``: laser speckle (multiplicative, spatially correlated modulation of
   the sheet: 25 % at a point, correlated over ~1 px; it puts ~0.11 px of noise on each
   stripe centre at Steger's minimum scale, ~0.08 px at the scales recommended for
-  speckled stripes: the low end of SPEC §5.2's physical 0.1–0.3 px), mild defocus
+  speckled stripes: the low end of the physical 0.1–0.3 px of docs/conventions.md §Noise), mild defocus
   (PSF σ 0.9 px), vignetting, realistic noise, and exposure varying by ±15 % between
   images;
 - ``hard``: as realistic but with stronger speckle (30 %: ~0.13 px per centre), plus
@@ -433,7 +433,7 @@ def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, m
 def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realistic", polarity: str = "light",
                           camera: Camera | None = None, plane: LightPlane | None = None, diameter_mm: float = 50.0,
                           *, laser_off: bool = False, noise: bool = True, progress=None) -> Dataset:
-    """``n`` images of a circular target (SPEC §9 placements) crossed by the stripe.
+    """``n`` images of a circular target (docs/conventions.md §Default sensor placements) crossed by the stripe.
 
     Truth (``Dataset.truth``): ``plane``; per image ``file``, ``target`` (centre and
     normal in mm, camera frame; rim conic in undistorted px; chord endpoints in mm),
@@ -661,7 +661,7 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
     one square, in the board frame of OpenCV (inner corners at ``(i, j, 0) * square``,
     z away from the camera).  ``with_stripe``: the laser is on and every board is posed
     so the stripe crosses its corners (for Zhou's method and the cross-ratio check,
-    SPEC §8); ``laser_off`` adds, for each view, a companion image of the same pose with
+    docs/method.md §Zhou baseline, §Cross-ratio check); ``laser_off`` adds, for each view, a companion image of the same pose with
     the laser off (``board_XXX_off.png``).
     ``board``, ``square_mm``, ``distance_mm`` (board centre), ``tilt_deg`` and
     ``centre_frac`` (see :func:`sample_board_poses`) left as None take

@@ -22,14 +22,14 @@ unit direction from ``p`` to ``L`` and a shadow test along ``p -> L`` (the disc
 shadows the background).  ``speckle(p)`` is ``max(0, 1 + c·noise(p))`` with a
 smooth 3-D value noise of unit variance and lattice spacing ``corr_mm``, so ``c`` is
 the standard deviation of the modulation at a point (before pixel averaging):
-a multiplicative, spatially correlated modulation of the sheet (SPEC §5.2).
+a multiplicative, spatially correlated modulation of the sheet (docs/conventions.md §Noise; docs/method.md §Renderer).
 
 Pixels are integrated by stratified jittered supersampling: ``S x S`` samples in
 every pixel, then every pixel whose samples do not all see the same material
 (and its 8 neighbours) is integrated again with ``F x F`` samples, so edges are
 anti-aliased to ~1e-3 px without paying ``F²`` everywhere.  Each sample's pixel
 position is mapped to its camera ray through the *distorted* camera by Newton's
-method on the exact plumb-bob model (SPEC §3), started from the pixel centre's
+method on the exact plumb-bob model (docs/conventions.md §Lens model), started from the pixel centre's
 solution (two or three steps reach 1e-15).  Sample positions come from a
 deterministic integer hash, so the same scene gives the same bytes.
 """
@@ -204,7 +204,7 @@ def _value_noise(x, y, z, seed):
 
 @nb.njit(**_jit)
 def _undistort(xd, yd, x, y, k1, k2, p1, p2, k3, max_iter):
-    """Newton's method for distort(x, y) = (xd, yd), started at (x, y) (SPEC §3)."""
+    """Newton's method for distort(x, y) = (xd, yd), started at (x, y) (docs/conventions.md §Lens model)."""
     for _ in range(max_iter):
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -422,7 +422,7 @@ def _shade(patches, spheres, laser, ambient, x, y, tex):
 @nb.njit(parallel=True, **_jit)
 def undistort_grid(fx, fy, cx, cy, dist, width, height, offset):
     """Normalised undistorted ``(x, y)`` of the pixel positions ``(j + offset, i + offset)``,
-    ``i < height, j < width``: ``(height, width, 2)`` float64 (Newton, SPEC §3)."""
+    ``i < height, j < width``: ``(height, width, 2)`` float64 (Newton, docs/conventions.md §Lens model)."""
     out = np.empty((height, width, 2))
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in nb.prange(height):
@@ -543,7 +543,7 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     from ..errors import LightplaneError
 
     if abs(camera.skew) > 0:
-        raise LightplaneError(f"the renderer models zero skew (SPEC §3); camera has K[0, 1] = {camera.skew}")
+        raise LightplaneError(f"the renderer models zero skew (docs/conventions.md §Lens model); camera has K[0, 1] = {camera.skew}")
     if int(samples) < 4:
         raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
     patches = np.ascontiguousarray(patches, dtype=np.float64).reshape(-1, PATCH_COLS)

@@ -1,4 +1,4 @@
-"""The paper's simulation study (§3, SPEC §9): accuracy against placements, noise and diameter.
+"""The paper's simulation study (§3; docs/method.md §Simulation study): accuracy against placements, noise and diameter.
 
 Geometry: :func:`~lightplane.simulate.geometry.paper_camera` (f = 25 mm, no
 distortion) and :func:`~lightplane.simulate.geometry.paper_plane`
