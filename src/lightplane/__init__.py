@@ -29,10 +29,20 @@ from .uncertainty import point_sigma_mm
 from .measure import Profile, ProfileMeasurer, measure_profile
 from .pointcloud import read_cloud, write_cloud
 from .scan import Motion, measure_scan
+from .targets import Detection, Target, parse_target
+from .intrinsics import calibrate_camera
+from .baselines.zhou import calibrate_plane_board
+from .evaluate import evaluate_images
 
 __all__ = [
     "Camera",
     "CirclePose",
+    "Detection",
+    "Target",
+    "calibrate_camera",
+    "calibrate_plane_board",
+    "evaluate_images",
+    "parse_target",
     "DistanceErrors",
     "Ellipse",
     "LightPlane",
