@@ -1,0 +1,104 @@
+"""``lightplane measure-batch``: many scans (a manifest CSV) on a Dask cluster → one Parquet dataset."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..errors import LightplaneError
+from ._common import app, console, err_console, fail, handles_errors
+
+#: per-scan progress bars up to this many scans (then the overall bar only)
+MAX_SCAN_BARS = 12
+
+
+@app.command("measure-batch")
+@handles_errors
+def measure_batch_cmd(
+    manifest: Path = typer.Argument(..., help="Manifest CSV: header id,input,camera,plane[,step,direction,positions]; "
+                                    "direction written x;y;z; relative paths from the manifest's folder."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder: points/scan=<id>/part-<k>.parquet, "
+                                "manifest.json (created; re-running resumes)."),
+    local_workers: Optional[int] = typer.Option(None, "--local-workers", help="Start N single-threaded worker "
+                                                "processes on this machine (a Dask LocalCluster)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler, "
+                                            "tcp://HOST:PORT (workers must see the same paths)."),
+    chunk_frames: int = typer.Option(200, "--chunk-frames", help="Frames per task (a scan is split into chunks)."),
+    ply: bool = typer.Option(False, "--ply", help="Also write one PLY per scan (ply/<id>.ply)."),
+    roi: Optional[str] = typer.Option(None, "--roi", help="Region X0,Y0,X1,Y1 in px (X1, Y1 exclusive), all scans."),
+    axis: str = typer.Option("auto", "--axis", help="One centre per 'columns', 'rows', or 'auto' (from the plane)."),
+    channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
+    stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width (FWHM) px; default: "
+                                                 "estimated on each scan's first frame."),
+    smooth: int = typer.Option(0, "--smooth", help="Smooth the centres along the stripe over N lines (odd >= 5; 0: off)."),
+    sigma_along: Optional[float] = typer.Option(None, "--sigma-along", help="Gaussian scale along the stripe, px "
+                                                "(as in measure)."),
+) -> None:
+    """Measure every scan of a manifest on a Dask cluster; the same points as `measure`, bit for bit.
+
+    Each scan's frames are cut into chunks of --chunk-frames; each chunk is one task that
+    reads its own frames and writes one Parquet partition atomically.  Re-running the same
+    command skips the partitions already complete.  A scan that fails (missing input,
+    unreadable calibration, wrong frame size) is reported and the others go on; exit 2 only
+    when no scan could be measured.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ..batch import measure_batch, read_manifest
+    from .measure import parse_roi
+
+    if (local_workers is None) == (scheduler is None):
+        raise LightplaneError("give either --local-workers N or --scheduler tcp://HOST:PORT")
+    if local_workers is not None and local_workers < 1:
+        raise LightplaneError(f"--local-workers must be >= 1, got {local_workers}")
+    if chunk_frames < 1:
+        raise LightplaneError(f"--chunk-frames must be >= 1, got {chunk_frames}")
+    if axis not in ("auto", "columns", "rows"):
+        raise LightplaneError(f"--axis must be auto, columns or rows, got {axis!r}")
+    roi_box = parse_roi(roi) if roi is not None else None
+    scans = read_manifest(manifest)
+    stripe = {"smooth_lines": smooth, **({} if sigma_along is None else {"sigma_along_px": sigma_along})}
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        overall = bar.add_task("all scans (chunks)", total=None)
+        per_scan: dict = {}
+        state: dict = {}
+
+        def progress(sid: str, done: int, total: int) -> None:
+            state[sid] = (done, total)
+            if len(scans) <= MAX_SCAN_BARS:
+                if sid not in per_scan:
+                    per_scan[sid] = bar.add_task(f"scan {sid}", total=total)
+                bar.update(per_scan[sid], completed=done, total=total)
+            bar.update(overall, completed=sum(d for d, _ in state.values()),
+                       total=sum(t for _, t in state.values()))
+
+        def dashboard(link) -> None:
+            console.print(f"Dask dashboard: {link}" if link else "Dask dashboard: not available (install bokeh)")
+
+        r = measure_batch(scans, output, scheduler=scheduler, local_workers=local_workers, chunk_frames=chunk_frames,
+                          axis=axis, roi=roi_box, width_px=stripe_width, channel=channel, ply=ply,
+                          progress=progress, on_dashboard=dashboard, **stripe)
+
+    ok = [s for s in r.scans if s["status"] == "ok"]
+    console.print(f"{len(ok)} of {len(r.scans)} scans measured: {r.n_frames} frames, {r.n_points} points, "
+                  f"{r.partitions_written} partitions written, {r.partitions_reused} already complete, "
+                  f"{r.seconds:.1f} s ({r.n_frames / max(r.seconds, 1e-9):.0f} frames/s)")
+    for s in r.scans:
+        if s["skipped"]:
+            from ..io import summarize_reasons
+
+            err_console.print(f"warning: scan {s['id']}: {len(s['skipped'])} unreadable frame(s) skipped: "
+                              + summarize_reasons([(name, why) for _, name, why in s["skipped"]]))
+    for s in r.failed:
+        err_console.print(f"failed: scan {s['id']} (manifest row {_row(scans, s['id'])}): {s['error']}")
+    console.print(f"wrote {Path(output) / 'points'} and {Path(output) / 'manifest.json'}")
+    if not ok:
+        fail(f"no scan could be measured ({len(r.failed)} failed; see above and {Path(output) / 'manifest.json'})")
+
+
+def _row(scans, sid: str) -> int:
+    return next((s.row for s in scans if s.id == sid), 0)
