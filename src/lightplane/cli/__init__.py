@@ -17,6 +17,7 @@ from . import (  # noqa: E402,F401
     demo,
     evaluate,
     measure,
+    measure_batch,
     render,
     simulate,
 )
