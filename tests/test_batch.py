@@ -1,0 +1,194 @@
+"""`lightplane measure-batch` / lightplane.batch on a LocalCluster of 2 worker processes.
+
+Same points as the single-process `measure` (bitwise), whatever the chunking; a worker
+killed mid-run loses and duplicates nothing; a re-run writes only the missing
+partitions; bad scans fail alone.  A few rendered frames keep this short.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed")
+pytest.importorskip("pyarrow")
+
+from lightplane import Camera, LightPlane  # noqa: E402
+from lightplane.batch import measure_batch, read_manifest, read_points  # noqa: E402
+from lightplane.errors import LightplaneError  # noqa: E402
+from lightplane.scan import Motion, measure_scan, open_frames  # noqa: E402
+from lightplane.simulate.render import render_scan_dataset  # noqa: E402
+
+N_FRAMES = 5
+STEP = 1.5
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("batch")
+    ds = render_scan_dataset("sphere", n_frames=N_FRAMES, step_mm=STEP, seed=2)
+    ds.save(d / "s1")
+    LightPlane.from_dict(ds.truth["plane"]).save(d / "plane.json")
+    (d / "manifest.csv").write_text(
+        "id,input,camera,plane,step,direction,positions\n"
+        f"s1,s1,s1/camera.json,plane.json,{STEP},-1;0;0,\n"
+        "s2,s1/*.png,s1/camera.json,plane.json,,,\n")
+    return d
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    c = Client(cluster)
+    yield c
+    c.close()
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def reference(data, tmp_path_factory):
+    """The single-process, threaded `measure` path (2 threads), as NPY records."""
+    out = tmp_path_factory.mktemp("ref")
+    cam, pl = Camera.load(data / "s1" / "camera.json"), LightPlane.load(data / "plane.json")
+    ref = {}
+    for sid, motion in (("s1", Motion.linear(STEP, (-1, 0, 0))), ("s2", Motion.none())):
+        measure_scan(open_frames([data / "s1"]), cam, pl, out / f"{sid}.npy", motion=motion, workers=2,
+                     executor="thread")
+        ref[sid] = np.load(out / f"{sid}.npy")
+    return ref
+
+
+def same(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp_path):
+    import pyarrow.dataset as pds
+
+    for chunk in (2, 5):
+        out = tmp_path / f"c{chunk}"
+        r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=chunk)
+        assert not r.failed, r.failed
+        n_parts = -(-N_FRAMES // chunk)
+        for sid in ("s1", "s2"):
+            assert same(read_points(out, sid), reference[sid]), (chunk, sid)
+            parts = sorted(p.name for p in (out / "points" / f"scan={sid}").iterdir())
+            assert parts == [f"part-{k}.parquet" for k in range(n_parts)]
+        assert r.partitions_written == 2 * n_parts and r.partitions_reused == 0
+        assert r.n_frames == 2 * N_FRAMES
+    # one hive-partitioned dataset, measure's CSV columns
+    t = pds.dataset(out / "points", format="parquet", partitioning="hive").to_table()
+    assert t.num_rows == reference["s1"].size + reference["s2"].size
+    assert set(t.column_names) == {"x", "y", "z", "frame", "intensity", "sigma_mm", "u", "v", "scan"}
+    import json
+
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["summary"]["ok"] == 2 and m["provenance"]["versions"]["lightplane"]
+    assert [p["frames"] for p in m["scans"][0]["partitions"]] == [[0, N_FRAMES]]
+
+
+def test_resume_rewrites_only_the_missing_partition(data, client, reference, tmp_path):
+    out = tmp_path / "out"
+    measure_batch(data / "manifest.csv", out, client=client, chunk_frames=2)
+    folder = out / "points" / "scan=s1"
+    (folder / "part-1.parquet").unlink()
+    before = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
+    r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=2)
+    assert r.partitions_written == 1 and r.partitions_reused == 5
+    after = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
+    assert set(after) == set(before) | {folder / "part-1.parquet"}
+    assert all(after[p] == t for p, t in before.items())  # the others were not touched
+    assert same(read_points(out, "s1"), reference["s1"]) and same(read_points(out, "s2"), reference["s2"])
+    # another chunking: nothing stale is kept
+    r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=3)
+    assert r.partitions_written == 4 and same(read_points(out, "s1"), reference["s1"])
+    assert sorted(p.name for p in folder.iterdir()) == ["part-0.parquet", "part-1.parquet"]
+
+
+def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
+    frames = tmp_path / "frames"
+    shutil.copytree(data / "s1", frames)
+    (frames / sorted(p.name for p in frames.glob("*.png"))[2]).write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    shutil.copy(data / "plane.json", tmp_path / "plane.json")
+    (tmp_path / "m.csv").write_text(
+        "id,input,camera,plane\n"
+        "good,frames,frames/camera.json,plane.json\n"
+        "gone,no-such-folder,frames/camera.json,plane.json\n"
+        "nocam,frames,missing.json,plane.json\n")
+    addr = client.scheduler.address
+    cmd = [sys.executable, "-m", "lightplane", "measure-batch", str(tmp_path / "m.csv"), "-o", str(tmp_path / "o"),
+           "--scheduler", addr, "--chunk-frames", "2", "--ply"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "1 of 3 scans measured" in r.stdout
+    assert "scan gone" in r.stderr and "scan nocam" in r.stderr and "unreadable frame" in r.stderr
+    import json
+
+    m = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    good = m["scans"][0]
+    assert good["status"] == "ok" and good["n_frames"] == N_FRAMES and len(good["skipped"]) == 1
+    assert good["skipped"][0][0] == 2 and "truncated" in good["skipped"][0][2]
+    assert [s["status"] for s in m["scans"]] == ["ok", "failed", "failed"]
+    assert (tmp_path / "o" / "ply" / "good.ply").is_file()
+    # nothing measurable: exit 2, one error line at the end
+    (tmp_path / "bad.csv").write_text("id,input,camera,plane\ngone,no-such-folder,frames/camera.json,plane.json\n")
+    cmd[4], cmd[6] = str(tmp_path / "bad.csv"), str(tmp_path / "o2")
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "no scan could be measured" in r.stderr.splitlines()[-1]
+
+
+def test_manifest_errors(tmp_path):
+    bad = {"no header": "s1,a,b,c\n", "dup": "id,input,camera,plane\na,x,y,z\na,x,y,z\n",
+           "unknown": "id,input,camera,plane,speed\na,x,y,z,1\n", "id": "id,input,camera,plane\n../a,x,y,z\n"}
+    for name, text in bad.items():
+        (tmp_path / "m.csv").write_text(text)
+        with pytest.raises(LightplaneError):
+            read_manifest(tmp_path / "m.csv")
+    (tmp_path / "m.csv").write_text("id,input,camera,plane,direction\na,x,y,z,1;0;0\n")
+    s = read_manifest(tmp_path / "m.csv")[0]
+    assert s.input == str(tmp_path / "x") and s.direction == "1;0;0"
+
+
+def test_worker_killed_mid_run_loses_and_duplicates_nothing(data, client, reference, tmp_path):
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class KillFirstChunk(WorkerPlugin):
+        """The first worker to start a chunk task exits at once (only once, cluster-wide: a marker file).
+
+        Defined here so that it is pickled by value (the workers cannot import this module)."""
+
+        name = "kill-first-chunk"
+
+        def __init__(self, marker: str) -> None:
+            self.marker = marker
+
+        def transition(self, key, start, finish, **kwargs) -> None:
+            if finish == "executing" and str(key).startswith("chunk-"):
+                try:
+                    fd = os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                except FileExistsError:
+                    return
+                os.write(fd, str(key).encode())
+                os.close(fd)
+                os._exit(1)
+
+    plugin = KillFirstChunk(str(tmp_path / "killed"))
+    client.register_plugin(plugin, name=plugin.name)
+    try:
+        r = measure_batch(data / "manifest.csv", tmp_path / "out", client=client, chunk_frames=1)
+    finally:
+        client.unregister_worker_plugin(plugin.name)
+    assert (tmp_path / "killed").is_file(), "no worker was killed"
+    assert not r.failed and r.partitions_written == 2 * N_FRAMES
+    for sid in ("s1", "s2"):
+        got = read_points(tmp_path / "out", sid)
+        assert same(got, reference[sid])
+        assert np.array_equal(np.unique(got["frame"]), np.arange(N_FRAMES))
