@@ -134,3 +134,24 @@ def test_camera_calibration_circles_cli(tmp_path):
         assert abs(est - true) < 3 * info["std"][name] + 1e-9, (name, est, true, info["std"][name])
     assert info["target"]["kind"] == "circles" and info["views_skipped"]
     assert 0.0 < info["corners"]["circle_centre_correction_px"] < 0.2
+
+
+def test_charuco_partial_views_calibrate(tmp_path):
+    """A hand over half the board: ChArUco views with part of the corners are used, with their ids."""
+    from lightplane.intrinsics import calibrate_camera
+
+    t = Target("charuco", 11, 8, 12.0, 9.0, "DICT_4X4_50")
+    ds = render_target_dataset(t, n=6, seed=11, difficulty="realistic")
+    images = [im.copy() for im in ds.images]
+    for k in (1, 4):  # cover the half of the board left of its centre in these views
+        c = np.asarray(ds.truth["views"][k]["points_px"]).mean(axis=0)
+        images[k][:, : int(c[0])] = 128
+    res = calibrate_camera(images, t, names=ds.names)
+    n = dict(zip(res.used, (len(c) for c in res.corners_uv)))
+    assert len(res.used) == 6 and not res.skipped
+    assert all(n[ds.names[k]] < t.n_points for k in (1, 4)) and n[ds.names[0]] == t.n_points
+    for k in (1, 4):
+        i = res.used.index(ds.names[k])
+        truth = np.asarray(ds.truth["views"][k]["points_px"])[res.ids[i]]
+        assert np.sqrt(np.mean(np.sum((res.corners_uv[i] - truth) ** 2, axis=1))) < 0.1
+    assert res.to_dict()["target"]["kind"] == "charuco"
