@@ -33,9 +33,9 @@ def _err(result) -> str:
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["render", "cube", "--out", "{out}"], "unknown scene"),
-        (["render", "circle", "--out", "{out}", "--n", "0"], "--n must be at least 1"),
-        (["render", "circle", "--out", "{out}", "--n", "-3"], "--n must be at least 1"),
+        (["render", "cube", "--out", "{out}"], "'cube' is not one of 'circle', 'chessboard', 'target', 'scan'"),
+        (["render", "circle", "--out", "{out}", "--n", "0"], "'--n': Input should be greater than or equal to 1"),
+        (["render", "circle", "--out", "{out}", "--n", "-3"], "'--n': Input should be greater than or equal to 1"),
         (["render", "circle", "--out", "{out}", "--difficulty", "extreme"], "--difficulty"),
         (["render", "circle", "--out", "{out}", "--polarity", "grey"], "--polarity"),
         (["render", "scan", "--out", "{out}", "--kind", "cone"], "--kind"),

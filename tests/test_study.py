@@ -74,8 +74,8 @@ def test_cli_writes_csv_png_json_and_refuses_overwrite(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["simulate", "bogus", "--out", "{tmp}"], "factor must be one of"),
-    (["simulate", "noise", "--out", "{tmp}", "--trials", "0"], "--trials must be >= 1"),
+    (["simulate", "bogus", "--out", "{tmp}"], "'bogus' is not one of 'placements', 'noise', 'diameter', 'all'"),
+    (["simulate", "noise", "--out", "{tmp}", "--trials", "0"], "'--trials': Input should be greater than or equal to 1"),
     (["simulate", "noise", "--out", "{tmp}", "--rim-points", "2"], "--rim-points"),
 ])
 def test_cli_bad_arguments_exit_2(tmp_path, args, message, capfd):

@@ -126,6 +126,98 @@ class ImageObservation:
         }
 
 
+    def to_record(self) -> dict:
+        """Everything :mod:`lightplane.report` draws for this image, points included (exact; the
+        plane file's ``report_inputs.images`` entries); :meth:`from_record` reads it back."""
+        e = self.ellipse
+        return {
+            "index": int(self.index), "source": self.source, "ok": bool(self.ok), "reason": self.reason,
+            "used": bool(self.used), "shape": [int(x) for x in self.shape],
+            "ellipse": None if e is None else {"centre": [float(e.centre[0]), float(e.centre[1])],
+                                               "a": float(e.a), "b": float(e.b), "angle_rad": float(e.angle)},
+            "conic_undistorted": None if self.conic_undistorted is None else _pack(self.conic_undistorted),
+            "rim_uv": _pack(self.rim_uv), "stripe_uv": _pack(self.stripe_uv),
+            "stripe_raw_uv": _pack(self.stripe_raw_uv), "stripe_bin": int(self.stripe_bin),
+            "chord_px": None if self.chord_px is None else _pack(self.chord_px),
+            "rim_fit_rms_px": _num(self.rim_fit_rms_px), "n_candidates": int(self.n_candidates),
+            "placement": None if self.placement is None else _placement_record(self.placement),
+            "seconds": float(self.seconds),
+        }
+
+    @classmethod
+    def from_record(cls, r: dict) -> "ImageObservation":
+        """The observation :meth:`to_record` wrote."""
+        from .ellipse import Ellipse
+
+        e = r.get("ellipse")
+        ell = None if e is None else Ellipse.from_params(e["centre"], e["a"], e["b"], e["angle_rad"])
+        opt = {k: (None if r.get(k) is None else _unpack(r[k])) for k in ("conic_undistorted", "chord_px")}
+        p = r.get("placement")
+        return cls(index=int(r["index"]), source=str(r["source"]), ok=bool(r["ok"]), reason=str(r["reason"]),
+                   used=bool(r["used"]), shape=tuple(int(x) for x in r["shape"]), ellipse=ell,
+                   rim_uv=_unpack(r["rim_uv"]), stripe_uv=_unpack(r["stripe_uv"]),
+                   stripe_raw_uv=_unpack(r["stripe_raw_uv"]), stripe_bin=int(r["stripe_bin"]),
+                   rim_fit_rms_px=_nan(r.get("rim_fit_rms_px")), n_candidates=int(r.get("n_candidates", 0)),
+                   placement=None if p is None else _placement_from_record(p), seconds=float(r["seconds"]), **opt)
+
+
+# The stored inputs of the report (the plane file's ``report_inputs``): arrays as exact float64
+# (little-endian, base64), so that a rebuilt report draws the very same points.
+REPORT_INPUTS_VERSION = 1
+
+
+def _pack(a) -> dict:
+    import base64
+
+    a = np.ascontiguousarray(a, dtype="<f8")
+    return {"shape": list(a.shape), "float64_base64": base64.b64encode(a.tobytes()).decode("ascii")}
+
+
+def _unpack(d: dict) -> np.ndarray:
+    import base64
+
+    shape = tuple(int(x) for x in d["shape"])
+    a = np.frombuffer(base64.b64decode(d["float64_base64"], validate=True), dtype="<f8")
+    return a.reshape(shape).astype(np.float64)
+
+
+def _nan(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def _pose_record(q) -> dict | None:
+    return None if q is None else {"center_mm": [float(x) for x in q.center], "normal": [float(x) for x in q.normal],
+                                   "radius_mm": float(q.radius_mm)}
+
+
+def _pose_from_record(r):
+    from .circle_pose import CirclePose
+
+    if r is None:
+        return None
+    return CirclePose(np.asarray(r["center_mm"], np.float64), np.asarray(r["normal"], np.float64),
+                      float(r["radius_mm"]))
+
+
+def _placement_record(p) -> dict:
+    return {"index": int(p.index), "used": bool(p.used), "reason": p.reason, "candidate": p.candidate,
+            "pose": _pose_record(p.pose), "poses": None if p.poses is None else [_pose_record(q) for q in p.poses],
+            "n_rim": int(p.n_rim), "n_stripe": int(p.n_stripe), "rim_rms_px": _num(p.rim_rms_px),
+            "stripe_rms_px": _num(p.stripe_rms_px), "chord_rms_mm": _num(p.chord_rms_mm)}
+
+
+def _placement_from_record(r: dict):
+    from .plane import PlacementResult
+
+    poses = r.get("poses")
+    return PlacementResult(index=int(r["index"]), used=bool(r["used"]), reason=str(r["reason"]),
+                           candidate=None if r.get("candidate") is None else int(r["candidate"]),
+                           pose=_pose_from_record(r.get("pose")),
+                           poses=None if poses is None else tuple(_pose_from_record(q) for q in poses),
+                           n_rim=int(r["n_rim"]), n_stripe=int(r["n_stripe"]), rim_rms_px=_nan(r.get("rim_rms_px")),
+                           stripe_rms_px=_nan(r.get("stripe_rms_px")), chord_rms_mm=_nan(r.get("chord_rms_mm")))
+
+
 def _num(x) -> float | None:
     try:
         x = float(x)
@@ -164,6 +256,53 @@ class ImagePlaneCalibration(PlaneCalibration):
         d["n_images"] = self.n_images
         d["seconds"] = round(float(self.seconds), 3)
         return d
+
+    def report_inputs(self) -> dict:
+        """What :mod:`lightplane.report` needs to rebuild the report from the plane file alone
+        (stored as its ``report_inputs``): the camera, the solver's summary and, per image, its
+        name, size, ellipse, rim and stripe points, poses and residuals (not the image itself).
+        :meth:`from_report_inputs` reads it back."""
+        a = self.ambiguity
+        return {
+            "version": REPORT_INPUTS_VERSION,
+            "camera": None if self.camera is None else self.camera.to_dict(),
+            "method": self.method, "sigma_px": _num(self.sigma_px), "iterations": int(self.iterations),
+            "covariance": None if self.covariance is None else _pack(self.covariance),
+            "ambiguity": None if a is None else {"best_cost": _num(a.best_cost), "second_cost": _num(a.second_cost),
+                                                 "ratio": _num(a.ratio), "separated": bool(a.separated),
+                                                 "message": a.message},
+            "warnings": list(self.warnings), "diameter_mm": float(self.diameter_mm), "seconds": float(self.seconds),
+            "images": [o.to_record() for o in self.images],
+        }
+
+    @classmethod
+    def from_report_inputs(cls, plane, inputs: dict, source: str = "plane file") -> "ImagePlaneCalibration":
+        """The calibration :meth:`report_inputs` stored, around ``plane`` (a
+        :class:`~lightplane.plane.LightPlane`); raises :class:`LightplaneError` on a malformed record."""
+        from .plane import Ambiguity
+
+        try:
+            version = int(inputs.get("version", 0))
+            if version != REPORT_INPUTS_VERSION:
+                raise LightplaneError(f"{source}: report_inputs version {version} is not supported "
+                                      f"(this lightplane reads version {REPORT_INPUTS_VERSION})")
+            images = tuple(ImageObservation.from_record(r) for r in inputs["images"])
+            a = inputs.get("ambiguity")
+            amb = None if a is None else Ambiguity(_nan(a.get("best_cost")), _nan(a.get("second_cost")),
+                                                   _nan(a.get("ratio")), bool(a["separated"]), str(a["message"]))
+            cam = inputs.get("camera")
+            cov = inputs.get("covariance")
+            return cls(plane=plane, covariance=None if cov is None else _unpack(cov),
+                       sigma_px=_nan(inputs.get("sigma_px")),
+                       placements=tuple(o.placement for o in images if o.placement is not None),
+                       method=str(inputs["method"]), ambiguity=amb, warnings=tuple(inputs.get("warnings", ())),
+                       iterations=int(inputs.get("iterations", 0)), images=images,
+                       camera=None if cam is None else Camera.from_dict(cam, source=f"{source}: camera"),
+                       diameter_mm=float(inputs["diameter_mm"]), seconds=float(inputs.get("seconds", 0.0)))
+        except LightplaneError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise LightplaneError(f"{source}: field 'report_inputs' is malformed ({type(e).__name__}: {e})") from None
 
 
 # ------------------------------------------------------------------------ per image

@@ -36,7 +36,7 @@ import numpy as np
 from .errors import LightplaneError
 
 __all__ = ["Section", "write_report", "render_report_html", "figure_overlays", "figure_poses_3d",
-           "figure_residuals", "figure_uncertainty"]
+           "figure_residuals", "figure_uncertainty", "load_report_inputs", "rebuild_report"]
 
 
 @dataclass(frozen=True)
@@ -90,13 +90,38 @@ def _chord_px(cal, obs) -> np.ndarray | None:
     return cal.camera.project(ends[0] + s * (ends[1] - ends[0]))
 
 
+def _overlay_image(entry, o) -> tuple[np.ndarray | None, bool]:
+    """``(image, blank)`` for observation ``o`` from ``entry`` (an array, a file path or None):
+    the image, or — when it cannot be read or no longer has the recorded size — a blank
+    canvas of the recorded size (``blank`` True), or ``(None, True)`` without a size."""
+    from .io import try_read_image
+
+    img = None
+    if isinstance(entry, np.ndarray):
+        img = entry
+    elif isinstance(entry, (str, os.PathLike)) and not str(entry).startswith("image["):
+        img, _ = try_read_image(entry)
+    shape = tuple(o.shape[:2]) if len(o.shape) >= 2 else ()
+    if img is not None and (not shape or tuple(img.shape[:2]) == shape):
+        return img, False
+    if not shape:
+        return None, True
+    return np.full(shape, 40, np.uint8), True
+
+
 def figure_overlays(cal, images: Sequence | None = None, *, columns: int = 4, max_images: int = 24) -> bytes:
     """PNG: per image, a crop around the target with the ellipse, rim points, stripe points and chord.
 
-    ``images``: optional arrays in the order of ``cal.images`` (default: read the files named there).
+    ``images``: optional entries in the order of ``cal.images``, each an array, a file path or
+    None (default: the files named there).  An image that cannot be read (or whose size
+    changed) is replaced by a blank canvas of the recorded size, and its title says so.
     """
-    from .io import read_image
+    return _overlays(cal, images, columns=columns, max_images=max_images)[0]
 
+
+def _overlays(cal, images: Sequence | None = None, *, columns: int = 4, max_images: int = 24
+              ) -> tuple[bytes, list[str]]:
+    """:func:`figure_overlays` and the names of the images drawn on a blank canvas."""
     plt = _plt()
     obs = list(cal.images)[:max_images]
     n = max(len(obs), 1)
@@ -105,15 +130,19 @@ def figure_overlays(cal, images: Sequence | None = None, *, columns: int = 4, ma
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.0 * rows), squeeze=False)
     for ax in axes.ravel():
         ax.set_visible(False)
+    blanks = []
     for k, o in enumerate(obs):
         ax = axes.ravel()[k]
         ax.set_visible(True)
-        try:
-            img = images[k] if images is not None else read_image(o.source)
-        except (LightplaneError, IndexError):
+        entry = o.source if images is None else (images[k] if k < len(images) else None)
+        img, blank = _overlay_image(entry, o)
+        if img is None:
             ax.set_title(f"{o.name}: image not available", fontsize=7)
+            blanks.append(o.name)
             continue
-        g = _gray8(img)
+        if blank:
+            blanks.append(o.name)
+        g = np.full(img.shape[:2], 40, np.uint8) if blank else _gray8(img)
         h, w = g.shape
         if o.ellipse is not None:
             u0, v0, u1, v1 = o.ellipse.bbox()
@@ -123,7 +152,7 @@ def figure_overlays(cal, images: Sequence | None = None, *, columns: int = 4, ma
         else:
             u0, v0, u1, v1 = 0, 0, w - 1, h - 1
         ax.imshow(g[v0:v1 + 1, u0:u1 + 1], cmap="gray", extent=(u0 - 0.5, u1 + 0.5, v1 + 0.5, v0 - 0.5),
-                  interpolation="nearest")
+                  interpolation="nearest", **({"vmin": 0, "vmax": 255} if blank else {}))
         if o.ellipse is not None:
             e = o.ellipse.points(180)
             ax.plot(np.r_[e[:, 0], e[:1, 0]], np.r_[e[:, 1], e[:1, 1]], "-", color="#00c8ff", lw=0.8)
@@ -140,14 +169,15 @@ def figure_overlays(cal, images: Sequence | None = None, *, columns: int = 4, ma
         ax.set_xlim(u0 - 0.5, u1 + 0.5)
         ax.set_ylim(v1 + 0.5, v0 - 0.5)
         status = "used" if o.used else f"rejected: {o.reason}"
-        ax.set_title(f"{o.name}\n{status}"[:90], fontsize=7, color="black" if o.used else "#b00000")
+        title = f"{o.name}\n{status}"[:90] + ("\n(image not found: blank canvas)" if blank else "")
+        ax.set_title(title, fontsize=7, color="black" if o.used else "#b00000")
         ax.tick_params(labelsize=6)
         ax.set_xlabel("u (px)", fontsize=6)
         ax.set_ylabel("v (px)", fontsize=6)
     fig.suptitle("Targets: ellipse (cyan), rim edge points (yellow), stripe points (red), "
                  "chord of the calibrated plane on the chosen pose (green)", fontsize=9)
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig), blanks
 
 
 def _disc(center, normal, r, n=60) -> np.ndarray:
@@ -302,8 +332,12 @@ def _f(x, fmt: str) -> str:
 
 def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
                        extra_sections: Sequence[Section] = (), title: str | None = None,
-                       figures: bool = True) -> str:
-    """The report page as one HTML string (figures embedded)."""
+                       figures: bool = True, provenance: dict | None = None) -> str:
+    """The report page as one HTML string (figures embedded).
+
+    ``images``: see :func:`figure_overlays`; ``provenance``: what produced the plane
+    (:func:`lightplane.io.provenance`), shown at the foot (default: ``cal.plane.meta``'s).
+    """
     from .calibrate import uncertainty_summary
 
     cam = cal.camera
@@ -366,8 +400,12 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
             f"<td class=num>{_f(dist, '.1f')}</td><td class=num>{o.seconds:.2f}</td></tr>")
     parts += ["<h2>Images</h2>", "<table>" + head + "".join(trs) + "</table>"]
     if figures:
-        parts += ["<h2>Targets and stripes</h2>",
-                  _img_tag(figure_overlays(cal, images), "Per-image overlays (axes in px)")]
+        png, blanks = _overlays(cal, images)
+        parts += ["<h2>Targets and stripes</h2>", _img_tag(png, "Per-image overlays (axes in px)")]
+        if blanks:
+            parts.append("<p class=small>Image not found (or changed since the calibration): "
+                         + html.escape(", ".join(blanks)) + "; its points are drawn on a blank canvas "
+                         "of the image's size.</p>")
         parts += ["<h2>Target poses and light plane</h2>",
                   _img_tag(figure_poses_3d(cal, plane_true), "3D view, camera frame (mm)")]
         if any(o.placement is not None for o in cal.images):
@@ -389,13 +427,16 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
             parts.append(s.html)
         for png, cap in s.figures:
             parts.append(_img_tag(png, cap))
-    prov = cal.plane.meta.get("provenance") if isinstance(cal.plane.meta, dict) else None
+    prov = provenance
+    if prov is None:
+        prov = cal.plane.meta.get("provenance") if isinstance(cal.plane.meta, dict) else None
     parts.append(f"<p class=small>lightplane report; {html.escape(str(prov or ''))}</p></body></html>")
     return "\n".join(parts)
 
 
 def write_report(out_dir: str | os.PathLike, cal, *, images: Sequence | None = None, plane_true=None,
-                 extra_sections: Sequence[Section] = (), title: str | None = None, force: bool = False) -> Path:
+                 extra_sections: Sequence[Section] = (), title: str | None = None, force: bool = False,
+                 provenance: dict | None = None) -> Path:
     """Write ``out_dir/index.html`` (self-contained) for ``cal`` (an ImagePlaneCalibration); returns its path.
 
     Refuses to overwrite an existing ``index.html`` without ``force``; written atomically.
@@ -412,8 +453,54 @@ def write_report(out_dir: str | os.PathLike, cal, *, images: Sequence | None = N
         check_output(target, force)
     elif not out.parent.is_dir():
         raise LightplaneError(f"{out}: its parent folder {out.parent} does not exist")
-    text = render_report_html(cal, images=images, plane_true=plane_true, extra_sections=extra_sections, title=title)
+    text = render_report_html(cal, images=images, plane_true=plane_true, extra_sections=extra_sections, title=title,
+                              provenance=provenance)
     out.mkdir(exist_ok=True)
     path = atomic_write(target, text, force=force)
     os.chmod(path, 0o644)  # a page to share: readable like any other file (mkstemp makes it 0600)
     return path
+
+
+# ----------------------------------------------------------------------------- from a plane file
+def load_report_inputs(plane_file: str | os.PathLike):
+    """``(cal, images, provenance)`` stored in a plane file written by ``calibrate-plane``.
+
+    ``cal``: the :class:`~lightplane.calibrate.ImagePlaneCalibration` rebuilt from the file's
+    ``report_inputs``; ``images``: per image, the file it was read from when that file still
+    exists (its name as given to the calibration, relative to the current folder, or else to
+    the plane file's folder), otherwise None; ``provenance``: the file's ``provenance``.
+    Raises :class:`LightplaneError` for a file without stored inputs (an older plane file, or
+    one not made from images).
+    """
+    from .calibrate import ImagePlaneCalibration
+    from .io import read_json
+    from .plane import LightPlane
+
+    path = Path(plane_file)
+    d = read_json(path, "plane file")
+    plane = LightPlane.from_dict(d, source=str(path))
+    inputs = d.get("report_inputs")
+    if not isinstance(inputs, dict):
+        raise LightplaneError(f"{path}: has no stored calibration inputs (written by an older lightplane, or not by "
+                              "calibrate-plane): run calibrate-plane again with --report")
+    cal = ImagePlaneCalibration.from_report_inputs(plane, inputs, source=str(path))
+    images: list = []
+    for o in cal.images:
+        found = None
+        if not o.source.startswith("image["):
+            for cand in (Path(o.source), path.parent / o.source):
+                if cand.is_file():
+                    found = str(cand)
+                    break
+        images.append(found)
+    return cal, images, d.get("provenance")
+
+
+def rebuild_report(plane_file: str | os.PathLike, out_dir: str | os.PathLike, *, force: bool = False) -> Path:
+    """Write ``out_dir/index.html``, the report of ``calibrate-plane``, from its plane file alone.
+
+    Image thumbnails come from the image files when they still exist; otherwise the points are
+    drawn on a blank canvas of the recorded image size and the report says so.
+    """
+    cal, images, prov = load_report_inputs(plane_file)
+    return write_report(out_dir, cal, images=images, provenance=prov, force=force)

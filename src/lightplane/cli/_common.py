@@ -2,16 +2,54 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
-from typing import Callable, TypeVar
+from typing import Callable, Iterator, Literal, TypeVar
 
 import typer
 from rich.console import Console
+from typer.core import TyperGroup
+
+try:  # typer >= 0.20 carries its own copy of click
+    from typer._click import exceptions as _click_errors
+except ImportError:  # pragma: no cover
+    from click import exceptions as _click_errors
 
 from ..errors import LightplaneError
 
+class _OneLineErrors(TyperGroup):
+    """The command group, with click's usage errors (a bad choice, a value out of range, a
+    missing option...) as one line on stderr and exit status 2, like every other bad input."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _click_errors.NoArgsIsHelpError as e:
+            e.show()
+            sys.exit(e.exit_code)
+        except _click_errors.ClickException as e:
+            print(f"lightplane: error: {one_line(e.format_message())}", file=sys.stderr)
+            sys.exit(e.exit_code)
+        except typer.Abort:
+            print("lightplane: error: aborted", file=sys.stderr)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line (click's messages may span several)."""
+    return " ".join(str(text).replace("Value error, ", "").split())
+
+
+# Choices are declared as ``Literal[...]`` annotations (typer turns them into click choices:
+# a bad value is a usage error, one line, exit 2); ranges as ``min=``/``max=``.
+Channel = Literal["red", "green", "blue", "gray"]
+
 app = typer.Typer(
+    cls=_OneLineErrors,
     name="lightplane",
     help="Line-structured-light calibration (single circular target, Wang & Li 2022) and 3D measurement.",
     no_args_is_help=True,
@@ -29,6 +67,29 @@ def fail(message: str, code: int = 2) -> None:
     """One clear line on stderr, then exit with ``code`` (2: bad input)."""
     print(f"lightplane: error: {message}", file=sys.stderr)
     raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, total: int | None = None, *, remaining: bool = False) -> Iterator[Callable[..., None]]:
+    """A transient progress bar on the console (label, bar, done/total, elapsed time).
+
+    Yields ``update(completed=None, *, total=None, advance=None, label=None)``: set the count
+    done (or add ``advance`` to it), change the total or the label.  ``remaining``: also show
+    the estimated time left.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
+    if remaining:
+        columns.append(TimeRemainingColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task(label, total=total)
+
+        def update(completed: float | None = None, *, total: float | None = None, advance: float | None = None,
+                   label: str | None = None) -> None:
+            bar.update(task, completed=completed, total=total, advance=advance, description=label)
+
+        yield update
 
 
 def quiet_native_logs() -> None:

@@ -7,13 +7,12 @@ from typing import List, Optional
 
 import numpy as np
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
 from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      square_option, target_from_options, target_option)
+                      progress_bar, square_option, target_from_options, target_option)
 
 
 #: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
@@ -55,12 +54,10 @@ def calibrate_camera_cmd(
     if len(files) == 1 and not files[0].exists():  # a single missing file: say so (several: skipped one by one)
         raise LightplaneError(f"{files[0]}: no such file")
 
-    with Progress(TextColumn("finding corners"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("corners", total=len(files))
+    with progress_bar("finding corners", len(files)) as update:
         flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
         result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags,
-                                  progress=lambda i, n: bar.update(task, completed=i))
+                                  progress=lambda i, n: update(i))
 
     cam = result.camera
     t = Table(title="Camera intrinsics (Zhang, OpenCV)", show_edge=False)

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Literal, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import app, console, handles_errors
+from ._common import Channel, app, console, handles_errors, progress_bar
 
 
 @app.command("calibrate-plane")
@@ -22,25 +21,21 @@ def calibrate_plane_cmd(
     camera: Path = typer.Option(..., "--camera", help="Camera file: lightplane JSON, ROS YAML or OpenCV YAML/XML."),
     diameter: float = typer.Option(..., "--diameter", help="Target diameter in mm."),
     output: Path = typer.Option(..., "-o", "--output", help="Light-plane file to write (JSON)."),
-    method: str = typer.Option("ml", "--method", help="ml (default: joint maximum likelihood, with covariance), "
+    method: Literal["ml", "global", "paper"] = typer.Option("ml", "--method", help="ml (default: joint maximum likelihood, with covariance), "
                                                      "global (order-independent) or paper (progressive, §2.2.3)."),
     report: Optional[Path] = typer.Option(None, "--report", help="Folder for the HTML report (index.html)."),
-    channel: Optional[str] = typer.Option(None, "--channel", help="Laser colour channel: red, green, blue or gray."),
+    channel: Optional[Channel] = typer.Option(None, "--channel", help="Laser colour channel: red, green, blue or gray."),
     near: float = typer.Option(200.0, "--near", help="Nearest target distance expected, mm (plausible ellipse size)."),
     far: float = typer.Option(1500.0, "--far", help="Farthest target distance expected, mm."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Parallel workers (default: all cores)."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel worker threads (default: all cores)."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing plane file / report."),
 ) -> None:
     """Calibrate the light plane from images of a flat circular target (Wang & Li 2022)."""
     from ..calibrate import calibrate_plane, uncertainty_summary
     from ..camera import Camera
 
-    if method not in ("ml", "global", "paper"):
-        raise LightplaneError(f"--method must be ml, global or paper, got {method!r}")
     if not (diameter > 0):
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
-    if channel is not None and channel not in ("red", "green", "blue", "gray"):
-        raise LightplaneError(f"--channel must be red, green, blue or gray, got {channel!r}")
     if not (0 < near < far):
         raise LightplaneError(f"need 0 < --near < --far, got {near} and {far} mm")
     files = expand_inputs(images)
@@ -60,11 +55,9 @@ def calibrate_plane_cmd(
             raise LightplaneError(f"{report}: its parent folder {report.parent} does not exist")
     cam = Camera.load(camera)
 
-    with Progress(TextColumn("images"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("images", total=len(files))
+    with progress_bar("images", len(files)) as update:
         cal = calibrate_plane([str(f) for f in files], cam, diameter, method, workers=workers, channel=channel,
-                              distance_range_mm=(near, far), progress=lambda i, n: bar.update(task, completed=i))
+                              distance_range_mm=(near, far), progress=lambda i, n: update(i))
 
     unc = uncertainty_summary(cal, cam)
     a, b, c = cal.plane.normal
@@ -107,11 +100,13 @@ def calibrate_plane_cmd(
 
     options = {"camera": str(camera), "diameter_mm": diameter, "method": method, "channel": channel,
                "distance_range_mm": [near, far]}
-    extra = {**cal.to_dict(), "uncertainty": unc, "provenance": provenance([*map(str, files), str(camera)], options)}
+    prov = provenance([*map(str, files), str(camera)], options)
+    # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
+    extra = {**cal.to_dict(), "uncertainty": unc, "provenance": prov, "report_inputs": cal.report_inputs()}
     cal.plane.save(output, force=force, extra=extra)
     console.print(f"wrote {output}")
     if report is not None:
         from ..report import write_report
 
-        path = write_report(report, cal, force=force)
+        path = write_report(report, cal, force=force, provenance=prov)
         console.print(f"wrote {path}")

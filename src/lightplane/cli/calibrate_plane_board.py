@@ -7,13 +7,12 @@ from typing import List, Optional
 
 import numpy as np
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
 from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      square_option, target_from_options, target_option)
+                      Channel, progress_bar, square_option, target_from_options, target_option)
 
 
 def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
@@ -130,7 +129,7 @@ def calibrate_plane_board_cmd(
                                         "P the lit pattern frame, L a laser frame, - a frame left out; e.g. P,L,- "
                                         "(FabScan's laser 0) or P,-,L (its laser 1)."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
-    channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
+    channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
 ) -> None:
@@ -159,16 +158,14 @@ def calibrate_plane_board_cmd(
     names = [str(f) for f in lasers]
     keep = [k for k, n in enumerate(names) if n not in skipped]
 
-    with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("images", total=len(keep))
+    with progress_bar("board poses and stripes", len(keep)) as update:
         res = calibrate_plane_board([imgs[k] for k in keep], cam, target,
                                     background_images=None if bgs is None else
                                     (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
                                     pattern_images=None if pats is None else [pats[k] for k in keep],
                                     image_names=[names[k] for k in keep], stripe_width_px=stripe_width,
                                     channel=channel, skipped=skipped,
-                                    progress=lambda i: bar.update(task, completed=i + 1))
+                                    progress=lambda i: update(i + 1))
 
     pl = res.plane
     sd = np.sqrt(np.diag(pl.covariance))

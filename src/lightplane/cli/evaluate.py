@@ -5,16 +5,15 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Literal, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import atomic_write, check_output, dumps_json, expand_inputs, provenance
 from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      square_option, target_from_options, target_option)
+                      Channel, progress_bar, square_option, target_from_options, target_option)
 from .calibrate_plane_board import read_laser_frames
 
 
@@ -38,10 +37,10 @@ def evaluate_cmd(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write per plane its pairs (dt, dm, delta, mm) and RMS."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", help="Write the table as CSV (mm)."),
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; repeat the option): one per image or one for all."),
-    lines: str = typer.Option("auto", "--lines", help="Corner lines the stripe crosses: rows, columns or auto."),
-    corners_used: str = typer.Option("all", "--corners", help="'three' (the paper's A, B, C) or 'all' corners per line."),
+    lines: Literal["rows", "columns", "auto"] = typer.Option("auto", "--lines", help="Corner lines the stripe crosses: rows, columns or auto."),
+    corners_used: Literal["three", "all"] = typer.Option("all", "--corners", help="'three' (the paper's A, B, C) or 'all' corners per line."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
-    channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
+    channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
@@ -51,10 +50,6 @@ def evaluate_cmd(
     from ..plane import LightPlane
 
     target = target_from_options(board, square, marker, dictionary, dot, target_file)
-    if lines not in ("rows", "columns", "auto"):
-        raise LightplaneError(f"--lines must be rows, columns or auto, got {lines!r}")
-    if corners_used not in ("three", "all"):
-        raise LightplaneError(f"--corners must be three or all, got {corners_used!r}")
     for out in (json_out, csv_out):
         if out is not None:
             check_output(out, force)
@@ -69,15 +64,13 @@ def evaluate_cmd(
     imgs, _, bgs, bg_files, skipped = read_laser_frames(files, None, background, rotate)
     keep = [k for k, f in enumerate(files) if str(f) not in skipped]
 
-    with Progress(TextColumn("board poses and stripes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("images", total=len(keep))
+    with progress_bar("board poses and stripes", len(keep)) as update:
         ev = evaluate_images([imgs[k] for k in keep], cam, planes, board=target,
                              background_images=None if bgs is None else (bgs if len(bgs) == 1 else
                                                                          [bgs[k] for k in keep]),
                              labels=labels, image_names=[str(files[k]) for k in keep], stripe_width_px=stripe_width,
                              channel=channel, lines=lines, corners_used=corners_used, skipped=skipped,
-                             progress=lambda i: bar.update(task, completed=i + 1))
+                             progress=lambda i: update(i + 1))
     used_names = list(ev.view_names)
 
     # the paper's Table 2: dm1, dm2, ... and Δ(dt, dm1), ... ; short headers keep it within 80 columns

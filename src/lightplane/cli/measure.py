@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Literal, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from ..errors import LightplaneError
-from ._common import app, console, err_console, handles_errors
+from ._common import Channel, app, console, err_console, handles_errors, progress_bar
 
 
 def parse_vector(text: str, name: str) -> tuple[float, float, float]:
@@ -48,15 +47,15 @@ def measure_cmd(
     fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix)."),
     ascii_ply: bool = typer.Option(False, "--ascii", help="ASCII PLY instead of binary."),
     roi: Optional[str] = typer.Option(None, "--roi", help="Region X0,Y0,X1,Y1 in px (X1, Y1 exclusive)."),
-    axis: str = typer.Option("auto", "--axis", help="One centre per 'columns', 'rows', or 'auto' (from the plane)."),
-    channel: Optional[str] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
+    axis: Literal["auto", "columns", "rows"] = typer.Option("auto", "--axis", help="One centre per 'columns', 'rows', or 'auto' (from the plane)."),
+    channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width (FWHM) px; default: estimated on the first frame."),
     smooth: int = typer.Option(0, "--smooth", help="Smooth the centres along the stripe over N lines (odd >= 5; 0: off)."),
     sigma_along: Optional[float] = typer.Option(
         None, "--sigma-along", help="Gaussian scale along the stripe before its centre is found, px (default: the "
         "stripe's own scale). About twice that averages laser speckle (0.11 -> 0.09 px per centre on speckled "
         "renders) and blurs detail along the stripe over as many lines."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all CPUs)."),
+    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     """Measure stripe frames into a point cloud; frames placed by the known motion (frame i: p - i*step*direction).
@@ -74,8 +73,6 @@ def measure_cmd(
     fmt = cloud_format(out, fmt)
     if ascii_ply and fmt != "ply":
         raise LightplaneError("--ascii applies to PLY output only")
-    if axis not in ("auto", "columns", "rows"):
-        raise LightplaneError(f"--axis must be auto, columns or rows, got {axis!r}")
     if step is not None and positions is not None:
         raise LightplaneError("give either --step (with --direction) or --positions, not both")
     dvec = parse_vector(direction, "--direction") if direction is not None else None
@@ -90,18 +87,14 @@ def measure_cmd(
             raise LightplaneError("--direction needs --step or a single-column --positions file")
         motion = Motion.none()
     roi_box = parse_roi(roi) if roi is not None else None
-    if workers is not None and workers < 1:
-        raise LightplaneError(f"--workers must be >= 1, got {workers}")
     cam = Camera.load(camera)
     pl = LightPlane.load(plane)
     source = open_frames(inputs)
 
-    with Progress(TextColumn("measuring frames"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("frames", total=source.n_frames)
+    with progress_bar("measuring frames", source.n_frames) as update:
 
         def progress(done: int, total) -> None:
-            bar.update(task, completed=done, total=total)
+            update(done, total=total)
 
         s = measure_scan(source, cam, pl, out, fmt=fmt, ascii=ascii_ply, motion=motion, axis=axis, roi=roi_box,
                          width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress,

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from ..errors import LightplaneError
 from ._common import (app, console, dictionary_option, dot_option, handles_errors, marker_option, parse_board,
-                      target_option)
+                      progress_bar, target_option)
 
 SCENES = ("circle", "chessboard", "target", "scan")
 
@@ -19,15 +18,15 @@ SCENES = ("circle", "chessboard", "target", "scan")
 @app.command("render")
 @handles_errors
 def render_cmd(
-    scene: str = typer.Argument(..., help="What to render: circle, chessboard, target (any board: --board "
+    scene: Literal["circle", "chessboard", "target", "scan"] = typer.Argument(..., help="What to render: circle, chessboard, target (any board: --board "
                                 "KIND:COLSxROWS --square MM, or --target FILE) or scan."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
-    n: Optional[int] = typer.Option(None, "--n", help="Number of images (scan: frames). Default: 12 circle, "
+    n: Optional[int] = typer.Option(None, "--n", min=1, help="Number of images (scan: frames). Default: 12 circle, "
                                     "20 chessboard, 41 sphere / 21 step or plane frames."),
     seed: int = typer.Option(0, "--seed", help="Random seed: same seed, same bytes."),
-    difficulty: Optional[str] = typer.Option(None, "--difficulty", help="clean, realistic or hard "
+    difficulty: Optional[Literal["clean", "realistic", "hard"]] = typer.Option(None, "--difficulty", help="clean, realistic or hard "
                                              "(default: realistic; clean for chessboards)."),
-    polarity: str = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
+    polarity: Literal["light", "dark"] = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
                                  "printed disc on a light board."),
     diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
     board: Optional[str] = typer.Option(None, "--board", help="chessboard: inner corners COLSxROWS (default: 15x11 "
@@ -43,7 +42,7 @@ def render_cmd(
                                    "laser-off image of every pose (a laser-off or pattern frame)."),
     dark_laser: bool = typer.Option(False, "--dark-laser", help="target with --stripe: the laser frames dark "
                                     "(3 % of the ambient light: the board cannot be found in them)."),
-    kind: str = typer.Option("sphere", "--kind", help="scan: sphere (radius 25.4 mm), step (10.000 mm gauge) "
+    kind: Literal["sphere", "step", "plane"] = typer.Option("sphere", "--kind", help="scan: sphere (radius 25.4 mm), step (10.000 mm gauge) "
                              "or plane (tilted)."),
     step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
                                          "2.0 step/plane)."),
@@ -51,9 +50,6 @@ def render_cmd(
 ) -> None:
     """Render synthetic images with exact ground truth (PNG images, camera.json, truth.json)."""
     from ..simulate.render import (
-        DIFFICULTIES,
-        POLARITIES,
-        SCAN_KINDS,
         check_output_dir,
         render_chessboard_dataset,
         render_circle_dataset,
@@ -61,16 +57,6 @@ def render_cmd(
         render_target_dataset,
     )
 
-    if scene not in SCENES:
-        raise LightplaneError(f"unknown scene {scene!r}: choose circle, chessboard, target or scan")
-    if n is not None and n < 1:
-        raise LightplaneError(f"--n must be at least 1, got {n}")
-    if difficulty is not None and difficulty not in DIFFICULTIES:
-        raise LightplaneError(f"--difficulty must be clean, realistic or hard; got {difficulty!r}")
-    if polarity not in POLARITIES:
-        raise LightplaneError(f"--polarity must be light or dark; got {polarity!r}")
-    if scene == "scan" and kind not in SCAN_KINDS:
-        raise LightplaneError(f"--kind must be sphere, step or plane; got {kind!r}")
     if not diameter > 0:
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
     if square is not None and not square > 0:
@@ -90,12 +76,10 @@ def render_cmd(
     check_output_dir(out, ["camera.json", "truth.json"], force)
 
     t0 = time.perf_counter()
-    with Progress(TextColumn(f"rendering {scene}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("render", total=n)
+    with progress_bar(f"rendering {scene}", n) as update:
 
         def progress(i: int, total: int) -> None:
-            bar.update(task, completed=i, total=total)
+            update(i, total=total)
 
         if scene == "circle":
             ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from ..errors import LightplaneError
-from ._common import app, console, handles_errors
+from ._common import app, console, handles_errors, progress_bar
 
 _FACTOR_NAMES = ("placements", "noise", "diameter")
 
@@ -17,12 +17,12 @@ _FACTOR_NAMES = ("placements", "noise", "diameter")
 @app.command("simulate")
 @handles_errors
 def simulate_cmd(
-    factor: str = typer.Argument(..., help="Which study: placements, noise, diameter, or all."),
+    factor: Literal["placements", "noise", "diameter", "all"] = typer.Argument(..., help="Which study: placements, noise, diameter, or all."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if missing) for CSV, PNG and study.json."),
-    trials: int = typer.Option(100, "--trials", help="Random trials per level (fresh placements and noise)."),
+    trials: int = typer.Option(100, "--trials", min=1, help="Random trials per level (fresh placements and noise)."),
     seed: int = typer.Option(0, "--seed", help="Random seed (results are reproducible for a given seed)."),
-    n_rim: int = typer.Option(200, "--rim-points", help="Rim points per placement."),
-    n_stripe: int = typer.Option(300, "--stripe-points", help="Stripe points per placement."),
+    n_rim: int = typer.Option(200, "--rim-points", min=5, help="Rim points per placement."),
+    n_stripe: int = typer.Option(300, "--stripe-points", min=10, help="Stripe points per placement."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Reproduce the paper's simulation study (§3) with the paper, global and ml methods and the Cramér–Rao bound.
@@ -32,15 +32,9 @@ def simulate_cmd(
     study.json (all rows and provenance).
     """
     from ..io import check_output, provenance, write_json
-    from ..simulate.study import FACTORS, n_trials_total, plot_factor, run_factor, write_csv
+    from ..simulate.study import n_trials_total, plot_factor, run_factor, write_csv
 
     factors = list(_FACTOR_NAMES) if factor == "all" else [factor]
-    if factor != "all" and factor not in FACTORS:
-        raise LightplaneError(f"factor must be one of placements, noise, diameter, all; got {factor!r}")
-    if trials < 1:
-        raise LightplaneError(f"--trials must be >= 1, got {trials}")
-    if n_rim < 5 or n_stripe < 10:
-        raise LightplaneError(f"--rim-points must be >= 5 and --stripe-points >= 10, got {n_rim} and {n_stripe}")
     if out.exists() and not out.is_dir():
         raise LightplaneError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
@@ -49,13 +43,11 @@ def simulate_cmd(
         check_output(t, force)
 
     results = {}
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("simulating", total=n_trials_total(factors, trials))
+    with progress_bar("simulating", n_trials_total(factors, trials), remaining=True) as update:
         for f in factors:
-            bar.update(task, description=f"simulating: {f}")
+            update(label=f"simulating: {f}")
             res = run_factor(f, trials=trials, seed=seed, n_rim=n_rim, n_stripe=n_stripe,
-                             progress=lambda k: bar.advance(task, k))
+                             progress=lambda k: update(advance=k))
             write_csv(res, out / f"{f}.csv", force=force)
             plot_factor(res, out / f"{f}.png", force=force)
             results[f] = res
