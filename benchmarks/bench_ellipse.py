@@ -11,7 +11,13 @@
    given by ``--ximgproc-python PATH`` (e.g. a throwaway venv with
    opencv-contrib-python-headless), on the same images.
 
-4. Curvature bias of the refined rim (realistic renders, light and dark targets): mean
+4. Default detection against OpenCV's LSD: ``detect_ellipses(image)`` with default
+   arguments (the scale picked by ``auto_downscale`` from the image and
+   ``min_axis_px``) and ``cv2.createLineSegmentDetector().detect`` on the same
+   1280x960 renders, interleaved, medians of CPU and wall time; target: ratio <= 1.0.
+   Also the full-resolution search (``downscale=1``, the former default) for reference.
+
+5. Curvature bias of the refined rim (realistic renders, light and dark targets): mean
    signed distance of the edge points to the true conic (px, < 0 inside), the circle
    pose's depth error (mm) and the refinement time, with and without
    ``correct_curvature`` (target: |bias| <= 0.002 px).
@@ -213,6 +219,44 @@ def bench_render(quick: bool, ext_python: str | None) -> None:
               f"(ours / theirs = {cpu / ref:.2f})")
 
 
+def bench_default_vs_lsd(quick: bool) -> None:
+    try:
+        from lightplane.simulate.render import render_circle_dataset
+    except ImportError:
+        print("default detection vs LSD: lightplane.simulate.render not available, skipped")
+        return
+    import cv2
+
+    from lightplane.ellipse.detect import auto_downscale
+
+    n = 3 if quick else 6
+    ds = render_circle_dataset(n, seed=7, difficulty="realistic", polarity="light")
+    lsd = cv2.createLineSegmentDetector()
+    grays = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) for img in ds.images]
+    runs = {"lsd": lambda g: lsd.detect(g), "default": lambda g: detect_ellipses(g),
+            "full": lambda g: detect_ellipses(g, downscale=1)}
+    cpu = {k: [] for k in runs}
+    wall = {k: [] for k in runs}
+    for f in runs.values():
+        f(grays[0])  # warm-up
+    for _ in range(3):
+        for g in grays:
+            for k, f in runs.items():  # interleaved: the same load on each
+                c0, t0 = time.process_time(), time.perf_counter()
+                f(g)
+                cpu[k].append(1e3 * (time.process_time() - c0))
+                wall[k].append(1e3 * (time.perf_counter() - t0))
+    h, w = grays[0].shape
+    med = {k: (float(np.median(cpu[k])), float(np.median(wall[k]))) for k in runs}
+    print(f"default detect_ellipses(image) vs cv2.createLineSegmentDetector().detect ({n} realistic renders {w}x{h}, "
+          f"3 runs each, interleaved; default scale 1/{auto_downscale((h, w), 3.0)}):")
+    for k, label in (("lsd", "LSD (reference)"), ("default", "detect_ellipses defaults"),
+                     ("full", "detect_ellipses downscale=1")):
+        c, t = med[k]
+        print(f"  {label:28s} {c:6.1f} ms CPU, {t:6.1f} ms wall (median); ratio to LSD {c / med['lsd'][0]:.2f} CPU, "
+              f"{t / med['lsd'][1]:.2f} wall" + (" (target <= 1.0)" if k == "default" else ""))
+
+
 def bench_curvature_bias(quick: bool) -> None:
     try:
         from lightplane.simulate.render import render_circle_dataset
@@ -271,6 +315,7 @@ def main() -> None:
     print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads")
     bench_real(quick, ext_python)
     bench_render(quick, ext_python)
+    bench_default_vs_lsd(quick)
     bench_curvature_bias(quick)
 
 

@@ -1,6 +1,6 @@
 """Measurement benchmarks: accuracy on rendered scans, throughput, peak memory of a long scan.
 
-Run: ``.venv/bin/python benchmarks/bench_measure.py [accuracy] [speed] [memory]`` (all three
+Run: ``.venv/bin/python benchmarks/bench_measure.py [accuracy] [speed] [profile] [memory]`` (all four
 by default).  Prints medians with units and the ratio to each target:
 
 - accuracy (renders, :func:`lightplane.simulate.render.render_scan_dataset`), with a light
@@ -15,6 +15,12 @@ by default).  Prints medians with units and the ratio to each target:
   true plane are printed alongside (what the calibration costs).
 - speed: >= 500 frames/s of 1280x960 8-bit frames from memory (profile + triangulation
   + placement), 2 worker processes; also one process alone.
+- profile: one ``measure_profile(image, camera, plane)`` call per 1280x960 frame with
+  default arguments (its cache keeps the measurer and its tables per camera, plane and
+  shape), against a Gaussian blur of the frame (``cv2.GaussianBlur``, σ 2 px) measured
+  interleaved in the same run: medians and ratios; also the uncached call
+  (``cache=False``), and the parts (``extract_profile`` alone, the stripe-width
+  estimate, one thread) that say where the time goes.
 - memory: a 10,000-frame scan written to a PLY in a fresh subprocess: peak RSS of the
   main process (``resource.getrusage``) and of main + workers together (sampled from
   ``/proc``), target < 500 MB.
@@ -241,6 +247,52 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
               f"{med / 500:.2f}x" + ("" if workers > 1 else " (one core)"))
 
 
+def profile_speed(repeats: int = 15) -> None:
+    import cv2
+
+    from lightplane.measure import clear_profile_cache, measure_profile, profile_axis
+    from lightplane.plane import LightPlane
+    from lightplane.stripe import estimate_width, extract_profile
+
+    ds = speed_frames()
+    cam, plane = ds.camera, LightPlane.from_dict(ds.truth["plane"])
+    axis = profile_axis(plane)
+    frames = ds.images
+    h, w = frames[0].shape[:2]
+    width = estimate_width(frames[0], axis=axis)
+    extract_profile(frames[0], axis)  # numba's kernels loaded: not part of the first call's figure
+    clear_profile_cache()
+    t = time.perf_counter()
+    measure_profile(frames[0], cam, plane)
+    first = 1e3 * (time.perf_counter() - t)
+    runs = {
+        "blur": lambda im: cv2.GaussianBlur(im, (0, 0), 2.0),
+        "measure_profile": lambda im: measure_profile(im, cam, plane),
+        "measure_profile cache=False": lambda im: measure_profile(im, cam, plane, cache=False),
+        "extract_profile": lambda im: extract_profile(im, axis),
+        "estimate_width": lambda im: estimate_width(im, axis=axis),
+        "measure_profile width_px, 1 thread": lambda im: measure_profile(im, cam, plane, width_px=width, parallel=False),
+    }
+    for f in runs.values():
+        f(frames[0])
+    times = {k: [] for k in runs}
+    for _ in range(repeats):
+        for im in frames:
+            for k, f in runs.items():  # interleaved: the same load on each
+                t = time.perf_counter()
+                f(im)
+                times[k].append(1e3 * (time.perf_counter() - t))
+    ref = float(np.median(times["blur"]))
+    print(f"== measure_profile per frame ({w}x{h} uint8, {len(frames)} frames x {repeats}, interleaved; wall-clock "
+          f"medians; reference: cv2.GaussianBlur sigma 2 of the frame) ==")
+    print(f"first call (measurer and the table blocks the stripe needs): {first:.1f} ms; load average "
+          f"{os.getloadavg()[0]:.1f}")
+    for k, v in times.items():
+        med = float(np.median(v))
+        print(f"  {k:36s} {med:7.2f} ms (p10 {np.percentile(v, 10):6.2f}, p90 {np.percentile(v, 90):6.2f}); "
+              f"ratio to the blur {med / ref:.1f}")
+
+
 # ----------------------------------------------------------------------------- memory
 MEMORY_CHILD = r"""
 import os, resource, sys, threading, time, numpy as np, pickle
@@ -322,10 +374,10 @@ def memory(n_frames: int = 10_000) -> None:
 
 
 def main(argv: list[str]) -> None:
-    parts = argv or ["accuracy", "speed", "memory"]
+    parts = argv or ["accuracy", "speed", "profile", "memory"]
     print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (timings on a shared machine are noisy)")
     for p in parts:
-        {"accuracy": accuracy, "speed": speed, "memory": memory}[p]()
+        {"accuracy": accuracy, "speed": speed, "profile": profile_speed, "memory": memory}[p]()
 
 
 if __name__ == "__main__":

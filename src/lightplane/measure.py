@@ -8,6 +8,7 @@ plane ``s = -d / (a x + b y + c)``.  Rays nearly parallel to the plane give NaN
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -86,7 +87,8 @@ def triangulate(camera: Camera, plane: LightPlane, uv: np.ndarray, *, min_cos: f
 # ======================================================================================
 # Profiles: one stripe centre per image column (row) -> 3D points with uncertainty
 
-__all__ += ["Profile", "ProfileMeasurer", "measure_profile", "profile_axis", "points_sigma_mm"]
+__all__ += ["Profile", "ProfileMeasurer", "measure_profile", "profile_axis", "points_sigma_mm", "profile_cache_info",
+            "clear_profile_cache"]
 
 AXES = ("columns", "rows")
 
@@ -180,9 +182,12 @@ class ProfileMeasurer:
     position ``t`` along its column (row) then costs a cubic Hermite interpolation
     between the two bracketing pixels (error O(h⁴): below 1e-9 px for the default
     sensor's distortion), instead of an iterative undistortion per point.
-    Tables: 24 bytes per roi pixel (30 MB for 1280x960), built on the first frame
-    (:meth:`build_lookup`), not pickled (each worker process builds its own).  ``lookup=False`` undistorts
-    the centres exactly per frame (for one-off profiles).
+    Tables: 24 bytes per roi pixel (30 MB for 1280x960 when complete), filled in blocks of
+    32 lines x 64 samples as the frames' centres first need them (a stripe across a
+    1280x960 frame: ~35 of the 600 blocks, ~20 ms), or all at once by :meth:`build_lookup`;
+    a block's values do not depend on when it is built, so the numbers are the same
+    either way, bit for bit.  Not pickled (each worker process builds its own).
+    ``lookup=False`` undistorts the centres exactly per frame.
 
     Parameters
     ----------
@@ -261,26 +266,39 @@ class ProfileMeasurer:
         self.min_width_ratio, self.max_width_ratio = lo, hi
         self.stripe_options = dict(stripe_options)
         self._lookup = bool(lookup)
-        self._table = None  # (xy, dxy, line0, sample0), built on first use
+        # lookup tables (xy, d xy / d sample per roi pixel) and which blocks of them are built
+        self._xy = self._dxy = self._built = None
+        #: how many table blocks this measurer has built (a diagnostic: repeated frames build none)
+        self.blocks_built = 0
         self._lock = threading.Lock()
 
     # ---------------------------------------------------------------- lookup tables
+    #: the tables are built in blocks of this many lines x samples, when a centre first needs one
+    BLOCK_LINES, BLOCK_SAMPLES = 32, 64
+
     @property
     def has_lookup(self) -> bool:
-        """Whether the lookup tables are built (on first use; never with ``lookup=False``)."""
-        return self._table is not None
+        """Whether the lookup tables are in use (some block built; never with ``lookup=False``)."""
+        return self._built is not None and bool(self._built.any())
+
+    @property
+    def lookup_complete(self) -> bool:
+        """Whether every block of the lookup tables is built (:meth:`build_lookup`)."""
+        return self._built is not None and bool(self._built.all())
 
     def build_lookup(self) -> None:
-        """Build the lookup tables now (otherwise on the first frame).  Thread-safe."""
-        if self._lookup and self._table is None:
-            with self._lock:
-                if self._table is None:
-                    self._table = self._build_tables()
+        """Build all the lookup tables now (otherwise block by block as centres need them).  Thread-safe."""
+        if not self._lookup:
+            return
+        self._alloc_tables()
+        nlb, nsb = self._built.shape
+        for lb in range(nlb):  # one row of blocks at a time: the undistortion's temporaries stay small
+            self._ensure_blocks(np.full(nsb, lb), np.arange(nsb))
 
     def __getstate__(self) -> dict:
         # sent to worker processes without the tables (30 MB) or the lock: each builds its own
         state = self.__dict__.copy()
-        state["_table"] = None
+        state["_xy"] = state["_dxy"] = state["_built"] = None
         del state["_lock"]
         return state
 
@@ -295,28 +313,57 @@ class ProfileMeasurer:
             return np.arange(x, x + w), np.arange(y, y + h)
         return np.arange(y, y + h), np.arange(x, x + w)
 
-    def _build_tables(self, lines_per_chunk: int = 32) -> tuple:
+    def _alloc_tables(self) -> None:
+        """The (uninitialised) table arrays and the map of built blocks; pages are touched only when filled."""
+        if self._built is not None:
+            return
+        with self._lock:
+            if self._built is None:
+                lines, samples = self._line_grid()
+                L, S = lines.size, samples.size
+                self._xy = np.empty((L, S, 2))
+                self._dxy = np.empty((L, S, 2), np.float32)
+                self._built = np.zeros((-(-L // self.BLOCK_LINES), -(-S // self.BLOCK_SAMPLES)), bool)
+
+    def _ensure_blocks(self, lb: np.ndarray, sb: np.ndarray) -> None:
+        """Build the blocks ``(lb[i], sb[i])`` not built yet (one undistortion call for all of them)."""
+        built = self._built
+        need = ~built[lb, sb]
+        if not need.any():
+            return
+        with self._lock:
+            todo = np.unique(np.ravel_multi_index((lb[need], sb[need]), built.shape))
+            todo = todo[~built.ravel()[todo]]  # another thread may have built some meanwhile
+            if todo.size:
+                self._build_blocks(*np.unravel_index(todo, built.shape))
+
+    def _build_blocks(self, lbs: np.ndarray, sbs: np.ndarray) -> None:
+        """Fill the table blocks ``(lbs[i], sbs[i])``; the values do not depend on which blocks go together
+        (the undistortion and the Jacobian are per point), so a lazily filled table equals a full build."""
         lines, samples = self._line_grid()
-        L, S = lines.size, samples.size
-        xy_t = np.empty((L, S, 2))
-        dxy_t = np.empty((L, S, 2), np.float32)
+        BL, BS = self.BLOCK_LINES, self.BLOCK_SAMPLES
         # d(xy)/d(sample): xy_d = K^-1 uv is linear in the pixel, xy = distort^-1(xy_d)
         K = self.camera.K
         dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
             else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
-        ss = samples.astype(float)
-        for a in range(0, L, lines_per_chunk):  # in chunks: the undistortion's temporaries stay small
-            ll, sg = np.meshgrid(lines[a:a + lines_per_chunk].astype(float), ss, indexing="ij")
-            uv = np.column_stack([ll.ravel(), sg.ravel()]) if self.axis == "columns" \
-                else np.column_stack([sg.ravel(), ll.ravel()])
-            xy = self.camera.undistort_points(uv, normalized=True)
-            j11, j12, j21, j22 = self.camera.distortion_jacobian(xy)
-            det = j11 * j22 - j12 * j21
-            d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
-            n = ll.shape[0]
-            xy_t[a:a + n] = xy.reshape(n, S, 2)
-            dxy_t[a:a + n] = d.reshape(n, S, 2)
-        return xy_t, dxy_t, int(lines[0]), int(samples[0])
+        li, si, uvs = [], [], []
+        for lb, sb in zip(lbs, sbs):
+            l_idx = np.arange(lb * BL, min((lb + 1) * BL, lines.size))
+            s_idx = np.arange(sb * BS, min((sb + 1) * BS, samples.size))
+            ll, ss = np.meshgrid(l_idx, s_idx, indexing="ij")
+            li.append(ll.ravel())
+            si.append(ss.ravel())
+        li, si = np.concatenate(li), np.concatenate(si)
+        lv, sv = lines[li].astype(float), samples[si].astype(float)
+        uv = np.column_stack([lv, sv]) if self.axis == "columns" else np.column_stack([sv, lv])
+        xy = self.camera.undistort_points(uv, normalized=True)
+        j11, j12, j21, j22 = self.camera.distortion_jacobian(xy)
+        det = j11 * j22 - j12 * j21
+        d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
+        self._xy[li, si] = xy
+        self._dxy[li, si] = d
+        self._built[lbs, sbs] = True  # after the values: a reader that sees the flag sees them
+        self.blocks_built += len(lbs)
 
     def normalized(self, uv: np.ndarray) -> np.ndarray:
         """Undistorted normalised ``(x, y)`` (N, 2) of stripe centres ``uv`` (N, 2) px.
@@ -327,10 +374,12 @@ class ProfileMeasurer:
         tables (or for points off the grid lines) the exact undistortion is used.
         """
         uv = as_points(uv, 2, "uv")
-        self.build_lookup()
-        if self._table is None:
+        if not self._lookup:
             return self.camera.undistort_points(uv, normalized=True)
-        tab_xy, tab_dxy, line0, sample0 = self._table
+        self._alloc_tables()
+        tab_xy, tab_dxy = self._xy, self._dxy
+        lines, samples = self._line_grid()
+        line0, sample0 = int(lines[0]), int(samples[0])
         li, si = (0, 1) if self.axis == "columns" else (1, 0)
         L, S = tab_xy.shape[:2]
         line = uv[:, li] - line0
@@ -345,6 +394,8 @@ class ProfileMeasurer:
         i0 = np.clip(np.floor(np.where(on_grid, t, 0.0)), 0, S - 2).astype(np.intp)
         f = (np.where(on_grid, t, 0.0) - i0)[:, None]
         l = np.where(on_grid, lidx, 0)
+        lb = l[on_grid] // self.BLOCK_LINES
+        self._ensure_blocks(np.concatenate([lb, lb]), np.concatenate([i0[on_grid], i0[on_grid] + 1]) // self.BLOCK_SAMPLES)
         p0, p1 = tab_xy[l, i0], tab_xy[l, i0 + 1]
         m0, m1 = tab_dxy[l, i0].astype(np.float64), tab_dxy[l, i0 + 1].astype(np.float64)
         f2, f3 = f * f, f * f * f
@@ -426,15 +477,85 @@ def smooth_centres(uv: np.ndarray, valid: np.ndarray, axis: str, window: int) ->
     return out
 
 
+#: how many measurers :func:`measure_profile` keeps (each holds up to 24 bytes per roi pixel of tables)
+PROFILE_CACHE_SIZE = 4
+_profile_cache: OrderedDict = OrderedDict()
+_profile_cache_lock = threading.Lock()
+_profile_cache_stats = {"hits": 0, "misses": 0}
+
+
+def _array_key(a) -> tuple | None:
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return (a.dtype.str, a.shape, a.tobytes())
+
+
+def _profile_cache_key(image: np.ndarray, camera: Camera, plane: LightPlane, axis, roi, options: dict):
+    """A hashable fingerprint of everything a :class:`ProfileMeasurer` depends on (by value, not identity:
+    an equal camera or plane built anew hits, a changed one never does); None when an option is unhashable."""
+    try:
+        opts = tuple(sorted((k, v if not isinstance(v, np.ndarray) else _array_key(v)) for k, v in options.items()))
+        roi_key = None if roi is None else tuple(float(v) for v in roi)
+        key = (_array_key(camera.K), _array_key(camera.dist), camera.width, camera.height,
+               _array_key(plane.normal), float(plane.d), _array_key(plane.covariance),
+               tuple(image.shape), axis, roi_key, opts)
+        hash(key)
+    except (TypeError, ValueError):
+        return None
+    return key
+
+
+def profile_cache_info() -> dict:
+    """:func:`measure_profile`'s cache: ``hits``, ``misses``, ``size`` (measurers held), ``maxsize``."""
+    with _profile_cache_lock:
+        return {**_profile_cache_stats, "size": len(_profile_cache), "maxsize": PROFILE_CACHE_SIZE}
+
+
+def clear_profile_cache() -> None:
+    """Drop :func:`measure_profile`'s cached measurers (and their tables)."""
+    with _profile_cache_lock:
+        _profile_cache.clear()
+        _profile_cache_stats.update(hits=0, misses=0)
+
+
+def _cached_measurer(image, camera, plane, axis, roi, options) -> ProfileMeasurer:
+    key = _profile_cache_key(image, camera, plane, axis, roi, options)
+    if key is None:
+        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)
+    with _profile_cache_lock:
+        m = _profile_cache.get(key)
+        if m is not None:
+            _profile_cache.move_to_end(key)
+            _profile_cache_stats["hits"] += 1
+            return m
+    m = ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)  # raises on bad input: nothing cached
+    with _profile_cache_lock:
+        m = _profile_cache.setdefault(key, m)
+        _profile_cache.move_to_end(key)
+        _profile_cache_stats["misses"] += 1
+        while len(_profile_cache) > PROFILE_CACHE_SIZE:
+            _profile_cache.popitem(last=False)
+    return m
+
+
 def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
-                    **stripe_options) -> Profile:
+                    cache: bool = True, **stripe_options) -> Profile:
     """3D profile of one stripe image (docs/method.md §Triangulation, §Stripe centres): points (mm, camera frame), σ, pixels.
 
     One stripe centre per column (``axis="columns"``) or row (``"rows"``; ``"auto"``
     picks from the plane, :func:`profile_axis`) within ``roi`` ``(x, y, width, height)``,
     triangulated on ``plane``; ``stripe_options`` go to
-    :func:`lightplane.stripe.extract_profile`.  For many frames build one
-    :class:`ProfileMeasurer` and call it per frame (lookup tables, much faster).
+    :func:`lightplane.stripe.extract_profile` (and the other keyword options of
+    :class:`ProfileMeasurer`).
+
+    Same numbers, bit for bit, as ``ProfileMeasurer(camera, plane, axis=axis, roi=roi,
+    **stripe_options)(image)``: with ``cache=True`` (default) the measurer, and with it
+    its undistortion lookup tables, is kept per (camera, plane, image shape, options),
+    compared by value (:data:`PROFILE_CACHE_SIZE` of them, least recently used dropped;
+    :func:`profile_cache_info`, :func:`clear_profile_cache`), so repeated calls on the
+    frames of one setup do not rebuild anything.  ``cache=False`` keeps nothing and
+    undistorts the centres exactly instead (``lookup=False``; the same points to ~1e-9 px).
 
     Example
     -------
@@ -447,4 +568,13 @@ def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axi
     >>> prof.axis, prof.n_valid > 100, bool(np.allclose(pl.signed_distance(prof.points[prof.valid]), 0, atol=1e-9))
     ('columns', True, True)
     """
-    return ProfileMeasurer(camera, plane, axis=axis, roi=roi, lookup=False, **stripe_options)(image)
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    if not isinstance(plane, LightPlane):
+        raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+    if not isinstance(image, np.ndarray):
+        raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
+    camera.check_image(image)  # before the cache: a wrong-sized frame leaves no entry
+    if not cache:
+        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, lookup=False, **stripe_options)(image)
+    return _cached_measurer(image, camera, plane, axis, roi, stripe_options)(image)

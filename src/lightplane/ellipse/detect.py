@@ -26,7 +26,8 @@ Pipeline (one function per stage, all on arrays):
    image are left out of both (an ellipse cut by the border is judged on its visible
    part, at least half of it); a final non-maximum suppression removes duplicates.
 
-Large ellipses are searched on a reduced image (``downscale``, from ``min_axis_px``):
+Large ellipses and large images are searched on a reduced image (``downscale``, from
+``min_axis_px`` and the image size, :func:`auto_downscale`):
 detection only needs to be close enough for :func:`refine_ellipse`.
 
 Supplementary candidates (documented deviation): ellipses of contours of a locally
@@ -46,7 +47,7 @@ from ..errors import LightplaneError
 from .edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
 from .model import Ellipse
 
-__all__ = ["detect_ellipses", "arc_support_segments", "arc_groups"]
+__all__ = ["detect_ellipses", "auto_downscale", "arc_support_segments", "arc_groups"]
 
 _POLARITY = {None: 0, 0: 0, "any": 0, "dark": -1, "light": 1, -1: -1, 1: 1}
 
@@ -626,6 +627,53 @@ def _detect_arrays(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: float,
     return P1[good], S1[good], ratio[good], cov[good]
 
 
+#: the smallest semi-minor axis (px) the detector is asked to find on the image it works on:
+#: the ELSDc photographs' bar (F >= 0.95) is met with ``min_axis_px=1.5`` at full resolution
+MIN_WORKING_AXIS_PX = 1.5
+#: images with more pixels than this (1 MiP; 1280x960 is 1.2) are searched reduced, when the
+#: expected ellipses allow it.  The cost: ellipses that end up 1.5-3 px across on the reduced
+#: image are found less often (ELSDc photographs with the default ``min_axis_px`` searched at
+#: half size: recall 0.900 against 0.918, ``benchmarks/bench_ellipse.py``; they are 1024x768,
+#: below this size, and searched at full size)
+MAX_WORKING_PIXELS = 1024 * 1024
+#: ellipses at least this large (semi-minor, on the reduced image) are searched reduced whatever the image size
+LARGE_AXIS_PX = 10.0
+MAX_DOWNSCALE = 4
+
+
+def auto_downscale(shape: tuple[int, int], min_axis_px: float) -> int:
+    """The reduction factor :func:`detect_ellipses` uses by default: 1, 2 or 4.
+
+    The largest power of two (at most :data:`MAX_DOWNSCALE`) that keeps the smallest
+    expected ellipse (semi-minor axis ``min_axis_px``) at least :data:`LARGE_AXIS_PX`
+    across on the reduced image; and, for an image of more than
+    :data:`MAX_WORKING_PIXELS` pixels, also the smallest power of two that brings it to
+    that size, as long as the smallest expected ellipse keeps
+    :data:`MIN_WORKING_AXIS_PX` there.  The search then costs about the same on any
+    image, below OpenCV's LSD on the full one (``benchmarks/bench_ellipse.py``).
+
+    >>> auto_downscale((960, 1280), 3.0), auto_downscale((960, 1280), 1.5), auto_downscale((768, 1024), 3.0)
+    (2, 1, 1)
+    >>> auto_downscale((960, 1280), 40.0), auto_downscale((240, 320), 40.0)
+    (4, 4)
+    """
+    h, w = int(shape[0]), int(shape[1])
+
+    def largest(floor: float) -> int:
+        f = 1
+        while 2 * f <= MAX_DOWNSCALE and min_axis_px / (2 * f) >= floor:
+            f *= 2
+        return f
+
+    f = largest(LARGE_AXIS_PX)
+    if h * w > MAX_WORKING_PIXELS:
+        f_img = 1
+        while (h // f_img) * (w // f_img) > MAX_WORKING_PIXELS and 2 * f_img <= MAX_DOWNSCALE:
+            f_img *= 2
+        f = max(f, min(f_img, largest(MIN_WORKING_AXIS_PX)))
+    return f
+
+
 def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px: float | None = None,
                     max_count: int | None = None, polarity: str | int | None = None,
                     min_inlier_ratio: float = 0.7, min_coverage: float = 0.7,
@@ -644,9 +692,10 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     use_contours : add adaptive-threshold contour candidates; default: only when
         ``min_axis_px < 12`` (LSD misses ellipses a few pixels across).
     downscale : run the pipeline on an image reduced by this integer factor (area
-        averaging) and scale the ellipses back; default ``2**floor(log2(min_axis_px / 10))``
-        clipped to [1, 4] — large targets need no full-resolution search, and
-        :func:`refine_ellipse` does the metrology at full resolution.
+        averaging) and scale the ellipses back; default from the image size and
+        ``min_axis_px`` (:func:`auto_downscale`): large targets and large images need no
+        full-resolution search, and :func:`refine_ellipse` does the metrology at full
+        resolution.
     lsd_scale : LSD's own image scale (OpenCV default 0.8).
 
     Returns a list of :class:`Ellipse` sorted by decreasing score (inlier ratio x
@@ -671,9 +720,7 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
         raise LightplaneError(f"max_axis_px ({max_axis_px}) must be >= min_axis_px ({min_axis_px})")
     if use_contours is None:
         use_contours = min_axis_px < 12
-    if downscale is None:
-        downscale = int(2 ** np.clip(math.floor(math.log2(max(min_axis_px / 10.0, 1.0))), 0, 2))
-    f = max(int(downscale), 1)
+    f = max(int(downscale), 1) if downscale is not None else auto_downscale((h, w), min_axis_px)
     if min(h, w) // f < 16:
         f = 1
     gray8 = to_uint8(gray)
