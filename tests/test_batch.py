@@ -35,10 +35,18 @@ def data(tmp_path_factory):
     ds = render_scan_dataset("sphere", n_frames=N_FRAMES, step_mm=STEP, seed=2)
     ds.save(d / "s1")
     LightPlane.from_dict(ds.truth["plane"]).save(d / "plane.json")
+    import cv2
+
+    h, w = ds.images[0].shape[:2]
+    video = cv2.VideoWriter(str(d / "s3.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h), isColor=False)
+    for img in ds.images:
+        video.write(img)
+    video.release()
     (d / "manifest.csv").write_text(
         "id,input,camera,plane,step,direction,positions\n"
         f"s1,s1,s1/camera.json,plane.json,{STEP},-1;0;0,\n"
-        "s2,s1/*.png,s1/camera.json,plane.json,,,\n")
+        "s2,s1/*.png,s1/camera.json,plane.json,,,\n"
+        f"s3,s3.avi,s1/camera.json,plane.json,{STEP},-1;0;0,\n")
     return d
 
 
@@ -59,8 +67,9 @@ def reference(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref")
     cam, pl = Camera.load(data / "s1" / "camera.json"), LightPlane.load(data / "plane.json")
     ref = {}
-    for sid, motion in (("s1", Motion.linear(STEP, (-1, 0, 0))), ("s2", Motion.none())):
-        measure_scan(open_frames([data / "s1"]), cam, pl, out / f"{sid}.npy", motion=motion, workers=2,
+    for sid, motion, src in (("s1", Motion.linear(STEP, (-1, 0, 0)), "s1"), ("s2", Motion.none(), "s1"),
+                             ("s3", Motion.linear(STEP, (-1, 0, 0)), "s3.avi")):
+        measure_scan(open_frames([data / src]), cam, pl, out / f"{sid}.npy", motion=motion, workers=2,
                      executor="thread")
         ref[sid] = np.load(out / f"{sid}.npy")
     return ref
@@ -78,20 +87,20 @@ def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp
         r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=chunk)
         assert not r.failed, r.failed
         n_parts = -(-N_FRAMES // chunk)
-        for sid in ("s1", "s2"):
+        for sid in ("s1", "s2", "s3"):
             assert same(read_points(out, sid), reference[sid]), (chunk, sid)
             parts = sorted(p.name for p in (out / "points" / f"scan={sid}").iterdir())
-            assert parts == [f"part-{k}.parquet" for k in range(n_parts)]
-        assert r.partitions_written == 2 * n_parts and r.partitions_reused == 0
-        assert r.n_frames == 2 * N_FRAMES
+            assert parts == [f"part-{k}.parquet" for k in range(n_parts if sid != "s3" else 1)]  # a video: one
+        assert r.partitions_written == 2 * n_parts + 1 and r.partitions_reused == 0
+        assert r.n_frames == 3 * N_FRAMES
     # one hive-partitioned dataset, measure's CSV columns
     t = pds.dataset(out / "points", format="parquet", partitioning="hive").to_table()
-    assert t.num_rows == reference["s1"].size + reference["s2"].size
+    assert t.num_rows == sum(a.size for a in reference.values())
     assert set(t.column_names) == {"x", "y", "z", "frame", "intensity", "sigma_mm", "u", "v", "scan"}
     import json
 
     m = json.loads((out / "manifest.json").read_text())
-    assert m["summary"]["ok"] == 2 and m["provenance"]["versions"]["lightplane"]
+    assert m["summary"]["ok"] == 3 and m["provenance"]["versions"]["lightplane"]
     assert [p["frames"] for p in m["scans"][0]["partitions"]] == [[0, N_FRAMES]]
 
 
@@ -102,14 +111,15 @@ def test_resume_rewrites_only_the_missing_partition(data, client, reference, tmp
     (folder / "part-1.parquet").unlink()
     before = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
     r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=2)
-    assert r.partitions_written == 1 and r.partitions_reused == 5
+    assert r.partitions_written == 1 and r.partitions_reused == 6
     after = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
     assert set(after) == set(before) | {folder / "part-1.parquet"}
     assert all(after[p] == t for p, t in before.items())  # the others were not touched
     assert same(read_points(out, "s1"), reference["s1"]) and same(read_points(out, "s2"), reference["s2"])
     # another chunking: nothing stale is kept
     r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=3)
-    assert r.partitions_written == 4 and same(read_points(out, "s1"), reference["s1"])
+    assert r.partitions_written == 4 and r.partitions_reused == 1  # the video's one partition is still valid
+    assert same(read_points(out, "s1"), reference["s1"])
     assert sorted(p.name for p in folder.iterdir()) == ["part-0.parquet", "part-1.parquet"]
 
 
@@ -181,14 +191,18 @@ def test_worker_killed_mid_run_loses_and_duplicates_nothing(data, client, refere
                 os._exit(1)
 
     plugin = KillFirstChunk(str(tmp_path / "killed"))
+    stale = tmp_path / "out" / "points" / "scan=s1" / ".part-0.parquet.x1y2z3.parquet"  # as a worker killed mid-write leaves
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"PAR1 half a file")
     client.register_plugin(plugin, name=plugin.name)
     try:
         r = measure_batch(data / "manifest.csv", tmp_path / "out", client=client, chunk_frames=1)
     finally:
         client.unregister_worker_plugin(plugin.name)
     assert (tmp_path / "killed").is_file(), "no worker was killed"
-    assert not r.failed and r.partitions_written == 2 * N_FRAMES
-    for sid in ("s1", "s2"):
+    assert not r.failed and r.partitions_written == 2 * N_FRAMES + 1
+    assert not list((tmp_path / "out").glob("points/*/.part-*"))  # no temporary file left
+    for sid in ("s1", "s2", "s3"):
         got = read_points(tmp_path / "out", sid)
         assert same(got, reference[sid])
         assert np.array_equal(np.unique(got["frame"]), np.arange(N_FRAMES))
