@@ -90,7 +90,7 @@ def main(argv: list[str]) -> int:
     clients, starts = {}, {}
     for n in (1, 2):
         t = time.perf_counter()
-        clients[n] = Client(local_cluster(n, dashboard_address=None))
+        clients[n] = Client(local_cluster(n))
         starts[n] = time.perf_counter() - t
 
     def batch_once(n: int, k: int) -> float:
