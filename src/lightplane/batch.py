@@ -276,14 +276,16 @@ def _prepare_task(frames: list, video: bool, camera, plane, motion, options: dic
     profile axis and the stripe width, exactly as ``measure`` prepares a scan."""
     from .scan import ImageFiles, VideoFrames, _prepare
 
-    src = VideoFrames(frames[0]) if video else ImageFiles(frames)
-    try:
+    src = None
+    try:  # a worker that does not see the files says so here, for the scan
+        src = VideoFrames(frames[0]) if video else ImageFiles(frames)
         _, _, axis, width = _prepare(src, camera, plane, motion, options["axis"], options["width_px"],
                                      options["channel"])
     except LightplaneError as e:
         return {"error": str(e)}
     finally:
-        src.close()
+        if src is not None:
+            src.close()
     return {"axis": axis, "width_px": width}
 
 
