@@ -14,7 +14,8 @@ from lightplane.calibrate import calibrate_plane
 from lightplane.camera import Camera
 from lightplane.errors import LightplaneError
 from lightplane.plane import LightPlane
-from lightplane.report import figure_overlays, figure_residuals, write_report
+from lightplane.plots import figure_overlays, figure_residuals
+from lightplane.report import write_report
 
 from test_calibrate_images import cached_circle_render
 

@@ -20,7 +20,7 @@ from .targets import Target, as_target, correct_circle_centres
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
            "board_points",
-           "calibrate_camera", "plot_residuals", "INTRINSIC_NAMES"]
+           "calibrate_camera", "INTRINSIC_NAMES"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
@@ -652,30 +652,3 @@ def _dot_diameter(img, det, target) -> float:
     from .targets import dot_diameter_mm
 
     return dot_diameter_mm(img, det, target)
-
-
-def plot_residuals(result: IntrinsicsCalibration, path: str) -> None:
-    """Residual plot: all corner residuals (px) as a scatter and per-view RMS bars."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .io import save_figure
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
-    for name, r in zip(result.used, result.residuals_px):
-        ax1.plot(r[:, 0], r[:, 1], ".", ms=2, alpha=0.6)
-    ax1.set_aspect("equal")
-    ax1.set_xlabel("residual u (px)")
-    ax1.set_ylabel("residual v (px)")
-    ax1.set_title(f"Corner residuals, RMS {result.rms_px:.3f} px")
-    ax1.grid(True, alpha=0.3)
-    labels = [Path(n).name for n in result.used]
-    ax2.bar(range(len(labels)), result.per_view_rms_px)
-    ax2.set_xticks(range(len(labels)))
-    ax2.set_xticklabels(labels, rotation=60, ha="right", fontsize=7)
-    ax2.set_ylabel("per-view RMS (px)")
-    ax2.set_title("Per-view reprojection error")
-    fig.tight_layout()
-    save_figure(fig, path, force=True, dpi=110)

@@ -42,7 +42,8 @@ def calibrate_camera_cmd(
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     import cv2
 
-    from ..intrinsics import INTRINSIC_NAMES, calibrate_camera, plot_residuals
+    from ..intrinsics import INTRINSIC_NAMES, calibrate_camera
+    from ..plots import intrinsics_residuals
 
     target = target_from_options(board, square, marker, dictionary, dot, target_file)
     files = expand_inputs(images)
@@ -111,5 +112,5 @@ def calibrate_camera_cmd(
         cam.save(output, force=force)
     console.print(f"wrote {output}")
     if plot is not None:
-        plot_residuals(result, str(plot))
+        intrinsics_residuals(result, plot, force=True)
         console.print(f"wrote {plot}")

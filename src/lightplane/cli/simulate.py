@@ -32,7 +32,8 @@ def simulate_cmd(
     study.json (all rows and provenance).
     """
     from ..io import check_output, provenance, write_json
-    from ..simulate.study import n_trials_total, plot_factor, run_factor, write_csv
+    from ..plots import study_factor
+    from ..simulate.study import n_trials_total, run_factor, write_csv
 
     factors = list(_FACTOR_NAMES) if factor == "all" else [factor]
     if out.exists() and not out.is_dir():
@@ -49,7 +50,7 @@ def simulate_cmd(
             res = run_factor(f, trials=trials, seed=seed, n_rim=n_rim, n_stripe=n_stripe,
                              progress=lambda k: update(advance=k))
             write_csv(res, out / f"{f}.csv", force=force)
-            plot_factor(res, out / f"{f}.png", force=force)
+            study_factor(res, out / f"{f}.png", force=force)
             results[f] = res
 
     for f, res in results.items():

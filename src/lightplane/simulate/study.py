@@ -46,7 +46,7 @@ from ..camera import Camera
 from ..errors import LightplaneError
 from ..plane import LightPlane
 
-__all__ = ["FACTORS", "METHODS", "GROSS_DEG", "FactorSpec", "StudyResult", "run_factor", "write_csv", "plot_factor",
+__all__ = ["FACTORS", "METHODS", "GROSS_DEG", "FactorSpec", "StudyResult", "run_factor", "write_csv",
            "n_trials_total"]
 
 METHODS = ("paper", "global", "ml")
@@ -271,51 +271,3 @@ def write_csv(result: StudyResult, path: str | os.PathLike, *, force: bool = Fal
     from ..io import atomic_write
 
     return atomic_write(path, csv_text(result), force=force)
-
-
-_PLOT_FLOOR = {"rel_coef_pct": 1e-7, "angle_deg": 1e-7, "tri_rms_mm": 1e-7}
-_STYLE = {"paper": dict(color="tab:red", marker="s"), "global": dict(color="tab:orange", marker="^"),
-          "ml": dict(color="tab:blue", marker="o"), "crlb": dict(color="black", ls="--", marker="")}
-
-
-def plot_factor(result: StudyResult, path: str | os.PathLike, *, force: bool = False) -> Path:
-    """PNG with four panels against the factor: relative coefficient error (%), angle error
-    (deg), triangulation RMS over the working volume (mm), and the failure rate (%)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..io import save_figure
-
-    spec = result.factor
-    methods = [m for m in (*METHODS, "crlb") if any(r["method"] == m for r in result.rows)]
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8), dpi=100)
-    panels = [("rel_coef_pct", "relative error of b, c, d (RMS, %)"), ("angle_deg", "normal angle error (RMS, deg)"),
-              ("tri_rms_mm", "triangulation error, working volume (RMS, mm)"), ("failed", "failed trials (%): wrong pose chosen, or error")]
-    for ax, (key, ylabel) in zip(axes.ravel(), panels):
-        for m in methods:
-            rows = [r for r in result.rows if r["method"] == m]
-            x = np.array([r["level"] for r in rows], dtype=float)
-            if key == "failed":
-                if m == "crlb":
-                    continue
-                y = np.array([100.0 * r["failed"] / r["trials"] for r in rows])
-            else:
-                y = np.array([r[key] for r in rows], dtype=float)
-                y = np.where(y > _PLOT_FLOOR.get(key, 0.0), y, np.nan)  # noise-free level: not on a log axis
-            ax.plot(x, y, label="Cramér–Rao bound" if m == "crlb" else m, lw=1.5, ms=5, **_STYLE[m])
-        if key != "failed":
-            ax.set_yscale("log")
-        ax.set_xlabel(spec.label)
-        ax.set_ylabel(ylabel)
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend()
-    fixed = {"placements": f"D = {spec.diameter_mm:g} mm, sigma = {spec.sigma_px:g} px",
-             "noise": f"D = {spec.diameter_mm:g} mm, {spec.n_placements} placements",
-             "diameter": f"sigma = {spec.sigma_px:g} px, {spec.n_placements} placements"}[spec.name]
-    fig.suptitle(f"Paper §3 study — {spec.name} ({fixed}; {result.trials} trials per level, "
-                 f"{result.n_rim} rim + {result.n_stripe} stripe points per placement)", fontsize=10)
-    fig.tight_layout()
-
-    return save_figure(fig, path, force=force)
