@@ -124,6 +124,8 @@ def test_resume_rewrites_only_the_missing_partition(data, client, reference, tmp
 
 
 def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
+    import json
+
     frames = tmp_path / "frames"
     shutil.copytree(data / "s1", frames)
     (frames / sorted(p.name for p in frames.glob("*.png"))[2]).write_bytes(b"\x89PNG\r\n\x1a\n truncated")
@@ -132,21 +134,26 @@ def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
         "id,input,camera,plane\n"
         "good,frames,frames/camera.json,plane.json\n"
         "gone,no-such-folder,frames/camera.json,plane.json\n"
-        "nocam,frames,missing.json,plane.json\n")
+        "nocam,frames,missing.json,plane.json\n"
+        "small,frames,small.json,plane.json\n")
+    cam = json.loads((frames / "camera.json").read_text())
+    cam["width"], cam["height"] = 640, 480  # not the frames' size: that scan fails, as measure refuses it
+    (tmp_path / "small.json").write_text(json.dumps(cam))
     addr = client.scheduler.address
     cmd = [sys.executable, "-m", "lightplane", "measure-batch", str(tmp_path / "m.csv"), "-o", str(tmp_path / "o"),
            "--scheduler", addr, "--chunk-frames", "2", "--ply"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "1 of 3 scans measured" in r.stdout
+    assert "1 of 4 scans measured" in r.stdout
     assert "scan gone" in r.stderr and "scan nocam" in r.stderr and "unreadable frame" in r.stderr
-    import json
+    assert "scan small" in r.stderr
 
     m = json.loads((tmp_path / "o" / "manifest.json").read_text())
     good = m["scans"][0]
     assert good["status"] == "ok" and good["n_frames"] == N_FRAMES and len(good["skipped"]) == 1
     assert good["skipped"][0][0] == 2 and "truncated" in good["skipped"][0][2]
-    assert [s["status"] for s in m["scans"]] == ["ok", "failed", "failed"]
+    assert [s["status"] for s in m["scans"]] == ["ok", "failed", "failed", "failed"]
+    assert "1280x960" in m["scans"][3]["error"] or "size" in m["scans"][3]["error"], m["scans"][3]["error"]
     assert (tmp_path / "o" / "ply" / "good.ply").is_file()
     # nothing measurable: exit 2, one error line at the end
     (tmp_path / "bad.csv").write_text("id,input,camera,plane\ngone,no-such-folder,frames/camera.json,plane.json\n")
