@@ -82,17 +82,22 @@ def same(a: np.ndarray, b: np.ndarray) -> bool:
 def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp_path):
     import pyarrow.dataset as pds
 
+    # s4: the frames of s2 named by an fsspec URL (file:// here; s3://, gs://... alike), read by the workers
+    manifest = data / "manifest-url.csv"
+    manifest.write_text((data / "manifest.csv").read_text()
+                        + f"s4,{(data / 's1').as_uri()},s1/camera.json,plane.json,,,\n")
+    reference = {**reference, "s4": reference["s2"]}
     for chunk in (2, 5):
         out = tmp_path / f"c{chunk}"
-        r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=chunk)
+        r = measure_batch(manifest, out, client=client, chunk_frames=chunk)
         assert not r.failed, r.failed
         n_parts = -(-N_FRAMES // chunk)
-        for sid in ("s1", "s2", "s3"):
+        for sid in ("s1", "s2", "s3", "s4"):
             assert same(read_points(out, sid), reference[sid]), (chunk, sid)
             parts = sorted(p.name for p in (out / "points" / f"scan={sid}").iterdir())
             assert parts == [f"part-{k}.parquet" for k in range(n_parts if sid != "s3" else 1)]  # a video: one
-        assert r.partitions_written == 2 * n_parts + 1 and r.partitions_reused == 0
-        assert r.n_frames == 3 * N_FRAMES
+        assert r.partitions_written == 3 * n_parts + 1 and r.partitions_reused == 0
+        assert r.n_frames == 4 * N_FRAMES
     # one hive-partitioned dataset, measure's CSV columns
     t = pds.dataset(out / "points", format="parquet", partitioning="hive").to_table()
     assert t.num_rows == sum(a.size for a in reference.values())
@@ -100,7 +105,7 @@ def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp
     import json
 
     m = json.loads((out / "manifest.json").read_text())
-    assert m["summary"]["ok"] == 3 and m["provenance"]["versions"]["lightplane"]
+    assert m["summary"]["ok"] == 4 and m["provenance"]["versions"]["lightplane"]
     assert [p["frames"] for p in m["scans"][0]["partitions"]] == [[0, N_FRAMES]]
 
 
@@ -135,7 +140,8 @@ def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
         "good,frames,frames/camera.json,plane.json\n"
         "gone,no-such-folder,frames/camera.json,plane.json\n"
         "nocam,frames,missing.json,plane.json\n"
-        "small,frames,small.json,plane.json\n")
+        "small,frames,small.json,plane.json\n"
+        f"url,{frames.as_uri()},frames/camera.json,plane.json\n")
     cam = json.loads((frames / "camera.json").read_text())
     cam["width"], cam["height"] = 640, 480  # not the frames' size: that scan fails, as measure refuses it
     (tmp_path / "small.json").write_text(json.dumps(cam))
@@ -144,7 +150,7 @@ def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
            "--scheduler", addr, "--chunk-frames", "2", "--ply"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "1 of 4 scans measured" in r.stdout
+    assert "2 of 5 scans measured" in r.stdout
     assert "scan gone" in r.stderr and "scan nocam" in r.stderr and "unreadable frame" in r.stderr
     assert "scan small" in r.stderr
 
@@ -152,7 +158,8 @@ def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
     good = m["scans"][0]
     assert good["status"] == "ok" and good["n_frames"] == N_FRAMES and len(good["skipped"]) == 1
     assert good["skipped"][0][0] == 2 and "truncated" in good["skipped"][0][2]
-    assert [s["status"] for s in m["scans"]] == ["ok", "failed", "failed", "failed"]
+    assert [s["status"] for s in m["scans"]] == ["ok", "failed", "failed", "failed", "ok"]
+    assert m["scans"][4]["skipped"][0][0] == 2 and "truncated" in m["scans"][4]["skipped"][0][2]  # via fsspec
     assert "1280x960" in m["scans"][3]["error"] or "size" in m["scans"][3]["error"], m["scans"][3]["error"]
     assert (tmp_path / "o" / "ply" / "good.ply").is_file()
     # nothing measurable: exit 2, one error line at the end

@@ -174,6 +174,7 @@ class _Plan:
     chunks: list = field(default_factory=list)  # [(k, start, stop)]; stop None: to the end (video)
     tokens: dict = field(default_factory=dict)  # k -> fingerprint of the partition
     scan_token: str = ""
+    stats: list | None = None  # remote frames: (size, modification stamp) from the listing
     error: str | None = None
 
 
@@ -196,7 +197,12 @@ def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
         pl.motion = _motion_of(scan)
         pl.camera = Camera.load(scan.camera)
         pl.plane = LightPlane.load(scan.plane)
-        if Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
+        if _is_url(scan.input):
+            if Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
+                raise LightplaneError(f"{scan.input}: a video must be a local (shared) path, not a URL")
+            pl.frames, pl.stats = _list_url_frames(scan.input)
+            pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
+        elif Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
             if not Path(scan.input).is_file():
                 raise LightplaneError(f"{scan.input}: no such video file")
             pl.video, pl.frames, pl.chunks = True, [scan.input], [(0, 0, None)]  # a video is decoded in one task
@@ -216,13 +222,91 @@ def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
     base = {"layout": _LAYOUT, "camera": pl.camera.to_dict(), "plane": pl.plane.to_dict(),
             "motion": pl.motion.to_dict(), "options": options, "versions": _code_versions(),
             # every frame of the scan (name, size, mtime): the stripe width comes from its first readable frame
-            "frames": pl.frames, "stats": [_stat(q) for q in pl.frames]}
+            "frames": pl.frames, "stats": pl.stats if pl.stats is not None else [_stat(q) for q in pl.frames]}
     if pl.motion.positions_mm is not None:
         base["positions_sha256"] = hashlib.sha256(np.ascontiguousarray(pl.motion.positions_mm).tobytes()).hexdigest()
     pl.scan_token = hashlib.sha256(json.dumps(base, sort_keys=True, default=str).encode()).hexdigest()
     for k, a, b in pl.chunks:
         pl.tokens[k] = hashlib.sha256(f"{pl.scan_token}:{k}:{a}:{b}".encode()).hexdigest()
     return pl
+
+
+def _is_url(text: str) -> bool:
+    """An fsspec URL (``s3://``, ``gs://``, ``file://``...) rather than a path."""
+    return "://" in str(text)
+
+
+def _natural(text: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", text)]
+
+
+def _list_url_frames(url: str) -> tuple[list[str], list]:
+    """The image files of an fsspec URL (a folder, a glob or one file), in natural order, with their stamps."""
+    try:
+        import fsspec
+    except ImportError:  # pragma: no cover - fsspec comes with dask
+        raise LightplaneError(f"{url}: reading URLs needs fsspec (pip install fsspec)") from None
+    from .io import IMAGE_SUFFIXES
+
+    try:
+        fs, path = fsspec.core.url_to_fs(url)
+        if any(ch in path for ch in "*?["):
+            infos = fs.glob(path, detail=True)
+        elif fs.isdir(path):
+            infos = {i["name"]: i for i in fs.ls(path, detail=True)
+                     if i.get("type") != "directory" and Path(i["name"]).suffix.lower() in IMAGE_SUFFIXES}
+        elif fs.exists(path):
+            infos = {path: fs.info(path)}
+        else:
+            raise LightplaneError(f"{url}: no such file or folder")
+    except LightplaneError:
+        raise
+    except Exception as e:  # the filesystem's own errors (no credentials, no network...)
+        raise LightplaneError(f"{url}: cannot be listed ({type(e).__name__}: {e})") from None
+    names = sorted(infos, key=_natural)
+    if not names:
+        raise LightplaneError(f"no images found in {url}")
+    stamps = [[infos[n].get("size"), str(infos[n].get("mtime") or infos[n].get("LastModified")
+                                          or infos[n].get("ETag") or "")] for n in names]
+    return [fs.unstrip_protocol(n) for n in names], stamps
+
+
+class _RemoteFrames:
+    """Frames named by fsspec URLs: each is copied to a local temporary file and read there
+    exactly as a local file is (:func:`lightplane.io.try_read_image`), then removed."""
+
+    def __init__(self, urls: Sequence[str], start: int = 0) -> None:
+        self.urls, self.start = list(urls), int(start)
+        self.n_frames = len(self.urls)
+        self.errors: dict = {}
+
+    def items(self):
+        import tempfile
+
+        import fsspec
+
+        for i, url in enumerate(self.urls):
+            fd, tmp = tempfile.mkstemp(prefix=".lightplane-frame-", suffix=Path(url).suffix)
+            os.close(fd)
+            try:
+                try:
+                    with fsspec.open(url, "rb") as src, open(tmp, "wb") as dst:
+                        while True:
+                            block = src.read(1 << 22)
+                            if not block:
+                                break
+                            dst.write(block)
+                except FileNotFoundError:
+                    os.unlink(tmp)  # read as "no such file"
+                except Exception as e:
+                    self.errors[self.start + i] = f"cannot be read ({type(e).__name__}: {e})"
+                yield self.start + i, url, tmp
+            finally:
+                if os.path.exists(tmp):
+                    os.unlink(tmp)
+
+    def close(self) -> None:
+        pass
 
 
 def _stat(path: str):
@@ -278,7 +362,7 @@ def _prepare_task(frames: list, video: bool, camera, plane, motion, options: dic
 
     src = None
     try:  # a worker that does not see the files says so here, for the scan
-        src = VideoFrames(frames[0]) if video else ImageFiles(frames)
+        src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else ImageFiles(frames)
         _, _, axis, width = _prepare(src, camera, plane, motion, options["axis"], options["width_px"],
                                      options["channel"])
     except LightplaneError as e:
@@ -327,12 +411,19 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
         return {"chunk": k, "error": prep["error"]}
     key = f"{spec['proc_key']}:{prep['axis']}:{prep['width_px']!r}"
     proc = _processor(key, camera, plane, motion, prep["axis"], prep["width_px"], options)
-    src = _VideoChunk(spec["frames"][0]) if spec["video"] else _ChunkFrames(spec["frames"], start)
+    if spec["video"]:
+        src = _VideoChunk(spec["frames"][0])
+    elif _is_url(spec["frames"][0]):
+        src = _RemoteFrames(spec["frames"], start)
+    else:
+        src = _ChunkFrames(spec["frames"], start)
     parts, skipped, n, empty = [], [], 0, 0
     try:
-        for r in iter_scan(src, proc, workers=1):
+        for r in iter_scan(src, proc, workers=1):  # one frame at a time, in this process: measure's own path
             n += 1
-            if r.error is not None:
+            if r.index in getattr(src, "errors", {}):
+                skipped.append([r.index, r.name, src.errors[r.index]])
+            elif r.error is not None:
                 skipped.append([r.index, r.name, r.error])
             else:
                 empty += r.records.size == 0
