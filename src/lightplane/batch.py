@@ -5,7 +5,9 @@ optional ``step,direction,positions`` (direction written ``x;y;z``), with the me
 they have in ``lightplane measure``.  Relative paths are taken relative to the
 manifest's folder.  Each scan's frames are listed on the client (a folder listing, no
 image is read there) and cut into *chunks* of consecutive frames; one Dask task per
-chunk reads its own frames (paths on a filesystem the workers share) and measures them
+chunk reads its own frames (paths on a filesystem the workers share, or fsspec URLs
+such as ``s3://bucket/scan/*.png``, copied to a local temporary file and read as a local
+file is; a video is one chunk, decoded from its start) and measures them
 with the very code ``measure`` runs (:class:`lightplane.scan.FrameProcessor`, one frame
 at a time), so the points are bitwise those of ``measure`` whatever the number of
 workers and the chunking:
