@@ -40,7 +40,8 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args, tls_line
+from .geometry import robust_sigma, tls_line
+from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -364,7 +365,7 @@ def _robust_line(uv: np.ndarray, tol_px: float) -> np.ndarray:
             break
         m, _, nrm = tls_line(uv[keep])
         r = (uv - m) @ nrm
-        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        mad = robust_sigma(r[keep])
         keep = np.abs(r) <= max(4.0 * mad, tol_px)
     return keep
 
@@ -547,7 +548,7 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
             und = camera.undistort_points(uv)
             m, _, nrm = tls_line(und)
             r = (und - m) @ nrm
-            s_stripe = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+            s_stripe = robust_sigma(r)
             k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
         else:
             try:

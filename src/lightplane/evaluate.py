@@ -35,7 +35,8 @@ import numpy as np
 from .camera import Camera, as_points
 from .errors import LightplaneError
 from .measure import triangulate_normalized
-from .plane import LightPlane, tls_line
+from .geometry import robust_sigma, tls_line
+from .plane import LightPlane
 
 __all__ = [
     "DistanceErrors",
@@ -227,7 +228,7 @@ def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe:
         for _ in range(4):  # fit the (locally straight) stripe, drop points beyond 3 robust sigma
             qm, qd, _ = tls_line(q)
             res = np.abs((q - qm) @ np.array([-qd[1], qd[0]]))
-            keep = res <= max(3.0 * 1.4826 * np.median(res), 0.05)
+            keep = res <= max(3.0 * robust_sigma(res, center=False), 0.05)
             if keep.all() or np.count_nonzero(keep) < min_stripe_points:
                 break
             q = q[keep]

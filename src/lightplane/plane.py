@@ -352,45 +352,10 @@ def _finite_or_none(x) -> float | None:
 
 
 # ------------------------------------------------------------------- geometry helpers
-def backproject_to_plane(xy: np.ndarray, normal: np.ndarray, center: np.ndarray) -> np.ndarray:
-    """Intersect rays ``(x, y, 1)`` (normalised, (K, 2)) with the plane through ``center`` with ``normal``.
-
-    Returns (K, 3) points, mm (paper Eq. 2 with the target plane); NaN for rays
-    (nearly) parallel to the plane or meeting it behind the camera.
-    """
-    xh = np.column_stack([xy, np.ones(len(xy))])
-    den = xh @ normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (normal @ center) / den
-    s[~(s > 0) | (np.abs(den) < 1e-9)] = np.nan
-    return xh * s[:, None]
-
-
-def fit_plane_points(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
-    """Orthogonal (weighted) least-squares plane through (N, 3) points.
-
-    Returns ``(normal (3,), d, smallest eigenvalue of the weighted scatter)``: the
-    normal is the eigenvector of the smallest eigenvalue of the centred scatter
-    matrix; the eigenvalue is the weighted sum of squared distances.
-    """
-    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)
-    c = (w @ p) / w.sum()
-    q = p - c
-    S = (q * w[:, None]).T @ q
-    lam, V = np.linalg.eigh(S)
-    n = V[:, 0]
-    return n, -float(n @ c), float(max(lam[0], 0.0))
-
-
-def tls_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Total-least-squares line through (K, 2) points: ``(centroid (2,), unit direction (2,), unit normal (2,))``.
-
-    Direction and normal are the right singular vectors of the centred points (largest
-    and smallest spread); their signs are LAPACK's.
-    """
-    m = p.mean(axis=0)
-    vt = np.linalg.svd(p - m, full_matrices=False)[2]
-    return m, vt[0], vt[1]
+# the primitives live in lightplane.geometry; these names stay importable from here
+from .geometry import fit_plane_tls as fit_plane_points  # noqa: E402
+from .geometry import ray_plane as backproject_to_plane  # noqa: E402
+from .geometry import robust_sigma, sampson_distance, tls_line  # noqa: E402,F401
 
 
 def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -406,7 +371,7 @@ def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tu
         nrm = np.linalg.eigh(q.T @ q)[1][:, 0]  # direction of least spread
         r = np.abs((p - c) @ nrm)
         ri = r[inl]
-        mad = 1.4826 * np.partition(ri, len(ri) // 2)[len(ri) // 2]  # median (upper middle), cheaply
+        mad = robust_sigma(ri, center=False, upper_median=True)  # (upper middle) median, cheaply
         new = r <= max(k_mad * mad, 1e-9 * (1.0 + np.abs(c).max()))
         if new.sum() < 2 or np.array_equal(new, inl):
             break
@@ -482,9 +447,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
     if conic is None:
         conic = fit_conic(rim_und, name=f"{name}: rim points")
-    xh = np.column_stack([rim_und, np.ones(len(rim_und))])
-    Cx = xh @ conic
-    res = np.sum(Cx * xh, axis=1) / (2.0 * np.hypot(Cx[:, 0], Cx[:, 1]))  # Sampson distance, px
+    res = sampson_distance(conic, rim_und)  # px
     rim_rms = float(np.sqrt(np.mean(res**2)))
     if not np.isfinite(rim_rms) or rim_rms > max_rim_rms_px:
         raise LightplaneError(

@@ -74,6 +74,7 @@ import numpy as np
 
 from .camera import Camera, as_points
 from .errors import LightplaneError
+from .geometry import robust_sigma
 from .plane import LightPlane
 
 __all__ = ["MLResult", "refine_ml", "crlb", "simulate_points", "plane_param_jacobian", "integrated_autocorr_time"]
@@ -705,7 +706,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     r_raw = prob.residuals(x) / prob.row_w
     hub = np.ones(prob.m)
     # robust start: MAD of each group's residuals (residuals have zero mean)
-    sig = np.array([1.4826 * np.median(np.abs(r_raw[grp == g])) for g in range(n_grp)])
+    sig = np.array([robust_sigma(r_raw[grp == g], center=False) for g in range(n_grp)])
     kappa = 1.0
     if huber_c is not None:
         # scale from the points within huber_c sigma (a truncated Gaussian: E[u² | |u| <= c] =

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import LightplaneError
+from .geometry import robust_sigma
 
 __all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "correct_circle_centres", "to_gray8"]
 
@@ -456,7 +457,7 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
             coef, *_ = np.linalg.lstsq(X[board], vals[board], rcond=None)
             level = X @ coef
             resid = vals[board] - level[board]
-            noise = 1.4826 * np.median(np.abs(resid - np.median(resid)))
+            noise = robust_sigma(resid)
             contrast = (level - vals) if dark else (vals - level)
             # shading multiplies the dot's contrast too: divide by the local illumination (the board's
             # level for dark dots, the dot's for light ones) so the weights are the albedo step alone

@@ -23,7 +23,8 @@ import numpy as np
 
 from ..camera import Camera, as_points
 from ..errors import LightplaneError
-from ..plane import LightPlane, tls_line
+from ..geometry import ray_plane, robust_sigma, tls_line
+from ..plane import LightPlane
 
 __all__ = [
     "BoardPose",
@@ -202,13 +203,7 @@ def stripe_points_on_board(camera: Camera, pose: BoardPose, stripe_uv: np.ndarra
     """
     uv = as_points(stripe_uv, 2, "stripe_uv")
     xy = camera.undistort_points(uv, normalized=True)
-    rays = np.column_stack([xy, np.ones(len(xy))])
-    n = pose.normal_cam
-    den = rays @ n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (n @ pose.t_cam_board) / den
-    s[~(s > 0) | (np.abs(den) < 1e-9)] = np.nan
-    return rays * s[:, None]
+    return ray_plane(xy, pose.normal_cam, pose.t_cam_board)
 
 
 def fit_plane(points_mm: np.ndarray, *, meta: dict | None = None) -> LightPlane:
@@ -353,7 +348,7 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
             break
         m, _, nrm = tls_line(uv[inl])
         r = np.abs((uv - m) @ nrm)
-        tol = tol_px if it == 0 else min(tol_px, max(3.0 * 1.4826 * float(np.median(r[inl])), min_tol_px))
+        tol = tol_px if it == 0 else min(tol_px, max(3.0 * robust_sigma(r[inl], center=False), min_tol_px))
         new = r < tol
         if np.array_equal(new, inl):
             break

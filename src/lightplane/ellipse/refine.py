@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LightplaneError
+from ..geometry import robust_sigma
 from .edges import gradients, normal_edge_samples, prepare_gray
 from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
 
@@ -163,7 +164,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
         r = sampson_distance(C, uv)
         r[~np.isfinite(r)] = np.inf
         med = np.median(r[keep])
-        sig = max(1.4826 * np.median(np.abs(r[keep] - med)), min_sigma_px)
+        sig = max(robust_sigma(r[keep]), min_sigma_px)
         keep = np.abs(r - med) <= mad_k * sig
         if keep.sum() < 6:
             return None
@@ -179,7 +180,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     C, res = g
     # a last rejection on the geometric residuals, then the final geometric fit
     med = np.median(res)
-    sig = max(1.4826 * np.median(np.abs(res - med)), min_sigma_px)
+    sig = max(robust_sigma(res), min_sigma_px)
     r_all = sampson_distance(C, uv)
     keep2 = keep & (np.abs(r_all - med) <= mad_k * sig)
     if keep2.sum() >= 6 and keep2.sum() < keep.sum():

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LightplaneError
-from ..plane import tls_line
+from ..geometry import robust_sigma, tls_line
 from .edges import prepare_gray
 from .model import Ellipse
 
@@ -146,7 +146,7 @@ def _stripe_pixels(gray: np.ndarray, e: Ellipse, shrink: float, outer: float,
             out.append(empty)
             continue
         med = float(np.median(vals))
-        mad = float(np.median(np.abs(vals - med))) * 1.4826
+        mad = robust_sigma(vals)
         thr = med + max(5.0 * mad, 0.01 * span, 1.0)
         sel = region & (th > thr)
         out.append(np.column_stack([uu[sel], vv[sel]]))
