@@ -43,7 +43,7 @@ import numpy as np
 
 from lightplane.calibrate import calibrate_plane, observe_images, solve_observations
 from lightplane.camera import Camera
-from lightplane.demo import plane_accuracy
+from lightplane.shapes import plane_accuracy
 from lightplane.io import expand_inputs, read_image
 from lightplane.plane import LightPlane
 

@@ -11,7 +11,7 @@ camera, 50 mm target), one set of image observations per data set is solved by
 
 Per configuration: RMS over the data sets of the plane angle error (deg), of the
 offset at the optical axis (mm) and of the triangulation error over the working volume
-380–520 mm (mm; ``lightplane.demo.plane_accuracy``), the RMS predicted point sigma over
+380–520 mm (mm; ``lightplane.shapes.plane_accuracy``), the RMS predicted point sigma over
 the same volume, and the ratio predicted / actual (honest: ~1); the offset's and the
 angle's predicted sigma (RMS over the data sets); the median solve time (global + ML).  Since every data set
 has different placements, the offset's mean over the data sets (a systematic error
@@ -36,7 +36,7 @@ import numpy as np
 import lightplane.refine as refine_mod
 from lightplane.calibrate import observe_images, solve_observations
 from lightplane.camera import Camera
-from lightplane.demo import plane_accuracy
+from lightplane.shapes import plane_accuracy
 from lightplane.plane import LightPlane
 
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}

@@ -9,8 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from lightplane.demo import fit_sphere, plane_accuracy, run_demo
+from lightplane.demo import run_demo
 from lightplane.errors import LightplaneError
+from lightplane.shapes import fit_sphere, plane_accuracy
 
 SMALL = {"chessboards": 0, "circles": 4, "striped_boards": 0, "scan_frames": 0}
 
@@ -66,6 +67,6 @@ def test_fit_sphere():
     p = np.array([1.0, -2.0, 470.0]) + 25.4 * v / np.linalg.norm(v, axis=1, keepdims=True)
     p += rng.normal(0, 0.01, p.shape)
     p = np.vstack([p, rng.uniform(-50, 50, (20, 3)) + [0, 0, 600]])  # outliers
-    fit = fit_sphere(p)
+    fit = fit_sphere(p).to_dict()
     assert abs(fit["radius_mm"] - 25.4) < 0.01 and np.linalg.norm(np.array(fit["center_mm"]) - [1, -2, 470]) < 0.02
     assert abs(fit["rms_mm"] - 0.01) < 0.003 and fit["n_inliers"] >= len(v) - 3

@@ -8,10 +8,12 @@ Stages (each runs if its part of lightplane exists, else it is reported as skipp
    cross-ratio check and Zhou's method, a sphere scan — two processes in parallel;
 3. calibrate the camera from the rendered chessboards (Zhang, :mod:`lightplane.intrinsics`);
 4. calibrate the light plane from the circle images (:func:`lightplane.calibrate.calibrate_plane`,
-   ``ml``, with ``global`` and ``paper`` from the same observations) and compare with the truth;
+   ``ml``, with ``global`` and ``paper`` from the same observations) and compare with the truth
+   (:func:`lightplane.shapes.plane_accuracy`);
 5. Zhou's planar-target plane from the striped chessboards (:mod:`lightplane.baselines.zhou`);
 6. the cross-ratio evaluation of both planes side by side (paper §4.3, :mod:`lightplane.evaluate`);
-7. measure the scan (:func:`lightplane.measure.measure_profile`): fit the sphere;
+7. measure the scan (:func:`lightplane.measure.measure_profile`): fit the sphere
+   (:func:`lightplane.shapes.fit_sphere`);
 8. write the report (:mod:`lightplane.report`) and ``summary.json``.
 
 Everything lands in ``out``: ``data/`` (the renders, with ``truth.json``),
@@ -28,8 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from .errors import LightplaneError
+from .shapes import fit_sphere, plane_accuracy
 
-__all__ = ["run_demo", "plane_accuracy", "fit_sphere", "DEMO_SETTINGS"]
+__all__ = ["run_demo", "DEMO_SETTINGS"]
 
 #: Sizes of the rendered data set (kept small: the demo runs in about a minute on 2 cores).
 DEMO_SETTINGS = {
@@ -51,99 +54,6 @@ DEMO_SETTINGS = {
     "camera_board": (15, 11),
     "camera_square_mm": 8.0,
 }
-
-
-def plane_accuracy(plane_est, camera_est, plane_true, camera_true, *,
-                   distance_mm: tuple[float, float] = (380.0, 520.0)) -> dict:
-    """Errors of an estimated (camera, plane) against the truth, in the user's units.
-
-    ``angle_deg``: angle between the normals; ``offset_mm``: signed distance of the
-    estimated plane at the true plane's crossing of the optical axis; over the pixels
-    whose true rays meet the true plane at ``distance_mm`` from the camera (the working
-    volume): ``tri_rms_mm``, the RMS distance between the points triangulated with the
-    estimate and with the truth (camera frame), and ``tri_rms_aligned_mm``, the same after
-    the best rigid alignment of the two point sets (an error of the principal point
-    rotates the whole camera frame: no shape or distance error, but camera-frame
-    coordinates move); ``point_sigma_rms_mm``: the RMS predicted sigma there (None
-    without a covariance).
-    """
-    from .measure import triangulate
-    from .uncertainty import point_sigma_mm, working_volume_grid
-
-    vol = working_volume_grid(camera_true, plane_true, distance_mm=distance_mm)
-    a = triangulate(camera_est, plane_est, vol.uv)
-    b = vol.points
-    ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
-    a, b = a[ok], b[ok]
-    e = np.linalg.norm(a - b, axis=1)
-    ma, mb = a.mean(axis=0), b.mean(axis=0)
-    U, _, Vt = np.linalg.svd((a - ma).T @ (b - mb))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = (U @ D @ Vt).T
-    e2 = np.linalg.norm((a - ma) @ R.T + mb - b, axis=1)
-    out = {
-        "angle_deg": float(np.degrees(plane_est.angle_to(plane_true))),
-        "offset_mm": float(plane_est.signed_distance(plane_true.point_on_axis()[None])[0]),
-        "tri_rms_mm": float(np.sqrt(np.mean(e**2))),
-        "tri_rms_aligned_mm": float(np.sqrt(np.mean(e2**2))),
-        "point_sigma_rms_mm": None,
-    }
-    if plane_est.covariance is not None:
-        s = point_sigma_mm(camera_est, plane_est, vol.uv[ok])
-        out["point_sigma_rms_mm"] = float(np.sqrt(np.nanmean(s**2)))
-    return out
-
-
-def _sphere_algebraic(q: np.ndarray) -> tuple[np.ndarray, float]:
-    A = np.column_stack([2 * q, np.ones(len(q))])
-    sol, *_ = np.linalg.lstsq(A, np.sum(q**2, axis=1), rcond=None)
-    return sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 0.0)))
-
-
-def fit_sphere(points: np.ndarray, *, ransac_tol_mm: float = 0.5, iterations: int = 4, k: float = 4.0,
-               min_tol_mm: float = 0.05, seed: int = 0) -> dict:
-    """Robust least-squares sphere through ``points`` (N, 3) mm.
-
-    RANSAC on 4-point algebraic spheres (``|p|² = 2 c·p + (r² − |c|²)``, inliers within
-    ``ransac_tol_mm``), then geometric Gauss–Newton on the inliers, re-selected
-    ``iterations`` times as the points within ``max(k · 1.4826 MAD, min_tol_mm)``.
-    Returns ``center_mm``, ``radius_mm``, ``rms_mm`` (inliers), ``n_inliers``, ``n_points``.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    p = p[np.all(np.isfinite(p), axis=1)]
-    if len(p) < 4:
-        raise LightplaneError(f"fit_sphere: need at least 4 points, got {len(p)}")
-    origin = np.median(p, axis=0)  # conditioning: fit in coordinates near the points
-    p = p - origin
-    rng = np.random.default_rng(seed)
-    best, best_n = None, -1
-    for _ in range(300):
-        idx = rng.choice(len(p), 4, replace=False)
-        try:
-            c, r = _sphere_algebraic(p[idx])
-        except np.linalg.LinAlgError:
-            continue
-        if not np.isfinite(r) or r <= 0:
-            continue
-        n_in = int(np.count_nonzero(np.abs(np.linalg.norm(p - c, axis=1) - r) <= ransac_tol_mm))
-        if n_in > best_n:
-            best, best_n = (c, r), n_in
-    c, r = best if best is not None else _sphere_algebraic(p)
-    keep = np.abs(np.linalg.norm(p - c, axis=1) - r) <= ransac_tol_mm
-    for _ in range(iterations):
-        q = p[keep]
-        for _ in range(5):  # geometric Gauss-Newton
-            dv = q - c
-            dist = np.linalg.norm(dv, axis=1)
-            J = np.column_stack([-dv / dist[:, None], -np.ones(len(q))])
-            step, *_ = np.linalg.lstsq(J, -(dist - r), rcond=None)
-            c, r = c + step[:3], r + step[3]
-        res = np.linalg.norm(p - c, axis=1) - r
-        mad = 1.4826 * np.median(np.abs(res[keep] - np.median(res[keep])))
-        keep = np.abs(res) <= max(k * mad, min_tol_mm)
-    res = np.linalg.norm(p[keep] - c, axis=1) - r
-    return {"center_mm": (c + origin).tolist(), "radius_mm": float(r), "rms_mm": float(np.sqrt(np.mean(res**2))),
-            "n_inliers": int(keep.sum()), "n_points": int(len(p))}
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -424,7 +334,7 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
                 if sph is not None:
                     c0 = np.asarray(sph["center_mm"]) - np.asarray(truth["frames"][0]["offset_mm"])
                     near = np.linalg.norm(cloud - c0, axis=1) < sph["radius_mm"] + 5.0
-                    fit = fit_sphere(cloud[near])
+                    fit = fit_sphere(cloud[near]).to_dict()
                     res.update({"sphere": fit, "true_radius_mm": sph["radius_mm"],
                                 "radius_error_mm": fit["radius_mm"] - sph["radius_mm"]})
                 np.save(out / "scan_points.npy", cloud)
