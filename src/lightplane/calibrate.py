@@ -40,7 +40,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .geometry import robust_sigma, tls_line
+from .geometry import default_workers, robust_sigma, tls_line
 from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
@@ -574,14 +574,6 @@ def _observe_task(args):
         return observe_image(source, camera, diameter_mm, index, **kw)
     except LightplaneError as e:
         return e
-
-
-def default_workers() -> int:
-    """Worker processes used by default: the cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover (not Linux)
-        return max(1, os.cpu_count() or 1)
 
 
 # ------------------------------------------------------------------------ public

@@ -34,6 +34,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
+from .geometry import default_workers
 from .measure import ProfileMeasurer, profile_axis
 from .plane import LightPlane
 from .pointcloud import POINT_DTYPE, PointSpool, cloud_format, write_cloud
@@ -456,13 +457,6 @@ class _FrameRing:
             self.shm.close()
             self.shm.unlink()
             self.shm = None
-
-
-def default_workers() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 class _SingleThreadNumba:
