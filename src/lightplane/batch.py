@@ -566,6 +566,11 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
 def _run(client, plans: list, out: Path, options: dict, retries: int, progress) -> list:
     from distributed import as_completed
 
+    import uuid
+
+    # keys unique to this run: a key the scheduler still remembers from an earlier run would
+    # give that run's result without running the task (and without rewriting a deleted partition)
+    run = uuid.uuid4().hex[:8]
     entries, prep_futs, chunk_meta = [], {}, {}
     for i, pl in enumerate(plans):
         s = pl.scan
@@ -595,14 +600,14 @@ def _run(client, plans: list, out: Path, options: dict, retries: int, progress) 
         if todo:
             common = (pl.camera, pl.plane, pl.motion)
             prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
-                                 key=f"prepare-{s.id}-{pl.scan_token[:12]}")
+                                 key=f"prepare-{s.id}-{pl.scan_token[:12]}-{run}")
             prep_futs[i] = [prep]
             for k, a, b in todo:
                 spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
                         "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
                         "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
                 f = client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
-                                  key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}")
+                                  key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}-{run}")
                 prep_futs[i].append(f)
         if progress is not None:
             progress(s.id, len(done), len(pl.chunks))
@@ -617,7 +622,7 @@ def _run(client, plans: list, out: Path, options: dict, retries: int, progress) 
         except Exception as exc:  # retries exhausted (worker deaths, bugs): the scan fails, the others go on
             res = {"chunk": None, "error": f"task {fut.key} failed: {type(exc).__name__}: {exc}"}
         if "error" in res:
-            errors.setdefault(i, []).append(res["error"])
+            errors.setdefault(i, []).append((res["chunk"] if res["chunk"] is not None else -1, res["error"]))
         else:
             chunk_meta[i][res["chunk"]] = res
             entries[i]["partitions_written"] += 1
@@ -641,7 +646,7 @@ def _run(client, plans: list, out: Path, options: dict, retries: int, progress) 
             e["axis"], e["width_px"] = m["axis"], m["width_px"]
         e["n_frames_used"] = e["n_frames"] - len(e["skipped"])
         if i in errors:
-            e["status"], e["error"] = "failed", sorted(set(errors[i]))[0]
+            e["status"], e["error"] = "failed", min(errors[i])[1]  # the first failing chunk's reason
         elif pl.motion.n_frames is not None and pl.motion.n_frames != e["n_frames"]:
             e["status"], e["error"] = "failed", (f"the positions give {pl.motion.n_frames} frames but the input "
                                                  f"has {e['n_frames']}")
