@@ -26,6 +26,7 @@ import numpy as np
 
 from .camera import as_points
 from .errors import LightplaneError
+from .geometry import sampson_distance
 
 __all__ = ["CirclePose", "circle_poses", "circle_poses_batch", "fit_conic", "fit_conics", "conic_residuals_px"]
 
@@ -301,13 +302,7 @@ def fit_conics(point_sets) -> tuple[np.ndarray, list]:
 def conic_residuals_px(conic: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Approximate geometric distances (px) of ``(N, 2)`` points to a conic (Sampson distance).
 
-    ``|xᵀ C x| / (2 ‖(C x)[:2]‖)``; exact to first order for points near the curve.
+    ``|xᵀ C x| / (2 ‖(C x)[:2]‖)``; exact to first order for points near the curve
+    (:func:`lightplane.geometry.sampson_distance`, unsigned, of the normalised conic).
     """
-    C = _check_conic(conic)
-    p = as_points(uv, 2, "uv")
-    xh = np.column_stack([p, np.ones(len(p))])
-    Cx = xh @ C
-    val = np.sum(Cx * xh, axis=1)
-    g = 2.0 * np.linalg.norm(Cx[:, :2], axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(val) / g
+    return sampson_distance(_check_conic(conic), as_points(uv, 2, "uv"), signed=False)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import LightplaneError
+from ..geometry import sampson_distance  # noqa: F401  (re-exported: lightplane.ellipse.sampson_distance)
 
 __all__ = [
     "Ellipse",
@@ -300,16 +301,6 @@ def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.
     if not np.all(np.isfinite(C)) or np.linalg.norm(C) == 0:
         return None
     return normalize_conic(C)
-
-
-def sampson_distance(C: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Signed Sampson (first-order geometric) distance (N,) px of points ``uv`` to conic ``C``."""
-    uv = np.asarray(uv, dtype=np.float64)
-    X = np.column_stack([uv, np.ones(len(uv))])
-    CX = X @ C
-    alg = np.sum(CX * X, axis=1)
-    g = 2 * np.hypot(CX[:, 0], CX[:, 1])
-    return alg / np.maximum(g, 1e-300)
 
 
 def _ortho_parts(params: np.ndarray, uv: np.ndarray):
