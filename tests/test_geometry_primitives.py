@@ -236,6 +236,71 @@ class TestSampson:
             g.sampson_distance(np.eye(2), np.zeros((4, 2)))
 
 
+# ------------------------------------------------------------------ fit_conic
+class TestFitConic:
+    E = (640.0, 480.0, 150.0, 60.0, 0.3)
+
+    def test_exact(self):
+        C = g.fit_conic(_ellipse_points(*self.E, n=50))
+        ref = _ellipse_conic(*self.E)
+        ref = ref if ref[0, 0] + ref[1, 1] > 0 else -ref
+        np.testing.assert_allclose(C, ref, atol=1e-9)
+        assert abs(np.linalg.norm(C) - 1) < 1e-12 and C[0, 0] + C[1, 1] > 0
+
+    def test_noisy(self):
+        rng = np.random.default_rng(7)
+        sigma = 0.5
+        p = _ellipse_points(*self.E, n=500) + rng.normal(0, sigma, (500, 2))
+        C = g.fit_conic(p)
+        d = g.sampson_distance(C, p)
+        assert np.sqrt(np.mean(d**2)) == pytest.approx(sigma, rel=0.1)
+        # centre of the fit: -A⁻¹ b, within a few sigma / sqrt(N) of the truth
+        ctr = -np.linalg.solve(C[:2, :2], C[:2, 2])
+        assert np.hypot(*(ctr - self.E[:2])) < 10 * sigma / np.sqrt(500)
+
+    def test_weights(self):
+        p = _ellipse_points(*self.E, n=60)
+        np.testing.assert_allclose(g.fit_conic(p, np.full(60, 3.0)), g.fit_conic(p), atol=1e-12)
+        bad = np.vstack([p, [[0.0, 0.0], [5.0, 900.0]]])  # two outliers with zero weight
+        np.testing.assert_allclose(g.fit_conic(bad, np.r_[np.ones(60), 0.0, 0.0]), g.fit_conic(p), atol=1e-9)
+
+    def test_batch_matches_single(self):
+        sets = [_ellipse_points(*self.E, n=40), np.zeros((3, 2)), _ellipse_points(100, 50, 20, 10, 1.0, n=30)]
+        conics, problems = g.fit_conics(sets)
+        assert problems[0] is None and problems[2] is None and "at least 5" in problems[1]
+        np.testing.assert_allclose(conics[0], g.fit_conic(sets[0]), atol=1e-15)
+        assert np.all(np.isnan(conics[1]))
+
+    @pytest.mark.parametrize("pts, why", [
+        (np.zeros((4, 2)), "at least 5"),
+        (np.column_stack([np.arange(20.0), 2 * np.arange(20.0)]), "collinear"),
+        (np.full((10, 2), 3.0), "coincide"),
+        (np.array([[0, 0], [1, 1], [2, 2], [np.nan, 0], [4, 1], [5, 0.0]]), "NaN"),
+    ])
+    def test_degenerate_is_a_failure_with_its_reason(self, pts, why):
+        r = g.fit_conic(pts)
+        assert isinstance(r, g.Failure) and not r
+        assert why in r.reason
+
+    def test_bad_shapes(self):
+        with pytest.raises(ValueError):
+            g.fit_conic(np.zeros((10, 3)))
+        with pytest.raises(ValueError):
+            g.fit_conic(_ellipse_points(*self.E, n=20), np.ones(19))
+
+    def test_old_names_use_it(self):
+        from lightplane.circle_pose import fit_conic as cp_fit_conic
+        from lightplane.ellipse import fit_ellipse_direct
+        from lightplane.errors import LightplaneError
+
+        p = _ellipse_points(*self.E, n=30)
+        np.testing.assert_array_equal(cp_fit_conic(p), g.fit_conic(p))
+        np.testing.assert_array_equal(fit_ellipse_direct(p), g.fit_conic(p))
+        assert fit_ellipse_direct(np.zeros((4, 2))) is None
+        with pytest.raises(LightplaneError, match="rim: need at least 5"):
+            cp_fit_conic(np.zeros((4, 2)), name="rim")
+
+
 # ------------------------------------------------------------------ default_workers
 def test_default_workers():
     import os

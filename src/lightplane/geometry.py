@@ -8,12 +8,14 @@ measurement, baselines and ellipse code all need:
 - :func:`tls_line` — total-least-squares 2-D line;
 - :func:`fit_plane_tls` — orthogonal (weighted) least-squares plane in 3-D;
 - :func:`ray_plane` — rays from the camera centre meeting a plane;
+- :func:`fit_conic` / :func:`fit_conics` — Halir–Flusser direct least-squares ellipse fit
+  (one point set, or many with the eigen-steps vectorised);
 - :func:`sampson_distance` — first-order geometric distance of 2-D points to a conic.
 
 Failure convention: a primitive that can fail returns its result, or a
-:class:`Failure` — falsy, carrying its ``reason`` — so that ``if not r: ...
-r.reason`` works without exceptions in inner loops; callers that raise build their
-message from the reason.  Bad shapes (a programming error, not bad data) raise
+:class:`Failure` — falsy, carrying its ``reason`` — so that inner loops need no
+exceptions; callers that raise build their message from the reason.  Results that
+are arrays have no truth value, so test ``isinstance(r, Failure)`` there.  Bad shapes (a programming error, not bad data) raise
 :class:`ValueError`.
 
 (The simulator's scene geometry is :mod:`lightplane.simulate.geometry`, unrelated.)
@@ -25,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["Failure", "MAD_TO_SIGMA", "robust_sigma", "tls_line", "fit_plane_tls", "ray_plane",
-           "sampson_distance", "default_workers"]
+           "sampson_distance", "fit_conic", "fit_conics", "default_workers"]
 
 #: 1 / Φ⁻¹(3/4) to the precision the package has always used: MAD → σ for normal data.
 MAD_TO_SIGMA = 1.4826
@@ -138,6 +140,140 @@ def sampson_distance(C: np.ndarray, uv: np.ndarray, *, signed: bool = True) -> n
     return d if signed else np.abs(d)
 
 
+# ------------------------------------------------------------------ conics
+def _ellipse_problems(E: np.ndarray) -> list:
+    """For (n, 3, 3) symmetric conics (well scaled, Frobenius norm 1): per item None if a real,
+    non-degenerate ellipse, else the reason (str).
+
+    Ellipse: the 2x2 block is definite; non-degenerate: ``|det| >= 1e-13`` (for norm 1,
+    ``|det| = |λ1 λ2 λ3| <= min |λ|``); real: the value at the centre
+    (``det / det₂ = E33 - bᵀ A⁻¹ b``) has the opposite sign of the block's trace.  ``E``
+    must be well scaled (normalised camera coordinates, or :func:`fit_conic`'s
+    conditioned frame).
+    """
+    A = E[:, :2, :2]
+    det2 = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    det3 = np.linalg.det(E)
+    tr = A[:, 0, 0] + A[:, 1, 1]
+    out = []
+    for k in range(len(E)):
+        if not det2[k] > 1e-12 * float(np.sum(A[k] * A[k])):
+            out.append(f"is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2[k]:.3g})")
+        elif not abs(det3[k]) >= 1e-13:
+            out.append(f"is a degenerate conic (det {det3[k]:.3g})")
+        elif (det3[k] / det2[k]) * tr[k] >= 0:
+            out.append("is an imaginary ellipse (no real points)")
+        else:
+            out.append(None)
+    return out
+
+
+def fit_conic(uv: np.ndarray, weights: np.ndarray | None = None) -> "np.ndarray | Failure":
+    """Direct least-squares ellipse fit (Halir & Flusser 1998) to ``(N, 2)`` points.
+
+    Points are centred and scaled to unit RMS radius first (conditioning), then the
+    fit is mapped back.  Returns the conic ``(3, 3)`` in the points' coordinates,
+    symmetric, Frobenius norm 1, negative inside (positive trace of the 2x2 block), or a
+    :class:`Failure` for fewer than 5 or non-finite points, or when no real ellipse fits
+    (collinear points...).  ``weights`` (N,), optional, weigh the squared algebraic
+    residuals.  The fit is ellipse-specific: points on some other curve still get an
+    ellipse, so check :func:`sampson_distance` against the expected noise.
+    ValueError for a bad shape.
+
+    Reference: R. Halir, J. Flusser, "Numerically stable direct least squares fitting of
+    ellipses", WSCG 1998 (the constraint 4AC - B^2 = 1 of Fitzgibbon et al.).
+    """
+    p = _points(uv, 2, "uv")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != (len(p),):
+            raise ValueError(f"weights must be ({len(p)},), got shape {weights.shape}")
+    conics, problems = fit_conics([p], None if weights is None else [weights])
+    return Failure(problems[0]) if problems[0] is not None else conics[0]
+
+
+def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
+    """:func:`fit_conic` for several point sets at once (the eigen-steps vectorised).
+
+    ``point_sets``: sequence of (N_i, 2) float arrays; ``weights``: None or a sequence of
+    (N_i,) non-negative weights (of each point's squared algebraic residual).  Returns
+    ``conics (n, 3, 3)`` (NaN where the fit failed) and a list of n problems (None, or why not).
+    """
+    n = len(point_sets)
+    problems: list = [None] * n
+    S_all = np.zeros((n, 6, 6))
+    Tn_all = np.zeros((n, 3, 3))
+    for k, p in enumerate(point_sets):
+        if p.shape[0] < 5:
+            problems[k] = f"need at least 5 points to fit an ellipse, got {p.shape[0]}"
+            continue
+        if not np.all(np.isfinite(p)):
+            problems[k] = "contains NaN or infinite coordinates"
+            continue
+        m = p.mean(axis=0)
+        q = p - m
+        s = np.sqrt(np.mean(np.sum(q * q, axis=1)))
+        if not s > 0:
+            problems[k] = "all points coincide"
+            continue
+        q = q / s
+        ev = np.linalg.eigvalsh(q.T @ q)  # squared singular values, ascending
+        if ev[0] < 1e-6 * ev[1]:
+            problems[k] = "the points are (nearly) collinear, not an ellipse"
+            continue
+        x, y = q[:, 0], q[:, 1]
+        D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+        if weights is None or weights[k] is None:
+            S_all[k] = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
+        else:
+            S_all[k] = (D * np.asarray(weights[k], dtype=np.float64)[:, None]).T @ D
+        Tn_all[k] = [[1 / s, 0, -m[0] / s], [0, 1 / s, -m[1] / s], [0, 0, 1.0]]
+    good = np.array([pr is None for pr in problems], dtype=bool)
+    conics = np.full((n, 3, 3), np.nan)
+    if not np.any(good):
+        return conics, problems
+    S = S_all[good]
+    S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
+    det3 = np.linalg.det(S3)
+    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).max(axis=(1, 2)) ** 3
+    S3 = np.where(ok3[:, None, None], S3, np.eye(3))
+    T = -np.linalg.solve(S3, np.swapaxes(S2, 1, 2))
+    M = S1 + S2 @ T
+    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)  # C1⁻¹ M, C1 = [[0,0,2],[0,-1,0],[2,0,0]]
+    w, v = np.linalg.eig(M)
+    v = np.real(v)
+    cond = 4.0 * v[:, 0] * v[:, 2] - v[:, 1] ** 2
+    valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
+    score = np.where(valid, np.abs(np.real(w)), np.inf)
+    pick = np.argmin(score, axis=1)
+    a1 = np.take_along_axis(v, pick[:, None, None], axis=2)[:, :, 0]
+    a2 = np.einsum("nij,nj->ni", T, a1)
+    A, B, C = a1[:, 0], a1[:, 1], a1[:, 2]
+    Dd, E_, F = a2[:, 0], a2[:, 1], a2[:, 2]
+    Cn = np.stack([np.stack([A, B / 2, Dd / 2], -1), np.stack([B / 2, C, E_ / 2], -1),
+                   np.stack([Dd / 2, E_ / 2, F], -1)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Cn = Cn / np.linalg.norm(Cn, axis=(1, 2))[:, None, None]
+    fin = np.all(np.isfinite(Cn), axis=(1, 2))
+    Cn_safe = np.where(fin[:, None, None], Cn, np.eye(3))
+    shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
+    Tn = Tn_all[good]
+    Cm = np.swapaxes(Tn, 1, 2) @ Cn @ Tn
+    Cm = 0.5 * (Cm + np.swapaxes(Cm, 1, 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Cm = Cm / np.linalg.norm(Cm, axis=(1, 2))[:, None, None]
+    Cm = np.where((Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None], -Cm, Cm)
+    for j, k in enumerate(np.flatnonzero(good)):
+        if not ok3[j]:
+            problems[k] = "degenerate point set (collinear?)"
+        elif not (np.isfinite(score[j, pick[j]]) and fin[j]) or shape_problems[j] is not None:
+            problems[k] = "the points do not lie on an ellipse"
+        else:
+            conics[k] = Cm[j]
+    return conics, problems
+
+
+# ------------------------------------------------------------------ misc
 def default_workers() -> int:
     """Worker processes used by default: the cores this process may run on."""
     import os

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import LightplaneError
+from ..geometry import Failure, fit_conic
 from ..geometry import sampson_distance  # noqa: F401  (re-exported: lightplane.ellipse.sampson_distance)
 
 __all__ = [
@@ -250,57 +251,22 @@ class Ellipse:
 # Fitting
 # --------------------------------------------------------------------------
 
-def _hartley(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Similarity T (3x3) moving the points' centroid to 0 and their RMS radius to sqrt(2)."""
-    m = uv.mean(axis=0)
-    d = np.sqrt(np.mean(np.sum((uv - m) ** 2, axis=1)))
-    s = math.sqrt(2) / d if d > 0 else 1.0
-    T = np.array([[s, 0, -s * m[0]], [0, s, -s * m[1]], [0, 0, 1.0]])
-    return T, (uv - m) * s
-
-
 def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray | None:
     """Halir–Flusser numerically stable direct least-squares ellipse fit.
 
-    ``uv`` (N, 2) px, N >= 5; coordinates are normalised (Hartley) before fitting.
-    Returns the normalised conic (3x3) or None if no ellipse fits (degenerate data).
-    Reference: R. Halir, J. Flusser, "Numerically stable direct least squares
-    fitting of ellipses", WSCG 1998 (the constraint 4AC - B^2 = 1 of Fitzgibbon et al.).
+    ``uv`` (N, 2) px, N >= 5; ``weights`` (N,) >= 0 optional.  Returns the normalised
+    conic (3x3) or None if no real ellipse fits (degenerate data, bad shapes).  The fit
+    is :func:`lightplane.geometry.fit_conic` (the package's one Halir–Flusser fit).
     """
     uv = np.asarray(uv, dtype=np.float64)
-    if uv.ndim != 2 or uv.shape[1] != 2 or uv.shape[0] < 5 or not np.all(np.isfinite(uv)):
+    if uv.ndim != 2 or uv.shape[1] != 2:
         return None
-    T, p = _hartley(uv)
-    x, y = p[:, 0], p[:, 1]
-    D1 = np.column_stack([x * x, x * y, y * y])
-    D2 = np.column_stack([x, y, np.ones_like(x)])
     if weights is not None:
-        w = np.sqrt(np.asarray(weights, dtype=np.float64))[:, None]
-        D1, D2 = D1 * w, D2 * w
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        Tm = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        return None
-    M = S1 + S2 @ Tm
-    M = np.array([M[2] / 2, -M[1], M[0] / 2])  # premultiply by inv(C1)
-    try:
-        w_, V = np.linalg.eig(M)
-    except np.linalg.LinAlgError:
-        return None
-    V = np.real(V)
-    cond = 4 * V[0] * V[2] - V[1] ** 2
-    ok = np.where(cond > 0)[0]
-    if ok.size == 0:
-        return None
-    a1 = V[:, ok[np.argmin(np.abs(np.real(w_[ok])))]]
-    a2 = Tm @ a1
-    A, B, Cc, D, E, F = *a1, *a2
-    Cn = np.array([[A, B / 2, D / 2], [B / 2, Cc, E / 2], [D / 2, E / 2, F]])
-    C = T.T @ Cn @ T
-    if not np.all(np.isfinite(C)) or np.linalg.norm(C) == 0:
-        return None
-    return normalize_conic(C)
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != (len(uv),) or not np.all(weights >= 0):
+            return None
+    C = fit_conic(uv, weights)
+    return None if isinstance(C, Failure) else C
 
 
 def _ortho_parts(params: np.ndarray, uv: np.ndarray):
