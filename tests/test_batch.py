@@ -164,9 +164,10 @@ def test_bad_scans_fail_alone_and_are_reported(data, client, tmp_path):
     assert (tmp_path / "o" / "ply" / "good.ply").is_file()
     # nothing measurable: exit 2, one error line at the end
     (tmp_path / "bad.csv").write_text("id,input,camera,plane\ngone,no-such-folder,frames/camera.json,plane.json\n")
-    cmd[4], cmd[6] = str(tmp_path / "bad.csv"), str(tmp_path / "o2")
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    cmd[4], cmd[6], cmd[7], cmd[8] = str(tmp_path / "bad.csv"), str(tmp_path / "o2"), "--local-workers", "1"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)  # the command's own LocalCluster
     assert r.returncode == 2 and "no scan could be measured" in r.stderr.splitlines()[-1]
+    assert "Dask dashboard" in r.stdout
 
 
 def test_manifest_errors(tmp_path):
