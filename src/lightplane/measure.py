@@ -107,18 +107,20 @@ def profile_axis(plane: LightPlane) -> str:
     return "columns" if abs(b) >= abs(a) else "rows"
 
 
-def points_sigma_mm(plane: LightPlane, xy: np.ndarray) -> np.ndarray:
+def points_sigma_mm(plane: LightPlane, xy: np.ndarray, *, covariance: np.ndarray | None = None) -> np.ndarray:
     """σ (mm) of points triangulated from normalised rays ``xy`` (N, 2), from the plane's covariance.
 
     Same quantity as :func:`lightplane.uncertainty.point_sigma_mm` (``sqrt(trace Cov X)``,
     first-order propagation of the 4x4 covariance of ``(a, b, c, d)``), computed from
     rays instead of pixels.  With ``X = -d x̃ / (n·x̃)`` the Jacobian is rank one,
     ``∂X/∂(n, d) = x̃ wᵀ``, ``w = (d x̃ / (n·x̃)², -1 / (n·x̃))``, so
-    ``trace Cov X = |x̃|² wᵀ Σ w``.  NaN where the plane has no covariance or the
-    ray grazes the plane.
+    ``trace Cov X = |x̃|² wᵀ Σ w``.  ``covariance``: a 4x4 of ``(a, b, c, d)`` to use
+    instead of the plane's (e.g. a Cramér–Rao bound).  NaN where there is no covariance
+    or the ray grazes the plane.  (The package's one point-sigma formula:
+    :func:`~lightplane.uncertainty.point_sigma_mm` is this, from pixels.)
     """
     xy = as_points(xy, 2, "xy")
-    cov = plane.covariance
+    cov = plane.covariance if covariance is None else covariance
     if cov is None:
         return np.full(len(xy), np.nan)
     xt = np.column_stack([xy, np.ones(len(xy))])

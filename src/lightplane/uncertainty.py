@@ -32,7 +32,7 @@ import numpy as np
 
 from .camera import Camera, as_points
 from .errors import LightplaneError
-from .measure import GRAZING_COS, triangulate_normalized
+from .measure import GRAZING_COS, points_sigma_mm, triangulate_normalized
 from .plane import LightPlane
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
@@ -79,9 +79,12 @@ def point_sigma_mm(camera: Camera, plane: LightPlane, uv: np.ndarray, *,
 
     ``sqrt(trace Cov(X))``: the RMS length of the 3D error due to the plane's
     uncertainty (first-order propagation, module docstring).  NaN for grazing rays.
+    Raises when there is no covariance.  Computed by
+    :func:`lightplane.measure.points_sigma_mm` from the undistorted rays.
     """
-    C = point_covariance(camera, plane, uv, covariance=covariance)
-    return np.sqrt(np.trace(C, axis1=1, axis2=2))
+    uv = as_points(uv, 2, "uv")
+    cov = _plane_cov(plane, covariance)
+    return points_sigma_mm(plane, camera.undistort_points(uv, normalized=True), covariance=cov)
 
 
 @dataclass(frozen=True)
