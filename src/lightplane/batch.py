@@ -54,7 +54,7 @@ from .errors import LightplaneError
 from .pointcloud import POINT_DTYPE
 
 __all__ = ["BatchScan", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
-           "DEFAULT_CHUNK_FRAMES", "local_cluster"]
+           "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]
 
 DEFAULT_CHUNK_FRAMES = 200
 REQUIRED_COLUMNS = ("id", "input", "camera", "plane")
@@ -454,6 +454,16 @@ def _read_partition_meta(path: Path) -> dict | None:
 
 
 # ----------------------------------------------------------------------------- client
+def require_extra() -> None:
+    """Raise :class:`LightplaneError` naming the optional extra when dask.distributed or pyarrow is missing."""
+    import importlib.util
+
+    missing = [m for m in ("distributed", "pyarrow") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise LightplaneError(f"batch measurement needs {' and '.join(missing)}: "
+                              "pip install 'lightplane[distributed]'")
+
+
 @dataclass
 class BatchResult:
     """What :func:`measure_batch` did; ``scans``: one dict per manifest row (as in manifest.json)."""
@@ -516,6 +526,7 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
     manifest or output folder; a scan's own failure is recorded in its entry.
     """
     t0 = time.perf_counter()
+    require_extra()
     scans = list(manifest) if not isinstance(manifest, (str, os.PathLike)) else read_manifest(manifest)
     out = Path(out_dir)
     if not out.resolve().parent.exists():

@@ -46,8 +46,10 @@ def measure_batch_cmd(
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..batch import measure_batch, read_manifest
+    from ..batch import measure_batch, read_manifest, require_extra
     from .measure import parse_roi
+
+    require_extra()
 
     if (local_workers is None) == (scheduler is None):
         raise LightplaneError("give either --local-workers N or --scheduler tcp://HOST:PORT")
