@@ -111,6 +111,64 @@ class TestTlsLine:
         assert plane.tls_line is g.tls_line
 
 
+# ------------------------------------------------------------------ robust_line
+class TestRobustLine:
+    def test_exact(self):
+        t = np.linspace(0, 100, 50)
+        p = np.column_stack([t, 0.5 * t + 7])
+        m, d, n, inl = g.robust_line(p, rel_tol=1e-9)
+        assert inl.all()
+        np.testing.assert_allclose((p - m) @ n, 0, atol=1e-9)
+
+    @pytest.mark.parametrize("center", [False, True])
+    def test_noisy_with_outliers(self, center):
+        rng = np.random.default_rng(8)
+        t = rng.uniform(-200, 200, 600)
+        sigma = 0.3
+        p = np.column_stack([t, -0.3 * t + 50]) + rng.normal(0, sigma, (600, 2))
+        out = rng.random(600) < 0.15
+        # outliers on both sides: with center=True the threshold is still about the line, so
+        # one-sided outliers that shift the first fit are the caller's concern
+        p[out, 1] += rng.uniform(10, 80, out.sum()) * rng.choice([-1, 1], out.sum())
+        m, d, n, inl = g.robust_line(p, center=center, refits=10)
+        assert not np.any(inl & out)
+        assert inl[~out].mean() > 0.99  # 4 sigma keeps nearly all the good points
+        assert np.std((p[inl] - m) @ n) == pytest.approx(sigma, rel=0.1)
+        true_n = np.array([0.3, 1.0]) / np.hypot(0.3, 1.0)
+        assert abs(abs(n @ true_n) - 1) < 1e-5
+
+    def test_min_tol_and_min_points(self):
+        p = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.4]])
+        assert g.robust_line(p, min_tol=1.0)[3].all()
+        # rejection down to fewer than min_points is not adopted
+        inl = g.robust_line(p[:3] + [[0, 0], [0, 0], [0, 5.0]], min_points=3)[3]
+        assert inl.all()
+
+    def test_degenerate(self):
+        p = np.array([[0.0, 0.0], [1.0, 1.0], [np.nan, 2.0], [3.0, 3.0]])
+        m, d, n, inl = g.robust_line(p)
+        assert not inl[2] and inl[[0, 1, 3]].all()
+        assert abs(abs(d @ [2**-0.5, 2**-0.5]) - 1) < 1e-12
+        with pytest.raises(ValueError):
+            g.robust_line(np.array([[0.0, 0.0], [np.nan, 1.0]]))
+
+    @pytest.mark.parametrize("shape", [(5, 3), (5,)])
+    def test_bad_shapes(self, shape):
+        with pytest.raises(ValueError):
+            g.robust_line(np.zeros(shape))
+
+    def test_plane_fit_line_2d_uses_it(self):
+        from lightplane.plane import fit_line_2d
+
+        rng = np.random.default_rng(9)
+        p = np.column_stack([np.arange(40.0), np.zeros(40)]) + rng.normal(0, 0.1, (40, 2))
+        c, nrm, inl = fit_line_2d(p)
+        m, _, n, inl2 = g.robust_line(p, refits=4, rel_tol=1e-9, upper_median=True)
+        np.testing.assert_array_equal(inl, inl2)
+        np.testing.assert_array_equal(c, m)
+        assert fit_line_2d(np.ones((1, 2)))[2].tolist() == [True]
+
+
 # ------------------------------------------------------------------ fit_plane_tls
 class TestFitPlane:
     def test_exact(self):

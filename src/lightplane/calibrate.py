@@ -40,7 +40,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .geometry import default_workers, robust_sigma, tls_line
+from .geometry import default_workers, robust_line, robust_sigma, tls_line
 from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
@@ -359,15 +359,7 @@ def _distance_inside(e, uv: np.ndarray) -> np.ndarray:
 
 def _robust_line(uv: np.ndarray, tol_px: float) -> np.ndarray:
     """Inlier mask of the total-least-squares line through ``uv`` with MAD rejection (>= tol_px)."""
-    keep = np.ones(len(uv), bool)
-    for _ in range(3):
-        if keep.sum() < 3:
-            break
-        m, _, nrm = tls_line(uv[keep])
-        r = (uv - m) @ nrm
-        mad = robust_sigma(r[keep])
-        keep = np.abs(r) <= max(4.0 * mad, tol_px)
-    return keep
+    return robust_line(uv, refits=3, k_mad=4.0, min_tol=tol_px, center=True, min_points=3)[3]
 
 
 def stripe_width_along(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, n: int = 24,

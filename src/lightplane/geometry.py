@@ -5,7 +5,8 @@ measurement, baselines and ellipse code all need:
 
 - :func:`robust_sigma` — the normal-consistent MAD, ``1.4826 · median|x − median x|``
   (or about zero, for residuals known to be centred);
-- :func:`tls_line` — total-least-squares 2-D line;
+- :func:`tls_line` — total-least-squares 2-D line; :func:`robust_line` — the same,
+  refitted on the points within ``k_mad`` robust sigmas;
 - :func:`fit_plane_tls` — orthogonal (weighted) least-squares plane in 3-D;
 - :func:`ray_plane` — rays from the camera centre meeting a plane;
 - :func:`fit_conic` / :func:`fit_conics` — Halir–Flusser direct least-squares ellipse fit
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Failure", "MAD_TO_SIGMA", "robust_sigma", "tls_line", "fit_plane_tls", "ray_plane",
+__all__ = ["Failure", "MAD_TO_SIGMA", "robust_sigma", "tls_line", "robust_line", "fit_plane_tls", "ray_plane",
            "sampson_distance", "fit_conic", "fit_conics", "default_workers"]
 
 #: 1 / Φ⁻¹(3/4) to the precision the package has always used: MAD → σ for normal data.
@@ -84,6 +85,36 @@ def tls_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     m = p.mean(axis=0)
     vt = np.linalg.svd(p - m, full_matrices=False)[2]
     return m, vt[0], vt[1]
+
+
+def robust_line(p: np.ndarray, *, refits: int = 4, k_mad: float = 4.0, min_tol: float = 0.0,
+                rel_tol: float = 0.0, center: bool = False, upper_median: bool = False,
+                min_points: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Total-least-squares line through (K, 2) points with MAD rejection.
+
+    Up to ``refits`` times: :func:`tls_line` on the inliers, then the new inliers are the
+    points within ``max(k_mad · σ, min_tol, rel_tol · (1 + max|centroid|))`` of it, σ the
+    :func:`robust_sigma` of the inliers' distances (signed and ``center``-ed, or absolute
+    about zero; ``upper_median`` as there).  Stops early when the inliers no longer change
+    or would be fewer than ``min_points`` (then the previous inliers stay).  Starts from the
+    finite points.  Returns ``(centroid, direction, normal, inliers (K,) bool)``; the line
+    is the last one fitted, on the inliers before the last update.  ValueError for a bad
+    shape or fewer than 2 finite points.
+    """
+    p = _points(p, 2, "points")
+    inl = np.all(np.isfinite(p), axis=1)
+    m = d = n = None
+    for _ in range(max(int(refits), 1)):
+        m, d, n = tls_line(p[inl])
+        r = (p - m) @ n
+        ri = r[inl]
+        s = robust_sigma(ri, center=True) if center else robust_sigma(np.abs(ri), center=False,
+                                                                        upper_median=upper_median)
+        new = np.abs(r) <= max(k_mad * s, min_tol, rel_tol * (1.0 + np.abs(m).max()))
+        if new.sum() < min_points or np.array_equal(new, inl):
+            break
+        inl = new
+    return m, d, n, inl
 
 
 def fit_plane_tls(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:

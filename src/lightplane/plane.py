@@ -355,27 +355,20 @@ def _finite_or_none(x) -> float | None:
 # the primitives live in lightplane.geometry; these names stay importable from here
 from .geometry import fit_plane_tls as fit_plane_points  # noqa: E402
 from .geometry import ray_plane as backproject_to_plane  # noqa: E402
-from .geometry import robust_sigma, sampson_distance, tls_line  # noqa: E402,F401
+from .geometry import robust_line, sampson_distance, tls_line  # noqa: E402,F401
 
 
 def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust total-least-squares line through (K, 2) points.
 
-    Refits ``iterations`` times on points within ``k_mad`` x 1.4826 MAD of the line.
-    Returns ``(point (2,), unit normal (2,), inlier mask (K,))``.
+    Refits ``iterations`` times on points within ``k_mad`` x 1.4826 MAD of the line
+    (:func:`lightplane.geometry.robust_line`).
+    Returns ``(point (2,), unit normal (2,), inlier mask (K,))``; for fewer than 2 points
+    their mean (NaN for none), (1, 0) and all points.
     """
-    inl = np.ones(len(p), dtype=bool)
-    for _ in range(iterations + 1):
-        c = p[inl].mean(axis=0)
-        q = p[inl] - c
-        nrm = np.linalg.eigh(q.T @ q)[1][:, 0]  # direction of least spread
-        r = np.abs((p - c) @ nrm)
-        ri = r[inl]
-        mad = robust_sigma(ri, center=False, upper_median=True)  # (upper middle) median, cheaply
-        new = r <= max(k_mad * mad, 1e-9 * (1.0 + np.abs(c).max()))
-        if new.sum() < 2 or np.array_equal(new, inl):
-            break
-        inl = new
+    if len(p) < 2:
+        return (p.mean(axis=0) if len(p) else np.full(2, np.nan)), np.array([1.0, 0.0]), np.ones(len(p), bool)
+    c, _, nrm, inl = robust_line(p, refits=iterations + 1, k_mad=k_mad, rel_tol=1e-9, upper_median=True)
     return c, nrm, inl
 
 
