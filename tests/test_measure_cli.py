@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
-from lightplane import Camera, LightPlane  # noqa: E402
+from lightplane import Camera  # noqa: E402
 from lightplane.pointcloud import read_cloud  # noqa: E402
 
 

@@ -970,8 +970,6 @@ def smooth_along_quadratic(uv, nrm, first, last, sig, rmax, rad, side):
         if abs(det) < 1e-12:
             continue
         m0 = s2 * s4 - s3 * s3
-        m1 = s1 * s4 - s3 * s2
-        m2 = s1 * s3 - s2 * s2
         a = (h0 - c0) * m0 - s1 * ((h1 - c1) * s4 - s3 * (h2 - c2)) + s2 * ((h1 - c1) * s3 - s2 * (h2 - c2))
         out[i] = a / det
     return out
