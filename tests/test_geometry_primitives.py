@@ -211,6 +211,19 @@ class TestFitPlane:
 
         assert plane.fit_plane_points is g.fit_plane_tls
 
+    def test_scatter(self):
+        rng = np.random.default_rng(10)
+        p = rng.normal(size=(50, 3)) * [10.0, 3.0, 0.1]
+        c, lam, V = g.plane_scatter(p)
+        np.testing.assert_allclose(c, p.mean(axis=0))
+        assert np.all(np.diff(lam) > 0)
+        np.testing.assert_allclose(V.T @ V, np.eye(3), atol=1e-12)
+        n, d, lam0 = g.fit_plane_tls(p)
+        np.testing.assert_array_equal(n, V[:, 0])
+        assert lam0 == pytest.approx(lam[0])
+        with pytest.raises(ValueError):
+            g.plane_scatter(np.zeros((4, 2)))
+
 
 # ------------------------------------------------------------------ ray_plane
 class TestRayPlane:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Failure", "MAD_TO_SIGMA", "robust_sigma", "tls_line", "robust_line", "fit_plane_tls", "ray_plane",
+__all__ = ["Failure", "MAD_TO_SIGMA", "robust_sigma", "tls_line", "robust_line", "plane_scatter", "fit_plane_tls", "ray_plane",
            "sampson_distance", "fit_conic", "fit_conics", "default_workers"]
 
 #: 1 / Φ⁻¹(3/4) to the precision the package has always used: MAD → σ for normal data.
@@ -117,13 +117,13 @@ def robust_line(p: np.ndarray, *, refits: int = 4, k_mad: float = 4.0, min_tol: 
     return m, d, n, inl
 
 
-def fit_plane_tls(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
-    """Orthogonal (weighted) least-squares plane through (N, 3) points.
+def plane_scatter(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigen-decomposition of the centred (weighted) scatter matrix of (N, 3) points.
 
-    Returns ``(normal (3,), d, smallest eigenvalue of the weighted scatter)``: the
-    normal is the eigenvector of the smallest eigenvalue of the centred scatter
-    matrix; the eigenvalue is the weighted sum of squared distances.  ValueError for a
-    bad shape or fewer than 3 points.
+    Returns ``(centroid (3,), eigenvalues (3,) ascending, eigenvectors (3, 3) as
+    columns)``: column 0 is the total-least-squares plane's normal, its eigenvalue the
+    weighted sum of squared distances (the other two give the normal's covariance).
+    ValueError for a bad shape or fewer than 3 points.
     """
     p = _points(p, 3, "points")
     if len(p) < 3:
@@ -133,6 +133,18 @@ def fit_plane_tls(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.
     q = p - c
     S = (q * w[:, None]).T @ q
     lam, V = np.linalg.eigh(S)
+    return c, lam, V
+
+
+def fit_plane_tls(p: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+    """Orthogonal (weighted) least-squares plane through (N, 3) points.
+
+    Returns ``(normal (3,), d, smallest eigenvalue of the weighted scatter)``: the
+    normal is the eigenvector of the smallest eigenvalue of the centred scatter
+    matrix (:func:`plane_scatter`); the eigenvalue is the weighted sum of squared
+    distances.  ValueError for a bad shape or fewer than 3 points.
+    """
+    c, lam, V = plane_scatter(p, weights)
     n = V[:, 0]
     return n, -float(n @ c), float(max(lam[0], 0.0))
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..camera import Camera, as_points
 from ..errors import LightplaneError
-from ..geometry import ray_plane, robust_sigma, tls_line
+from ..geometry import plane_scatter, ray_plane, robust_sigma, tls_line
 from ..plane import LightPlane
 
 __all__ = [
@@ -224,18 +224,15 @@ def fit_plane(points_mm: np.ndarray, *, meta: dict | None = None) -> LightPlane:
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) < 3:
         raise LightplaneError(f"a plane fit needs at least 3 points, got {len(p)}")
-    c = p.mean(axis=0)
-    q = p - c
-    _, sv, vt = np.linalg.svd(q, full_matrices=False)
-    lam = sv**2
-    if lam[1] <= 1e-12 * max(lam[0], 1e-300):
+    c, lam, V = plane_scatter(p)  # eigenvalues ascending
+    if lam[1] <= 1e-12 * max(lam[2], 1e-300):
         raise LightplaneError("the points are collinear: they do not determine a plane (need two or more board poses)")
-    n = vt[2]
+    n = V[:, 0]
     d = -float(n @ c)
-    r = q @ n
+    r = (p - c) @ n
     dof = max(len(p) - 3, 1)
     sigma2 = float(r @ r) / dof
-    cov_n = sigma2 * (np.outer(vt[0], vt[0]) / lam[0] + np.outer(vt[1], vt[1]) / lam[1])
+    cov_n = sigma2 * (np.outer(V[:, 2], V[:, 2]) / lam[2] + np.outer(V[:, 1], V[:, 1]) / lam[1])
     cov = np.zeros((4, 4))
     cov[:3, :3] = cov_n
     cov[:3, 3] = cov[3, :3] = -cov_n @ c
