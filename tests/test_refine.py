@@ -13,7 +13,6 @@ from lightplane import LightPlane, LightplaneError
 from lightplane.refine import _Pose, _Problem, crlb, refine_ml
 from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.uncertainty import (
-    plot_point_sigma_map,
     point_covariance,
     point_sigma_mm,
     rms_point_sigma_mm,
@@ -212,6 +211,8 @@ def test_point_sigma_requires_covariance_and_working_volume_checks():
 
 
 def test_plot_point_sigma_map(tmp_path):
+    from lightplane.plots import point_sigma_map as plot_point_sigma_map
+
     cam, plane = default_camera(), default_plane()
     pl = LightPlane(plane.normal, plane.d, np.diag([1e-10, 1e-10, 1e-10, 1e-4]))
     out = tmp_path / "sigma.png"

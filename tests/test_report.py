@@ -104,11 +104,8 @@ def test_figures_only_in_plots_module():
     import pathlib
 
     src = pathlib.Path(__file__).resolve().parents[1] / "src" / "lightplane"
-    # still to move into lightplane.plots by their owners: io.save_figure (unused) and
-    # uncertainty.plot_point_sigma_map (same figure as plots.point_sigma_map)
-    pending = {"io.py", "uncertainty.py"}
     users = {str(f.relative_to(src)) for f in src.rglob("*.py") if "matplotlib" in f.read_text(encoding="utf-8")}
-    assert users - pending == {"plots.py"}
+    assert users == {"plots.py"}
     code = ("import sys, pkgutil, importlib, lightplane\n"
             "for m in pkgutil.walk_packages(lightplane.__path__, 'lightplane.'):\n"
             "    if not m.name.startswith(('lightplane.cli', 'lightplane.__main__')):\n"

@@ -376,17 +376,6 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[str], None] | bytes 
     return p
 
 
-def save_figure(fig, path: str | os.PathLike, *, force: bool = False, dpi: int | None = None) -> Path:
-    """Save a matplotlib figure atomically (format from the suffix, PNG by default) and close it."""
-    import matplotlib.pyplot as plt
-
-    fmt = Path(path).suffix.lstrip(".").lower() or "png"
-    try:
-        return atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi), force=force)
-    finally:
-        plt.close(fig)
-
-
 def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

@@ -348,7 +348,7 @@ class ProfileMeasurer:
         K = self.camera.K
         dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
             else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
-        li, si, uvs = [], [], []
+        li, si = [], []
         for lb, sb in zip(lbs, sbs):
             l_idx = np.arange(lb * BL, min((lb + 1) * BL, lines.size))
             s_idx = np.arange(sb * BS, min((sb + 1) * BS, samples.size))

@@ -24,9 +24,7 @@ array([0.1])
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +34,7 @@ from .measure import GRAZING_COS, points_sigma_mm, triangulate_normalized
 from .plane import LightPlane
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
-           "rms_triangulation_error_mm", "plot_point_sigma_map"]
+           "rms_triangulation_error_mm"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -141,52 +139,3 @@ def rms_triangulation_error_mm(camera: Camera, plane_est: LightPlane, plane_true
     b = triangulate_normalized(plane_true, xy).points
     e = np.linalg.norm(a - b, axis=1)
     return float(np.sqrt(np.nanmean(e**2)))
-
-
-def plot_point_sigma_map(camera: Camera, plane: LightPlane, path: str | os.PathLike, *, force: bool = False,
-                         distance_mm: tuple[float, float] = (380.0, 520.0), step_px: float = 8.0,
-                         covariance: np.ndarray | None = None, title: str | None = None) -> Path:
-    """Write a PNG map of the triangulated points' sigma (mm) over the image.
-
-    Every pixel of a ``step_px`` grid is coloured by :func:`point_sigma_mm`; pixels
-    whose ray meets the plane outside ``distance_mm`` are greyed out, and contours
-    mark the distance to the camera (mm).  Written atomically.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .io import save_figure
-
-    cov = _plane_cov(plane, covariance)
-    us = np.arange(0, camera.width, step_px)
-    vs = np.arange(0, camera.height, step_px)
-    U, V = np.meshgrid(us, vs)
-    uv = np.column_stack([U.ravel(), V.ravel()])
-    xy = camera.undistort_points(uv, normalized=True)
-    pts = triangulate_normalized(plane, xy).points
-    dist = np.linalg.norm(pts, axis=1).reshape(U.shape)
-    J = _point_jacobian(plane, xy)
-    sig = np.sqrt(np.trace(J @ cov @ np.swapaxes(J, 1, 2), axis1=1, axis2=2)).reshape(U.shape)
-    inside = np.isfinite(dist) & (dist >= distance_mm[0]) & (dist <= distance_mm[1])
-    fig, ax = plt.subplots(figsize=(8, 6.4), dpi=100)
-    ext = (-0.5, camera.width - 0.5, camera.height - 0.5, -0.5)
-    ax.imshow(np.where(inside, np.nan, 1.0), extent=ext, cmap="Greys", vmin=0, vmax=4, interpolation="nearest")
-    vmax = np.nanmax(np.where(inside, sig, np.nan)) if np.any(inside) else np.nanmax(sig)
-    im = ax.imshow(np.where(inside, sig * 1e3, np.nan), extent=ext, cmap="viridis", vmin=0, vmax=vmax * 1e3,
-                   interpolation="nearest")
-    finite = np.isfinite(dist)
-    if np.any(finite):
-        levels = np.arange(np.ceil(np.nanmin(dist[finite]) / 50) * 50, np.nanmax(dist[finite]), 50)
-        if len(levels):
-            cs = ax.contour(U, V, np.where(finite, dist, np.nan), levels=levels, colors="white", linewidths=0.6)
-            ax.clabel(cs, fmt="%d mm", fontsize=7)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8)
-    cb.set_label("σ of triangulated point from the plane's covariance (µm)")
-    ax.set_xlabel("u (px)")
-    ax.set_ylabel("v (px)")
-    ax.set_title(title or f"Point uncertainty, working volume {distance_mm[0]:g}–{distance_mm[1]:g} mm from the camera")
-    fig.tight_layout()
-
-    return save_figure(fig, path, force=force)
