@@ -243,7 +243,8 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
 
             cal.plane.save(out / "plane.json", force=True, extra={
                 **cal.to_dict(), "uncertainty": unc,
-                "provenance": _prov([str(data / "circles")], {"method": "ml", "diameter_mm": cfg["diameter_mm"]})})
+                "provenance": _prov([str(data / "circles")], {"method": "ml", "diameter_mm": cfg["diameter_mm"]}),
+                "report_inputs": cal.report_inputs()})  # `lightplane report plane.json` rebuilds the report
             summary["plane"] = {"ml": cal.to_dict(), "uncertainty": unc, "accuracy": {}}
             rej = [f"{o.name} ({o.reason})" for o in cal.images if not o.used]
             say(f"    {cal.n_used} of {len(cal.images)} images used" + (f"; rejected: {', '.join(rej)}" if rej else "")
