@@ -13,7 +13,7 @@ points, i.e. 1000 points at 0.06 px; raw stripe centres 0.126 px with tau 6.1 ov
 ~330 centres, or ~65 averages of ~5 centres at 0.102 px with tau 1.55 as
 :func:`lightplane.calibrate.observe_image` gives the solver, i.e. 30 stripe points
 at 0.09 px), then
-:func:`lightplane.plane.calibrate_plane_from_points` (``ml``).  Reported: the RMS over
+:func:`lightplane.plane_solvers.calibrate_plane_from_points` (``ml``).  Reported: the RMS over
 trials of the triangulation error over the working volume 380–520 mm (mm), and the
 share of trials that failed (an error was raised, e.g. an unresolved ambiguity, or
 the normal is off by more than 0.5°).  Factors: number of placements, tilt range,

@@ -18,7 +18,8 @@ __version__ = "0.1.0"
 
 from .camera import Camera
 from .errors import LightplaneError
-from .plane import LightPlane, PlaneCalibration, calibrate_plane_from_points
+from .plane import LightPlane
+from .plane_solvers import PlaneCalibration, calibrate_plane_from_points
 from .measure import triangulate
 from .circle_pose import CirclePose, circle_poses
 from .ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target

@@ -18,7 +18,7 @@ Per image (in parallel across cores, :func:`observe_image`):
    by a margin (the rim's intensity step biases the stripe centres next to it), and
    keep those on the stripe's line through the target.
 
-Then all placements go to :func:`lightplane.plane.calibrate_plane_from_points`
+Then all placements go to :func:`lightplane.plane_solvers.calibrate_plane_from_points`
 (``paper``, ``global`` or ``ml``; docs/method.md §Light plane) with the rim edge points and the stripe
 points, both in distorted pixels.  Every image's outcome is recorded: used, or
 rejected with its reason (no target ellipse, no stripe crossing it, too few stripe
@@ -41,7 +41,7 @@ import numpy as np
 from .camera import Camera
 from .errors import LightplaneError
 from .geometry import default_workers, robust_line, robust_sigma, tls_line
-from .plane import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
+from .plane_solvers import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -70,7 +70,7 @@ class ImageObservation:
     chord_px : (2, 2) the stripe's chord through the ellipse as found by target selection, or None.
     rim_fit_rms_px : RMS distance of the rim points to their refined conic (px).
     n_candidates : ellipses detected in the image.
-    placement : the solver's :class:`~lightplane.plane.PlacementResult` (``index`` = image index) or None.
+    placement : the solver's :class:`~lightplane.plane_solvers.PlacementResult` (``index`` = image index) or None.
     seconds : wall time spent on the image (reading included), s.
     """
 
@@ -208,7 +208,7 @@ def _placement_record(p) -> dict:
 
 
 def _placement_from_record(r: dict):
-    from .plane import PlacementResult
+    from .plane_solvers import PlacementResult
 
     poses = r.get("poses")
     return PlacementResult(index=int(r["index"]), used=bool(r["used"]), reason=str(r["reason"]),
@@ -229,7 +229,7 @@ def _num(x) -> float | None:
 
 @dataclass(frozen=True)
 class ImagePlaneCalibration(PlaneCalibration):
-    """A :class:`~lightplane.plane.PlaneCalibration` computed from images, with per-image diagnostics.
+    """A :class:`~lightplane.plane_solvers.PlaneCalibration` computed from images, with per-image diagnostics.
 
     Extra attributes
     ----------------
@@ -280,7 +280,7 @@ class ImagePlaneCalibration(PlaneCalibration):
     def from_report_inputs(cls, plane, inputs: dict, source: str = "plane file") -> "ImagePlaneCalibration":
         """The calibration :meth:`report_inputs` stored, around ``plane`` (a
         :class:`~lightplane.plane.LightPlane`); raises :class:`LightplaneError` on a malformed record."""
-        from .plane import Ambiguity
+        from .plane_solvers import Ambiguity
 
         try:
             version = int(inputs.get("version", 0))
@@ -585,19 +585,19 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     camera : calibrated :class:`~lightplane.camera.Camera`; every image must have its size.
     diameter_mm : target diameter, mm (> 0).
     method : ``"ml"`` (default), ``"global"`` or ``"paper"`` (docs/method.md §Light plane; see
-        :func:`~lightplane.plane.calibrate_plane_from_points`).
+        :func:`~lightplane.plane_solvers.calibrate_plane_from_points`).
     workers : processes (or threads) for the per-image work; default: all cores;
         1 runs in this process.
     executor : ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores 12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
     progress : optional callable ``progress(done, total)`` after each image.
     distance_range_mm, channel, stripe_width_px, min_stripe_points, stripe_bin : see :func:`observe_image`.
     min_placements : fewest used placements accepted (>= 3 for a checked result).
-    solver_options : passed to :func:`~lightplane.plane.calibrate_plane_from_points`
+    solver_options : passed to :func:`~lightplane.plane_solvers.calibrate_plane_from_points`
         (``sigma_px``, ``min_normal_spread_deg``, ...).
 
     Returns
     -------
-    :class:`ImagePlaneCalibration` (a :class:`~lightplane.plane.PlaneCalibration`):
+    :class:`ImagePlaneCalibration` (a :class:`~lightplane.plane_solvers.PlaneCalibration`):
     the plane (covariance for ``ml``), per-image diagnostics in ``images``.
 
     Raises
@@ -681,7 +681,7 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
                        **solver_options) -> ImagePlaneCalibration:
     """The light plane from per-image observations (:func:`observe_images`) (docs/method.md §Light plane).
 
-    Runs :func:`~lightplane.plane.calibrate_plane_from_points` on the images that gave
+    Runs :func:`~lightplane.plane_solvers.calibrate_plane_from_points` on the images that gave
     a target and stripe points, and maps its per-placement results back to the images.
     Lets one set of observations be solved by several methods (``paper``, ``global``, ``ml``).
     """

@@ -16,7 +16,7 @@ Factors (the paper's ranges):
 For every trial, random placements (the same at every level of a factor, so the curves
 show the factor's effect rather than fresh geometry; noise drawn per level and trial;
 results do not depend on the order of evaluation) are calibrated with the ``paper``,
-``global`` and ``ml`` methods of :func:`lightplane.plane.calibrate_plane_from_points`
+``global`` and ``ml`` methods of :func:`lightplane.plane_solvers.calibrate_plane_from_points`
 (``min_placements=2, strict=False``: the paper's two-placement runs resolve the
 ambiguity by the coplanarity of the true pair alone), and the Cramér–Rao bound of the
 same trial (:func:`lightplane.refine.crlb`) is computed.  Reported per level and
@@ -175,7 +175,7 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     progress : callable(int), optional
         Called with 1 after every trial.
     """
-    from ..plane import calibrate_plane_from_points
+    from ..plane_solvers import calibrate_plane_from_points
     from ..refine import crlb
     from ..uncertainty import working_volume_grid
     from .geometry import PAPER_DISTANCE_MM, paper_camera, paper_plane, sample_placements, synthetic_observations
