@@ -10,7 +10,7 @@ import pytest
 
 from lightplane.camera import Camera
 from lightplane.errors import LightplaneError
-from lightplane.targets import Target, as_target, correct_circle_centres, parse_target
+from lightplane.targets import Target, as_target, correct_circle_centres, dot_diameter_mm, parse_target
 
 K = np.array([[1400.0, 0, 640.0], [0, 1400.0, 480.0], [0, 0, 1]])
 
@@ -149,6 +149,9 @@ def test_circle_grid_detection_dark_and_light(target):
             err = d.uv[::-1] - uv
         # ~20 px dots, 2 grey levels of noise on a contrast of 190: centroid noise << 0.02 px
         assert np.sqrt(np.mean(err ** 2)) < 0.02
+        # the dots' diameter is measured the right way round for either polarity (drawn: 0.45 spacing)
+        assert d.dark_dots == (im is noisy)
+        assert abs(dot_diameter_mm(im, d, target) - 0.45 * target.spacing_mm) < 0.03 * target.spacing_mm
 
 
 def test_charuco_partial_views():

@@ -16,7 +16,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
-from .targets import Target, as_target, correct_circle_centres
+from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
            "board_points",
@@ -578,7 +578,7 @@ def calibrate_camera(
                                        None if det is None else det.ids))
                 saddles.append(None)
                 if det is not None and target.kind in ("circles", "acircles"):
-                    dots.append(_dot_diameter(img, det, target))
+                    dots.append(dot_diameter_mm(img, det, target))
         if progress:
             progress(i + 1, len(images))
     blur_all = np.concatenate(blurs) if blurs else np.zeros(0)
@@ -646,9 +646,3 @@ def calibrate_camera(
         ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
         skipped=skipped,
     )
-
-
-def _dot_diameter(img, det, target) -> float:
-    from .targets import dot_diameter_mm
-
-    return dot_diameter_mm(img, det, target)

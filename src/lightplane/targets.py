@@ -49,12 +49,14 @@ class Detection:
     """Points of a target found in one image.
 
     ids : (M,) int, point ids (see :class:`Target`); uv : (M, 2) float, distorted px;
-    object_mm : (M, 3) float, the same points in the board frame (mm, z = 0).
+    object_mm : (M, 3) float, the same points in the board frame (mm, z = 0);
+    dark_dots : circle grids: whether the dots were found dark on a light board.
     """
 
     ids: np.ndarray
     uv: np.ndarray
     object_mm: np.ndarray
+    dark_dots: bool = True
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -307,7 +309,7 @@ class Target:
                     continue
                 ids = np.arange(self.n_points)
                 uv = _dot_centroids(image, c, self, dark=colour == 0)
-                return Detection(ids, uv, self.object_points(ids))
+                return Detection(ids, uv, self.object_points(ids), dark_dots=colour == 0)
         return None
 
     def _grid_order(self, uv: np.ndarray) -> np.ndarray | None:
@@ -408,66 +410,71 @@ def _jacobians(H: np.ndarray, obj: np.ndarray) -> np.ndarray:
     return J
 
 
+def _dot_window(g: np.ndarray, c: np.ndarray, J: np.ndarray, R: float):
+    """Pixels of the image of a disc of radius ``R`` (board mm) centred on the dot at ``c`` (px), through
+    the local Jacobian ``J`` (2, 2): ``(x, y, values)`` of those pixels, or None when the window
+    leaves the image or ``J`` is singular."""
+    try:
+        Jinv = np.linalg.inv(J)
+    except np.linalg.LinAlgError:
+        return None
+    half = int(np.ceil(R * np.abs(J).sum(axis=1).max())) + 1
+    x0, y0 = int(round(c[0])) - half, int(round(c[1])) - half
+    x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
+    if x0 < 0 or y0 < 0 or x1 > g.shape[1] or y1 > g.shape[0]:
+        return None
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = np.stack([xx - c[0], yy - c[1]], axis=-1) @ Jinv.T  # board mm offsets
+    inside = (d ** 2).sum(axis=-1) <= R * R
+    return xx[inside], yy[inside], g[y0:y1, x0:x1][inside].astype(np.float64)
+
+
 def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: bool,
                    iterations: int = 3) -> np.ndarray:
     """Darkness- (or brightness-) weighted centroid of each dot, ``(N, 2)`` px.
 
     The window around each dot is the image of a disc of 0.46 spacings on the board
-    (through the local Jacobian of a homography fitted to all dots), so it holds the
-    whole blurred dot and none of its neighbours at any tilt.  Weights are the
-    contrast to the board's level there (a plane fitted to the window's board pixels,
-    so shading and vignetting do not pull the centre), divided by that level (shading
-    scales the dot's contrast too), and zero below three times the board's noise.  A blurred dot's weighted centroid is its area
-    centroid: blur is a convolution with a centred kernel and keeps first moments.
+    (:func:`_dot_window`, through the local Jacobian of a homography fitted to all dots), so
+    it holds the whole blurred dot and none of its neighbours at any tilt.  Weights are the
+    contrast to the board's level there (a plane fitted to the window's board pixels, so
+    shading and vignetting do not pull the centre), divided by that level (shading scales
+    the dot's contrast too), and zero below three times the board's noise.  A blurred dot's
+    weighted centroid is its area centroid: blur is a convolution with a centred kernel and
+    keeps first moments.
     """
     from .io import to_gray_float
 
     g = to_gray_float(image) if image.ndim == 3 else np.asarray(image, dtype=np.float32)
-    h, w = g.shape
     J = _local_jacobians(target, uv0)
     R = 0.46 * target.spacing_mm
     out = uv0.copy()
     for k in range(len(uv0)):
-        Jk = J[k]
-        try:
-            Jinv = np.linalg.inv(Jk)
-        except np.linalg.LinAlgError:
-            continue
-        half = int(np.ceil(R * np.abs(Jk).sum(axis=1).max())) + 1
         c = uv0[k].copy()
         for _ in range(iterations):
-            x0, y0 = int(round(c[0])) - half, int(round(c[1])) - half
-            x1, y1 = x0 + 2 * half + 1, y0 + 2 * half + 1
-            if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            win = _dot_window(g, c, J[k], R)
+            if win is None or win[2].size < 9:
                 break
-            patch = g[y0:y1, x0:x1].astype(np.float64)
-            yy, xx = np.mgrid[y0:y1, x0:x1]
-            d = np.stack([xx - c[0], yy - c[1]], axis=-1) @ Jinv.T  # board mm offsets
-            inside = (d ** 2).sum(axis=-1) <= R * R
-            vals = patch[inside]
-            if vals.size < 9:
-                break
+            xs, ys, vals = win
             # the board's level around the dot as a plane (shading and vignetting tilt it), fitted to
             # the board pixels of the window; its noise sets the threshold below which a pixel is board
             lo, hi = np.percentile(vals, [5, 95])
             board = (vals > 0.5 * (lo + hi)) if dark else (vals < 0.5 * (lo + hi))
-            X = np.column_stack([np.ones(vals.size), xx[inside] - c[0], yy[inside] - c[1]])
             if board.sum() < 6:
                 break
+            X = np.column_stack([np.ones(vals.size), xs - c[0], ys - c[1]])
             coef, *_ = np.linalg.lstsq(X[board], vals[board], rcond=None)
             level = X @ coef
-            resid = vals[board] - level[board]
-            noise = robust_sigma(resid)
+            noise = robust_sigma(vals[board] - level[board])
             contrast = (level - vals) if dark else (vals - level)
             # shading multiplies the dot's contrast too: divide by the local illumination (the board's
             # level for dark dots, the dot's for light ones) so the weights are the albedo step alone
             light = level if dark else level + (hi - lo)
             wgt = np.where(contrast > max(3.0 * noise, 0.02 * abs(hi - lo)), contrast / np.maximum(light, 1e-6), 0.0)
-            s = wgt.sum()
-            if not s > 0:
+            total = wgt.sum()
+            if not total > 0:
                 break
-            new = np.array([(wgt * xx[inside]).sum() / s, (wgt * yy[inside]).sum() / s])
-            if not np.all(np.isfinite(new)) or np.linalg.norm(new - uv0[k]) > 0.5 * R * np.abs(Jk).max():
+            new = np.array([(wgt * xs).sum() / total, (wgt * ys).sum() / total])
+            if not np.all(np.isfinite(new)) or np.linalg.norm(new - uv0[k]) > 0.5 * R * np.abs(J[k]).max():
                 break
             done = np.linalg.norm(new - c) < 1e-3
             c = new
@@ -477,9 +484,10 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
     return out
 
 
-def dot_diameter_mm(image: np.ndarray, det: Detection, target: Target, *, dark: bool = True) -> float:
-    """The dots' diameter (mm) measured in one image: the median over dots of the dark area
-    (pixels beyond the mid-level between dot and board) through the local Jacobian."""
+def dot_diameter_mm(image: np.ndarray, det: Detection, target: Target) -> float:
+    """The dots' diameter (mm): ``target.dot_mm`` when given, else measured in one image, the
+    median over dots of the dot's area (pixels beyond the mid-level between dot and board, dark
+    or light as the detection found them) in :func:`_dot_window`'s disc."""
     from .io import to_gray_float
 
     if target.dot_mm:
@@ -489,18 +497,14 @@ def dot_diameter_mm(image: np.ndarray, det: Detection, target: Target, *, dark: 
     R = 0.46 * target.spacing_mm
     diam = []
     for k, c in enumerate(det.uv):
-        Jinv = np.linalg.inv(J[k])
-        half = int(np.ceil(R * np.abs(J[k]).sum(axis=1).max())) + 1
-        x0, y0 = int(round(c[0])) - half, int(round(c[1])) - half
-        if x0 < 0 or y0 < 0 or x0 + 2 * half + 1 > g.shape[1] or y0 + 2 * half + 1 > g.shape[0]:
+        win = _dot_window(g, c, J[k], R)
+        if win is None:
             continue
-        yy, xx = np.mgrid[y0:y0 + 2 * half + 1, x0:x0 + 2 * half + 1]
-        d = np.stack([xx - c[0], yy - c[1]], axis=-1) @ Jinv.T
-        inside = (d ** 2).sum(axis=-1) <= R * R
-        vals = g[yy[inside], xx[inside]].astype(np.float64)
-        hi, lo = np.percentile(vals, [90, 5])
-        frac = np.mean(vals < 0.5 * (hi + lo)) if dark else np.mean(vals > 0.5 * (hi + lo))
-        diam.append(2.0 * R * np.sqrt(frac))  # dark area / window area = (r / R)^2 on the board
+        vals = win[2]
+        hi, lo = np.percentile(vals, [90, 5]) if det.dark_dots else np.percentile(vals, [95, 10])
+        mid = 0.5 * (hi + lo)
+        frac = np.mean(vals < mid) if det.dark_dots else np.mean(vals > mid)
+        diam.append(2.0 * R * np.sqrt(frac))  # dot area / window area = (r / R)^2 on the board
     if not diam:
         return 0.5 * target.spacing_mm
     return float(np.median(diam))
