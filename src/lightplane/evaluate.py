@@ -313,16 +313,9 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
         raise LightplaneError(f"lines must be 'rows', 'columns' or 'auto', got {lines!r}")
     if corners_used not in ("three", "all"):
         raise LightplaneError(f"corners_used must be 'three' or 'all', got {corners_used!r}")
-    if not isinstance(board, tuple) and not hasattr(board, "lattice_index"):
-        try:
-            board = tuple(int(x) for x in board)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"board must be a Target or (cols, rows), got {board!r}") from None
-    if isinstance(board, tuple) and (len(board) != 2 or not all(isinstance(x, (int, np.integer)) for x in board)):
-        raise LightplaneError(f"board must be (cols, rows), got {board!r}")
     if square_mm is not None and not (np.isfinite(square_mm) and square_mm > 0):
         raise LightplaneError(f"square_mm must be positive, got {square_mm}")
-    target = as_target(board, square_mm)
+    target = as_target(board, square_mm)  # checks the board
     nx, ny = target.lattice_shape
     if nx < 3 or ny < 2:
         raise LightplaneError(f"board needs at least 3 points per row and 2 rows, got {nx}x{ny}")

@@ -827,8 +827,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     correct_asymmetry : remove the bar-model bias of stripes on asymmetric
         backgrounds (module docstring).
     correct_curvature : remove the inward shift ``sigma^2 kappa / 2`` of curved
-        stripes (module docstring), ``kappa`` from the linked curve (plus the
-        along-curve smoothing's own shift).
+        stripes (module docstring), ``kappa`` from the linked curve.
     sigma_along_px : smoothing of the centres along their curve (points, ~px): each
         point's offset along its normal is replaced by the intercept of a local quadratic
         fitted, with Gaussian weights of this scale, to its neighbours' offsets (window
@@ -1021,11 +1020,10 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
                 return empty
     if correct_asymmetry:
         uv = _correct_asymmetry(gray.astype(np.float32), uv, nrm, width, bg, sigma)
-    extra_var = 0.0
     if sal > 0:
-        uv, extra_var = _smooth_along(uv, nrm, cid, sal)
+        uv = _smooth_along(uv, nrm, cid, sal)
     if correct_curvature:
-        uv = _correct_curvature(uv, nrm, cid, sigma, extra_var)
+        uv = _correct_curvature(uv, nrm, cid, sigma)
     return StripePoints(uv=uv, normals=nrm, strength=st, width=width, curve_id=cid.astype(np.int64),
                         sigma_px=float(sigma), meta=meta)
 
@@ -1160,7 +1158,7 @@ def _profile_curvature(uv, nrm, valid, sigma, m, k):
     return out
 
 
-def _correct_curvature(uv, nrm, cid, sigma, extra_var=0.0):
+def _correct_curvature(uv, nrm, cid, sigma):
     """Undo the inward shift ``(sigma^2 + 1/12) kappa / 2`` of Gaussian smoothing on curved lines.
 
     Smoothing a curved ridge of radius ``rho`` (heat equation to first order:
@@ -1172,7 +1170,7 @@ def _correct_curvature(uv, nrm, cid, sigma, extra_var=0.0):
     ends = np.concatenate([change, [cid.size]])
     m = max(5, int(math.ceil(4.0 * sigma)))
     kv = _curvature_vectors(uv, starts, ends, m)
-    shift = 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA + extra_var) * np.sum(kv * nrm, axis=1)
+    shift = 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA) * np.sum(kv * nrm, axis=1)
     return uv - shift[:, None] * nrm
 
 
@@ -1206,13 +1204,12 @@ def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along:
     ``h = a + b t + c t^2`` is fitted with Gaussian weights and the point moves by ``a``
     along its normal.  A quadratic absorbs the curve's own bend (``c = kappa / 2``), so
     straight and curved lines alike stay where they are (no inward shift to correct);
-    only the noise of the offsets is averaged.  Returns the points and zeros (no extra
-    variance for the curvature correction).
+    only the noise of the offsets is averaged.  Returns the moved points.
     """
     N = uv.shape[0]
     R = int(math.ceil(3.0 * sigma_along))
     if N == 0 or R < 1:
-        return uv, np.zeros(N)
+        return uv
     change = np.flatnonzero(np.diff(cid)) + 1
     starts = np.concatenate([[0], change])
     ends = np.concatenate([change, [N]])
@@ -1239,7 +1236,7 @@ def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along:
     kx = (np.abs(nrm[:, 0]) > np.abs(nrm[:, 1])).astype(np.int64)
     out = uv.copy()
     out[idx, 1 - kx] += a / nrm[idx, 1 - kx]
-    return out, np.zeros(N)
+    return out
 
 
 def _drop_overshadowed(uv, nrm, st, cid, shape, reach, min_gap, ratio):

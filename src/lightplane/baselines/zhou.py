@@ -16,7 +16,7 @@ least-squares covariance from the residual scatter is available (optimistic).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -363,6 +363,8 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
 
     import cv2
 
+    grid = None if corners_uv is None else corners_uv.reshape(-1, 2)
+    spacing = None if grid is None else _corner_spacing_px(grid)
     if background is not None:
         if background.shape != image.shape:
             raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
@@ -373,8 +375,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
         # the (much narrower) stripe.
         img = to_gray_float(image, channel)
         raw = img
-        if corners_uv is not None:
-            spacing = float(np.median(np.linalg.norm(np.diff(corners_uv.reshape(-1, 2), axis=0), axis=1)))
+        if spacing is not None:
             k = int(max(5, round(0.35 * spacing))) | 1
             img = cv2.morphologyEx(img, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
     channel = None
@@ -383,7 +384,6 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     # average hundreds of centres anyway (clean renders: residual 0.0042 vs 0.0072 mm)
     sp = extract_stripe(img, width_px=width_px, mask=mask > 0, channel=channel, sigma_along_px=0.0)
     uv = np.asarray(sp.uv, dtype=np.float64).reshape(-1, 2)
-    idx = np.arange(len(uv))
     if len(uv):
         ij = np.clip(np.round(uv).astype(int), 0, [mask.shape[1] - 1, mask.shape[0] - 1])
         keep = mask[ij[:, 1], ij[:, 0]] > 0
@@ -393,11 +393,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             # centres on dark squares sit next to reflectance edges that bias them
             white = float(np.percentile(raw[mask > 0], 90))
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
-        uv, idx = uv[keep], idx[keep]
-    spacing = None
-    if corners_uv is not None:
-        grid = corners_uv.reshape(-1, 2)
-        spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=0), axis=1)))
+        uv = uv[keep]
     if len(uv) and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
         d2 = ((uv[:, None, :] - grid[None, :, :]) ** 2).sum(axis=2).min(axis=1)
@@ -478,9 +474,7 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
                 if isinstance(pose, str):
                     raise LightplaneError(f"{names[k]}: pattern frame: {pose}")
                 camera.check_image(img, names[k])
-                pose = BoardPose(*(getattr(pose, f) for f in ("corners_uv", "R_cam_board", "t_cam_board",
-                                                               "reprojection_rms_px")), names[k], pose.corner_ok,
-                                 pose.ids, pose.object_mm)
+                pose = replace(pose, name=names[k])
             else:
                 pose = find_board_pose(bg if per_image else img, camera, target, name=names[k], channel=channel)
             mask = board_polygon_mask(camera, pose, target)
@@ -489,8 +483,8 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
             stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
             if pattern_images is None and not per_image and len(stripe) >= 2:
                 # corners found in the laser-on image: leave out those the stripe runs over
-                spacing = float(np.median(np.linalg.norm(np.diff(pose.corners_uv, axis=0), axis=1)))
-                clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * spacing)
+                clear = corners_clear_of_stripe(camera, pose, stripe,
+                                                clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
                 if not clear.all() and np.count_nonzero(clear) >= 6:
                     pose = pose_from_corners(camera, pose.corners_uv, target, name=names[k], corner_ok=clear,
                                              ids=pose.ids)
@@ -508,6 +502,11 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
         if progress is not None:
             progress(k)
     return out
+
+
+def _corner_spacing_px(corners_uv: np.ndarray) -> float:
+    """Typical distance (px) between consecutive detected points: the board's scale in the image."""
+    return float(np.median(np.linalg.norm(np.diff(corners_uv.reshape(-1, 2), axis=0), axis=1)))
 
 
 def _same_exposure(image: np.ndarray, pattern: np.ndarray, mask: np.ndarray, channel: str | None) -> bool:
