@@ -105,7 +105,7 @@ def paper_plane() -> LightPlane:
     (the coefficients' norm is 1.0000 to 4 digits; it is normalised exactly).
     It crosses the optical axis at z = 390.7 mm; the laser is 150 mm above the camera.
     """
-    return LightPlane([0.0, 0.9336, -0.3584], 140.04, meta={"source": "lightplane.simulate.geometry.paper_plane"})
+    return LightPlane(np.array([0.0, 0.9336, -0.3584]), 140.04, meta={"source": "lightplane.simulate.geometry.paper_plane"})
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -348,6 +348,7 @@ def synthetic_observations(
     stripe_p = chord[0] + t[:, None] * (chord[1] - chord[0])
     stripe_uv = camera.project(stripe_p)
     if sigma_px > 0:
+        assert rng is not None  # checked above
         rim_uv = rim_uv + rng.normal(0.0, sigma_px, rim_uv.shape)
         stripe_uv = stripe_uv + rng.normal(0.0, sigma_px, stripe_uv.shape)
     return rim_uv, stripe_uv

@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import TypedDict
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..camera import Camera
 from ..errors import LightplaneError
@@ -470,13 +472,14 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         saturate = difficulty == "hard" and i % 2 == 1 and i != miss_index
         img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate)
         name = f"circle_{i:03d}.png"
-        entry = {"file": name, "target": _placement_truth(camera, plane, tp)}
+        entry: dict[str, object] = {"file": name, "target": _placement_truth(camera, plane, tp)}
+        off_name = f"circle_{i:03d}_off.png"
         if laser_off:
             # the same scene (same draws), laser off, its own noise
             off, _ = _render_circle(camera, plane, tp, np.random.default_rng([seed, i]), difficulty, polarity,
                                     noise=noise, saturate=saturate, laser=False,
                                     noise_rng=np.random.default_rng([seed, i, 1]))
-            entry["file_laser_off"] = f"circle_{i:03d}_off.png"
+            entry["file_laser_off"] = off_name
         if i == miss_index:
             entry.update(usable=False, reason="stripe misses the target")
         else:
@@ -486,7 +489,7 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         names.append(name)
         if laser_off:
             images.append(off)
-            names.append(entry["file_laser_off"])
+            names.append(off_name)
         per_image.append(entry)
         if progress is not None:
             progress(i + 1, n)
@@ -515,7 +518,7 @@ def board_corners(board: tuple[int, int], square_mm: float) -> np.ndarray:
     return np.column_stack([i.ravel() * square_mm, j.ravel() * square_mm, np.zeros(cols * rows)])
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+def _rotation(axis: ArrayLike, angle: float) -> np.ndarray:
     import cv2
 
     return cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * angle)[0]
@@ -539,20 +542,20 @@ def _board_stripe(plane: LightPlane, R: np.ndarray, t: np.ndarray, board: tuple[
         return None
     # clip the line g·q = -s to the rectangle [0, (cols-1) sq] x [0, (rows-1) sq]
     umax, vmax = (cols - 1) * square_mm, (rows - 1) * square_mm
-    pts = []
+    hits = []
     if abs(g[1]) > 1e-12:
         for u in (0.0, umax):
             v = (-s - g[0] * u) / g[1]
             if 0 <= v <= vmax:
-                pts.append((u, v))
+                hits.append((u, v))
     if abs(g[0]) > 1e-12:
         for v in (0.0, vmax):
             u = (-s - g[1] * v) / g[0]
             if 0 <= u <= umax:
-                pts.append((u, v))
-    if len(pts) < 2:
+                hits.append((u, v))
+    if len(hits) < 2:
         return None
-    pts = np.array(pts)
+    pts = np.array(hits)
     dmat = np.linalg.norm(pts[:, None] - pts[None], axis=2)
     a, b = np.unravel_index(np.argmax(dmat), dmat.shape)
     q = np.array([[*pts[a], 0.0], [*pts[b], 0.0]])
@@ -583,12 +586,12 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
     camera = default_camera() if camera is None else camera
     cols, rows = board
     u0, u1, v0, v1 = _board_outline(board, square_mm, square_mm) if outline is None else outline
-    outline = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
+    outline_b = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
     if centre_mm is None:
         centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
     else:
         centre_b = np.array([float(centre_mm[0]), float(centre_mm[1]), 0.0])
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray]] = []
     for _ in range(max_tries):
         if len(out) == n:
             break
@@ -602,7 +605,7 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
         spin = np.deg2rad(rng.uniform(-spin_deg, spin_deg))
         R = _rotation([np.cos(phi), np.sin(phi), 0.0], tilt) @ _rotation([0, 0, 1.0], spin)
         t = C - R @ centre_b
-        corners_cam = outline @ R.T + t
+        corners_cam = outline_b @ R.T + t
         if np.any(corners_cam[:, 2] <= 50):
             continue
         # board must face the camera: its z axis points away from the camera
@@ -633,11 +636,22 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
 #: distortion (a shift of the principal point is nearly a rotation of the camera plus
 #: p1, p2): OpenCV's std of cx, cy is ~0.35, 0.25 px with 20 views (1.9, 1.3 px for the
 #: old 15 views of a 9x6 board); see benchmarks/bench_calibrate.py.
-CALIBRATION_CAPTURE = {"board": (15, 11), "square_mm": 8.0, "distance_mm": (350.0, 650.0),
+class BoardCapture(TypedDict):
+    """A capture design: the board's inner corners and square, and the pose ranges of :func:`sample_board_poses`."""
+
+    board: tuple[int, int]
+    square_mm: float
+    distance_mm: tuple[float, float]
+    tilt_deg: tuple[float, float]
+    centre_frac: float
+    spin_deg: float
+
+
+CALIBRATION_CAPTURE: BoardCapture = {"board": (15, 11), "square_mm": 8.0, "distance_mm": (350.0, 650.0),
                        "tilt_deg": (25.0, 55.0), "centre_frac": 0.8, "spin_deg": 30.0}
 #: Capture of boards crossed by the stripe (Zhou's method, cross ratios): a small board
 #: near the image centre, where the stripe is.
-STRIPE_CAPTURE = {"board": (9, 6), "square_mm": 8.0, "distance_mm": (330.0, 560.0),
+STRIPE_CAPTURE: BoardCapture = {"board": (9, 6), "square_mm": 8.0, "distance_mm": (330.0, 560.0),
                   "tilt_deg": (10.0, 45.0), "centre_frac": 0.4, "spin_deg": 30.0}
 
 
@@ -672,8 +686,8 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
     design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
     board = design["board"] if board is None else board
     square_mm = design["square_mm"] if square_mm is None else square_mm
-    distance_mm = design["distance_mm"] if distance_mm is None else tuple(distance_mm)
-    tilt_deg = design["tilt_deg"] if tilt_deg is None else tuple(tilt_deg)
+    distance_mm = design["distance_mm"] if distance_mm is None else (distance_mm[0], distance_mm[1])
+    tilt_deg = design["tilt_deg"] if tilt_deg is None else (tilt_deg[0], tilt_deg[1])
     centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
     n = _check_n(n)
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
@@ -705,7 +719,7 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
         variants = [("", power if with_stripe else 0.0)]
         if laser_off and with_stripe:
             variants.append(("_off", 0.0))
-        entry = {"T_cam_board": {"R": R, "t": t}, "corners_px": camera.project(obj @ R.T + t),
+        entry: dict[str, object] = {"T_cam_board": {"R": R, "t": t}, "corners_px": camera.project(obj @ R.T + t),
                  "corners_undistorted_px": camera.project(obj @ R.T + t, distort=False),
                  "ambient_dn": ambient}
         salt = int(img_rng.integers(0, 2**31 - 1))
@@ -843,7 +857,9 @@ def target_spec(target) -> TargetSpec:
         if not 0 < spec.marker_mm < spec.square_mm:
             raise LightplaneError(f"marker_mm must be in (0, square_mm); got {spec.marker_mm}")
     if spec.kind in ("circles", "acircles"):
-        r = 0.5 * spec.dot_diameter_mm
+        dot = spec.dot_diameter_mm
+        assert dot is not None  # a circle grid always has a dot diameter
+        r = 0.5 * dot
         limit = spec.square_mm * (np.sqrt(0.5) if spec.kind == "acircles" else 0.5)
         if not 0 < r < limit:
             raise LightplaneError(f"dot_mm {2 * r:g} overlaps its neighbours (must be in (0, {2 * limit:g}) mm)")
@@ -908,6 +924,8 @@ def _charuco_layout(spec: TargetSpec) -> dict:
     ``generateImageMarker`` with one pixel per bit."""
     import cv2
 
+    # target_spec checked both for a charuco target
+    assert spec.dictionary is not None and spec.marker_mm is not None
     try:
         dict_id = getattr(cv2.aruco, spec.dictionary)
     except AttributeError:
@@ -950,15 +968,19 @@ def _charuco_layout(spec: TargetSpec) -> dict:
 def _target_patch(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None) -> np.ndarray:
     u0, u1, v0, v1 = _target_outline(spec)
     s = spec.square_mm
-    common = dict(shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=_BOARD_ALBEDO, layer=1)
+    region = (u0, u1, v0, v1)
     if spec.kind == "chessboard":
-        return rc.make_patch(t, R[:, 0], R[:, 1], checker=(s, spec.cols + 1, spec.rows + 1, _INK_ALBEDO), **common)
+        return rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=region, albedo=_BOARD_ALBEDO, layer=1,
+                             checker=(s, spec.cols + 1, spec.rows + 1, _INK_ALBEDO))
     if spec.kind == "charuco":
+        assert layout is not None  # the caller builds the layout of a charuco target
         tex = layout["texels"]
-        return rc.make_patch(t, R[:, 0], R[:, 1], bitmap=(layout["cell_mm"], tex.shape[1], tex.shape[0],
-                                                          _INK_ALBEDO, 0), **common)
-    return rc.make_patch(t, R[:, 0], R[:, 1], dots=(s, spec.cols, spec.rows, _INK_ALBEDO, 0.5 * spec.dot_diameter_mm,
-                                                    spec.kind == "acircles"), **common)
+        return rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=region, albedo=_BOARD_ALBEDO, layer=1,
+                             bitmap=(layout["cell_mm"], tex.shape[1], tex.shape[0], _INK_ALBEDO, 0))
+    dot = spec.dot_diameter_mm
+    assert dot is not None  # a circle grid
+    return rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=region, albedo=_BOARD_ALBEDO, layer=1,
+                         dots=(s, spec.cols, spec.rows, _INK_ALBEDO, 0.5 * dot, spec.kind == "acircles"))
 
 
 def dot_image_centres(camera: Camera, R: np.ndarray, t: np.ndarray, centres_mm: np.ndarray, radius_mm: float,
@@ -1034,8 +1056,8 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     """
     spec = target_spec(target)
     design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
-    distance_mm = design["distance_mm"] if distance_mm is None else tuple(distance_mm)
-    tilt_deg = design["tilt_deg"] if tilt_deg is None else tuple(tilt_deg)
+    distance_mm = design["distance_mm"] if distance_mm is None else (distance_mm[0], distance_mm[1])
+    tilt_deg = design["tilt_deg"] if tilt_deg is None else (tilt_deg[0], tilt_deg[1])
     centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
     spin_deg = design["spin_deg"] if spin_deg is None else float(spin_deg)
     n = _check_n(n)
@@ -1078,13 +1100,16 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
             names.append(name)
             files["file" if suffix == "" else "file_laser_off"] = name
         pc = obj @ R.T + t
-        entry = {**files, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
-                 "points_px": camera.project(pc), "points_undistorted_px": camera.project(pc, distort=False),
-                 "ambient_dn": ambient}
+        points_px = camera.project(pc)
+        entry: dict[str, object] = {**files, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
+                                    "points_px": points_px, "points_undistorted_px": camera.project(pc, distort=False),
+                                    "ambient_dn": ambient}
         if spec.kind in ("circles", "acircles"):
-            dc = dot_image_centres(camera, R, t, obj, 0.5 * spec.dot_diameter_mm)
+            dot = spec.dot_diameter_mm
+            assert dot is not None  # a circle grid
+            dc = dot_image_centres(camera, R, t, obj, 0.5 * dot)
             entry.update({k: v for k, v in dc.items() if k != "projected_centres_px"})
-            entry["centre_bias_px"] = np.linalg.norm(dc["ellipse_centres_px"] - entry["points_px"], axis=1)
+            entry["centre_bias_px"] = np.linalg.norm(dc["ellipse_centres_px"] - points_px, axis=1)
         if layout is not None:
             mc = layout["marker_corners_mm"]
             entry["marker_ids"] = layout["marker_ids"]
@@ -1100,7 +1125,7 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
                         "id j * (cols - 1) + i",
              "circles": "dot centres (i, j) * pitch, id j * cols + i",
              "acircles": "dot centres ((2 i + j mod 2), j) * pitch, id j * cols + i"}[spec.kind]
-    tinfo = {**spec.to_dict(), "object_points_mm": obj, "point_order": order, "outline_board_mm": outline,
+    tinfo: dict[str, object] = {**spec.to_dict(), "object_points_mm": obj, "point_order": order, "outline_board_mm": outline,
              "board_albedo": _BOARD_ALBEDO, "ink_albedo": _INK_ALBEDO}
     if spec.kind in ("circles", "acircles"):
         tinfo["dot_diameter_mm"] = spec.dot_diameter_mm
@@ -1154,7 +1179,7 @@ def _scan_objects(kind: str, offset: np.ndarray, plane: LightPlane) -> tuple[np.
             "top_region_uv_mm": [0, 40, -45, 45],
         }
     else:
-        Rg = _rotation([0.3, 1.0, 0] / np.linalg.norm([0.3, 1.0, 0]), np.deg2rad(30.0))
+        Rg = _rotation(np.array([0.3, 1.0, 0]) / np.linalg.norm([0.3, 1.0, 0]), np.deg2rad(30.0))
         e1, e2, n_away = Rg[:, 0], Rg[:, 1], Rg[:, 2]
         p0 = np.array([0.0, 0.0, 470.0]) + offset
         patches.append(rc.make_patch(p0, e1, e2, shape=rc.SHAPE_RECT, region=(-70, 70, -70, 70), albedo=0.6))

@@ -196,7 +196,7 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     rows = []
     for k, level in enumerate(spec.levels):
         n_pl, sigma, diam = spec.settings(level)
-        per = {m: [] for m in methods}
+        per: dict[str, list[dict]] = {m: [] for m in methods}
         failed = {m: 0 for m in methods}  # an error raised, or a gross answer
         wrong = {m: 0 for m in methods}  # a used placement with the wrong one of its two poses
         bounds = []
