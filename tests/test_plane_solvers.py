@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lightplane.errors import LightplaneError
+from lightplane.plane_solvers import SolverOptions
 from lightplane.plane import (
     _KAPPA,
     _msd,
@@ -120,7 +121,7 @@ def test_monte_carlo_global_beats_paper_and_always_disambiguates():
     for _ in range(30):
         cam, plane, ps, rims, stripes = _scene(12, rng, sigma_px=0.1, camera=default_camera(distortion=False))
         for method in errs:
-            res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method, sigma_px=0.1)
+            res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method, options=SolverOptions(sigma_px=0.1))
             assert _true_candidates_chosen(res, ps, 1.0)
             errs[method].append(_angle(res.plane, plane))
     rms = {m: np.sqrt(np.mean(np.square(e))) for m, e in errs.items()}
@@ -163,6 +164,28 @@ def test_ml_from_global_noise_free():
     assert _true_candidates_chosen(res, ps, 1e-6)
 
 
+
+def test_solver_options_reach_the_solvers_and_are_checked():
+    from lightplane.refine import MLOptions
+
+    cam, plane, ps, rims, stripes = _good()
+    # the ML refinement's options arrive: one iteration cannot converge from the global start
+    one = calibrate_plane_from_points(cam, 50.0, rims, stripes, options=SolverOptions(ml=MLOptions(max_iter=1)))
+    assert any("without converging" in w for w in one.warnings)
+    full = calibrate_plane_from_points(cam, 50.0, rims, stripes)
+    assert not any("without converging" in w for w in full.warnings)
+    # a spread bar above the placements' spread makes them "too alike"
+    with pytest.raises(LightplaneError, match="placements too alike"):
+        calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global",
+                                    options=SolverOptions(min_normal_spread_deg=179.0))
+    for bad in (dict(noise="magic"), dict(max_iter=0), dict(huber_c=-1.0)):
+        with pytest.raises(LightplaneError):
+            MLOptions(**bad)
+    with pytest.raises(LightplaneError, match="sigma_px"):
+        SolverOptions(sigma_px=-1.0)
+    with pytest.raises(LightplaneError, match="options must be SolverOptions"):
+        calibrate_plane_from_points(cam, 50.0, rims, stripes, options={"sigma_px": 0.1})
+
 # ------------------------------------------------------------ result contents
 def test_result_to_dict_is_json_and_complete():
     rng = np.random.default_rng(108)
@@ -183,11 +206,11 @@ def test_result_to_dict_is_json_and_complete():
 def test_stripe_outliers_are_rejected():
     rng = np.random.default_rng(109)
     cam, plane, ps, rims, stripes = _scene(5, rng, sigma_px=0.1)
-    clean = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global", sigma_px=0.1)
+    clean = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global", options=SolverOptions(sigma_px=0.1))
     bad = [s.copy() for s in stripes]
     for s in bad:
         s[::25] += rng.normal(0, 30.0, s[::25].shape)  # 4 % gross outliers
-    res = calibrate_plane_from_points(cam, 50.0, rims, bad, method="global", sigma_px=0.1)
+    res = calibrate_plane_from_points(cam, 50.0, rims, bad, method="global", options=SolverOptions(sigma_px=0.1))
     assert _angle(res.plane, clean.plane) < np.deg2rad(0.01)
     assert all(p.n_stripe <= 300 - 12 + 1 for p in res.placements)
 
@@ -300,7 +323,7 @@ def test_two_placements_for_the_paper_study():
         with pytest.raises(LightplaneError, match="at least 3"):
             calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global")
         for method in ("paper", "global"):
-            res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method, min_placements=2, strict=False)
+            res = calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method, options=SolverOptions(strict=False), min_placements=2)
             # noise-free: two generic chords are coplanar only for the true pair
             assert _angle(res.plane, plane) < 1e-9 and abs(res.plane.d - plane.d) < 1e-8
             assert _true_candidates_chosen(res, ps, 1e-6)
@@ -317,7 +340,7 @@ def test_non_strict_keeps_undecided_placements_with_a_warning():
     rims, stripes = [o[0] for o in obs], [o[1] for o in obs]
     strict = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global")
     assert not strict.placements[4].used and "both chords fit" in strict.placements[4].reason
-    loose = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global", strict=False)
+    loose = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="global", options=SolverOptions(strict=False))
     assert loose.placements[4].used and "undecided" in loose.placements[4].reason
     assert any("undecided" in w for w in loose.warnings)
     assert _angle(loose.plane, plane) < np.deg2rad(0.05)
@@ -330,7 +353,7 @@ def test_paper_stopping_rule_and_reasons():
     used = [p for p in res.placements if p.used]
     assert 3 <= len(used) < 10  # the 0.1 % rule stops early: ||Δ(a,b,c,d)|| is dominated by d (~190 mm)
     assert all("converged" in p.reason for p in res.placements if not p.used)
-    every = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="paper", paper_rel_change=0.0)
+    every = calibrate_plane_from_points(cam, 50.0, rims, stripes, method="paper", options=SolverOptions(paper_rel_change=0.0))
     assert every.n_used == 10 and every.iterations == 10
     assert _true_candidates_chosen(every, ps, 1.0)
     # more chords, better plane (on average; here with 10 vs few placements)

@@ -19,7 +19,8 @@ __version__ = "0.1.0"
 from .camera import Camera
 from .errors import LightplaneError
 from .plane import LightPlane
-from .plane_solvers import PlaneCalibration, calibrate_plane_from_points
+from .plane_solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points
+from .refine import MLOptions
 from .measure import triangulate
 from .circle_pose import CirclePose, circle_poses
 from .ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
@@ -52,6 +53,8 @@ __all__ = [
     "Profile",
     "ProfileMeasurer",
     "PlaneCalibration",
+    "SolverOptions",
+    "MLOptions",
     "StripePoints",
     "StripeProfile",
     "__version__",

@@ -41,7 +41,7 @@ import numpy as np
 from .camera import Camera
 from .errors import LightplaneError
 from .geometry import default_workers, robust_line, robust_sigma, tls_line
-from .plane_solvers import PlaneCalibration, calibrate_plane_from_points, check_calibration_args
+from .plane_solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points, check_calibration_args
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -575,7 +575,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                     distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
                     stripe_width_px: float | None = None, min_stripe_points: int = 20,
                     stripe_bin: int | str = "auto", min_placements: int = 3,
-                    **solver_options) -> ImagePlaneCalibration:
+                    solver: SolverOptions | None = None) -> ImagePlaneCalibration:
     """Calibrate the light plane from images of a circular target crossed by the stripe (paper §2.2).
 
     Parameters
@@ -592,8 +592,8 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     progress : optional callable ``progress(done, total)`` after each image.
     distance_range_mm, channel, stripe_width_px, min_stripe_points, stripe_bin : see :func:`observe_image`.
     min_placements : fewest used placements accepted (>= 3 for a checked result).
-    solver_options : passed to :func:`~lightplane.plane_solvers.calibrate_plane_from_points`
-        (``sigma_px``, ``min_normal_spread_deg``, ...).
+    solver : :class:`~lightplane.plane_solvers.SolverOptions`, optional: the solver's options
+        (``sigma_px``, ``min_normal_spread_deg``, the ML refinement's...; defaults when omitted).
 
     Returns
     -------
@@ -630,7 +630,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                          distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
                          min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)
     return solve_observations(obs, camera, diameter, method, min_placements=min_placements,
-                              seconds=time.perf_counter() - t_start, **solver_options)
+                              seconds=time.perf_counter() - t_start, solver=solver)
 
 
 def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, workers: int | None = None,
@@ -678,7 +678,7 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
 
 def solve_observations(observations: Sequence[ImageObservation], camera: Camera, diameter_mm: float,
                        method: str = "ml", *, min_placements: int = 3, seconds: float = 0.0,
-                       **solver_options) -> ImagePlaneCalibration:
+                       solver: SolverOptions | None = None) -> ImagePlaneCalibration:
     """The light plane from per-image observations (:func:`observe_images`) (docs/method.md §Light plane).
 
     Runs :func:`~lightplane.plane_solvers.calibrate_plane_from_points` on the images that gave
@@ -697,7 +697,7 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
                                                      [(o.name, o.reason) for o in obs if not o.ok]))
     try:
         cal = calibrate_plane_from_points(camera, diameter, [o.rim_uv for o in ok], [o.stripe_uv for o in ok],
-                                          method=method, min_placements=min_placements, **solver_options)
+                                          method=method, options=solver, min_placements=min_placements)
     except LightplaneError as e:
         msg = str(e)
         # the solver names placements by their position among the usable images: name the files

@@ -58,7 +58,10 @@ __all__ = [
 # at 0.2 px (msd/tau^2 > 500) and > 7 tau at 1 px (default geometry).
 
 from dataclasses import dataclass as _dataclass  # noqa: E402
+from dataclasses import field as _field  # noqa: E402
 from typing import Sequence  # noqa: E402
+
+from .refine import MLOptions  # noqa: E402
 
 _KAPPA = 5.0
 _TAU_FLOOR_REL = 1e-9  # tau >= 1e-9 * z: rounding of noise-free data (~1e-11 mm) stays below it
@@ -775,13 +778,34 @@ def check_calibration_args(method: str, camera, diameter_mm) -> float:
     return diameter
 
 
+@_dataclass(frozen=True)
+class SolverOptions:
+    """Options of the plane solvers (:func:`calibrate_plane_from_points`; meanings there).
+
+    The defaults are what every command uses; ``ml`` holds the maximum-likelihood
+    refinement's options.  Checked when a solve starts.
+    """
+
+    sigma_px: float | None = None
+    min_stripe_points: int = 10
+    max_rim_rms_px: float = 3.0
+    min_normal_spread_deg: float = 5.0
+    max_exhaustive: int = 16
+    strict: bool = True
+    paper_rel_change: float = 1e-3
+    seed: int = 0
+    ml: MLOptions = _field(default_factory=MLOptions)
+
+    def __post_init__(self):
+        if self.sigma_px is not None and not (np.isfinite(self.sigma_px) and self.sigma_px >= 0):
+            raise LightplaneError(f"sigma_px must be >= 0, got {self.sigma_px}")
+        if not isinstance(self.ml, MLOptions):
+            raise LightplaneError(f"ml must be MLOptions, got {type(self.ml).__name__}")
+
+
 def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.ndarray], stripes: Sequence[np.ndarray],
-                                method: str = "ml", *, sigma_px: float | None = None, min_stripe_points: int = 10,
-                                max_rim_rms_px: float = 3.0, min_normal_spread_deg: float = 5.0,
-                                max_exhaustive: int = 16, min_placements: int = 3, strict: bool = True,
-                                paper_rel_change: float = 1e-3,
-                                rng: np.random.Generator | None = None,
-                                ml_options: dict | None = None) -> PlaneCalibration:
+                                method: str = "ml", options: SolverOptions | None = None, *,
+                                min_placements: int = 3) -> PlaneCalibration:
     """Calibrate the light plane from rim and stripe points of a circular target (paper §2.2, docs/method.md §Light plane).
 
     Parameters
@@ -800,36 +824,35 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         over all 2^n choices (exhaustive up to ``max_exhaustive`` placements, pair
         sampling with greedy assignment beyond).  ``ml``: ``global`` then the joint
         maximum-likelihood refinement (:func:`lightplane.refine.refine_ml`) with covariance.
-    sigma_px : float, optional
-        Image noise sigma (px) for the tolerances; estimated from the rim-ellipse and
-        stripe-line residuals when omitted.
-    min_stripe_points : int
-        Placements with fewer stripe points (after the robust line fit) are rejected.
-    max_rim_rms_px : float
-        Rim points farther than this (RMS, px) from their best ellipse are "not an ellipse".
-    min_normal_spread_deg : float
-        The chosen target normals must spread by more than this (max pairwise angle),
-        or the two-fold ambiguity cannot be resolved.
-    max_exhaustive : int
-        ``global``: exhaustive search up to this many placements, sampling beyond.
+    options : SolverOptions, optional
+        The solver's knobs (defaults when omitted):
+
+        - ``sigma_px``: image noise sigma (px) for the tolerances; estimated from the
+          rim-ellipse and stripe-line residuals when None.
+        - ``min_stripe_points``: placements with fewer stripe points (after the robust
+          line fit) are rejected.
+        - ``max_rim_rms_px``: rim points farther than this (RMS, px) from their best
+          ellipse are "not an ellipse".
+        - ``min_normal_spread_deg``: the chosen target normals must spread by more than
+          this (max pairwise angle), or the two-fold ambiguity cannot be resolved.
+        - ``max_exhaustive``: ``global``: exhaustive search up to this many placements,
+          sampling beyond (random generator seeded with ``seed``).
+        - ``strict``: True (default): undecided placements (both chords fit) are left
+          out, an unresolvable ambiguity or placements too alike raise.  False (for
+          simulation studies, e.g. the paper's two-placement runs): always return the
+          lowest-cost answer, undecided placements included, with warnings saying what
+          was ambiguous.
+        - ``paper_rel_change``: ``paper``: the stopping rule, relative change of
+          ``(a, b, c, d)`` (the paper's 0.1 %).
+        - ``ml`` (:class:`~lightplane.refine.MLOptions`): ``ml``: options of
+          :func:`lightplane.refine.refine_ml` (``noise``, ``correlated``, ``huber_c``,
+          ``rounds``, ``max_iter``).  The noise model it found (rim and stripe sigmas in
+          px, their correlation factors along the curves, outliers) is kept in
+          ``plane.meta["noise_model"]``.
     min_placements : int
         Fewest usable placements accepted (default 3; >= 2).  Two are what the paper's
         §3 study uses: then only the coplanarity of the true pair of chords resolves
         the ambiguity, with no independent check.
-    strict : bool
-        True (default): undecided placements (both chords fit) are left out, an
-        unresolvable ambiguity or placements too alike raise.  False (for simulation
-        studies, e.g. the paper's two-placement runs): always return the lowest-cost
-        answer, undecided placements included, with warnings saying what was ambiguous.
-    paper_rel_change : float
-        ``paper``: the stopping rule, relative change of ``(a, b, c, d)`` (the paper's 0.1 %).
-    rng : numpy Generator, optional
-        For the sampling beyond ``max_exhaustive`` placements (default: seed 0).
-    ml_options : dict, optional
-        ``ml``: keyword options for :func:`lightplane.refine.refine_ml` (``noise``,
-        ``correlated``, ``huber_c``, ``rounds``, ``max_iter``).  The noise model it
-        found (rim and stripe sigmas in px, their correlation factors along the
-        curves, outliers) is kept in ``plane.meta["noise_model"]``.
 
     Tolerances (derived from the noise, see the notes above ``PlacementResult``):
     a candidate chord's expected RMS offset from the light plane is
@@ -856,6 +879,10 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         too alike, or an unresolvable ambiguity (paper method).
     """
     diameter = check_calibration_args(method, camera, diameter_mm)
+    opts = SolverOptions() if options is None else options
+    if not isinstance(opts, SolverOptions):
+        raise LightplaneError(f"options must be SolverOptions, got {type(opts).__name__}")
+    sigma_px, strict = opts.sigma_px, opts.strict
     rims, stripes = list(rims), list(stripes)
     if len(rims) != len(stripes):
         raise LightplaneError(f"rims and stripes must have one entry per placement, got {len(rims)} and {len(stripes)}")
@@ -864,8 +891,6 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     min_placements = int(min_placements)
     if len(rims) < min_placements:
         raise LightplaneError(f"need at least {min_placements} placements, got {len(rims)}")
-    if sigma_px is not None and not (np.isfinite(sigma_px) and sigma_px >= 0):
-        raise LightplaneError(f"sigma_px must be >= 0, got {sigma_px}")
     r = 0.5 * diameter
     def _pts(a, what):
         return np.zeros((0, 2)) if np.size(a) == 0 else as_points(a, 2, what)
@@ -898,8 +923,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         poses = None
         if pose_problems[i] is None:
             poses = tuple(CirclePose(centers[i, j], normals[i, j], r) for j in range(2))
-        cands.append(prepare_placement(camera, r, rm, st, i, min_stripe_points=min_stripe_points,
-                                       max_rim_rms_px=max_rim_rms_px, rim_xy=parts[2 * i],
+        cands.append(prepare_placement(camera, r, rm, st, i, min_stripe_points=opts.min_stripe_points,
+                                       max_rim_rms_px=opts.max_rim_rms_px, rim_xy=parts[2 * i],
                                        stripe_xy=parts[2 * i + 1], conic=conics[i], poses=poses,
                                        pose_problem=pose_problems[i]))
     sigma_est = estimate_sigma_px(cands)
@@ -913,12 +938,13 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     reasons: dict = {c.index: c.reason for c in cands if not c.usable}
     ambiguity = None
     if method == "paper":
-        out = _solve_paper(cands, usable, sigma, strict=strict, rel_change=paper_rel_change)
+        out = _solve_paper(cands, usable, sigma, strict=strict, rel_change=opts.paper_rel_change)
         normal, d, choice, iterations = out.normal, out.d, out.choice, out.processed
         reasons.update(out.reasons)
         warnings.extend(out.notes)
     else:
-        g = _solve_global(cands, usable, sigma, max_exhaustive=max_exhaustive, rng=rng)
+        g = _solve_global(cands, usable, sigma, max_exhaustive=opts.max_exhaustive,
+                          rng=np.random.default_rng(opts.seed))
         normal, d, iterations, ambiguity = g.normal, g.d, g.evaluated, g.ambiguity
         choice = {i: g.choice[i] for i in usable if g.decided[i] or not strict}
         for i in usable:
@@ -936,12 +962,12 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         raise LightplaneError(f"only {len(used)} placements could be used ({why}), need at least {min_placements}")
     normals = np.array([cands[i].poses[choice[i]].normal for i in used])
     spread = float(np.degrees(np.arccos(np.clip(np.min(normals @ normals.T), -1.0, 1.0))))
-    if spread <= min_normal_spread_deg and not strict:
+    if spread <= opts.min_normal_spread_deg and not strict:
         warnings.append(f"placements too alike: all target normals within {spread:.2f} deg of each other")
-    elif spread <= min_normal_spread_deg:
+    elif spread <= opts.min_normal_spread_deg:
         raise LightplaneError(
             f"placements too alike: all target normals within {spread:.2f} deg of each other "
-            f"(need > {min_normal_spread_deg} deg to resolve the two-fold pose ambiguity); tilt the target differently"
+            f"(need > {opts.min_normal_spread_deg} deg to resolve the two-fold pose ambiguity); tilt the target differently"
         )
     plane = LightPlane(normal, d, meta={"method": method})
     covariance = None
@@ -949,14 +975,13 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     rim_rms = {c.index: c.rim_rms_px for c in cands}
     st_rms = {c.index: c.stripe_rms_px for c in cands}
     if method == "ml":
-        try:
-            from .refine import refine_ml
-        except ImportError as e:
-            raise LightplaneError(f"method 'ml' is not available ({e}); use 'global' or 'paper'") from None
+        from .refine import refine_ml
+
         g_plane = LightPlane(normal, d)
         res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
                                                              for i in used], g_plane, [poses_final[i] for i in used],
-                        **(ml_options or {}))
+                        max_iter=opts.ml.max_iter, noise=opts.ml.noise, rounds=opts.ml.rounds,
+                        huber_c=opts.ml.huber_c, correlated=opts.ml.correlated)
         noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
                        ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe") if hasattr(res, k)}
         if hasattr(res, "n_outliers"):

@@ -89,6 +89,28 @@ class _Pose:
 
 
 @dataclass(frozen=True)
+class MLOptions:
+    """Options of the joint maximum-likelihood refinement (:func:`refine_ml`; meanings there).
+
+    The defaults are what every command uses.  Checked on construction.
+    """
+
+    max_iter: int = 100
+    noise: str = "per_type"
+    rounds: int = 3
+    huber_c: float | None = 3.0
+    correlated: bool = True
+
+    def __post_init__(self):
+        if self.noise not in ("per_type", "per_placement", "shared"):
+            raise LightplaneError(f"noise must be 'per_type', 'per_placement' or 'shared', got {self.noise!r}")
+        if int(self.max_iter) < 1 or int(self.rounds) < 1:
+            raise LightplaneError(f"max_iter and rounds must be >= 1, got {self.max_iter} and {self.rounds}")
+        if self.huber_c is not None and not (np.isfinite(self.huber_c) and self.huber_c > 0):
+            raise LightplaneError(f"huber_c must be positive or None, got {self.huber_c}")
+
+
+@dataclass(frozen=True)
 class MLResult:
     """Result of :func:`refine_ml`.
 

@@ -175,7 +175,7 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     progress : callable(int), optional
         Called with 1 after every trial.
     """
-    from ..plane_solvers import calibrate_plane_from_points
+    from ..plane_solvers import SolverOptions, calibrate_plane_from_points
     from ..refine import crlb
     from ..uncertainty import working_volume_grid
     from .geometry import PAPER_DISTANCE_MM, paper_camera, paper_plane, sample_placements, synthetic_observations
@@ -215,8 +215,8 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
             stripes = [o[1] for o in obs]
             for m in methods:
                 try:
-                    res = calibrate_plane_from_points(camera, diam, rims, stripes, method=m, min_placements=2,
-                                                      strict=False)
+                    res = calibrate_plane_from_points(camera, diam, rims, stripes, method=m,
+                                                      options=SolverOptions(strict=False), min_placements=2)
                 except LightplaneError:
                     failed[m] += 1
                     continue
