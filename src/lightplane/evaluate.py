@@ -326,24 +326,29 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
                               f"{'the ids say' if ids is not None else target.describe() + ' needs'} {len(ids_)}")
     stripe = as_points(stripe_uv_undist, 2, "stripe_uv_undist")
     stripe = stripe[np.all(np.isfinite(stripe), axis=1)]
-    ok = np.ones(len(corners), bool) if corner_ok is None else np.asarray(corner_ok, bool).ravel()
-    if ok.shape != (len(corners),):
-        raise LightplaneError(f"corner_ok must have {len(corners)} entries, got {np.shape(corner_ok)}")
+    if corner_ok is None:
+        ok = np.ones(len(corners), bool)
+    else:
+        ok = np.asarray(corner_ok, bool).ravel()
+        if ok.shape != (len(corners),):
+            raise LightplaneError(f"corner_ok must have {len(corners)} entries, got {np.shape(corner_ok)}")
     lat = target.lattice_index(ids_)
     grid = np.full((ny, nx, 2), np.nan)
     okg = np.zeros((ny, nx), bool)
     grid[lat[:, 1], lat[:, 0]] = corners
     okg[lat[:, 1], lat[:, 0]] = ok & np.all(np.isfinite(corners), axis=1)
-    args = (grid, okg, target.lattice_origin_mm, stripe, float(target.square_mm))
-    kw = dict(corners_used=corners_used, window_px=window_px, min_angle_deg=min_angle_deg,
-              min_stripe_points=min_stripe_points)
+    def crossings(family: str) -> CrossRatioPoints:
+        return _crossings(grid, okg, target.lattice_origin_mm, stripe, float(target.square_mm), family,
+                          corners_used=corners_used, window_px=window_px, min_angle_deg=min_angle_deg,
+                          min_stripe_points=min_stripe_points)
+
     if lines != "auto":
         if lines == "columns" and ny < 3:
             raise LightplaneError("lines='columns' needs at least 3 rows of corners")
-        return _crossings(*args, lines, **kw)
-    cand = [_crossings(*args, "rows", **kw)]
+        return crossings(lines)
+    cand = [crossings("rows")]
     if ny >= 3:
-        cand.append(_crossings(*args, "columns", **kw))
+        cand.append(crossings("columns"))
     return max(cand, key=lambda c: (len(c), float(np.mean(c.crossing_angle_deg)) if len(c) else 0.0))
 
 
@@ -354,7 +359,7 @@ def first_point_pairs(groups: np.ndarray) -> np.ndarray:
     with the group's first point, as the paper pairs test point 1 with 2–5 and 6 with 7–10.
     """
     g = np.asarray(groups).ravel()
-    out = []
+    out: list[tuple[int, int]] = []
     for lab in dict.fromkeys(g.tolist()):
         members = np.flatnonzero(g == lab)
         out.extend((int(members[0]), int(k)) for k in members[1:])
@@ -438,7 +443,12 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
     names = list(view_names) if view_names is not None else [f"view {i}" for i in range(len(views))]
     if len(stripes) != len(views):
         raise LightplaneError(f"{len(views)} views but {len(stripes)} stripe point sets")
-    ideal_b, ideal_c, uvs, vidx, lidx, diag = [], [], [], [], [], []
+    ideal_b_l: list[np.ndarray] = []
+    ideal_c_l: list[np.ndarray] = []
+    uvs_l: list[np.ndarray] = []
+    vidx_l: list[np.ndarray] = []
+    lidx_l: list[np.ndarray] = []
+    diag: list[dict] = []
     for k, (view, stripe) in enumerate(zip(views, stripes)):
         corners_u = camera.undistort_points(view.corners_uv)
         stripe_u = camera.undistort_points(as_points(stripe, 2, "stripe")) if len(stripe) else np.zeros((0, 2))
@@ -449,16 +459,16 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
                      "lines": cr.line_index.tolist()})
         if len(cr) == 0:
             continue
-        ideal_b.append(cr.p_board_mm)
-        ideal_c.append(cr.p_board_mm @ np.asarray(view.R_cam_board).T + np.asarray(view.t_cam_board))
-        uvs.append(cr.uv_undist)
-        vidx.append(np.full(len(cr), k))
-        lidx.append(cr.line_index)
-    if not ideal_b:
+        ideal_b_l.append(cr.p_board_mm)
+        ideal_c_l.append(cr.p_board_mm @ np.asarray(view.R_cam_board).T + np.asarray(view.t_cam_board))
+        uvs_l.append(cr.uv_undist)
+        vidx_l.append(np.full(len(cr), k))
+        lidx_l.append(cr.line_index)
+    if not ideal_b_l:
         raise LightplaneError("the stripe crosses no corner row or column in any image "
                               "(is the laser on the board, and not parallel to the rows?)")
-    ideal_b, ideal_c, uvs = np.vstack(ideal_b), np.vstack(ideal_c), np.vstack(uvs)
-    vidx, lidx = np.concatenate(vidx), np.concatenate(lidx)
+    ideal_b, ideal_c, uvs = np.vstack(ideal_b_l), np.vstack(ideal_c_l), np.vstack(uvs_l)
+    vidx, lidx = np.concatenate(vidx_l), np.concatenate(lidx_l)
     pairs = first_point_pairs(vidx)
     if len(pairs) == 0:
         raise LightplaneError("no image gives two stripe crossings: nothing to compare (need the stripe across "
