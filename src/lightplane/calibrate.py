@@ -31,17 +31,21 @@ from __future__ import annotations
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
 from .geometry import default_workers, robust_line, robust_sigma, tls_line
-from .plane_solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points, check_calibration_args
+from .plane_solvers import (PlacementResult, PlaneCalibration, SolverOptions, calibrate_plane_from_points,
+                            check_calibration_args)
+
+if TYPE_CHECKING:
+    from .ellipse.model import Ellipse
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
            "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
@@ -80,7 +84,7 @@ class ImageObservation:
     reason: str
     used: bool = False
     shape: tuple = ()
-    ellipse: object | None = None
+    ellipse: Ellipse | None = None
     conic_undistorted: np.ndarray | None = field(default=None, repr=False)
     rim_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
     stripe_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
@@ -89,7 +93,7 @@ class ImageObservation:
     chord_px: np.ndarray | None = field(default=None, repr=False)
     rim_fit_rms_px: float = float("nan")
     n_candidates: int = 0
-    placement: object | None = None
+    placement: PlacementResult | None = None
     seconds: float = 0.0
 
     @property
@@ -550,14 +554,15 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
             if k < 1:
                 raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}")
         uv, k = _bin_along_line(uv, k, min_bins=12)
-    common = dict(ellipse=e_img, conic_undistorted=ref.conic, rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw,
-                  stripe_bin=k, chord_px=chord, rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
+    obs = ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
+                           seconds=time.perf_counter() - t0, ellipse=e_img, conic_undistorted=ref.conic,
+                           rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw, stripe_bin=k, chord_px=chord,
+                           rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
     if len(raw) == 0:
-        return reject("no stripe crossing the target", **common)
+        return replace(obs, ok=False, reason="no stripe crossing the target")
     if len(raw) < min_stripe_points:
-        return reject(f"too few stripe points ({len(raw)})", **common)
-    return ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
-                            seconds=time.perf_counter() - t0, **common)
+        return replace(obs, ok=False, reason=f"too few stripe points ({len(raw)})")
+    return obs
 
 
 def _observe_task(args):
@@ -661,7 +666,7 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
             import multiprocessing as mp
 
             # spawn, not fork: forking a process that already ran OpenMP code (numba, OpenCV) aborts it
-            pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn"))
+            pool: Executor = ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn"))
         else:
             pool = ThreadPoolExecutor(max_workers=n_workers)
         with pool:

@@ -59,7 +59,10 @@ __all__ = [
 
 from dataclasses import dataclass as _dataclass  # noqa: E402
 from dataclasses import field as _field  # noqa: E402
-from typing import Sequence  # noqa: E402
+from typing import TYPE_CHECKING, Sequence  # noqa: E402
+
+if TYPE_CHECKING:
+    from .circle_pose import CirclePose
 
 from .refine import MLOptions  # noqa: E402
 
@@ -99,8 +102,8 @@ class PlacementResult:
     used: bool
     reason: str
     candidate: int | None
-    pose: object | None
-    poses: tuple | None
+    pose: CirclePose | None
+    poses: tuple[CirclePose, CirclePose] | None
     n_rim: int
     n_stripe: int
     rim_rms_px: float
@@ -311,13 +314,22 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
             raise LightplaneError(f"{name}: {e}") from None
     f_px = float(np.sqrt(camera.fx * camera.fy))
     empty = (np.zeros((0, 3)), np.zeros((0, 3)))
-    base = dict(index=index, poses=poses, n_rim=len(rim), rim_rms_px=rim_rms, rim_res2=float(np.sum(res**2)),
-                rim_dof=max(len(rim) - 5, 0))
+    rim_res2, rim_dof = float(np.sum(res**2)), max(len(rim) - 5, 0)
+
+    def candidates(*, chords: tuple, stripe_xy: np.ndarray, stripe_inliers: np.ndarray, stripe_rms_px: float,
+                   stripe_res2: float, stripe_dof: int, tau_unit_mm: tuple, usable: bool,
+                   reason: str) -> PlacementCandidates:
+        # the rim's part is common to every outcome
+        return PlacementCandidates(index=index, poses=poses, chords=chords, stripe_xy=stripe_xy,
+                                   stripe_inliers=stripe_inliers, n_rim=len(rim), rim_rms_px=rim_rms,
+                                   stripe_rms_px=stripe_rms_px, rim_res2=rim_res2, rim_dof=rim_dof,
+                                   stripe_res2=stripe_res2, stripe_dof=stripe_dof, tau_unit_mm=tau_unit_mm,
+                                   usable=usable, reason=reason)
+
     if len(st) < min_stripe_points:
-        return PlacementCandidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=np.zeros(len(st), bool),
-                                   stripe_rms_px=np.nan, stripe_res2=0.0, stripe_dof=0, tau_unit_mm=(np.nan, np.nan),
-                                   usable=False, reason=f"too few stripe points ({len(st)} < {min_stripe_points})",
-                                   **base)
+        return candidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=np.zeros(len(st), bool),
+                          stripe_rms_px=np.nan, stripe_res2=0.0, stripe_dof=0, tau_unit_mm=(np.nan, np.nan),
+                          usable=False, reason=f"too few stripe points ({len(st)} < {min_stripe_points})")
     if stripe_xy is None:
         stripe_xy = camera.undistort_points(st, normalized=True)
     st_und = camera.normalized_to_pixels(stripe_xy, distort=False)
@@ -331,20 +343,19 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     st_rms = float(np.sqrt(np.mean(r2**2))) if n_in else np.nan
     st_res2, st_dof = float(np.sum(r2**2)), max(n_in - 2, 0)
     if n_in < min_stripe_points:
-        return PlacementCandidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=inliers,
-                                   stripe_rms_px=st_rms, stripe_res2=st_res2, stripe_dof=st_dof,
-                                   tau_unit_mm=(np.nan, np.nan), usable=False,
-                                   reason=f"too few stripe points on a line ({n_in} < {min_stripe_points})", **base)
+        return candidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=inliers,
+                          stripe_rms_px=st_rms, stripe_res2=st_res2, stripe_dof=st_dof,
+                          tau_unit_mm=(np.nan, np.nan), usable=False,
+                          reason=f"too few stripe points on a line ({n_in} < {min_stripe_points})")
     xy = stripe_xy[inliers]
     chords = tuple(backproject_to_plane(xy, p.normal, p.center) for p in poses)
     if any(not np.all(np.isfinite(ch)) for ch in chords):
-        return PlacementCandidates(chords=empty, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
-                                   stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=(np.nan, np.nan), usable=False,
-                                   reason="stripe rays graze a candidate target plane", **base)
+        return candidates(chords=empty, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
+                          stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=(np.nan, np.nan), usable=False,
+                          reason="stripe rays graze a candidate target plane")
     taus = tuple(_tau_unit(p, f_px, len(rim), n_in) for p in poses)
-    return PlacementCandidates(chords=chords, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
-                               stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=taus, usable=True, reason="",
-                               **base)
+    return candidates(chords=chords, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
+                      stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=taus, usable=True, reason="")
 
 
 def estimate_sigma_px(cands: Sequence[PlacementCandidates]) -> float:
@@ -569,6 +580,8 @@ def _sample_assignment(cm: _ChordMoments, rng, n_samples: int) -> tuple[np.ndarr
                 evaluated += 1
                 if J < best_J:
                     best, best_J = bits.copy(), J
+    if best is None:
+        raise LightplaneError("global method: no assignment of the chords has a finite cost")
     return best, evaluated
 
 
@@ -672,6 +685,7 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
                 if best_pair is None or J < best_pair["cost"]:
                     best_pair = cp
         if not cand_planes:
+            assert best_pair is not None  # set by the first pair tried
             if not strict:
                 cand_planes = [best_pair]
                 notes.append(f"no coplanar pair of chords (best normalised cost {best_pair['cost']:.3g} > "
@@ -753,7 +767,7 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
         old = np.append(n_, d_)
         change = np.linalg.norm(np.append(n_new, d_new) - old) / np.linalg.norm(old)
         n_, d_ = n_new, d_new
-        converged = change < rel_change
+        converged = bool(change < rel_change)
     choice = dict(support)
     for i, _ in support:
         reasons.setdefault(i, "used")
