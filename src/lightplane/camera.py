@@ -63,6 +63,14 @@ class Camera:
         Reprojection RMS of the calibration that produced it, if known.
     meta : dict
         Free-form provenance (where it came from); not used in computations.
+    covariance : (P, P) float64 or None
+        Covariance of the intrinsic parameters named by ``covariance_params`` (px², from
+        :func:`lightplane.intrinsics.intrinsics_covariance`; fixed parameters have zero
+        rows), or None when unknown (the camera's share of a point's uncertainty is then
+        not included anywhere).
+    covariance_params : tuple of str or None
+        The parameter order of ``covariance``: ``fx, fy, cx, cy`` then the distortion
+        coefficients in ``dist``'s order.
     """
 
     K: np.ndarray
@@ -71,6 +79,8 @@ class Camera:
     height: int
     rms_px: float | None = None
     meta: dict = field(default_factory=dict, compare=False, repr=False)
+    covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
+    covariance_params: tuple | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
@@ -106,6 +116,18 @@ class Camera:
         object.__setattr__(self, "height", h)
         if self.rms_px is not None:
             object.__setattr__(self, "rms_px", float(self.rms_px))
+        if self.covariance is not None:
+            C = np.asarray(self.covariance, dtype=np.float64)
+            names = tuple(str(n) for n in (self.covariance_params or ()))
+            if C.ndim != 2 or C.shape[0] != C.shape[1] or C.shape[0] != len(names) or not np.all(np.isfinite(C)):
+                raise LightplaneError(f"covariance must be a finite square matrix with one name per row in "
+                                      f"covariance_params, got shape {C.shape} and {len(names)} names")
+            C = 0.5 * (C + C.T)
+            C.setflags(write=False)
+            object.__setattr__(self, "covariance", C)
+            object.__setattr__(self, "covariance_params", names)
+        elif self.covariance_params is not None:
+            object.__setattr__(self, "covariance_params", None)
 
     # ------------------------------------------------------------------ basics
     @property
@@ -314,11 +336,14 @@ class Camera:
         }
         if self.rms_px is not None:
             d["rms_px"] = self.rms_px
+        if self.covariance is not None:
+            d["covariance"] = self.covariance.tolist()
+            d["covariance_params"] = list(self.covariance_params)
         return d
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
-        """From our JSON layout ``{"width", "height", "K", "dist", "rms_px"?}``."""
+        """From our JSON layout ``{"width", "height", "K", "dist", "rms_px"?, "covariance"?, "covariance_params"?}``."""
         for key in ("width", "height", "K", "dist"):
             if key not in d:
                 raise LightplaneError(f"{source}: missing field '{key}'")
@@ -332,8 +357,20 @@ class Camera:
             dist = np.asarray(d["dist"], dtype=np.float64).ravel()
         except (TypeError, ValueError):
             raise LightplaneError(f"{source}: field 'dist' is not a list of numbers") from None
+        cov, names = d.get("covariance"), d.get("covariance_params")
+        if (cov is None) != (names is None):
+            raise LightplaneError(f"{source}: 'covariance' and 'covariance_params' go together (one is missing)")
         try:
-            return cls(K, dist, d["width"], d["height"], d.get("rms_px"), meta={"source": source})
+            if cov is not None:
+                cov = np.asarray(cov, dtype=np.float64)
+                if not isinstance(names, list):
+                    raise TypeError
+        except (TypeError, ValueError):
+            raise LightplaneError(f"{source}: field 'covariance' must be a matrix of numbers and "
+                                  f"'covariance_params' a list of names") from None
+        try:
+            return cls(K, dist, d["width"], d["height"], d.get("rms_px"), meta={"source": source},
+                       covariance=cov, covariance_params=None if names is None else tuple(names))
         except LightplaneError as e:
             raise LightplaneError(f"{source}: {e}") from None
 

@@ -20,7 +20,7 @@ from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
            "board_points",
-           "calibrate_camera", "INTRINSIC_NAMES"]
+           "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
@@ -28,6 +28,108 @@ __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners",
 MIN_BOARD_BLUR_PX = 0.55
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+#: OpenCV's distortion coefficients, in its order (4, 5, 8, 12 or 14 of them).
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "taux", "tauy")
+
+
+@dataclass(frozen=True)
+class IntrinsicsCovariance:
+    """Covariance of the intrinsic parameters ``params`` (``fx, fy, cx, cy``, then the
+    distortion coefficients), marginalised over the board poses (:func:`intrinsics_covariance`).
+
+    ``covariance`` (P, P) in the parameters' units (px, unitless), zero rows and columns
+    for the parameters the calibration kept fixed (``free`` False); ``sigma_px`` the
+    corner noise estimated from the residuals; ``dof`` the degrees of freedom it has.
+    """
+
+    covariance: np.ndarray
+    params: tuple[str, ...]
+    free: np.ndarray
+    sigma_px: float
+    dof: int
+
+    def std(self) -> dict[str, float]:
+        return {n: float(np.sqrt(max(c, 0.0))) for n, c in zip(self.params, np.diag(self.covariance))}
+
+
+def _free_parameters(n_dist: int, flags: int) -> np.ndarray:
+    """Which of ``fx, fy, cx, cy, dist[0..n_dist)`` ``cv2.calibrateCamera`` estimates under ``flags``."""
+    import cv2
+
+    free = np.ones(4 + n_dist, bool)
+    fixed = {"k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3, "k4": cv2.CALIB_FIX_K4,
+             "k5": cv2.CALIB_FIX_K5, "k6": cv2.CALIB_FIX_K6}
+    for j, name in enumerate(DIST_NAMES[:n_dist]):
+        off = (flags & fixed.get(name, 0)
+               or (name in ("p1", "p2") and flags & cv2.CALIB_ZERO_TANGENT_DIST)
+               or (name in ("k4", "k5", "k6") and not flags & cv2.CALIB_RATIONAL_MODEL)
+               or (name.startswith("s") and (not flags & cv2.CALIB_THIN_PRISM_MODEL or flags & cv2.CALIB_FIX_S1_S2_S3_S4))
+               or (name.startswith("tau") and (not flags & cv2.CALIB_TILTED_MODEL or flags & cv2.CALIB_FIX_TAUX_TAUY)))
+        free[4 + j] = not off
+    if flags & cv2.CALIB_FIX_FOCAL_LENGTH:
+        free[:2] = False
+    if flags & cv2.CALIB_FIX_PRINCIPAL_POINT:
+        free[2:4] = False
+    return free
+
+
+def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Sequence[np.ndarray],
+                          rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray], K: np.ndarray,
+                          dist: np.ndarray, flags: int = 0) -> IntrinsicsCovariance:
+    """Covariance of a Zhang calibration's intrinsics, the board poses marginalised out.
+
+    At the solution, ``cv2.projectPoints`` gives the Jacobian of every corner's projection
+    in the view's pose (rvec, tvec) and in the intrinsics ``(fx, fy, cx, cy, dist...)``.
+    The Gauss–Newton normal matrix of all views is reduced to the intrinsics by the Schur
+    complement of the (block-diagonal) pose blocks, ``S = A − Σ_i C_i B_i⁻¹ C_iᵀ``, and
+    ``Cov = σ² S⁻¹`` with ``σ² = Σ r² / (2 N − P_free − 6 M)`` the corner noise from the
+    residuals (N corners, M views, P_free estimated intrinsics).  This is the full matrix
+    of which OpenCV's ``stdDeviationsIntrinsics`` are the square roots of the diagonal:
+    the parameters are strongly correlated (fx with fy, the principal point with p1, p2),
+    and a point's uncertainty needs the correlations.  Parameters held fixed by ``flags``
+    (``CALIB_FIX_K3``, ``CALIB_ZERO_TANGENT_DIST``, ...) get zero rows and columns.
+    ``CALIB_FIX_ASPECT_RATIO`` and ``CALIB_USE_LU``-style options that tie parameters
+    together are not supported (LightplaneError).
+    """
+    import cv2
+
+    if flags & (cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_SAME_FOCAL_LENGTH):
+        raise LightplaneError("intrinsics_covariance: CALIB_FIX_ASPECT_RATIO / SAME_FOCAL_LENGTH are not supported")
+    K = np.asarray(K, np.float64)
+    dist = np.asarray(dist, np.float64).ravel()
+    names = ("fx", "fy", "cx", "cy") + DIST_NAMES[:dist.size]
+    if dist.size not in (4, 5, 8, 12, 14):
+        raise LightplaneError(f"intrinsics_covariance: {dist.size} distortion coefficients (4, 5, 8, 12 or 14 expected)")
+    free = _free_parameters(dist.size, flags)
+    idx = np.flatnonzero(free)
+    p = idx.size
+    S = np.zeros((p, p))
+    ssr, n_obs = 0.0, 0
+    for obj, uv, rv, tv in zip(object_points, image_points, rvecs, tvecs):
+        obj = np.asarray(obj, np.float64).reshape(-1, 3)
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        proj, jac = cv2.projectPoints(obj, np.asarray(rv, np.float64), np.asarray(tv, np.float64), K, dist)
+        r = (uv - proj.reshape(-1, 2)).ravel()
+        ssr += float(r @ r)
+        n_obs += r.size
+        Je = jac[:, :6]
+        Ji = jac[:, 6:6 + 4 + dist.size][:, idx]
+        B = Je.T @ Je
+        C = Ji.T @ Je
+        S += Ji.T @ Ji - C @ np.linalg.solve(B, C.T)
+    dof = n_obs - p - 6 * len(rvecs)
+    if dof <= 0:
+        raise LightplaneError(f"intrinsics_covariance: {n_obs // 2} corners in {len(rvecs)} views leave no "
+                              f"degrees of freedom for {p} intrinsics")
+    sigma2 = ssr / dof
+    cov = np.zeros((names.__len__(), len(names)))
+    try:
+        cov[np.ix_(idx, idx)] = sigma2 * np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        raise LightplaneError("intrinsics_covariance: the intrinsics are not determined by these views "
+                              "(singular normal matrix)") from None
+    return IntrinsicsCovariance(0.5 * (cov + cov.T), names, free, float(np.sqrt(sigma2)), int(dof))
 
 
 def board_points(board: tuple[int, int], square_mm: float) -> np.ndarray:
@@ -487,6 +589,9 @@ class IntrinsicsCalibration:
             "board": {"cols": self.board[0], "rows": self.board[1], "square_mm": self.square_mm},
             "target": target.to_dict(),
             "flags": self.flags,
+            "covariance": {"sigma_px": self.options.get("covariance_sigma_px"),
+                           "dof": self.options.get("covariance_dof"),
+                           "board_poses": "marginalised (Schur complement of the normal matrix)"},
             "corners": {"refine": self.options.get("refine"),
                         "median_blur_px": (float(self.options["median_blur_px"])
                                            if np.isfinite(self.options.get("median_blur_px", np.nan)) else None),
@@ -618,7 +723,15 @@ def calibrate_camera(
     dist = np.asarray(dist, dtype=np.float64).ravel()
     if dist.size > 5 and np.allclose(dist[5:], 0):
         dist = dist[:5]
-    camera = Camera(K, dist[:5], size[0], size[1], rms_px=float(rms))
+    try:
+        icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist[:5], flags)
+    except LightplaneError:  # options the covariance does not model: the camera carries none
+        icov = None
+    camera = Camera(K, dist[:5], size[0], size[1], rms_px=float(rms),
+                    covariance=None if icov is None else icov.covariance,
+                    covariance_params=None if icov is None else icov.params)
+    centres = [cv2.Rodrigues(rv)[0] @ o.astype(np.float64).mean(axis=0) + np.ravel(tv)
+               for o, rv, tv in zip(objs, rvecs, tvecs)]
     std_int = np.asarray(std_int).ravel()
     std = {n: float(s) for n, s in zip(INTRINSIC_NAMES, std_int)}
     residuals, corners = [], []
@@ -641,7 +754,10 @@ def calibrate_camera(
         square_mm=float(target.square_mm),
         flags=int(flags),
         options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur,
-                 "dot_mm": dot_mm, "circle_centre_correction_px": shift},
+                 "dot_mm": dot_mm, "circle_centre_correction_px": shift,
+                 "median_board_distance_mm": float(np.median([np.linalg.norm(c) for c in centres])),
+                 "covariance_sigma_px": None if icov is None else icov.sigma_px,
+                 "covariance_dof": None if icov is None else icov.dof},
         target=target,
         ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
         skipped=skipped,

@@ -34,7 +34,8 @@ from .measure import GRAZING_COS, points_sigma_mm, triangulate_normalized
 from .plane import LightPlane
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
-           "rms_triangulation_error_mm"]
+           "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
+           "ray_sigma_rad"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -139,3 +140,88 @@ def rms_triangulation_error_mm(camera: Camera, plane_est: LightPlane, plane_true
     b = triangulate_normalized(plane_true, xy).points
     e = np.linalg.norm(a - b, axis=1)
     return float(np.sqrt(np.nanmean(e**2)))
+
+
+# ------------------------------------------------------------------ the camera's share
+def camera_param_names(camera: Camera) -> tuple[str, ...]:
+    """The intrinsic parameters in the order of a camera covariance: ``fx, fy, cx, cy`` then ``dist``'s."""
+    from .intrinsics import DIST_NAMES
+
+    return ("fx", "fy", "cx", "cy") + DIST_NAMES[:camera.dist.size]
+
+
+def camera_params(camera: Camera) -> np.ndarray:
+    """The vector of :func:`camera_param_names`."""
+    return np.concatenate([[camera.fx, camera.fy, camera.cx, camera.cy], camera.dist])
+
+
+def camera_with_params(camera: Camera, p: np.ndarray) -> Camera:
+    """``camera`` with the intrinsic vector ``p`` (order of :func:`camera_param_names`; no covariance)."""
+    p = np.asarray(p, np.float64)
+    K = camera.K.copy()
+    K[0, 0], K[1, 1], K[0, 2], K[1, 2] = p[:4]
+    return Camera(K, p[4:], camera.width, camera.height)
+
+
+def camera_steps(camera: Camera) -> np.ndarray:
+    """(r, P) one-sigma steps of the intrinsics along the principal axes of the camera's
+    covariance (their outer products sum to it; axes of zero variance dropped); (0, P)
+    when the camera has no covariance.  Raises when the covariance names other
+    parameters than the camera's model has."""
+    names = camera_param_names(camera)
+    if camera.covariance is None:
+        return np.zeros((0, len(names)))
+    if tuple(camera.covariance_params) != names:
+        raise LightplaneError(f"the camera's covariance is of ({', '.join(camera.covariance_params)}) but its model "
+                              f"has ({', '.join(names)}): a camera file from another model?")
+    w, V = np.linalg.eigh(camera.covariance)
+    keep = w > 1e-12 * max(w.max(initial=0.0), 1e-300)
+    return (V[:, keep] * np.sqrt(w[keep])).T
+
+
+def ray_sigma_rad(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    """(N,) sigma (rad) of the direction of the rays through distorted pixels ``uv`` due to
+    the camera's covariance (first order, central differences along :func:`camera_steps`);
+    NaN without a covariance."""
+    uv = as_points(uv, 2, "uv")
+    steps = camera_steps(camera)
+    if len(steps) == 0:
+        return np.full(len(uv), np.nan)
+    p0 = camera_params(camera)
+    var = np.zeros(len(uv))
+    for s in steps:
+        a = camera_with_params(camera, p0 + s).rays(uv, unit=True)
+        b = camera_with_params(camera, p0 - s).rays(uv, unit=True)
+        var += np.sum((0.5 * (a - b)) ** 2, axis=1)
+    return np.sqrt(var)
+
+
+def image_grid(camera: Camera, step_px: float = 32.0) -> np.ndarray:
+    """(N, 2) pixel centres of a regular grid over the whole image."""
+    us = np.arange(step_px / 2, camera.width, step_px)
+    vs = np.arange(step_px / 2, camera.height, step_px)
+    U, V = np.meshgrid(us, vs)
+    return np.column_stack([U.ravel(), V.ravel()])
+
+
+#: What the camera's share covers (one sentence, printed and stored with every figure that includes it).
+CAMERA_SHARE_COVERS = ("the intrinsics' and distortion's covariance from the camera calibration (corner noise "
+                       "estimated from its residuals, board poses marginalised)")
+#: Said wherever a figure lacks the camera's share.
+CAMERA_SHARE_MISSING = "the camera's share is not included (the camera file has no covariance)"
+
+
+def camera_uncertainty_summary(camera: Camera, distance_mm: float, step_px: float = 32.0) -> dict:
+    """What the camera's covariance means at ``distance_mm``: the sigma of a ray's direction
+    (deg; RMS over the image and its maximum) and the same as a displacement across the
+    ray at that distance (mm).  ``{"included": False, "note": ...}`` without a covariance."""
+    if camera.covariance is None:
+        return {"included": False, "note": CAMERA_SHARE_MISSING}
+    if not distance_mm > 0:
+        raise LightplaneError(f"the working distance must be positive, got {distance_mm} mm")
+    s = ray_sigma_rad(camera, image_grid(camera, step_px))
+    rms, mx = float(np.sqrt(np.mean(s**2))), float(np.max(s))
+    return {"included": True, "distance_mm": float(distance_mm),
+            "ray_sigma_deg_rms": float(np.degrees(rms)), "ray_sigma_deg_max": float(np.degrees(mx)),
+            "ray_sigma_mm_rms": rms * float(distance_mm), "ray_sigma_mm_max": mx * float(distance_mm),
+            "covers": CAMERA_SHARE_COVERS}

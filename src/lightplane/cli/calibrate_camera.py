@@ -37,6 +37,8 @@ def calibrate_camera_cmd(
                                 "poorly determined)."),
     zero_tangent: bool = typer.Option(False, "--zero-tangent", help="Keep p1 = p2 = 0 (only if the lens has no "
                                       "tangential distortion: otherwise the principal point is biased)."),
+    distance: Optional[float] = typer.Option(None, "--distance", help="Working distance (mm) at which to state "
+                                             "the camera's uncertainty (default: the boards' median distance)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
@@ -44,7 +46,10 @@ def calibrate_camera_cmd(
 
     from ..intrinsics import INTRINSIC_NAMES, calibrate_camera
     from ..plots import intrinsics_residuals
+    from ..uncertainty import camera_uncertainty_summary
 
+    if distance is not None and not distance > 0:
+        raise LightplaneError(f"--distance must be positive, got {distance} mm")
     target = target_from_options(board, square, marker, dictionary, dot, target_file)
     files = expand_inputs(images)
     if not files:
@@ -96,9 +101,21 @@ def calibrate_camera_cmd(
     console.print(v)
     for name, why in result.skipped.items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
+    work_mm = float(distance if distance is not None else result.options["median_board_distance_mm"])
+    cu = camera_uncertainty_summary(cam, work_mm)
+    if cu["included"]:
+        console.print(f"Camera uncertainty (full covariance of {', '.join(cam.covariance_params)}; corner noise "
+                      f"{result.options['covariance_sigma_px']:.3f} px from the residuals, board poses marginalised): "
+                      f"a ray's direction σ {cu['ray_sigma_deg_rms']:.4f} deg RMS over the image "
+                      f"(max {cu['ray_sigma_deg_max']:.4f} deg), i.e. {cu['ray_sigma_mm_rms']:.4f} mm "
+                      f"(max {cu['ray_sigma_mm_max']:.4f} mm) across the ray at {work_mm:.0f} mm"
+                      + (" (the boards' median distance)" if distance is None else ""))
+    else:
+        console.print(f"Camera uncertainty: not available ({cu['note']})")
 
     extra = {
         "calibration": result.to_dict(),
+        "camera_uncertainty": cu,
         "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
                                          "target": target.to_dict(), "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
@@ -110,6 +127,9 @@ def calibrate_camera_cmd(
         cam.save_json(output, force=force, extra=extra)
     else:
         cam.save(output, force=force)
+        if cam.covariance is not None:
+            console.print("note: ROS / OpenCV camera files have no field for the intrinsics' covariance: "
+                          "written without it (save as .json to keep it)")
     console.print(f"wrote {output}")
     if plot is not None:
         intrinsics_residuals(result, plot, force=True)
