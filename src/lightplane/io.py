@@ -320,21 +320,89 @@ def rotate_image(img: np.ndarray, rotate_deg: int) -> np.ndarray:
     return img if code is None else cv2.rotate(img, code)
 
 
-def to_gray_float(img: np.ndarray, channel: str | None = None) -> np.ndarray:
-    """Gray float32 image from gray or BGR input; ``channel`` in {red, green, blue, gray}."""
+CHANNELS = ("gray", "red", "green", "blue", "sum")
+
+
+def to_gray_float(image: np.ndarray, channel: str | None = None, *, name: str = "image",
+                  native: bool = False) -> np.ndarray:
+    """The project's one conversion of an image to one gray channel, (H, W).
+
+    ``image``: (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA; any integer, bool or
+    float dtype.  ``channel``: None / ``"gray"`` (OpenCV's weighted gray, 0.114 B +
+    0.587 G + 0.299 R), ``"red"``, ``"green"``, ``"blue"``, or ``"sum"`` (B + G + R
+    unweighted); a colour channel asked of a gray image is an error.
+
+    Returns float32, or with ``native`` the image's own type where the kernels take it
+    (uint8 and uint16 stay integers, ``"sum"`` of 8-bit gives uint16; other types become
+    float32).  One rule for bad pixels: NaN or infinite values are an error
+    (:class:`~lightplane.errors.LightplaneError`, naming ``name``), as are arrays that are
+    not images.
+    """
     import cv2
 
+    img = np.asarray(image)
+    if img.dtype == np.bool_:
+        img = img.astype(np.uint8) * 255
+    if img.dtype.kind not in "uif":
+        raise LightplaneError(f"{name} must be an integer or float image, got dtype {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if channel is not None and channel not in CHANNELS:
+        raise LightplaneError(f"channel must be red, green, blue, sum or gray, got {channel!r}")
+    if img.dtype.kind == "f" and not np.all(np.isfinite(img)):
+        raise LightplaneError(f"{name} contains NaN or infinite values")
+    cv_types = (np.uint8, np.uint16, np.float32)
     if img.ndim == 2:
-        return img.astype(np.float32, copy=False)
-    if img.ndim != 3 or img.shape[2] not in (3, 4):
-        raise LightplaneError(f"image must be (H, W) or (H, W, 3), got shape {img.shape}")
-    if channel in (None, "gray"):
-        return cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2GRAY).astype(np.float32) if img.dtype == np.uint8 \
-            else (0.114 * img[:, :, 0] + 0.587 * img[:, :, 1] + 0.299 * img[:, :, 2]).astype(np.float32)
-    idx = {"blue": 0, "green": 1, "red": 2}.get(channel)
-    if idx is None:
-        raise LightplaneError(f"channel must be red, green, blue or gray, got {channel!r}")
-    return img[:, :, idx].astype(np.float32)
+        if channel not in (None, "gray"):
+            raise LightplaneError(f"channel={channel!r} given but {name} is single-channel")
+        out = img
+    elif img.ndim == 3 and img.shape[2] in (3, 4):
+        bgr = np.ascontiguousarray(img[:, :, :3])
+        if channel in ("red", "green", "blue"):
+            idx = {"blue": 0, "green": 1, "red": 2}[channel]
+            out = cv2.extractChannel(bgr, idx) if img.dtype in cv_types else bgr[:, :, idx].copy()
+        elif channel == "sum":
+            acc = np.uint16 if img.dtype == np.uint8 else np.float32
+            out = bgr[:, :, 0].astype(acc) + bgr[:, :, 1].astype(acc) + bgr[:, :, 2].astype(acc)
+        elif img.dtype in cv_types:
+            out = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+        else:
+            f = bgr.astype(np.float32)
+            out = 0.114 * f[:, :, 0] + 0.587 * f[:, :, 1] + 0.299 * f[:, :, 2]
+    else:
+        raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {img.shape}")
+    if native and out.dtype in (np.uint8, np.uint16):
+        return out
+    return out.astype(np.float32, copy=False)
+
+
+def to_gray8(image: np.ndarray, *, percentiles: tuple[float, float] = (0.5, 99.5), keep_8bit: bool = True,
+             name: str = "image") -> np.ndarray:
+    """8-bit gray image for OpenCV's detectors and for pictures: the project's one stretch.
+
+    Gray as :func:`to_gray_float`.  With ``keep_8bit`` (default) 8-bit data stays as it
+    is, and so does data already on the 8-bit scale (values within [0, 255] reaching
+    above 1, e.g. a float copy of an 8-bit image; fractions are cut); other data (16-bit
+    or float data beyond that range, or within [0, 1]) is stretched
+    linearly from its ``percentiles`` (of a subsample of ~64k pixels) to 0..255.
+    ``keep_8bit=False`` always stretches (contrast for a picture).
+    """
+    img = np.asarray(image)
+    g = to_gray_float(img, name=name, native=True)
+    if keep_8bit:
+        if g.dtype == np.uint8:
+            return g
+        lo, hi = float(g.min()), float(g.max())
+        if lo >= 0 and hi <= 255 and hi > 1.0:
+            return g.astype(np.uint8)
+    g = g.astype(np.float32, copy=False)
+    step = max(1, int(np.sqrt(g.size / 65536.0)))
+    p0, p1 = (float(v) for v in np.percentile(g[::step, ::step], percentiles))
+    if p1 <= p0:
+        p0, p1 = float(g.min()), float(g.max())
+    if p1 <= p0:
+        return np.zeros(g.shape, np.uint8)
+    return np.clip((g - p0) * (255.0 / (p1 - p0)), 0, 255).astype(np.uint8)
 
 
 def check_output(path: str | os.PathLike, force: bool) -> Path:

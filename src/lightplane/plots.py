@@ -172,11 +172,9 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
 
 # ----------------------------------------------------------------------------- calibrate-plane report
 def _gray8(img: np.ndarray) -> np.ndarray:
-    from .io import to_gray_float
+    from .io import to_gray8
 
-    g = to_gray_float(img)
-    lo, hi = float(np.percentile(g, 0.5)), float(np.percentile(g, 99.8))
-    return np.clip((g - lo) / max(hi - lo, 1e-9) * 255.0, 0, 255).astype(np.uint8)
+    return to_gray8(img, percentiles=(0.5, 99.8), keep_8bit=False)
 
 
 def _chord_px(cal, obs) -> np.ndarray | None:

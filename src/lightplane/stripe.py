@@ -221,51 +221,24 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
     for ``"sum"``.  16-bit data that stays within 10, 12 or 14 bits (a 12-bit sensor
     in a 16-bit container) gets that range as its full scale (1023, 4095, 16383).
     """
-    import cv2
+    from .io import to_gray_float
 
     if not isinstance(image, np.ndarray):
         raise LightplaneError(f"{name} must be a numpy array, got {type(image).__name__}")
-    if image.dtype == np.bool_:
-        image = image.astype(np.uint8) * 255
-    if image.dtype.kind not in "uif":
-        raise LightplaneError(f"{name} must be an integer or float image, got dtype {image.dtype}")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.dtype.kind == "f" and not np.all(np.isfinite(image)):
-        raise LightplaneError(f"{name} contains NaN or infinite values")
-    if image.dtype == np.uint8:
+    out = to_gray_float(image, channel, name=name, native=True)
+    src = image if image.dtype != np.bool_ else image.astype(np.uint8) * 255
+    if src.dtype == np.uint8:
         fs = 255.0
-    elif image.dtype == np.uint16:
+    elif src.dtype == np.uint16:
         # 10-, 12- or 14-bit data in a 16-bit container: the smallest such range that holds the image
-        top = int(image.max()) if image.size else 0
+        top = int(src.max()) if src.size else 0
         fs = next(float(2**b - 1) for b in (10, 12, 14, 16) if top <= 2**b - 1)
-    elif image.dtype.kind == "f":
-        fs = 1.0 if (image.size == 0 or float(np.max(image)) <= 1.0) else 255.0
+    elif src.dtype.kind == "f":
+        fs = 1.0 if (src.size == 0 or float(np.max(src)) <= 1.0) else 255.0
     else:
         fs = 255.0
-    known = (None, "gray", "red", "green", "blue", "sum")
-    if channel not in known:
-        raise LightplaneError(f"channel must be red, green, blue, sum or gray, got {channel!r}")
-    if image.ndim == 2:
-        if channel not in (None, "gray"):
-            raise LightplaneError(f"channel={channel!r} given but {name} is single-channel")
-        out = image
-    elif image.ndim == 3 and image.shape[2] in (3, 4):
-        bgr = image[:, :, :3]
-        if channel in ("red", "green", "blue"):
-            idx = {"blue": 0, "green": 1, "red": 2}[channel]
-            out = cv2.extractChannel(np.ascontiguousarray(bgr), idx) if image.dtype in (np.uint8, np.uint16, np.float32) \
-                else np.ascontiguousarray(bgr[:, :, idx])
-        elif channel == "sum":
-            acc = np.uint16 if image.dtype == np.uint8 else np.float32
-            out = bgr[:, :, 0].astype(acc) + bgr[:, :, 1].astype(acc) + bgr[:, :, 2].astype(acc)
-            fs *= 3.0
-        elif image.dtype in (np.uint8, np.uint16, np.float32):
-            out = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)
-        else:
-            out = (0.114 * bgr[:, :, 0] + 0.587 * bgr[:, :, 1] + 0.299 * bgr[:, :, 2]).astype(np.float32)
-    else:
-        raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {image.shape}")
+    if channel == "sum" and src.ndim == 3:
+        fs *= 3.0
     if out.shape[0] < 3 or out.shape[1] < 3:
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
     # one float type and two integer types: fewer numba specialisations to compile

@@ -37,6 +37,7 @@ import numpy as np
 
 from .errors import LightplaneError
 from .geometry import robust_sigma
+from .io import to_gray8
 
 __all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "correct_circle_centres", "to_gray8"]
 
@@ -375,21 +376,6 @@ def _dictionary_name(name: str) -> str:
     return n
 
 
-def to_gray8(image: np.ndarray) -> np.ndarray:
-    """8-bit gray copy for OpenCV's detectors: 8-bit images as they are (colour to gray),
-    others stretched from their 0.5th to 99.5th percentile."""
-    from .io import to_gray_float
-
-    img = np.asarray(image)
-    if img.ndim not in (2, 3):
-        raise LightplaneError(f"not an image (shape {img.shape})")
-    if img.dtype == np.uint8:
-        return img if img.ndim == 2 else to_gray_float(img).astype(np.uint8)
-    g = (img if img.ndim == 2 else to_gray_float(img)).astype(np.float64)
-    lo, hi = np.percentile(g, [0.5, 99.5])
-    return np.clip((g - lo) * (255.0 / max(hi - lo, 1e-9)), 0, 255).astype(np.uint8)
-
-
 def _local_jacobians(target: Target, uv: np.ndarray) -> np.ndarray:
     """(N, 2, 2) d(uv)/d(board mm) at each point, from a homography through all of them."""
     import cv2
@@ -444,7 +430,7 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
     """
     from .io import to_gray_float
 
-    g = to_gray_float(image) if image.ndim == 3 else np.asarray(image, dtype=np.float32)
+    g = to_gray_float(image)
     J = _local_jacobians(target, uv0)
     R = 0.46 * target.spacing_mm
     out = uv0.copy()
@@ -492,7 +478,7 @@ def dot_diameter_mm(image: np.ndarray, det: Detection, target: Target) -> float:
 
     if target.dot_mm:
         return float(target.dot_mm)
-    g = to_gray_float(image) if image.ndim == 3 else np.asarray(image, dtype=np.float32)
+    g = to_gray_float(image)
     J = _local_jacobians(target, det.uv)
     R = 0.46 * target.spacing_mm
     diam = []

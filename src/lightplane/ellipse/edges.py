@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import LightplaneError
 from .model import Ellipse
 
 __all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "normal_edge_samples", "NormalEdgeSamples",
@@ -18,47 +17,18 @@ __all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "norm
 
 
 def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """Gray float32 image (H, W) from gray or BGR/BGRA input, any integer or float dtype.
+    """Gray float32 image (H, W), C-contiguous: :func:`lightplane.io.to_gray_float`."""
+    from ..io import to_gray_float
 
-    NaN/inf are replaced by 0.  Raises LightplaneError for arrays that are not images.
-    """
-    import cv2
-
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        if img.dtype in (np.uint8, np.uint16, np.float32):
-            g = cv2.cvtColor(np.ascontiguousarray(img[:, :, :3]), cv2.COLOR_BGR2GRAY).astype(np.float32)
-        else:
-            f = img[:, :, :3].astype(np.float32)
-            g = 0.114 * f[:, :, 0] + 0.587 * f[:, :, 1] + 0.299 * f[:, :, 2]
-    elif img.ndim == 2:
-        if img.dtype == bool:
-            img = img.astype(np.uint8) * 255
-        if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
-            raise LightplaneError(f"{name} must be a numeric array, got dtype {img.dtype}")
-        g = img.astype(np.float32, copy=False)
-    else:
-        raise LightplaneError(f"{name} must be (H, W) or (H, W, 3), got shape {img.shape}")
-    if g.dtype.kind == "f" and img.dtype.kind not in "iub" and not np.all(np.isfinite(g)):
-        g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.ascontiguousarray(g)
+    return np.ascontiguousarray(to_gray_float(image, name=name))
 
 
 def to_uint8(gray: np.ndarray) -> np.ndarray:
-    """8-bit version of a float gray image: kept as is if within [0, 255] integers, else
-    stretched between the 0.1 and 99.9 percentiles (16-bit, float input)."""
-    lo, hi = float(gray.min()), float(gray.max())
-    if lo >= 0 and hi <= 255 and hi > 1.0:
-        return gray.astype(np.uint8)
-    sample = gray[:: max(1, gray.shape[0] // 256), :: max(1, gray.shape[1] // 256)]
-    p0, p1 = np.percentile(sample, [0.1, 99.9])
-    if p1 <= p0:
-        p0, p1 = lo, hi
-    if p1 <= p0:
-        return np.zeros(gray.shape, np.uint8)
-    return np.clip((gray - p0) * (255.0 / (p1 - p0)), 0, 255).astype(np.uint8)
+    """8-bit version of a gray image for the segment detector: :func:`lightplane.io.to_gray8`
+    (8-bit-scale data kept, others stretched between the 0.1 and 99.9 percentiles)."""
+    from ..io import to_gray8
+
+    return to_gray8(gray, percentiles=(0.1, 99.9))
 
 
 @dataclass(frozen=True)
