@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["save_figure", "intrinsics_residuals", "study_factor", "point_sigma_map", "overlays", "figure_overlays",
-           "figure_poses_3d", "figure_residuals", "figure_uncertainty"]
+           "figure_poses_3d", "figure_residuals", "figure_uncertainty", "point_cloud"]
 
 
 def _plt():
@@ -396,3 +396,34 @@ def figure_uncertainty(cal, distance_mm: tuple[float, float] | None = None) -> b
         path = Path(tmp) / "sigma.png"
         point_sigma_map(cal.camera, cal.plane, path, distance_mm=distance_mm, force=True)
         return path.read_bytes()
+
+
+def point_cloud(points: np.ndarray, path: str | os.PathLike, *, labels: np.ndarray | None = None,
+                names: Sequence[str] | None = None, title: str = "", force: bool = True, max_points: int = 60000,
+                frame: str = "object frame") -> Path:
+    """A point cloud in three views (from above: x-y; from the side: x-z and y-z), mm,
+    coloured by ``labels`` (e.g. the laser index, named by ``names``); at most
+    ``max_points`` drawn (an even subsample)."""
+    plt = _plt()
+    p = np.asarray(points, dtype=np.float64)
+    lab = np.zeros(len(p), int) if labels is None else np.asarray(labels).astype(int)
+    if len(p) > max_points:
+        keep = np.linspace(0, len(p) - 1, max_points).astype(int)
+        p, lab = p[keep], lab[keep]
+    fig, axes = plt.subplots(1, 3, figsize=(13.5, 4.6))
+    colours = ["tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple"]
+    for ax, (i, j), t in zip(axes, ((0, 1), (0, 2), (1, 2)), ("from above (x, y)", "side (x, z)", "side (y, z)")):
+        for k in np.unique(lab):
+            s = lab == k
+            name = names[k] if names is not None and k < len(names) else (f"laser {k}" if labels is not None else None)
+            ax.scatter(p[s, i], p[s, j], s=0.3, c=colours[k % len(colours)], label=name, alpha=0.5, linewidths=0)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{'xyz'[i]} (mm)")
+        ax.set_ylabel(f"{'xyz'[j]} (mm)")
+        ax.set_title(t)
+        ax.grid(alpha=0.3)
+    if labels is not None:
+        axes[0].legend(markerscale=20, loc="upper right")
+    fig.suptitle(title or f"point cloud ({len(points)} points, {frame})")
+    fig.tight_layout()
+    return save_figure(fig, path, force=force, dpi=110)

@@ -36,6 +36,7 @@ from .camera import Camera
 from .errors import LightplaneError
 from .geometry import default_workers
 from .measure import ProfileMeasurer, profile_axis
+from .motion import Motion, _unit  # noqa: F401  (re-exported: lightplane.scan.Motion)
 from .plane import LightPlane
 from .pointcloud import POINT_DTYPE, PointSpool, cloud_format, write_cloud
 
@@ -60,128 +61,8 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpe
 
 
 # ----------------------------------------------------------------------------- motion
-def _unit(direction, name: str = "direction") -> np.ndarray:
-    d = np.asarray(direction, dtype=np.float64).ravel()
-    if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-12:
-        raise LightplaneError(f"{name} must be 3 finite numbers, not all zero (camera frame); got {direction!r}")
-    return d / np.linalg.norm(d)
-
-
-@dataclass(frozen=True, eq=False)
-class Motion:
-    """The object's displacement per frame (camera frame, mm).
-
-    ``positions_mm`` (F, 3): the object's position at each frame (only differences to
-    frame 0 matter), or ``step_mm`` and unit ``direction``: frame ``i`` is displaced by
-    ``i · step_mm · direction``.  Neither: no motion (points stay in the camera frame).
-    """
-
-    step_mm: float | None = None
-    direction: np.ndarray | None = None
-    positions_mm: np.ndarray | None = None
-
-    @classmethod
-    def none(cls) -> "Motion":
-        return cls()
-
-    @classmethod
-    def linear(cls, step_mm: float, direction) -> "Motion":
-        """Constant ``step_mm`` between frames along ``direction`` (normalised here)."""
-        step = float(step_mm)
-        if not np.isfinite(step):
-            raise LightplaneError(f"step must be a finite number of mm, got {step_mm!r}")
-        return cls(step_mm=step, direction=_unit(direction))
-
-    @classmethod
-    def from_positions(cls, positions_mm) -> "Motion":
-        p = np.asarray(positions_mm, dtype=np.float64)
-        if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 1 or not np.all(np.isfinite(p)):
-            raise LightplaneError(f"positions must be a finite (F, 3) array in mm, got shape {p.shape}")
-        return cls(positions_mm=p)
-
-    @classmethod
-    def load_positions(cls, path: str | os.PathLike, direction=None) -> "Motion":
-        """Read an encoder log: one row per frame, in frame order.
-
-        Columns ``dx,dy,dz`` (mm, camera frame; a header row naming them is optional,
-        other named columns such as ``frame`` or ``time`` are ignored), or a single
-        column: the position along ``direction`` (mm; ``direction`` required).
-        Blank lines and lines starting with ``#`` are ignored.
-        """
-        p = Path(path)
-        if not p.is_file():
-            raise LightplaneError(f"{p}: no such positions file")
-        rows: list[list[str]] = []
-        for line in p.read_text().splitlines():
-            s = line.strip()
-            if s and not s.startswith("#"):
-                rows.append([t.strip() for t in s.replace(";", ",").split(",")])
-        if not rows:
-            raise LightplaneError(f"{p}: positions file is empty")
-
-        def numeric(row):
-            try:
-                [float(t) for t in row]
-                return True
-            except ValueError:
-                return False
-
-        names = None
-        if not numeric(rows[0]):
-            names = [t.lower() for t in rows.pop(0)]
-        if not rows:
-            raise LightplaneError(f"{p}: positions file has a header but no rows")
-        width = len(rows[0])
-        for k, row in enumerate(rows):
-            if len(row) != width or not numeric(row):
-                raise LightplaneError(f"{p}: row {k + 1 + (names is not None)} is not {width} numbers: {','.join(row)!r}")
-        a = np.array(rows, dtype=np.float64)
-        if names is not None and len(names) != width:
-            raise LightplaneError(f"{p}: header names {len(names)} columns but rows hold {width}")
-        if names is not None and {"dx", "dy", "dz"} <= set(names):
-            a = a[:, [names.index("dx"), names.index("dy"), names.index("dz")]]
-        elif names is not None and {"x", "y", "z"} <= set(names):
-            a = a[:, [names.index("x"), names.index("y"), names.index("z")]]
-        elif width == 3 and names is None:
-            pass
-        elif width == 1 or (names is not None and width == 2 and "frame" in names):
-            col = a[:, 0] if width == 1 else a[:, 1 - names.index("frame")]
-            if direction is None:
-                raise LightplaneError(f"{p}: a single column of positions needs a direction (--direction X,Y,Z)")
-            a = col[:, None] * _unit(direction)[None, :]
-        else:
-            raise LightplaneError(f"{p}: expected columns dx,dy,dz (mm) or a single position column, got "
-                                  f"{width} columns{'' if names is None else ' ' + ','.join(names)}")
-        if not np.all(np.isfinite(a)):
-            raise LightplaneError(f"{p}: positions must be finite numbers")
-        return cls.from_positions(a)
-
-    @property
-    def kind(self) -> str:
-        return "positions" if self.positions_mm is not None else "step" if self.step_mm is not None else "none"
-
-    @property
-    def n_frames(self) -> int | None:
-        """Frames the motion is defined for (None: any number)."""
-        return None if self.positions_mm is None else int(self.positions_mm.shape[0])
-
-    def offset(self, index: int) -> np.ndarray:
-        """Displacement (3,) mm of the object at frame ``index`` relative to frame 0."""
-        if self.positions_mm is not None:
-            if not 0 <= index < self.positions_mm.shape[0]:
-                raise LightplaneError(f"frame {index} has no position: the positions give "
-                                      f"{self.positions_mm.shape[0]} frames but the input has more")
-            return self.positions_mm[index] - self.positions_mm[0]
-        if self.step_mm is not None:
-            return index * self.step_mm * self.direction
-        return np.zeros(3)
-
-    def to_dict(self) -> dict:
-        if self.kind == "positions":
-            return {"kind": "positions", "n_frames": self.n_frames}
-        if self.kind == "step":
-            return {"kind": "step", "step_mm": self.step_mm, "direction": self.direction.tolist()}
-        return {"kind": "none"}
+# Motion (one rigid transform per frame) lives in lightplane.motion; imported here so
+# that ``lightplane.scan.Motion`` keeps working.
 
 
 # ----------------------------------------------------------------------------- frame sources
@@ -214,13 +95,31 @@ def try_load_frame(payload) -> tuple[np.ndarray | None, str]:
         return payload, ""
     from .io import try_read_image
 
+    if isinstance(payload, RotatedPath):
+        return try_read_image(payload.path, rotate_deg=payload.rotate_deg)
     return try_read_image(payload)
+
+
+@dataclass(frozen=True)
+class RotatedPath:
+    """An image file read rotated clockwise by ``rotate_deg`` (0/90/180/270), e.g. a
+    sensor whose software rotates every frame before use (FabScan)."""
+
+    path: str
+    rotate_deg: int
+
+    def __str__(self) -> str:
+        return self.path
 
 
 class ImageFiles(FrameSource):
     """Image files in the given order (use :func:`lightplane.io.expand_inputs` for folders/globs)."""
 
-    def __init__(self, paths: Sequence[str | os.PathLike]) -> None:
+    def __init__(self, paths: Sequence[str | os.PathLike], rotate_deg: int = 0) -> None:
+        from .io import _rotation_code
+
+        _rotation_code(rotate_deg)  # 0, 90, 180 or 270
+        self.rotate_deg = int(rotate_deg)
         self.paths = [Path(p) for p in paths]
         if not self.paths:
             raise LightplaneError("no input images")
@@ -232,7 +131,7 @@ class ImageFiles(FrameSource):
 
     def items(self):
         for i, p in enumerate(self.paths):
-            yield i, str(p), str(p)
+            yield i, str(p), (RotatedPath(str(p), self.rotate_deg) if self.rotate_deg else str(p))
 
 
 class ArrayFrames(FrameSource):
@@ -310,8 +209,9 @@ class VideoFrames(FrameSource):
         self.cap.release()
 
 
-def open_frames(inputs: Sequence[str | os.PathLike]) -> FrameSource:
-    """A frame source for CLI-style inputs: one video file, or image files / folders / globs."""
+def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0) -> FrameSource:
+    """A frame source for CLI-style inputs: one video file, or image files / folders / globs
+    (image files read rotated clockwise by ``rotate_deg``; videos are not rotated)."""
     from .io import expand_inputs
 
     items = [str(x) for x in inputs]
@@ -321,11 +221,13 @@ def open_frames(inputs: Sequence[str | os.PathLike]) -> FrameSource:
     if videos:
         if len(items) > 1:
             raise LightplaneError("give either one video file or image files, not both / several videos")
+        if rotate_deg:
+            raise LightplaneError("frames of a video are not rotated; give image files with a rotation")
         return VideoFrames(videos[0])
     paths = expand_inputs(items)
     if not paths:
         raise LightplaneError(f"no images found in {', '.join(items)}")
-    return ImageFiles(paths)
+    return ImageFiles(paths, rotate_deg)
 
 
 # ----------------------------------------------------------------------------- processing
@@ -357,7 +259,7 @@ class FrameProcessor:
         ok = prof.valid
         n = int(np.count_nonzero(ok))
         rec = np.empty(n, POINT_DTYPE)
-        p = prof.points[ok] - self.motion.offset(index)[None, :]
+        p = self.motion.apply(index, prof.points[ok])
         rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
         rec["frame"] = index
         rec["intensity"] = prof.intensity[ok]
@@ -650,7 +552,7 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
     motion = Motion.none() if motion is None else motion
     exact = getattr(source, "exact_count", True)  # a video's container count may be approximate: checked at the end
     if exact and motion.n_frames is not None and source.n_frames is not None and motion.n_frames != source.n_frames:
-        raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {source.n_frames}")
+        raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {source.n_frames}")
     first, source = _first_frame(source)
     camera.check_image(first, "the first frame")
     axis = profile_axis(plane) if axis == "auto" else axis
@@ -732,7 +634,7 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
                 if progress is not None:
                     progress(n, source.n_frames)
             if motion.n_frames is not None and motion.n_frames != n:
-                raise LightplaneError(f"the positions give {motion.n_frames} frames but the input has {n}")
+                raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
                 from .io import too_few_images_message
 
@@ -743,8 +645,7 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             opts = {"axis": axis, "roi": roi, "width_px": width_px, "channel": channel, "motion": motion.to_dict(),
                     "frames": n, "skipped": len(skipped)}
             prov = provenance([getattr(source, "description", "")], opts)
-            lines = ["lightplane point cloud: x y z in mm (camera frame"
-                     + (", object at frame 0" if motion.kind != "none" else "") + ")",
+            lines = [f"lightplane point cloud: x y z in mm ({motion.frame_description})",
                      f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",
                      f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
                      f"options: {opts}",

@@ -33,17 +33,117 @@ def parse_roi(text: str) -> tuple[int, int, int, int]:
     return x0, y0, x1 - x0, y1 - y0
 
 
-@app.command("measure")
+MOTION_HELP = """Measure stripe frames into a point cloud, every frame placed by the scan's motion.
+
+Motion, one rigid transform per frame (without one the points stay in the camera frame):
+
+  linear, constant step:  --step 0.5 --direction=-1,0,0
+  linear, encoder log:    --positions enc.csv  (dx,dy,dz mm)
+  turntable, constant:    --turntable tt.json --turntable-step 3.6
+  turntable, angles:      --turntable tt.json --turntable-angles a.csv
+  turntable, encoder:     ... --turntable-angles enc.csv --counts-per-rev 6400
+  robot, camera poses:    --poses poses.csv  (x,y,z,qx,qy,qz,qw)
+  robot, flange poses:    --poses flange.csv --flange hand_eye.json
+
+Turntable angles (deg) are right-handed about the axis, which points up: positive turns the object counter-clockwise seen from above; the cloud is in the turntable's frame. Poses: one CSV row per frame, the camera's pose in the object frame (T_object_cam, mm, unit quaternion); with --flange the flange's pose, composed with T_flange_cam.
+
+A sensor file (lightplane sensor, import-fabscan) gives the camera, the named planes and the turntable or flange transform; one frame sequence per laser, one merged cloud with a laser attribute:
+
+  measure --sensor s.json --laser laser0='a/*.jpg' --laser laser1='b/*.jpg' --turntable-step -3.6 -o both.ply
+
+  measure frames/ --sensor s.json --laser laser0 --turntable-step 3.6 -o one.ply
+
+  measure frames/ --camera cam.json --plane plane.json --step 0.5 --direction=-1,0,0 -o part.ply
+
+Per point: x, y, z (mm), frame, intensity, sigma_mm (from the plane's covariance), u, v (source pixel); with --sensor also laser (its index; the names are in the file's comments).
+"""
+
+
+def parse_laser(text: str) -> tuple[str, str | None]:
+    """'NAME=GLOB' or 'NAME' → (name, glob or None)."""
+    name, sep, glob = text.partition("=")
+    name = name.strip()
+    if not name:
+        raise LightplaneError(f"--laser must be NAME or NAME=FRAMES, got {text!r}")
+    return name, (glob.strip() or None) if sep else None
+
+
+def motion_from_options(*, step, direction, positions, turntable, table_from_sensor, turntable_step,
+                        turntable_angles, turntable_start, counts_per_rev, poses, flange, flange_from_sensor, camera):
+    """The :class:`lightplane.motion.Motion` named by the measure options (one form at most)."""
+    from ..motion import Motion, Turntable, load_rigid
+
+    forms = [n for n, v in (("--step", step), ("--positions", positions), ("--turntable-step", turntable_step),
+                            ("--turntable-angles", turntable_angles), ("--poses", poses)) if v is not None]
+    if len(forms) > 1:
+        raise LightplaneError(f"give one motion, not {' and '.join(forms)}")
+    dvec = parse_vector(direction, "--direction") if direction is not None else None
+    if dvec is not None and not ({"--step", "--positions"} & set(forms)):
+        raise LightplaneError("--direction needs --step or a single-column --positions file")
+    if (turntable is not None or turntable_start is not None or counts_per_rev is not None) and not (
+            {"--turntable-step", "--turntable-angles"} & set(forms)):
+        raise LightplaneError("--turntable/--turntable-start/--counts-per-rev need --turntable-step DEG or "
+                              "--turntable-angles CSV")
+    if flange is not None and poses is None:
+        raise LightplaneError("--flange needs --poses (the flange's pose per frame)")
+    if step is not None:
+        if dvec is None:
+            raise LightplaneError("--step needs --direction X,Y,Z")
+        return Motion.linear(step, dvec)
+    if positions is not None:
+        return Motion.load_positions(positions, dvec)
+    if turntable_step is not None or turntable_angles is not None:
+        if turntable is not None:
+            table = Turntable.load(turntable)
+            table.check_camera(camera, str(turntable))
+        elif table_from_sensor is not None:
+            table = table_from_sensor
+        else:
+            raise LightplaneError("a turntable motion needs the axis: --turntable tt.json (from calibrate-turntable) "
+                                  "or a sensor file with a turntable")
+        start = 0.0 if turntable_start is None else turntable_start
+        if turntable_step is not None:
+            return Motion.turntable(table, turntable_step, start_deg=start)
+        return Motion.load_turntable_angles(turntable_angles, table, counts_per_rev=counts_per_rev, start_deg=start)
+    if poses is not None:
+        fl = load_rigid(flange) if flange is not None else flange_from_sensor
+        return Motion.load_poses(poses, flange=fl)
+    return Motion.none()
+
+
+@app.command("measure", help=MOTION_HELP)
 @handles_errors
 def measure_cmd(
-    inputs: List[str] = typer.Argument(..., help="Stripe frames: image files, folders, globs, or one video file."),
-    camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
-    plane: Path = typer.Option(..., "--plane", help="Light-plane JSON file (from calibrate-plane)."),
+    inputs: Optional[List[str]] = typer.Argument(None, help="Stripe frames: image files, folders, globs, or one video "
+                                                 "file (with --sensor: the frames of the one --laser NAME)."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
+    plane: Optional[Path] = typer.Option(None, "--plane", help="Light-plane JSON file (from calibrate-plane)."),
+    sensor: Optional[Path] = typer.Option(None, "--sensor", help="Sensor file (lightplane sensor / import-fabscan): "
+                                          "camera, named planes, turntable; instead of --camera/--plane."),
+    laser: Optional[List[str]] = typer.Option(None, "--laser", help="With --sensor: NAME=FRAMES (a folder, glob or "
+                                              "video per laser; repeat for each laser), or NAME with the frames as "
+                                              "arguments."),
     output: Path = typer.Option(..., "-o", "--output", help="Point-cloud file (.ply, .csv or .npy)."),
-    step: Optional[float] = typer.Option(None, "--step", help="Object motion between frames, mm (with --direction)."),
-    direction: Optional[str] = typer.Option(None, "--direction", help="Motion direction X,Y,Z in the camera frame (normalised; write --direction=-1,0,0 when it starts with a minus)."),
-    positions: Optional[Path] = typer.Option(None, "--positions", help="CSV of the object's position per frame: dx,dy,dz mm "
+    step: Optional[float] = typer.Option(None, "--step", help="Linear: object motion between frames, mm (with --direction)."),
+    direction: Optional[str] = typer.Option(None, "--direction", help="Linear: motion direction X,Y,Z in the camera frame (normalised; write --direction=-1,0,0 when it starts with a minus)."),
+    positions: Optional[Path] = typer.Option(None, "--positions", help="Linear: CSV of the object's position per frame: dx,dy,dz mm "
                                              "(camera frame), or one column along --direction; one row per frame."),
+    turntable: Optional[Path] = typer.Option(None, "--turntable", help="Turntable file (from calibrate-turntable), "
+                                             "for --turntable-step/--turntable-angles."),
+    turntable_step: Optional[float] = typer.Option(None, "--turntable-step", help="Turntable: angle per frame, deg "
+                                                   "(positive: counter-clockwise seen from above)."),
+    turntable_angles: Optional[Path] = typer.Option(None, "--turntable-angles", help="Turntable: CSV with angle_deg "
+                                                    "(or counts, with --counts-per-rev) per frame."),
+    turntable_start: Optional[float] = typer.Option(None, "--turntable-start", help="Turntable: angle of the first "
+                                                    "frame, deg (default 0)."),
+    counts_per_rev: Optional[float] = typer.Option(None, "--counts-per-rev", help="Turntable encoder counts per "
+                                                   "revolution (default: the turntable file's)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", help="Poses: CSV x,y,z,qx,qy,qz,qw per frame, the camera's "
+                                         "pose in the object frame (T_object_cam, mm, unit quaternion)."),
+    flange: Optional[Path] = typer.Option(None, "--flange", help="With --poses: JSON with T_flange_cam (the camera in "
+                                          "the robot flange's frame); the poses are then the flange's."),
+    rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image file clockwise by 0/90/180/270 "
+                                         "degrees first (default 0, or the sensor file's)."),
     fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix)."),
     ascii_ply: bool = typer.Option(False, "--ascii", help="ASCII PLY instead of binary."),
     roi: Optional[str] = typer.Option(None, "--roi", help="Region X0,Y0,X1,Y1 in px (X1, Y1 exclusive)."),
@@ -58,38 +158,81 @@ def measure_cmd(
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
-    """Measure stripe frames into a point cloud; frames placed by the known motion (frame i: p - i*step*direction).
-
-    Without --step/--positions the points stay in the camera frame.  Per point: x, y, z (mm),
-    frame, intensity, sigma_mm (from the plane's covariance), u, v (source pixel).
-    """
     from ..camera import Camera
     from ..io import check_output
     from ..plane import LightPlane
     from ..pointcloud import cloud_format
-    from ..scan import Motion, measure_scan, open_frames
+    from ..scan import measure_scan, open_frames
 
     out = check_output(output, force)
     fmt = cloud_format(out, fmt)
     if ascii_ply and fmt != "ply":
         raise LightplaneError("--ascii applies to PLY output only")
-    if step is not None and positions is not None:
-        raise LightplaneError("give either --step (with --direction) or --positions, not both")
-    dvec = parse_vector(direction, "--direction") if direction is not None else None
-    if step is not None:
-        if dvec is None:
-            raise LightplaneError("--step needs --direction X,Y,Z")
-        motion = Motion.linear(step, dvec)
-    elif positions is not None:
-        motion = Motion.load_positions(positions, dvec)
+    inputs = list(inputs or [])
+    sens = None
+    if sensor is not None:
+        if camera is not None or plane is not None:
+            raise LightplaneError("give either --sensor or --camera/--plane, not both")
+        if not laser:
+            raise LightplaneError("--sensor needs --laser NAME (frames as arguments) or --laser NAME=FRAMES per laser")
+        from ..sensor import Sensor
+
+        sens = Sensor.load(sensor)
+        cam = sens.camera
+        lasers = [parse_laser(t) for t in laser]
+        for name, _ in lasers:
+            sens.plane(name, str(sensor))  # every laser named must be in the sensor file
+        with_glob = [g for _, g in lasers if g is not None]
+        if with_glob and len(with_glob) != len(lasers):
+            raise LightplaneError("give every --laser as NAME=FRAMES, or a single --laser NAME with the frames as arguments")
+        if not with_glob:
+            if len(lasers) != 1:
+                raise LightplaneError("several lasers need their frames each: --laser NAME=FRAMES")
+            if not inputs:
+                raise LightplaneError(f"no frames for laser {lasers[0][0]}: give them as arguments or --laser NAME=FRAMES")
+            lasers = [(lasers[0][0], None)]
+        elif inputs:
+            raise LightplaneError("frames given both as arguments and in --laser NAME=FRAMES")
+        rot = sens.rotate_deg if rotate is None else rotate
     else:
-        if dvec is not None:
-            raise LightplaneError("--direction needs --step or a single-column --positions file")
-        motion = Motion.none()
+        if laser:
+            raise LightplaneError("--laser needs --sensor")
+        if camera is None or plane is None:
+            raise LightplaneError("give --camera and --plane, or --sensor with --laser")
+        if not inputs:
+            raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
+        cam = Camera.load(camera)
+        rot = 0 if rotate is None else rotate
+    motion = motion_from_options(step=step, direction=direction, positions=positions, turntable=turntable,
+                                 table_from_sensor=None if sens is None else sens.turntable,
+                                 turntable_step=turntable_step, turntable_angles=turntable_angles,
+                                 turntable_start=turntable_start, counts_per_rev=counts_per_rev, poses=poses,
+                                 flange=flange, flange_from_sensor=None if sens is None else sens.flange, camera=cam)
     roi_box = parse_roi(roi) if roi is not None else None
-    cam = Camera.load(camera)
+    stripe_opts = {"smooth_lines": smooth, **({} if sigma_along is None else {"sigma_along_px": sigma_along})}
+
+    if sens is not None:
+        from ..sensor import measure_lasers
+
+        scans = []
+        for name, glob in lasers:
+            scans.append((name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name]))
+        total = sum(s.n_frames or 0 for _, s, _ in scans) or None
+        with progress_bar("measuring frames", total) as update:
+            s = measure_lasers(scans, cam, out, motion=motion, fmt=fmt, ascii=ascii_ply, force=force,
+                               channel=channel, width_px=stripe_width, workers=workers, roi=roi_box, axis=axis,
+                               progress=lambda done, tot: update(done, total=tot), **stripe_opts)
+        for name, nf, nu, npts, skipped, ax, w in s.lasers:
+            console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
+                          f"stripe width {w:.2f} px" + (f", {len(skipped)} frames skipped" if skipped else ""))
+            for idx, fname, reason in skipped[:10]:
+                err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
+        console.print(f"{s.n_points} points, motion {s.motion['kind']}, {s.seconds:.1f} s")
+        console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
+        return
+
     pl = LightPlane.load(plane)
-    source = open_frames(inputs)
+    source = open_frames(inputs, rot)
 
     with progress_bar("measuring frames", source.n_frames) as update:
 
@@ -98,7 +241,7 @@ def measure_cmd(
 
         s = measure_scan(source, cam, pl, out, fmt=fmt, ascii=ascii_ply, motion=motion, axis=axis, roi=roi_box,
                          width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress,
-                         smooth_lines=smooth, **({} if sigma_along is None else {"sigma_along_px": sigma_along}))
+                         **stripe_opts)
 
     console.print(f"{s.n_frames} frames ({source.description}), {s.n_points} points "
                   f"({s.n_points / max(s.n_frames_used, 1):.0f} per frame), axis {s.axis}, "

@@ -1,0 +1,197 @@
+"""``lightplane calibrate-turntable``, ``lightplane sensor``, ``lightplane import-fabscan``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from ..errors import LightplaneError
+from ..io import check_output, expand_inputs, provenance
+from ._common import (app, board_option, console, dictionary_option, dot_option, err_console, handles_errors,
+                      marker_option, progress_bar, square_option, target_from_options, target_option)
+
+
+@app.command("calibrate-turntable")
+@handles_errors
+def calibrate_turntable_cmd(
+    images: List[str] = typer.Argument(..., help="Images of a board standing on the turntable, the table turned "
+                                       "between them (files, folders, globs)."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file (calibrated in the frame the images are read in)."),
+    board: Optional[str] = board_option,
+    square: Optional[float] = square_option,
+    marker: Optional[float] = marker_option,
+    dictionary: Optional[str] = dictionary_option,
+    dot: Optional[float] = dot_option,
+    target_file: Optional[Path] = target_option,
+    output: Path = typer.Option(..., "-o", "--output", help="Turntable JSON file to write."),
+    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+) -> None:
+    """The turntable's axis (camera frame) from a board on the table at several angles.
+
+    Example: lightplane calibrate-turntable views/ --camera cam.json --board 9x6 --square 8 -o turntable.json
+
+    Poses by solvePnP; the axis from the circles the board points turn on, checked against
+    the rotations between the poses; uncertainty by a leave-one-image-out jackknife.
+    """
+    from ..camera import Camera
+    from ..io import try_read_image
+    from ..turntable import calibrate_turntable
+
+    target = target_from_options(board, square, marker, dictionary, dot, target_file)
+    check_output(output, force)
+    cam = Camera.load(camera)
+    files = expand_inputs(images)
+    if not files:
+        raise LightplaneError("no images given (no files matched)")
+    imgs, skipped = [], {}
+    for f in files:
+        img, why = try_read_image(f, rotate_deg=rotate)
+        imgs.append(img)
+        if img is None:
+            skipped[str(f)] = why
+        else:
+            cam.check_image(img, str(f))
+    with progress_bar("board poses", len(files)) as update:
+        cal = calibrate_turntable(imgs, cam, target, names=[str(f) for f in files], reasons=skipped,
+                                  progress=lambda i: update(i + 1))
+    tt = cal.turntable
+    m = tt.meta
+    t = Table(title="Turntable axis (camera frame)", show_edge=False)
+    for c, j in (("estimate", "left"), ("point x, y, z (mm)", "right"), ("direction (up)", "right")):
+        t.add_column(c, justify=j)
+    for name, key in (("circles (result)", "circles"), ("rotations", "rotations"), ("board origins", "board_origins")):
+        e = m["estimates"][key]
+        t.add_row(name, ", ".join(f"{v:+.3f}" for v in e["point_mm"]), ", ".join(f"{v:+.5f}" for v in e["direction"]))
+    console.print(t)
+    a, j = m["agreement"], m["jackknife"]
+    console.print(f"circles vs rotations: {a['angle_deg']:.4f} deg apart, axes {a['distance_mm']:.4f} mm apart "
+                  f"(jackknife σ circles {j['sigma_direction_deg_circles']:.4f} deg / "
+                  f"{j['sigma_point_mm_circles']:.4f} mm, rotations {j['sigma_direction_deg_rotations']:.4f} deg / "
+                  f"{j['sigma_point_mm_rotations']:.4f} mm): " + ("agree" if cal.agrees else "DISAGREE"))
+    console.print(f"axis σ: direction {cal.sigma_direction_deg:.4f} deg, position across the axis "
+                  f"{cal.sigma_point_mm:.4f} mm ({j['covers']})")
+    console.print(f"{m['n_images']} images used, table turned {m['angle_span_deg']:.1f} deg in all "
+                  f"({m['sense_of_the_images']} in the order given); board points' RMS distance from their circles "
+                  f"{m['circle_rms_mm']:.4f} mm")
+    v = Table(title="Per image", show_edge=False)
+    for c in ("image", "angle (deg)", "PnP RMS (px)", "circle RMS (mm)"):
+        v.add_column(c, justify="left" if c == "image" else "right")
+    for im in cal.images:
+        if im["used"]:
+            v.add_row(Path(im["name"]).name, f"{im['angle_deg']:.3f}", f"{im['pnp_rms_px']:.3f}",
+                      f"{im['circle_rms_mm']:.4f}")
+    console.print(v)
+    for name, why in cal.skipped.items():
+        console.print(f"skipped {Path(name).name}: {why}")
+    if not cal.agrees:
+        err_console.print("warning: the two axis estimates differ by more than 3 σ (board moved on the table, or a "
+                          "poor camera calibration?)")
+    opts = {"board": target.spec, "target": target.to_dict(), "rotate_deg": rotate, "camera": str(camera)}
+    tt.save(output, force=force, extra={"provenance": provenance(files, opts)})
+    console.print(f"wrote {output}")
+
+
+def _camera_record(path: Path):
+    from ..camera import Camera
+    from ..io import read_json
+
+    cam = Camera.load(path)
+    rec = {"source": str(path)}
+    if path.suffix.lower() == ".json":
+        d = read_json(path, "camera file")
+        if "provenance" in d:
+            rec["provenance"] = d["provenance"]
+    return cam, rec
+
+
+@app.command("sensor")
+@handles_errors
+def sensor_cmd(
+    output: Path = typer.Option(..., "-o", "--output", help="Sensor JSON file to write."),
+    camera: Path = typer.Option(..., "--camera", help="Camera file."),
+    plane: List[str] = typer.Option(..., "--plane", help="NAME=PLANE.json (repeat per laser); a bare PLANE.json "
+                                    "takes its name from the file's 'laser' field (else laser0, laser1...)."),
+    turntable: Optional[Path] = typer.Option(None, "--turntable", help="Turntable file (from calibrate-turntable)."),
+    flange: Optional[Path] = typer.Option(None, "--flange", help="JSON with T_flange_cam (camera in the robot "
+                                          "flange's frame)."),
+    rotate: int = typer.Option(0, "--rotate", help="Frames are read rotated clockwise by 0/90/180/270 degrees "
+                               "(the frame the camera was calibrated in)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+) -> None:
+    """Assemble a sensor file: camera, named planes, turntable or flange transform.
+
+    Example: lightplane sensor -o sensor.json --camera cam.json --plane laser0=p0.json --plane laser1=p1.json --turntable turntable.json
+    """
+    from ..io import _rotation_code
+    from ..motion import Turntable, load_rigid
+    from ..plane import LightPlane
+    from ..sensor import Sensor, _check_name, plane_name
+
+    check_output(output, force)
+    _rotation_code(rotate)
+    if turntable is not None and flange is not None:
+        raise LightplaneError("give a turntable or a flange transform, not both")
+    cam, cam_rec = _camera_record(camera)
+    planes = {}
+    for i, item in enumerate(plane):
+        name, sep, path = item.partition("=")
+        if not sep:
+            name, path = "", item
+        pl = LightPlane.load(path)
+        name = _check_name(name.strip() or plane_name(pl, f"laser{i}"))
+        if name in planes:
+            raise LightplaneError(f"--plane: laser {name!r} given twice")
+        pl.meta.setdefault("source", str(path))
+        planes[name] = pl
+    tt = None
+    if turntable is not None:
+        tt = Turntable.load(turntable)
+        tt.check_camera(cam, str(turntable))
+        tt.meta.setdefault("source", str(turntable))
+    fl = load_rigid(flange) if flange is not None else None
+    recs = {"camera": cam_rec}
+    if fl is not None:
+        recs["flange"] = {"source": str(flange)}
+    s = Sensor(cam, planes, tt, fl, rotate, recs)
+    inputs = [camera, *[p.partition("=")[2] or p for p in plane], *(x for x in (turntable, flange) if x is not None)]
+    s.save(output, force=force, provenance=provenance(inputs, {"rotate_deg": rotate}))
+    console.print(f"sensor: camera {cam.width}x{cam.height} px, lasers {', '.join(planes)}"
+                  + (", turntable" if tt is not None else "") + (", flange transform" if fl is not None else "")
+                  + (f", frames rotated {rotate} deg" if rotate else ""))
+    console.print(f"wrote {output}")
+
+
+@app.command("import-fabscan")
+@handles_errors
+def import_fabscan_cmd(
+    config: Path = typer.Argument(..., help="FabScanPi configuration (fabscan-config.json)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Sensor JSON file to write."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+) -> None:
+    """Read a FabScanPi configuration into a sensor file (planes laser0, laser1...).
+
+    Example: lightplane import-fabscan fabscan-config.json -o sensor.json
+
+    FabScan's frame rotation (rotate/hflip/vflip) is recorded, so measure --sensor reads
+    the frames as FabScan does; its platform pose becomes the turntable axis.
+    """
+    from ..sensor import import_fabscan
+
+    check_output(output, force)
+    s = import_fabscan(config)
+    s.save(output, force=force, provenance=provenance([config], {"importer": "fabscan"}))
+    c = s.camera
+    console.print(f"camera {c.width}x{c.height} px (frames rotated {s.rotate_deg} deg clockwise), fx {c.fx:.3f} px, "
+                  f"fy {c.fy:.3f} px")
+    for n, p in s.planes.items():
+        console.print(f"plane {n}: {p!r}")
+    if s.turntable is not None:
+        tt = s.turntable
+        console.print(f"turntable axis: point {np.round(tt.point_mm, 3).tolist()} mm, direction "
+                      f"{np.round(tt.direction, 5).tolist()}, {tt.counts_per_rev:g} counts per turn")
+    console.print(f"wrote {output}")
