@@ -16,6 +16,8 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from . import threads  # noqa: F401  (first: numba's threading layer and OpenMP wait policy, before any kernel)
+
 from .camera import Camera
 from .errors import LightplaneError
 from .plane import LightPlane

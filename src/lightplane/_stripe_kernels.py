@@ -19,7 +19,9 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from numba import njit, prange
+
+from . import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
+from numba import njit, prange  # noqa: E402
 
 __all__ = ["gaussian_derivative_kernels"]
 
@@ -337,6 +339,17 @@ def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
         out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
 
 
+@njit(cache=True, nogil=True)
+def estimate_fwhm_lines_serial(A, p1, lines, half, min_peak, out):
+    """:func:`estimate_fwhm_lines` on the calling thread only."""
+    for j in range(lines.shape[0]):
+        l = lines[j]
+        if p1[l] < 0:
+            out[j] = np.nan
+            continue
+        out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
+
+
 @njit(cache=True)
 def _is_flat(A, l, p, fw, best, bg, half):
     """Whether line ``l`` has a flat (clipped) top at sample ``p`` (see FLAT_TOL)."""
@@ -374,6 +387,69 @@ def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
     if not (fw == fw):
         return np.nan
     return c - H2 + 0.5 * (left + right)
+
+
+@njit(cache=True, inline="always")
+def _across_lines(A, r0, M, c0, n, o, k0, k1, k2, X0, X1, X2):
+    """``Xk[m] = sum_j kk[o + j] A[r0 + m, c0 + j]`` (j = 0..n-1, in that order) for m < M.
+
+    Four rows at a time: twelve independent sums instead of three dependent chains
+    (the additions' latency bounded the loop); every sum keeps its order, so the
+    numbers are those of the plain loop, bit for bit.
+    """
+    m = 0
+    while m + 4 <= M:
+        ra = A[r0 + m]
+        rb = A[r0 + m + 1]
+        rc = A[r0 + m + 2]
+        rd = A[r0 + m + 3]
+        a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+        c0_ = c1 = c2 = d0 = d1 = d2 = 0.0
+        for j in range(n):
+            u = k0[o + j]
+            v = k1[o + j]
+            w = k2[o + j]
+            x = float(ra[c0 + j])
+            y = float(rb[c0 + j])
+            z = float(rc[c0 + j])
+            t = float(rd[c0 + j])
+            a0 += u * x
+            a1 += v * x
+            a2 += w * x
+            b0 += u * y
+            b1 += v * y
+            b2 += w * y
+            c0_ += u * z
+            c1 += v * z
+            c2 += w * z
+            d0 += u * t
+            d1 += v * t
+            d2 += w * t
+        X0[m] = a0
+        X1[m] = a1
+        X2[m] = a2
+        X0[m + 1] = b0
+        X1[m + 1] = b1
+        X2[m + 1] = b2
+        X0[m + 2] = c0_
+        X1[m + 2] = c1
+        X2[m + 2] = c2
+        X0[m + 3] = d0
+        X1[m + 3] = d1
+        X2[m + 3] = d2
+        m += 4
+    while m < M:
+        ra = A[r0 + m]
+        a0 = a1 = a2 = 0.0
+        for j in range(n):
+            x = float(ra[c0 + j])
+            a0 += k0[o + j] * x
+            a1 += k1[o + j] * x
+            a2 += k2[o + j] * x
+        X0[m] = a0
+        X1[m] = a1
+        X2[m] = a2
+        m += 1
 
 
 @njit(cache=True)
@@ -414,46 +490,55 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     k0 = xw[re, 0]
     k1 = xw[re, 1]
     k2 = xw[re, 2]
-    for m in range(2 * R + 3):
-        row = A[c - 1 - R + m]
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for jj in range(2 * re + 1):
-            x = float(row[l - re + jj])
-            kk = RX - re + jj
-            a0 += k0[kk] * x
-            a1 += k1[kk] * x
-            a2 += k2[kk] * x
-        X0[m] = a0
-        X1[m] = a1
-        X2[m] = a2
+    _across_lines(A, c - 1 - R, 2 * R + 3, l - re, 2 * re + 1, RX - re, k0, k1, k2, X0, X1, X2)
     rl = tmp[3]
     rs = tmp[4]
     rll = tmp[5]
     rls = tmp[6]
     rss = tmp[7]
-    for q in range(3):
-        b_s = 0.0
-        b_ss = 0.0
-        b_l = 0.0
-        b_ll = 0.0
-        b_ls = 0.0
-        for i in range(2 * R + 1):
-            m = q + i
-            b_s += w1[i] * X0[m]
-            b_ss += w2[i] * X0[m]
-            b_l += w0[i] * X1[m]
-            b_ll += w0[i] * X2[m]
-            b_ls += w1[i] * X1[m]
-        rs[q] = b_s
-        rss[q] = b_ss
-        rl[q] = b_l
-        rll[q] = b_ll
-        rls[q] = b_ls
+    # the derivatives along the line at c-1, c, c+1 (q = 0, 1, 2), all sums in one pass
+    # (independent accumulators; each sum in the order of i: the same numbers as one sum at a time)
+    s0 = s1 = s2 = ss0 = ss1 = ss2 = 0.0
+    l0 = l1 = l2 = ls0 = ls1 = ls2 = 0.0
+    ll1 = 0.0
     r0c = 0.0
     for i in range(2 * R + 1):
-        r0c += w0[i] * X0[1 + i]
+        a = w0[i]
+        b = w1[i]
+        g = w2[i]
+        xa = X0[i]
+        xb = X0[i + 1]
+        xc = X0[i + 2]
+        ya = X1[i]
+        yb = X1[i + 1]
+        yc = X1[i + 2]
+        s0 += b * xa
+        s1 += b * xb
+        s2 += b * xc
+        ss0 += g * xa
+        ss1 += g * xb
+        ss2 += g * xc
+        l0 += a * ya
+        l1 += a * yb
+        l2 += a * yc
+        ls0 += b * ya
+        ls1 += b * yb
+        ls2 += b * yc
+        ll1 += a * X2[i + 1]
+        r0c += a * xb
+    rs[0] = s0
+    rs[1] = s1
+    rs[2] = s2
+    rss[0] = ss0
+    rss[1] = ss1
+    rss[2] = ss2
+    rl[0] = l0
+    rl[1] = l1
+    rl[2] = l2
+    rls[0] = ls0
+    rls[1] = ls1
+    rls[2] = ls2
+    rll[1] = ll1
     intensity[l] = r0c
     lam, nl, ns = _ridge_normal(rll[1], rls[1], rss[1])
     normal[l, 0] = nl
@@ -795,7 +880,7 @@ def edge_kernels_cached(sigma_px: float) -> np.ndarray:
     return _edge_cached(int(round(float(sigma_px) * 1000.0)))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def profile_curvature(uv, nrm, valid, c2, m, k):
     """Numba version of ``stripe._profile_curvature`` (same arithmetic), in place on ``uv``."""
     L = uv.shape[0]
@@ -817,32 +902,14 @@ def profile_curvature(uv, nrm, valid, c2, m, k):
         uv[i, k] -= shift[i]
 
 
-@njit(cache=True, parallel=True)
-def profile_candidates_batch(A3, sep, p1, v1, p2, v2):
-    """:func:`profile_candidates` of a stack (N, S, L); outputs (N, L); one parallel launch, a frame a task."""
-    N, S, L = A3.shape
-    for f in prange(N):
-        _candidates_frame(A3[f], sep, p1[f], v1[f], p2[f], v2[f])
-
-
-@njit(cache=True, parallel=True)
-def profile_centres_batch(A3, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                          centre, normal, strength, intensity, width, status):
-    """:func:`profile_centres` of a stack (N, S, L); outputs (N, L[, 2]); one parallel launch, a frame a task."""
-    N = A3.shape[0]
-    for f in prange(N):
-        _centres_frame(A3[f], pos[f], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                       centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
-
-
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _candidates_frame(A, sep, p1, v1, p2, v2):
     L = A.shape[1]
     for l0 in range(0, L, _CHUNK):
         _candidates_chunk(A, sep, p1, v1, p2, v2, l0, min(L, l0 + _CHUNK))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                    centre, normal, strength, intensity, width, status):
     R = (w0.shape[0] - 1) // 2
@@ -850,6 +917,52 @@ def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     for l in range(A.shape[1]):
         _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                      centre, normal, strength, intensity, width, status)
+
+
+@njit(cache=True, nogil=True)
+def profile_frame(A, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
+                  centre, normal, strength, intensity, width, status):
+    """The whole profile of one frame on the calling thread: candidates, the choice
+    between them (``continuity``), the centres; the same numbers as the parallel
+    kernels :func:`profile_candidates` and :func:`profile_centres`."""
+    L = A.shape[1]
+    p1 = np.empty(L, np.int64)
+    p2 = np.empty(L, np.int64)
+    v1 = np.empty(L, np.float64)
+    v2 = np.empty(L, np.float64)
+    _candidates_frame(A, sep, p1, v1, p2, v2)
+    if continuity:
+        pos = choose_consistent(p1, v1, p2, v2, min_peak, 5, tol)
+    else:
+        pos = p1
+    _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def profiles_batch(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status):
+    """:func:`profile_frame` of every frame of a stack (N, S, L), frames across numba's
+    threads (one level: each frame serial); ``min_peak`` (N,); outputs (N, L[, 2])."""
+    for f in prange(A3.shape[0]):
+        profile_frame(A3[f], sep, min_peak[f], continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
+                      centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
+
+
+@njit(cache=True, nogil=True)
+def profiles_batch_serial(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
+                          centre, normal, strength, intensity, width, status):
+    """:func:`profiles_batch` on the calling thread only."""
+    for f in range(A3.shape[0]):
+        profile_frame(A3[f], sep, min_peak[f], continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
+                      centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
+
+
+@njit(cache=True, nogil=True)
+def profile_curvature_batch(uv, nrm, valid, c2, m, k):
+    """:func:`profile_curvature` of every frame of (N, L, 2) arrays."""
+    for f in range(uv.shape[0]):
+        profile_curvature(uv[f], nrm[f], valid[f], c2, m, k)
 
 
 @njit(cache=True)

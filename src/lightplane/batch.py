@@ -419,9 +419,13 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
         src = _RemoteFrames(spec["frames"], start)
     else:
         src = _ChunkFrames(spec["frames"], start)
+    from .threads import frames_across_threads
+
     parts, skipped, n, empty = [], [], 0, 0
     try:
-        for r in iter_scan(src, proc, workers=1):  # one frame at a time, in this process: measure's own path
+        with frames_across_threads():  # the parallelism is across Dask's workers: serial kernels, one OpenCV thread
+            scan = list(iter_scan(src, proc, workers=1))  # in this process, serial: measure's own path
+        for r in scan:
             n += 1
             if r.index in getattr(src, "errors", {}):
                 skipped.append([r.index, r.name, src.errors[r.index]])

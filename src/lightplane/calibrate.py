@@ -565,6 +565,15 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     return obs
 
 
+def _process_worker_init() -> None:
+    import cv2
+
+    from .threads import enter_serial
+
+    enter_serial()
+    cv2.setNumThreads(1)
+
+
 def _observe_task(args):
     source, camera, diameter_mm, index, kw = args
     try:
@@ -662,14 +671,18 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
             if progress is not None:
                 progress(k + 1, n)
     else:
+        from .threads import enter_serial, frames_across_threads
+
+        # one level of parallelism: images across the workers, serial kernels in each (lightplane.threads)
         if executor == "process":
             import multiprocessing as mp
 
             # spawn, not fork: forking a process that already ran OpenMP code (numba, OpenCV) aborts it
-            pool: Executor = ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn"))
+            pool: Executor = ProcessPoolExecutor(max_workers=n_workers, mp_context=mp.get_context("spawn"),
+                                                 initializer=_process_worker_init)
         else:
-            pool = ThreadPoolExecutor(max_workers=n_workers)
-        with pool:
+            pool = ThreadPoolExecutor(max_workers=n_workers, initializer=enter_serial)
+        with frames_across_threads(), pool:
             for k, res in enumerate(pool.map(_observe_task, tasks)):
                 if isinstance(res, LightplaneError):
                     for f in getattr(pool, "_pending_work_items", {}).values():  # pragma: no cover

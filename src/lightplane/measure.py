@@ -421,6 +421,41 @@ class ProfileMeasurer:
         prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width)
         return width_filter(prof, self.min_width_ratio, self.max_width_ratio)
 
+    #: regions of interest with at most this many samples per line (rows for ``axis="columns"``) are
+    #: profiled a batch of frames per call (:meth:`measure_many`): there the per-call costs dominate
+    BATCH_MAX_SAMPLES = 128
+
+    @property
+    def batches(self) -> bool:
+        """Whether :meth:`measure_many` profiles its frames in one call (a short roi of a given stripe
+        width, the numba backend); the numbers are those of frame by frame either way."""
+        x, y, w, h = self.roi
+        samples = h if self.axis == "columns" else w
+        opts = self.stripe_options
+        return (samples <= self.BATCH_MAX_SAMPLES and opts.get("width_px") is not None
+                and opts.get("backend", "numba") == "numba" and "parallel" not in opts)
+
+    def measure_many(self, images) -> list[Profile]:
+        """:meth:`__call__` of each image; for a short roi (:attr:`batches`) the stripe profiles of
+        all of them come from one :func:`lightplane.stripe.extract_profiles` call (identical numbers)."""
+        images = list(images)
+        if len(images) < 2 or not self.batches:
+            return [self(im) for im in images]
+        from .stripe import extract_profiles
+
+        for im in images:
+            if not isinstance(im, np.ndarray):
+                raise LightplaneError(f"image must be a numpy array, got {type(im).__name__}")
+            self.camera.check_image(im)
+        x, y, w, h = self.roi
+        roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
+        out = []
+        for sp in extract_profiles(images, self.axis, roi=roi, **self.stripe_options):
+            uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
+            out.append(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
+                                    self.min_width_ratio, self.max_width_ratio))
+        return out
+
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
                     width_px: np.ndarray | None = None) -> Profile:
         """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""

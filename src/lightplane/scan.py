@@ -255,7 +255,9 @@ class FrameProcessor:
         return self.measurer.camera
 
     def process(self, index: int, image: np.ndarray) -> np.ndarray:
-        prof = self.measurer(image)
+        return self._records(index, self.measurer(image))
+
+    def _records(self, index: int, prof) -> np.ndarray:
         ok = prof.valid
         n = int(np.count_nonzero(ok))
         rec = np.empty(n, POINT_DTYPE)
@@ -278,7 +280,18 @@ class FrameProcessor:
         return FrameResult(index, name, self.process(index, image))
 
     def run_batch(self, batch: list) -> list[FrameResult]:
-        return [self.run(*item) for item in batch]
+        """:meth:`run` of each ``(index, name, payload)``; regions of interest of few rows
+        (:meth:`ProfileMeasurer.batches`) are profiled in one call for the whole batch."""
+        if len(batch) < 2 or not self.measurer.batches:
+            return [self.run(*item) for item in batch]
+        return self.run_loaded([(i, name, *try_load_frame(p)) for i, name, p in batch])
+
+    def run_loaded(self, loaded: list) -> list[FrameResult]:
+        """:meth:`run_batch` of frames already read: ``(index, name, image or None, reason)``."""
+        images = [im for _, _, im, _ in loaded if im is not None]
+        profs = iter(self.measurer.measure_many(images))
+        return [FrameResult(i, name, None, why) if im is None else FrameResult(i, name, self._records(i, next(profs)))
+                for i, name, im, why in loaded]
 
 
 _WORKER: FrameProcessor | None = None
@@ -286,12 +299,12 @@ _WORKER: FrameProcessor | None = None
 
 def _worker_init(processor: FrameProcessor) -> None:
     global _WORKER
-    try:
-        import numba
+    import cv2
 
-        numba.set_num_threads(1)  # one core per worker: numba's own threads would oversubscribe
-    except Exception:  # pragma: no cover - numba is a dependency, but stay usable without it
-        pass
+    from .threads import enter_serial
+
+    enter_serial()          # one core per worker: numba's own threads would oversubscribe
+    cv2.setNumThreads(1)    # and so would OpenCV's (this process is the worker's own)
     processor.measurer.build_lookup()  # each worker builds its own tables once (they are not pickled)
     _WORKER = processor
 
@@ -361,26 +374,6 @@ class _FrameRing:
             self.shm = None
 
 
-class _SingleThreadNumba:
-    """Run numba kernels on one thread inside the block (restored after)."""
-
-    def __enter__(self):
-        try:
-            import numba
-
-            self.old = numba.get_num_threads()
-            numba.set_num_threads(1)
-        except Exception:  # pragma: no cover
-            self.old = None
-        return self
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            import numba
-
-            numba.set_num_threads(self.old)
-
-
 def _batches(items: Iterator, size: int) -> Iterator[list]:
     batch = []
     for it in items:
@@ -401,20 +394,14 @@ def kernels_release_gil() -> bool:
     return all(bool(getattr(getattr(K, n, None), "targetoptions", {}).get("nogil")) for n in names)
 
 
-def _thread_init() -> None:
-    try:
-        import numba
-
-        numba.set_num_threads(1)  # numba's thread count is per calling thread
-    except Exception:  # pragma: no cover
-        pass
-
-
 def _iter_threads(source: FrameSource, processor: FrameProcessor, workers: int, batch: int,
                   limit: int) -> Iterator[FrameResult]:
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(workers, initializer=_thread_init) as ex:
+    from .threads import enter_serial, frames_across_threads
+
+    # one level of parallelism: frames across these threads, serial kernels in each
+    with frames_across_threads(), ThreadPoolExecutor(workers, initializer=enter_serial) as ex:
         pending: deque = deque()
         try:
             for b in _batches(source.items(), batch):
@@ -432,8 +419,9 @@ def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | 
               batch: int = 8, in_flight: int | None = None, executor: str = "auto") -> Iterator[FrameResult]:
     """Process every frame of ``source``; yield :class:`FrameResult` in frame order.
 
-    ``workers`` processes (default: the CPUs this process may use; 1: in this
-    process, no pool); frames in memory (arrays, video frames) are copied into a
+    ``workers`` processes or threads (default: the CPUs this process may use; 1: in
+    this process, no pool); one level of parallelism: frames across the workers, each
+    running the serial kernels (:mod:`lightplane.threads`); frames in memory (arrays, video frames) are copied into a
     shared-memory ring (pickling 1.2 MB frames through a pipe costs more than
     measuring them), file paths are read by the workers themselves; frames go to
     them in batches of ``batch``, at most
@@ -448,9 +436,18 @@ def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | 
     if executor not in ("auto", "process", "thread"):
         raise LightplaneError(f"executor must be auto, process or thread, got {executor!r}")
     if workers == 1:
-        with _SingleThreadNumba():
-            for item in source.items():
-                yield processor.run(*item)
+        from .threads import serial_kernels
+
+        with serial_kernels():
+            if not processor.measurer.batches:
+                for item in source.items():
+                    yield processor.run(*item)
+                return
+            # a short roi: profiles a batch at a time; each frame is read as it comes (a source's
+            # payload, e.g. a temporary copy of a remote file, may not outlive the next item)
+            loaded = ((i, name, *try_load_frame(p)) for i, name, p in source.items())
+            for b in _batches(loaded, max(1, int(batch))):
+                yield from processor.run_loaded(b)
         return
     limit = 2 * workers if in_flight is None else max(1, int(in_flight))
     batch = max(1, int(batch))
@@ -559,8 +556,7 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
     if width_px is None:
         from .stripe import estimate_width
 
-        with _SingleThreadNumba():
-            w = estimate_width(first, channel=channel, axis=axis)
+        w = estimate_width(first, channel=channel, axis=axis)
         width_px = float(w) if np.isfinite(w) else None
     return source, motion, axis, width_px
 

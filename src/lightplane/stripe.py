@@ -107,6 +107,7 @@ from scipy.ndimage import median_filter
 
 from . import _stripe_kernels as K
 from .errors import LightplaneError
+from .threads import in_serial_context, profile_parallel
 
 __all__ = [
     "StripePoints",
@@ -266,17 +267,21 @@ def _check_width(width_px, name="width_px") -> float | None:
     return w
 
 
-def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4) -> tuple[float, int]:
-    """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line."""
+def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4, parallel: bool | None = None) -> tuple[float, int]:
+    """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line.
+
+    ``parallel`` None: :func:`lightplane.threads.profile_parallel` decides (as for the profile)."""
     S, L = A.shape
+    if parallel is None:
+        parallel = profile_parallel(L, S)
     p1 = np.empty(L, np.int64)
     p2 = np.empty(L, np.int64)
     v1 = np.empty(L, np.float64)
     v2 = np.empty(L, np.float64)
-    K.profile_candidates(A, S, p1, v1, p2, v2)
+    (K.profile_candidates if parallel else K._candidates_frame)(A, S, p1, v1, p2, v2)
     lines = np.arange(0, L, every, dtype=np.int64)
     out = np.empty(lines.size, np.float64)
-    K.estimate_fwhm_lines(A, p1, lines, 40, float(min_peak), out)
+    (K.estimate_fwhm_lines if parallel else K.estimate_fwhm_lines_serial)(A, p1, lines, 40, float(min_peak), out)
     ok = np.isfinite(out)
     if not ok.any():
         return float("nan"), 0
@@ -340,19 +345,24 @@ def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]
 
 def _profile_numba(A, w0, w1, w2, params, parallel=True):
     S, L = A.shape
-    p1 = np.empty(L, np.int64)
-    p2 = np.empty(L, np.int64)
-    v1 = np.empty(L, np.float64)
-    v2 = np.empty(L, np.float64)
-    (K.profile_candidates if parallel else K._candidates_frame)(A, params["sep"], p1, v1, p2, v2)
-    pos = K.choose_consistent(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
     centre = np.empty(L)
     normal = np.empty((L, 2))
     strength = np.empty(L)
     intensity = np.empty(L)
     width = np.empty(L)
     status = np.empty(L, np.uint8)
-    (K.profile_centres if parallel else K._centres_frame)(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
+    if not parallel:  # one kernel call on this thread
+        K.profile_frame(A, params["sep"], params["min_peak"], params["continuity"], params["tol"], w0, w1, w2,
+                        params["xw"], params["qpeak"], params["half"], params["max_width"], params["min_cos"],
+                        centre, normal, strength, intensity, width, status)
+        return centre, normal, strength, intensity, width, status
+    p1 = np.empty(L, np.int64)
+    p2 = np.empty(L, np.int64)
+    v1 = np.empty(L, np.float64)
+    v2 = np.empty(L, np.float64)
+    K.profile_candidates(A, params["sep"], p1, v1, p2, v2)
+    pos = K.choose_consistent(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
+    K.profile_centres(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
                       params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
     return centre, normal, strength, intensity, width, status
 
@@ -363,7 +373,7 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
                     sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
                     correct_curvature: bool = True,
                     min_chroma: float | None = None, saturated_centre: bool = False,
-                    backend: str = "numba", parallel: bool = True) -> StripeProfile:
+                    backend: str = "numba", parallel: bool | None = None) -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
     Per line: the highest sample (and the highest one farther than twice the width
@@ -420,10 +430,12 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
         from the valid lines around; status ``OK`` then.  Recovers a specular
         hot spot in the laser's own channel (tests/test_stripe_real.py).
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
-    parallel : numba backend: split the frame over numba's threads (default).
-        ``False`` runs one thread: the better choice when other processes keep
-        the cores busy (numba's OpenMP threads then wait for each other, up to
-        milliseconds a call) or when frames are processed in parallel already.
+    parallel : numba backend: ``None`` (default) splits the frame over numba's threads
+        only when that pays and nests nothing: a large frame (at least
+        ``threads.PARALLEL_MIN_PIXELS`` pixels and ``PARALLEL_MIN_LINES`` lines in the
+        roi) called outside a pool of frame workers (:func:`lightplane.threads.serial_kernels`);
+        otherwise the serial kernels, the width estimate included.  ``True`` / ``False``
+        force either; all three give the same numbers.
 
     Returns
     -------
@@ -441,10 +453,10 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     if backend not in ("numba", "numpy"):
         raise LightplaneError(f"backend must be 'numba' or 'numpy', got {backend!r}")
     A, setup = _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
-                              sigma_along_px, continuity, min_cos)
+                              sigma_along_px, continuity, min_cos, parallel=parallel)
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
     if backend == "numba":
-        raw = _profile_numba(A, w0, w1, w2, params, parallel=bool(parallel))
+        raw = _profile_numba(A, w0, w1, w2, params, parallel=setup["parallel"])
     else:
         from ._stripe_numpy import profile_numpy
 
@@ -453,15 +465,21 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
 
 
 def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px, sigma_along_px,
-                   continuity, min_cos, width_from=None):
-    """Sample-major array and the scales/thresholds of :func:`extract_profile`."""
-    img, fs = _channel_image(image, channel)
-    A, line0, sample0 = _lines_array(img, axis, roi)
+                   continuity, min_cos, parallel=None, prepared=None):
+    """Sample-major array and the scales/thresholds of :func:`extract_profile`.
+
+    ``prepared``: ``(A, full_scale, line0, sample0)`` already made (a stack's frame)."""
+    if prepared is None:
+        img, fs = _channel_image(image, channel)
+        A, line0, sample0 = _lines_array(img, axis, roi)
+    else:
+        A, fs, line0, sample0 = prepared
     S, L = A.shape
+    parallel = profile_parallel(L, S) if parallel is None else bool(parallel)
     mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     w = _check_width(width_px)
     if w is None:
-        w, n = _fwhm_median(A, mp, every=max(1, L // 160))
+        w, n = _fwhm_median(A, mp, every=max(1, L // 160), parallel=parallel)
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
     sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
@@ -485,7 +503,8 @@ def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, 
         xw=K.edge_kernels_cached(sigma_al),
     )
     setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, S=S, sigma=sigma,
-                 sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak)
+                 sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak, parallel=parallel,
+                 full_scale=fs)
     return A, setup
 
 
@@ -527,60 +546,119 @@ def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, back
                          width_px=float(w))
 
 
+def _stack_lines(frames, axis: str, channel, roi):
+    """Stack of frames -> (N, S, L) sample-major array, each frame's full scale, offsets.
+
+    A 2-D-per-frame stack of uint8, uint16 or float32 (no channel) is cut and, for
+    ``axis="rows"``, transposed in one go; anything else goes frame by frame through
+    :func:`_channel_image` (the same conversions as :func:`extract_profile`).
+    """
+    if isinstance(frames, np.ndarray) and frames.ndim == 3 and channel in (None, "gray") \
+            and frames.dtype in (np.uint8, np.uint16, np.float32):
+        N, H, W = frames.shape
+        if H < 3 or W < 3:
+            raise LightplaneError(f"frames are too small ({W}x{H} px)")
+        if frames.dtype == np.float32 and not np.all(np.isfinite(frames)):
+            raise LightplaneError("frames contain NaN or infinite values")
+        x, y, w, h = check_roi(roi, W, H)
+        sub = frames[:, y:y + h, x:x + w]
+        if axis == "columns":
+            A3, line0, sample0 = np.ascontiguousarray(sub), x, y
+        elif axis == "rows":
+            A3, line0, sample0 = np.ascontiguousarray(sub.transpose(0, 2, 1)), y, x
+        else:
+            raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
+        if frames.dtype == np.uint8:
+            fs = np.full(N, 255.0)
+        else:
+            top = frames.reshape(N, -1).max(axis=1).astype(np.float64) if N else np.zeros(0)
+            if frames.dtype == np.uint16:   # as _channel_image: the smallest of 10/12/14/16 bits that holds it
+                fs = np.select([top <= 1023, top <= 4095, top <= 16383], [1023.0, 4095.0, 16383.0], 65535.0)
+            else:
+                fs = np.where(top <= 1.0, 1.0, 255.0)
+        return A3, fs, line0, sample0
+    seq = [frames[i] for i in range(frames.shape[0])] if isinstance(frames, np.ndarray) else list(frames)
+    arrays, fss, offs = [], [], None
+    for img in seq:
+        g, fs = _channel_image(img, channel, "frame")
+        A, line0, sample0 = _lines_array(g, axis, roi)
+        if arrays and (A.shape != arrays[0].shape or A.dtype != arrays[0].dtype):
+            raise LightplaneError("frames must all have the same size and type")
+        arrays.append(A)
+        fss.append(fs)
+        offs = (line0, sample0)
+    if not arrays:
+        return None, None, 0, 0
+    return np.stack(arrays), np.asarray(fss, float), offs[0], offs[1]
+
+
 def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = None, channel: str | None = None,
                      roi=None, min_peak: float | None = None, max_width_px: float | None = None,
                      sigma_px: float | None = None, sigma_along_px: float | None = None,
                      continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
-                     min_chroma: float | None = None, saturated_centre: bool = False) -> list[StripeProfile]:
-    """:func:`extract_profile` of many frames at once (a scan): one parallel launch per stage.
+                     min_chroma: float | None = None, saturated_centre: bool = False,
+                     parallel: bool | None = None) -> list[StripeProfile]:
+    """:func:`extract_profile` of a stack of frames in one call: the ROI sensor's batch.
 
     ``frames``: (N, H, W) / (N, H, W, 3) array or a sequence of equally sized
-    images.  The scales (``width_px``, estimated from the first frame when None)
-    are shared by all frames; each result equals ``extract_profile`` of that
-    frame with those scales.  Throughput: the per-call costs (thread launches,
-    Python) are paid once per batch instead of once per frame.
+    images (e.g. N x 64 x 1280 regions of interest).  The scales (``width_px``,
+    estimated from the first frame when None) are shared by all frames; each result
+    equals ``extract_profile(frame, width_px=that width, ...)`` of that frame, bit for
+    bit.  The per-frame costs of a call (argument checks, kernel launches, Python)
+    are paid once per batch: one kernel runs the whole stack, frames across numba's
+    threads with each frame serial (``parallel`` None: unless called inside
+    :func:`lightplane.threads.serial_kernels`, where the batch runs on the calling
+    thread; ``True`` / ``False`` force either).
     """
-    if isinstance(frames, np.ndarray):
-        if frames.ndim not in (3, 4):
-            raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
-        seq = [frames[i] for i in range(frames.shape[0])]
-    else:
-        seq = list(frames)
-    if not seq:
+    if isinstance(frames, np.ndarray) and frames.ndim not in (3, 4):
+        raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
+    if not isinstance(frames, np.ndarray):
+        frames = list(frames)
+    if len(frames) == 0:
         return []
-    A0, setup = _profile_setup(seq[0], axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
-                               sigma_along_px, continuity, min_cos)
-    w_first = setup["w"]
-    arrays = [A0]
-    for img in seq[1:]:
-        A, _ = _profile_setup(img, axis, w_first, channel, roi, min_peak, max_width_px, sigma_px,
-                              sigma_along_px, continuity, min_cos)
-        if A.shape != A0.shape or A.dtype != A0.dtype:
-            raise LightplaneError("frames must all have the same size and type")
-        arrays.append(A)
-    A3 = np.stack(arrays) if len(arrays) > 1 else A0[None]
+    A3, fs, line0, sample0 = _stack_lines(frames, axis, channel, roi)
     N, S, L = A3.shape
+    _, setup = _profile_setup(None, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
+                               sigma_along_px, continuity, min_cos, parallel=False,
+                               prepared=(A3[0], float(fs[0]), line0, sample0))
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
-    p1 = np.empty((N, L), np.int64)
-    p2 = np.empty((N, L), np.int64)
-    v1 = np.empty((N, L))
-    v2 = np.empty((N, L))
-    K.profile_candidates_batch(A3, params["sep"], p1, v1, p2, v2)
-    pos = np.empty_like(p1)
-    for f in range(N):
-        pos[f] = K.choose_consistent(p1[f], v1[f], p2[f], v2[f], params["min_peak"], 5, params["tol"]) \
-            if params["continuity"] else p1[f]
+    mp = np.array([_default_min_peak(f) for f in fs]) if min_peak is None else np.full(N, float(min_peak))
     centre = np.empty((N, L))
     normal = np.empty((N, L, 2))
     strength = np.empty((N, L))
     intensity = np.empty((N, L))
     width = np.empty((N, L))
     status = np.empty((N, L), np.uint8)
-    K.profile_centres_batch(A3, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
-                            params["max_width"], params["min_cos"], centre, normal, strength, intensity, width,
-                            status)
-    return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
-                            setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
+    par = (not in_serial_context() and N > 1) if parallel is None else bool(parallel)
+    (K.profiles_batch if par else K.profiles_batch_serial)(
+        A3, params["sep"], mp, params["continuity"], params["tol"], w0, w1, w2, params["xw"], params["qpeak"],
+        params["half"], params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
+    if min_chroma is not None:   # colour checks need each frame's image: frame by frame
+        seq = [frames[i] for i in range(N)]
+        return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
+                                setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
+    # _profile_finish for the whole stack at once
+    valid = status == K.OK
+    lines = np.arange(L, dtype=np.int64) + line0
+    lines.setflags(write=False)   # shared by the frames' profiles
+    uv = np.empty((N, L, 2))
+    nrm = np.empty((N, L, 2))
+    if axis == "columns":
+        uv[:, :, 0] = np.where(valid, lines[None, :], np.nan)
+        uv[:, :, 1] = centre + sample0
+        nrm[:] = normal
+    else:
+        uv[:, :, 0] = centre + sample0
+        uv[:, :, 1] = np.where(valid, lines[None, :], np.nan)
+        nrm[:, :, 0] = normal[:, :, 1]
+        nrm[:, :, 1] = normal[:, :, 0]
+    sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
+    if correct_curvature:
+        m = max(5, int(math.ceil(4.0 * sigma_al)))
+        K.profile_curvature_batch(uv, nrm, valid, sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, 1 if axis == "columns" else 0)
+    return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
+                          normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
+                          width_px=float(w)) for f in range(N)]
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -1,0 +1,190 @@
+"""One level of parallelism at a time: numba's threading layer, its wait policy, OpenCV's threads.
+
+A sensor PC is never idle, and threads that spin or wait for each other collapse when
+other processes hold the cores.  The rules, applied by the library itself:
+
+- **frames across threads, serial kernels inside** when there are many frames
+  (``measure``'s worker threads, ``calibrate-plane``'s images, Dask workers): each
+  worker thread runs inside :func:`serial_kernels` (numba kernels on the calling
+  thread only, :func:`lightplane.stripe.extract_profile` picks its serial kernels),
+  and OpenCV's own pool is set to one thread while the pool runs
+  (:func:`frames_across_threads`);
+- **a parallel kernel only for a single large frame** (:func:`profile_parallel`:
+  at least :data:`PARALLEL_MIN_PIXELS` pixels and :data:`PARALLEL_MIN_LINES`
+  lines, outside any frame pool), never nested inside a pool.
+
+Threading layer: OpenMP first (thread-safe for launches from several Python threads,
+unlike ``workqueue``; TBB is rarely installed), with the *passive* wait policy
+(``OMP_WAIT_POLICY=PASSIVE``, ``KMP_BLOCKTIME=0``): a thread that has finished its
+share sleeps at once instead of spinning on a core another process needs.  Both are
+set here before numba loads its OpenMP runtime (that is, at the import of
+:mod:`lightplane`), unless the user has set them (environment variables
+``NUMBA_THREADING_LAYER``, ``OMP_WAIT_POLICY``, ``KMP_BLOCKTIME``, which win).
+:func:`threading_info` reports what is in effect (printed by the benchmarks).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+
+__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "profile_parallel",
+           "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
+
+#: which OpenMP runtime was already loaded before lightplane set its wait policy (then it has no effect)
+_OMP_PRELOADED = None
+
+
+def _omp_runtimes_loaded() -> list[str]:
+    try:
+        with open("/proc/self/maps") as f:
+            names = {line.rsplit("/", 1)[-1].strip() for line in f if "omp" in line}
+    except OSError:  # pragma: no cover - not Linux
+        return []
+    return sorted(n for n in names if n.startswith(("libgomp", "libomp", "libiomp")))
+
+
+def _configure() -> None:
+    global _OMP_PRELOADED
+    _OMP_PRELOADED = _omp_runtimes_loaded()
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # GNU and LLVM/Intel OpenMP: sleep, do not spin
+    os.environ.setdefault("KMP_BLOCKTIME", "0")           # LLVM/Intel OpenMP: the same, in ms of spinning
+    try:
+        import numba
+    except Exception:  # pragma: no cover - numba is a dependency
+        return
+    if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default":
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
+
+_configure()
+
+#: a single frame is split over numba's threads only from this many pixels (lines x samples) ...
+PARALLEL_MIN_PIXELS = 1 << 18
+#: ... and this many lines (the per-line work is most of a profile's cost)
+PARALLEL_MIN_LINES = 256
+
+_local = threading.local()
+_cv_lock = threading.Lock()
+_cv_users = 0
+_cv_saved = None
+
+
+def in_serial_context() -> bool:
+    """Whether this thread runs inside :func:`serial_kernels` (one frame per thread)."""
+    return getattr(_local, "depth", 0) > 0
+
+
+def _numba():
+    try:
+        import numba
+
+        return numba
+    except Exception:  # pragma: no cover
+        return None
+
+
+def enter_serial() -> None:
+    """:func:`serial_kernels` for the rest of this thread's life (a pool worker's initializer)."""
+    _local.depth = getattr(_local, "depth", 0) + 1
+    nb = _numba()
+    if nb is not None:
+        nb.set_num_threads(1)  # numba's thread count is per calling thread
+
+
+@contextlib.contextmanager
+def serial_kernels():
+    """Inside the block this thread runs every numba kernel on itself alone (restored after).
+
+    Used where the parallelism is across frames already (one frame per thread or
+    process): kernels that split a frame would nest a second level of threads.
+    """
+    nb = _numba()
+    old = nb.get_num_threads() if nb is not None else None
+    _local.depth = getattr(_local, "depth", 0) + 1
+    if nb is not None:
+        nb.set_num_threads(1)
+    try:
+        yield
+    finally:
+        _local.depth -= 1
+        if nb is not None:
+            nb.set_num_threads(old)
+
+
+@contextlib.contextmanager
+def frames_across_threads():
+    """While a pool of frame workers runs: OpenCV's own thread pool down to one thread.
+
+    OpenCV's thread count is process-wide; it is restored when the last such block
+    (several may run at once) ends.  The workers themselves call :func:`enter_serial`.
+    """
+    global _cv_users, _cv_saved
+    import cv2
+
+    with _cv_lock:
+        if _cv_users == 0:
+            _cv_saved = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+        _cv_users += 1
+    try:
+        yield
+    finally:
+        with _cv_lock:
+            _cv_users -= 1
+            if _cv_users == 0 and _cv_saved is not None:
+                cv2.setNumThreads(_cv_saved)
+                _cv_saved = None
+
+
+def profile_parallel(n_lines: int, n_samples: int) -> bool:
+    """Whether a single profile of ``n_lines`` x ``n_samples`` should use the parallel kernels.
+
+    Only for a large frame (:data:`PARALLEL_MIN_PIXELS`, :data:`PARALLEL_MIN_LINES`),
+    outside :func:`serial_kernels`, and with more than one numba thread.
+    """
+    if in_serial_context() or n_lines < PARALLEL_MIN_LINES or n_lines * n_samples < PARALLEL_MIN_PIXELS:
+        return False
+    nb = _numba()
+    return nb is not None and nb.get_num_threads() > 1
+
+
+def threading_info() -> dict:
+    """What runs the threads: numba's layer (None before its first parallel kernel) and
+    thread count, the OpenMP wait settings, OpenCV's thread count and parallel framework."""
+    import cv2
+
+    nb = _numba()
+    layer = None
+    if nb is not None:
+        try:
+            layer = nb.threading_layer()
+        except ValueError:  # no parallel kernel has run yet
+            layer = None
+    fw = ""
+    for line in cv2.getBuildInformation().splitlines():
+        if "Parallel framework" in line:
+            fw = line.split(":", 1)[1].strip()
+    return {
+        "numba_threading_layer": layer,
+        "numba_layer_priority": list(nb.config.THREADING_LAYER_PRIORITY) if nb is not None else None,
+        "numba_threads": nb.get_num_threads() if nb is not None else 0,
+        "numba_max_threads": nb.config.NUMBA_NUM_THREADS if nb is not None else 0,
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "KMP_BLOCKTIME": os.environ.get("KMP_BLOCKTIME"),
+        "omp_runtime_loaded_before": _OMP_PRELOADED,
+        "opencv_threads": cv2.getNumThreads(),
+        "opencv_parallel_framework": fw,
+        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+    }
+
+
+def describe() -> str:
+    """:func:`threading_info` in one line."""
+    i = threading_info()
+    return (f"numba threading layer {i['numba_threading_layer']} (priority {i['numba_layer_priority']}), "
+            f"numba threads {i['numba_threads']}/{i['numba_max_threads']}, OMP_WAIT_POLICY={i['OMP_WAIT_POLICY']}, "
+            f"KMP_BLOCKTIME={i['KMP_BLOCKTIME']}, OpenMP runtime loaded before lightplane: "
+            f"{i['omp_runtime_loaded_before'] or 'none'}; OpenCV threads {i['opencv_threads']} "
+            f"({i['opencv_parallel_framework']}); usable CPUs {i['cpus_usable']}")

@@ -1,0 +1,188 @@
+"""One level of parallelism (issue 19): threading configuration, serial == parallel, batched == per frame.
+
+Correctness only (no timings: those are in benchmarks/bench_load.py).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from pathlib import Path
+
+import cv2
+import numba
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
+
+from lightplane import _stripe_kernels as K  # noqa: E402
+from lightplane import threads  # noqa: E402
+from lightplane.measure import ProfileMeasurer  # noqa: E402
+from lightplane.scan import ArrayFrames, FrameProcessor, iter_scan, scan_points  # noqa: E402
+from lightplane.stripe import extract_profile, extract_profiles  # noqa: E402
+
+FIELDS = ("uv", "valid", "intensity", "strength", "width", "normals", "status", "lines")
+
+
+def roi_stack(n=12, H=48, W=300, seed=3, dtype=np.uint8, scale=200.0):
+    """n frames H x W: a tilted, curved Gaussian stripe (its row moving frame to frame), noise 2 levels;
+    every third frame without a stripe (noise only), one with a reflection far from it."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    out = []
+    for k in range(n):
+        c = 0.5 * H + rng.uniform(-5, 5) + 0.02 * (u - W / 2) + 3.0 * np.sin(u / W * np.pi) - 1.5
+        img = 10.0 + rng.normal(0.0, 2.0, (H, W))
+        if k % 3 != 2:
+            img += scale * np.exp(-0.5 * ((v - c) / 2.1) ** 2)
+        if k == 4:
+            img += 0.6 * scale * np.exp(-0.5 * ((v - c + 18) / 2.1) ** 2) * (u < 80)
+        out.append(np.clip(np.round(img), 0, np.iinfo(dtype).max if dtype != np.float32 else 1e9).astype(dtype))
+    return np.stack(out)
+
+
+def assert_same(a, b):
+    for f in FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), f
+    assert (a.axis, a.sigma_px, a.width_px) == (b.axis, b.sigma_px, b.width_px)
+
+
+@pytest.mark.parametrize("axis", ["columns", "rows"])
+def test_batched_profiles_identical_to_per_frame(axis):
+    stack = roi_stack()
+    if axis == "rows":
+        stack = np.ascontiguousarray(stack.transpose(0, 2, 1))
+    batch = extract_profiles(stack, axis, width_px=5.0)
+    assert len(batch) == len(stack)
+    assert sum(p.valid.sum() for p in batch) > 0.5 * 8 * 300   # the stripe frames are found
+    for f, img in enumerate(stack):
+        assert_same(batch[f], extract_profile(img, axis, width_px=5.0))
+    # the width estimated on the first frame is the width of all
+    est = extract_profiles(stack, axis)
+    for f in (0, 5, 11):
+        assert_same(est[f], extract_profile(stack[f], axis, width_px=est[0].width_px))
+
+
+def test_batched_profiles_identical_other_types_roi_and_options():
+    u8 = roi_stack(n=6)
+    # 16-bit frames whose full scale differs frame to frame (12-bit data, and 16-bit): its own min_peak each
+    u16 = (u8.astype(np.uint16) * 16)
+    u16[1] *= 8
+    f32 = u8.astype(np.float32) / 255.0
+    roi = (20, 4, 250, 40)
+    for stack in (u16, f32):
+        batch = extract_profiles(stack, width_px=5.0, roi=roi, continuity=False, sigma_along_px=3.0)
+        for f, img in enumerate(stack):
+            assert_same(batch[f], extract_profile(img, width_px=5.0, roi=roi, continuity=False, sigma_along_px=3.0))
+    # a list of colour frames with a channel goes frame by frame through the same conversions
+    bgr = [cv2.merge([img // 4, img // 3, img]) for img in u8]
+    batch = extract_profiles(bgr, width_px=5.0, channel="red")
+    for f, img in enumerate(bgr):
+        assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red"))
+    batch = extract_profiles(bgr, width_px=5.0, channel="red", min_chroma=0.3)
+    for f, img in enumerate(bgr):
+        assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red", min_chroma=0.3))
+
+
+def test_serial_and_parallel_kernels_give_the_same_numbers():
+    stack = roi_stack(n=8, H=600, W=600)   # frames large enough for the parallel kernels by default
+    assert threads.profile_parallel(600, 600) == (numba.get_num_threads() > 1)
+    for img in stack[:3]:
+        for w in (None, 5.0):
+            a = extract_profile(img, width_px=w, parallel=False)
+            assert_same(a, extract_profile(img, width_px=w, parallel=True))
+            assert_same(a, extract_profile(img, width_px=w))
+    small = roi_stack(n=6)
+    a = extract_profiles(small, width_px=5.0, parallel=False)
+    b = extract_profiles(small, width_px=5.0, parallel=True)
+    for x, y in zip(a, b):
+        assert_same(x, y)
+
+
+def test_serial_profile_launches_no_parallel_kernel(monkeypatch):
+    """parallel=False (and serial_kernels) keeps the width estimate serial too (it was not)."""
+    img = roi_stack(n=1, H=600, W=600)[0]
+    ref = extract_profile(img)
+
+    def boom(*a, **k):
+        raise AssertionError("parallel kernel called")
+
+    for name in ("profile_candidates", "profile_centres", "estimate_fwhm_lines", "profiles_batch"):
+        monkeypatch.setattr(K, name, boom)
+    assert_same(ref, extract_profile(img, parallel=False))
+    with threads.serial_kernels():
+        assert_same(ref, extract_profile(img))
+        extract_profiles(roi_stack(n=3), width_px=5.0)
+
+
+def test_threading_configuration_is_applied():
+    info = threads.threading_info()
+    if "OMP_WAIT_POLICY" not in os.environ or os.environ["OMP_WAIT_POLICY"] == "PASSIVE":
+        assert info["OMP_WAIT_POLICY"] == "PASSIVE"
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        assert info["numba_layer_priority"][0] == "omp"
+        extract_profile(roi_stack(n=1, H=600, W=600)[0], parallel=True)
+        assert numba.threading_layer() in ("omp", "tbb", "workqueue")
+    n0 = numba.get_num_threads()
+    with threads.serial_kernels():
+        assert threads.in_serial_context() and numba.get_num_threads() == 1
+        assert not threads.profile_parallel(4000, 4000)
+    assert not threads.in_serial_context() and numba.get_num_threads() == n0
+    c0 = cv2.getNumThreads()
+    with threads.frames_across_threads():
+        assert cv2.getNumThreads() == 1
+        with threads.frames_across_threads():
+            assert cv2.getNumThreads() == 1
+        assert cv2.getNumThreads() == 1
+    assert cv2.getNumThreads() == c0
+    assert "numba threading layer" in threads.describe()
+
+
+def test_scan_worker_threads_run_serial_kernels():
+    n_s, d_s = surface()
+    frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0] for k in range(6)]
+    proc = FrameProcessor(CAM, PLANE, width_px=3.5)
+    seen = []
+    run_batch = proc.run_batch
+
+    def spy(batch):
+        seen.append((threading.current_thread() is threading.main_thread(), threads.in_serial_context(),
+                     numba.get_num_threads(), cv2.getNumThreads()))
+        return run_batch(batch)
+
+    proc.run_batch = spy
+    res = list(iter_scan(ArrayFrames(frames), proc, workers=2, executor="thread", batch=2))
+    assert [r.index for r in res] == list(range(6))
+    assert seen and all(s == (False, True, 1, 1) for s in seen)
+    seen.clear()
+    list(iter_scan(ArrayFrames(frames), proc, workers=1))
+    assert seen == [] or all(s[1] and s[2] == 1 for s in seen)
+
+
+def test_measure_batches_a_short_roi_with_the_same_records():
+    n_s, d_s = surface()
+    imgs = [stripe_image(n_s, d_s, shift_px=0.4 * k) for k in range(5)]
+    u = np.concatenate([uc[np.isfinite(uc)] for _, uc in imgs])
+    x0 = int(np.floor(u.min())) - 12
+    roi = (x0, 0, int(np.ceil(u.max())) + 12 - x0, CAM.height)   # a short band across the stripe (axis rows)
+    frames = [im for im, _ in imgs]
+    m = ProfileMeasurer(CAM, PLANE, roi=roi, width_px=3.5)
+    assert m.axis == "rows" and m.batches
+    many = m.measure_many(frames)
+    for f, img in enumerate(frames):
+        one = m(img)
+        assert np.array_equal(many[f].points, one.points, equal_nan=True)
+        assert np.array_equal(many[f].valid, one.valid)
+        assert np.array_equal(many[f].sigma_mm, one.sigma_mm, equal_nan=True)
+    assert sum(p.valid.sum() for p in many) > 5 * 300
+    whole = ProfileMeasurer(CAM, PLANE, width_px=3.5)
+    assert not whole.batches and not ProfileMeasurer(CAM, PLANE, roi=roi).batches   # no width: frame by frame
+    # the scan uses it (one process, and worker threads) with the records of frame-by-frame processing
+    ref = np.concatenate([FrameProcessor(CAM, PLANE, roi=roi, width_px=3.5).process(i, f) for i, f in enumerate(frames)])
+    for workers in (1, 2):
+        rec, _ = scan_points(ArrayFrames(frames), CAM, PLANE, roi=roi, width_px=3.5, workers=workers, executor="thread")
+        assert np.array_equal(rec.view(np.uint8), ref.view(np.uint8))
