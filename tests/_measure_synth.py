@@ -50,3 +50,25 @@ def stripe_image(n_s, d_s, *, amplitude: float = 200.0, background: float = 10.0
     img = background + amplitude * np.exp(-0.5 * ((u - u_c[:, None]) / SIGMA_PX) ** 2)
     img[~inside] = background
     return img.astype(np.float32), u_c
+
+
+def write_scan(folder, n_frames: int, frames_folder: str | None = None) -> list:
+    """camera.json, plane.json (CAM, PLANE) and ``n_frames`` 8-bit stripe frames of the tilted
+    surface, each shifted by a quarter pixel, in ``folder`` (frames in ``frames_folder`` below it
+    when given); returns the frame paths."""
+    import cv2
+
+    from pathlib import Path
+
+    d = Path(folder)
+    CAM.save_json(d / "camera.json")
+    PLANE.save(d / "plane.json")
+    fd = d / frames_folder if frames_folder else d
+    fd.mkdir(exist_ok=True)
+    n_s, d_s = surface()
+    paths = []
+    for k in range(n_frames):
+        img, _ = stripe_image(n_s, d_s, shift_px=0.25 * k)
+        paths.append(fd / f"f{k:02d}.png")
+        cv2.imwrite(str(paths[-1]), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    return paths

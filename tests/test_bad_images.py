@@ -16,25 +16,14 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
+from _measure_synth import write_scan  # noqa: E402
 from test_calibrate_images import cached_circle_render  # noqa: E402
 
 from lightplane.errors import LightplaneError  # noqa: E402
 from lightplane.io import read_image, read_images, summarize_reasons, too_few_images_message, try_read_image  # noqa: E402
+from _cli import lightplane, one_error_line  # noqa: E402
 
 NATIVE_NOISE = re.compile(r"libpng|libjpeg|libtiff|TIFF|\[ ?WARN|\[ ?ERROR|Premature end|Corrupt JPEG|OpenCV")
-
-
-def lightplane(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lightplane", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
-
-
-def one_error_line(r) -> str:
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    return lines[0]
 
 
 def truncate(src: Path, dst: Path, keep: float = 0.5) -> Path:
@@ -212,12 +201,7 @@ def test_calibrate_plane_too_few_usable_images_exit_2_nothing_written(render, tm
 @pytest.fixture(scope="module")
 def scan_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("scan")
-    CAM.save_json(d / "camera.json")
-    PLANE.save(d / "plane.json")
-    n_s, d_s = surface()
-    for k in range(4):
-        img, _ = stripe_image(n_s, d_s, shift_px=0.25 * k)
-        cv2.imwrite(str(d / f"f{k:02d}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    write_scan(d, 4)
     return d
 
 

@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 
 from lightplane import Camera
+from _cli import lightplane
 
 
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lightplane", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
+run = lightplane
 
 
 def synthetic_board(path, cols=9, rows=6, sq=30):

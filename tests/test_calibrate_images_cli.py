@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -14,11 +12,11 @@ import pytest
 from lightplane import Camera, LightPlane
 
 from test_calibrate_images import cached_circle_render
+from _cli import lightplane, one_error_line
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lightplane", "calibrate-plane", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=300)
+    return lightplane("calibrate-plane", *args, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
@@ -26,12 +24,7 @@ def render():
     return cached_circle_render()
 
 
-def _bad(r, *needles):
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
+_bad = one_error_line
 
 
 def test_run_writes_plane_with_diagnostics_and_report(render, tmp_path):

@@ -2,21 +2,18 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
+from _cli import lightplane, one_error_line
 
 CAM = Camera([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]], np.zeros(5), 640, 480)
 
 
-def run(*args):
-    return subprocess.run([sys.executable, "-m", "lightplane", *map(str, args)], capture_output=True, text=True,
-                          timeout=300)
+run = lightplane
 
 
 @pytest.fixture()
@@ -32,11 +29,7 @@ def files(tmp_path):
     return tmp_path, cam, plane, blanks
 
 
-def _one_error_line(r):
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    return lines[0]
+_one_error_line = one_error_line
 
 
 def test_zhou_board_not_found(files):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -11,22 +10,15 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
+from _measure_synth import CAM, PLANE, write_scan  # noqa: E402
 
 from lightplane import Camera  # noqa: E402
 from lightplane.pointcloud import read_cloud  # noqa: E402
+from _cli import lightplane, one_error_line  # noqa: E402
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "lightplane", "measure", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
-
-
-def one_error_line(r) -> str:
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    return lines[0]
+    return lightplane("measure", *args)
 
 
 N_FRAMES = 5
@@ -35,13 +27,7 @@ N_FRAMES = 5
 @pytest.fixture(scope="module")
 def scan_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("scan")
-    CAM.save_json(d / "camera.json")
-    PLANE.save(d / "plane.json")
-    n_s, d_s = surface()
-    (d / "frames").mkdir()
-    for k in range(N_FRAMES):
-        img, _ = stripe_image(n_s, d_s, shift_px=0.25 * k)
-        cv2.imwrite(str(d / "frames" / f"f{k:02d}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    write_scan(d, N_FRAMES, "frames")
     return d
 
 

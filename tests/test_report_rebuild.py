@@ -6,8 +6,6 @@ import base64
 import json
 import re
 import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -16,19 +14,11 @@ import pytest
 from lightplane import LightPlane
 
 from test_calibrate_images import cached_circle_render
+from _cli import lightplane, one_error_line
 
 
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lightplane", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
-
-
-def _bad(r, *needles):
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
+run = lightplane
+_bad = one_error_line
 
 
 def _pngs(html: str) -> list[np.ndarray]:
