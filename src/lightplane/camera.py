@@ -1,12 +1,16 @@
-"""Camera model: pinhole with OpenCV's plumb-bob distortion (docs/conventions.md §Lens model, paper Eq. 1–3).
+"""Camera model: pinhole with one of OpenCV's lens models (docs/conventions.md §Lens model, paper Eq. 1–3).
 
 Conventions (docs/conventions.md §Frames, §Units, §Pixels): camera frame x right, y down, z forward; millimetres;
-pixel (0, 0) is the centre of the top-left pixel.  Distortion is
-``(k1, k2, p1, p2, k3)``; for normalised undistorted ``(x, y)``, ``r² = x² + y²``::
+pixel (0, 0) is the centre of the top-left pixel.  The lens model (:mod:`lightplane.lens`) is
+``plumb_bob`` ``(k1, k2, p1, p2, k3)``, ``rational`` (8 coefficients), ``thin_prism`` (12),
+``tilted`` (14, a Scheimpflug sensor) or ``fisheye`` (4, ``cv2.fisheye``); for the plumb bob, with
+normalised undistorted ``(x, y)``, ``r² = x² + y²``::
 
     x_d = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²)
     y_d = y (1 + k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2 y²) + 2 p2 x y
-    [u, v, 1]ᵀ = K [x_d, y_d, 1]ᵀ
+    [u, v, 1]ᵀ = K [x_d, y_d, 1]ᵀ      (K may have a skew K[0, 1])
+
+Every projection, undistortion and Jacobian of the package goes through this class.
 
 Camera files: our JSON, ROS ``camera_info`` YAML, OpenCV FileStorage YAML/XML.
 
@@ -27,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .errors import LightplaneError
+from .lens import MODELS, ROS_MODELS, distort_jac, lens_params, model_for, undistort_guess
 
 __all__ = ["Camera", "as_points"]
 
@@ -54,9 +59,10 @@ class Camera:
     Attributes
     ----------
     K : (3, 3) float64
-        Intrinsic matrix ``[[fu, 0, u0], [0, fv, v0], [0, 0, 1]]`` in pixels (zero skew).
-    dist : (5,) float64
-        ``(k1, k2, p1, p2, k3)``, OpenCV's plumb bob.
+        Intrinsic matrix ``[[fu, s, u0], [0, fv, v0], [0, 0, 1]]`` in pixels (skew ``s`` usually 0).
+    dist : (n,) float64
+        The distortion coefficients in OpenCV's order, n = 5 (plumb bob), 8 (rational), 12 (thin
+        prism), 14 (tilted) or 4 (fisheye).
     width, height : int
         Image size in pixels.
     rms_px : float or None
@@ -71,6 +77,9 @@ class Camera:
     covariance_params : tuple of str or None
         The parameter order of ``covariance``: ``fx, fy, cx, cy`` then the distortion
         coefficients in ``dist``'s order.
+    model : str
+        The lens model (:data:`lightplane.lens.MODELS`); None infers it from the length of
+        ``dist`` (4 or 5: plumb bob, 8 rational, 12 thin prism, 14 tilted; fisheye must be named).
     """
 
     K: np.ndarray
@@ -81,6 +90,7 @@ class Camera:
     meta: dict = field(default_factory=dict, compare=False, repr=False)
     covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
     covariance_params: tuple | None = field(default=None, compare=False, repr=False)
+    model: str | None = None
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
@@ -90,18 +100,7 @@ class Camera:
             raise LightplaneError(f"K: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         if abs(K[2, 2] - 1) > 1e-9 or np.any(np.abs(K[2, :2]) > 1e-12) or abs(K[1, 0]) > 1e-12:
             raise LightplaneError("K: last row must be [0, 0, 1] and K[1, 0] zero")
-        d = np.asarray(self.dist, dtype=np.float64).ravel()
-        if d.size == 4:
-            d = np.append(d, 0.0)
-        if d.size > 5:
-            if np.any(d[5:] != 0):
-                raise LightplaneError(
-                    f"dist: only the 5-coefficient plumb-bob model (k1, k2, p1, p2, k3) is supported, "
-                    f"got {d.size} coefficients with non-zero extras"
-                )
-            d = d[:5]
-        if d.size != 5 or not np.all(np.isfinite(d)):
-            raise LightplaneError(f"dist must hold 4 or 5 finite coefficients (k1, k2, p1, p2[, k3]), got {d.size}")
+        model, d = model_for(self.dist, self.model)
         try:
             w, h = int(self.width), int(self.height)
         except (TypeError, ValueError):
@@ -112,6 +111,8 @@ class Camera:
         d.setflags(write=False)
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", d)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "_lens", lens_params(model, d))
         object.__setattr__(self, "width", w)
         object.__setattr__(self, "height", h)
         if self.rms_px is not None:
@@ -157,17 +158,19 @@ class Camera:
 
     @property
     def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0))
+        """False only where pixels map to rays by K alone (fisheye never: its θ = atan r is not a pinhole)."""
+        return self.model == "fisheye" or bool(np.any(self.dist != 0))
 
     def pinhole(self) -> "Camera":
         """The same camera without distortion."""
-        return Camera(self.K, np.zeros(5), self.width, self.height, self.rms_px, dict(self.meta))
+        return Camera(self.K, np.zeros(5), self.width, self.height, self.rms_px, dict(self.meta), model="plumb_bob")
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Camera):
             return NotImplemented
         return (
             np.array_equal(self.K, other.K)
+            and self.model == other.model
             and np.array_equal(self.dist, other.dist)
             and self.width == other.width
             and self.height == other.height
@@ -176,19 +179,14 @@ class Camera:
     def __repr__(self) -> str:
         return (
             f"Camera({self.width}x{self.height}, fx={self.fx:.3f}, fy={self.fy:.3f}, "
-            f"cx={self.cx:.3f}, cy={self.cy:.3f}, dist={np.array2string(self.dist, precision=5)})"
+            f"cx={self.cx:.3f}, cy={self.cy:.3f}, {self.model} dist={np.array2string(self.dist, precision=5)})"
         )
 
     # ------------------------------------------------------------- projection
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        """Apply the distortion to normalised undistorted ``(N, 2)`` coordinates (docs/conventions.md §Lens model)."""
+        """Apply the lens model to normalised undistorted ``(N, 2)`` coordinates (:mod:`lightplane.lens`)."""
         xy = as_points(xy, 2, "xy")
-        k1, k2, p1, p2, k3 = self.dist
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        xd, yd, *_ = distort_jac(xy[:, 0], xy[:, 1], self._lens)
         return np.column_stack([xd, yd])
 
     def normalized_to_pixels(self, xy: np.ndarray, *, distort: bool = True) -> np.ndarray:
@@ -236,7 +234,7 @@ class Camera:
         return xy if normalized else self.normalized_to_pixels(xy, distort=False)
 
     def _undistort_normalized(self, uv: np.ndarray) -> np.ndarray:
-        """Newton on the exact model from the linear guess K⁻¹uv (fast, vectorised); any
+        """Newton on the exact model from the linear guess K⁻¹uv (fisheye: its equidistant inverse); any
         point that does not then reproject onto its pixel within 1e-9 px is redone from
         OpenCV's iterative undistortion (tight criteria) followed by Newton."""
         import cv2
@@ -244,17 +242,20 @@ class Camera:
         target = self.pixels_to_normalized_linear(uv)
         good = np.all(np.isfinite(uv), axis=1)
         with np.errstate(all="ignore"):
-            xy = self._newton_undistort(target.copy(), target, iters=12)
+            xy = self._newton_undistort(np.column_stack(undistort_guess(target[:, 0], target[:, 1], self._lens)),
+                                        target, iters=12)
             err = np.linalg.norm(self.normalized_to_pixels(xy) - uv, axis=1)
         redo = good & ~(err < 1e-9)
         xy[~good] = np.nan
         if np.any(redo):
-            src = np.ascontiguousarray(uv[redo]).reshape(-1, 1, 2)
+            src = np.ascontiguousarray(target[redo]).reshape(-1, 1, 2)  # K⁻¹ applied by us (skew included)
             crit = _tight_criteria()
-            if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-                xy0 = cv2.undistortPointsIter(src, self.K, self.dist, np.eye(3), np.eye(3), crit)
+            if self.model == "fisheye":
+                xy0 = cv2.fisheye.undistortPoints(src, np.eye(3), self.dist, np.eye(3), np.eye(3), criteria=crit)
+            elif hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+                xy0 = cv2.undistortPointsIter(src, np.eye(3), self.dist, np.eye(3), np.eye(3), crit)
             else:  # OpenCV 5 takes the criteria in undistortPoints itself
-                xy0 = cv2.undistortPoints(src, self.K, self.dist, None, np.eye(3), np.eye(3), crit)
+                xy0 = cv2.undistortPoints(src, np.eye(3), self.dist, None, np.eye(3), np.eye(3), crit)
             with np.errstate(all="ignore"):
                 xy[redo] = self._newton_undistort(xy0.reshape(-1, 2).astype(np.float64), target[redo])
         return xy
@@ -262,30 +263,65 @@ class Camera:
     def distortion_jacobian(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Entries ``(j11, j12, j21, j22)`` of ∂(x_d, y_d)/∂(x, y) at normalised undistorted ``xy`` (N, 2).
 
-        The derivative of the plumb-bob model of docs/conventions.md §Lens model (``j12 == j21``).
+        The derivative of the camera's lens model (:func:`lightplane.lens.distort_jac`); ``j12 == j21``
+        only for the radially symmetric part (thin prism and tilt make it unsymmetric).
         """
-        k1, k2, p1, p2, k3 = self.dist
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-        j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-        j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-        j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-        return j11, j12, j12, j22
+        xy = as_points(xy, 2, "xy")
+        return distort_jac(xy[:, 0], xy[:, 1], self._lens)[2:]
+
+    def pixel_jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """``(N, 2, 2)``: ∂(u, v)/∂(x, y), distortion and K, at normalised undistorted ``xy``."""
+        j11, j12, j21, j22 = self.distortion_jacobian(xy)
+        K = self.K
+        out = np.empty((len(j11), 2, 2))
+        out[:, 0, 0] = K[0, 0] * j11 + K[0, 1] * j21
+        out[:, 0, 1] = K[0, 0] * j12 + K[0, 1] * j22
+        out[:, 1, 0] = K[1, 1] * j21
+        out[:, 1, 1] = K[1, 1] * j22
+        return out
 
     def _newton_undistort(self, xy: np.ndarray, target: np.ndarray, iters: int = 20) -> np.ndarray:
         """Solve distort(xy) = target by Newton's method, starting from ``xy``."""
         for _ in range(iters):
-            f = self.distort_normalized(xy) - target
-            j11, j12, j21, j22 = self.distortion_jacobian(xy)
+            xd, yd, j11, j12, j21, j22 = distort_jac(xy[:, 0], xy[:, 1], self._lens)
+            f0, f1 = xd - target[:, 0], yd - target[:, 1]
             det = j11 * j22 - j12 * j21
-            dx = (j22 * f[:, 0] - j12 * f[:, 1]) / det
-            dy = (-j21 * f[:, 0] + j11 * f[:, 1]) / det
+            dx = (j22 * f0 - j12 * f1) / det
+            dy = (-j21 * f0 + j11 * f1) / det
             xy = xy - np.column_stack([dx, dy])
             if not np.nanmax(np.abs(np.concatenate([dx, dy])), initial=0.0) > 1e-16:
                 break
         return xy
+
+    def solve_pnp(self, obj: np.ndarray, uv: np.ndarray, *, name: str = "points") -> tuple[np.ndarray, np.ndarray]:
+        """Pose ``(R, t)`` (camera <- object) minimising the pixel reprojection error of ``(N, 3)`` object
+        points seen at distorted pixels ``uv`` (N, 2).
+
+        OpenCV's ``solvePnP`` + ``solvePnPRefineLM`` with K and the distortion vector where OpenCV
+        projects as this camera does (no skew, not fisheye); otherwise the same on the undistorted
+        normalised points, then Levenberg-Marquardt on the pixel residuals of :meth:`project`.
+        """
+        import cv2
+
+        o = np.ascontiguousarray(as_points(obj, 3, "obj"))
+        u = np.ascontiguousarray(as_points(uv, 2, "uv"))
+        native = self.model != "fisheye" and self.skew == 0
+        K, d, pts = (self.K, self.dist, u) if native else (np.eye(3), None, self.undistort_points(u, normalized=True))
+        ok, rvec, tvec = cv2.solvePnP(o, pts, K, d, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+            raise LightplaneError(f"{name}: solvePnP failed")
+        rvec, tvec = cv2.solvePnPRefineLM(o, pts, K, d, rvec, tvec)
+        if not native:
+            from scipy.optimize import least_squares
+
+            def res(x: np.ndarray) -> np.ndarray:
+                R = cv2.Rodrigues(x[:3])[0]
+                return (self.project(o @ R.T + x[3:]) - u).ravel()
+
+            x = least_squares(res, np.concatenate([rvec.ravel(), tvec.ravel()]), method="lm", xtol=1e-14,
+                              ftol=1e-14).x
+            rvec, tvec = x[:3], x[3:]
+        return cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))[0], np.asarray(tvec, np.float64).ravel()
 
     def rays(self, uv: np.ndarray, *, unit: bool = False) -> np.ndarray:
         """Camera-frame rays ``(N, 3)`` through distorted pixels ``uv``.
@@ -299,14 +335,17 @@ class Camera:
         return r
 
     def undistort_image(self, img: np.ndarray, *, interpolation: int | None = None) -> np.ndarray:
-        """Resample an image as seen by the same camera without distortion (same K)."""
+        """Resample an image as seen by the same camera without distortion (same K, every lens model)."""
         import cv2
 
         if interpolation is None:
             interpolation = cv2.INTER_LINEAR
         h, w = img.shape[:2]
-        map1, map2 = cv2.initUndistortRectifyMap(self.K, self.dist, None, self.K, (w, h), cv2.CV_32FC1)
-        return cv2.remap(img, map1, map2, interpolation)
+        v, u = np.mgrid[0:h, 0:w]
+        xy = self.pixels_to_normalized_linear(np.column_stack([u.ravel(), v.ravel()]).astype(np.float64))
+        with np.errstate(all="ignore"):
+            src = self.normalized_to_pixels(xy).reshape(h, w, 2).astype(np.float32)
+        return cv2.remap(img, src[..., 0], src[..., 1], interpolation)
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """Boolean mask of ``(N, 2)`` pixels inside the image (pixel centres 0..W-1)."""
@@ -332,6 +371,7 @@ class Camera:
             "width": self.width,
             "height": self.height,
             "K": self.K.tolist(),
+            "model": self.model,
             "dist": self.dist.tolist(),
         }
         if self.rms_px is not None:
@@ -343,7 +383,8 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
-        """From our JSON layout ``{"width", "height", "K", "dist", "rms_px"?, "covariance"?, "covariance_params"?}``."""
+        """From our JSON layout ``{"width", "height", "K", "model"?, "dist", "rms_px"?, "covariance"?,
+        "covariance_params"?}`` (no model: from the length of ``dist``)."""
         for key in ("width", "height", "K", "dist"):
             if key not in d:
                 raise LightplaneError(f"{source}: missing field '{key}'")
@@ -368,9 +409,12 @@ class Camera:
         except (TypeError, ValueError):
             raise LightplaneError(f"{source}: field 'covariance' must be a matrix of numbers and "
                                   f"'covariance_params' a list of names") from None
+        model = d.get("model")
+        if model is not None and not isinstance(model, str):
+            raise LightplaneError(f"{source}: field 'model' must be a lens model name ({', '.join(MODELS)})")
         try:
             return cls(K, dist, d["width"], d["height"], d.get("rms_px"), meta={"source": source},
-                       covariance=cov, covariance_params=None if names is None else tuple(names))
+                       covariance=cov, covariance_params=None if names is None else tuple(names), model=model)
         except LightplaneError as e:
             raise LightplaneError(f"{source}: {e}") from None
 
@@ -384,7 +428,9 @@ class Camera:
         return write_json(path, d, force=force)
 
     def ros_yaml_text(self, camera_name: str = "camera") -> str:
-        """ROS ``camera_info`` YAML text (plumb_bob, identity R, P = [K | 0])."""
+        """ROS ``camera_info`` YAML text (identity R, P = [K | 0]); ``distortion_model`` plumb_bob,
+        rational_polynomial (8, 12 or 14 coefficients, as ROS's image_geometry hands them to OpenCV)
+        or equidistant (fisheye)."""
         import yaml
 
         P = np.hstack([self.K, np.zeros((3, 1))])
@@ -393,8 +439,8 @@ class Camera:
             "image_height": self.height,
             "camera_name": camera_name,
             "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in self.K.ravel()]},
-            "distortion_model": "plumb_bob",
-            "distortion_coefficients": {"rows": 1, "cols": 5, "data": [float(v) for v in self.dist]},
+            "distortion_model": ROS_MODELS[self.model],
+            "distortion_coefficients": {"rows": 1, "cols": int(self.dist.size), "data": [float(v) for v in self.dist]},
             "rectification_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in np.eye(3).ravel()]},
             "projection_matrix": {"rows": 3, "cols": 4, "data": [float(v) for v in P.ravel()]},
         }
@@ -416,7 +462,8 @@ class Camera:
             fs.write("image_width", self.width)
             fs.write("image_height", self.height)
             fs.write("camera_matrix", self.K)
-            fs.write("distortion_coefficients", self.dist.reshape(1, 5))
+            fs.write("distortion_model", self.model)
+            fs.write("distortion_coefficients", self.dist.reshape(1, -1))
             fs.release()
 
         if Path(path).suffix.lower() not in (".yaml", ".yml", ".xml"):
@@ -484,14 +531,17 @@ class Camera:
 
         K = matrix("camera_matrix", 9).reshape(3, 3)
         dist = matrix("distortion_coefficients", None)
-        model = doc.get("distortion_model", "plumb_bob")
-        if model not in ("plumb_bob", "rational_polynomial"):
-            raise LightplaneError(f"{p}: distortion_model '{model}' is not supported (plumb_bob expected)")
+        ros_model = doc.get("distortion_model", "plumb_bob")
+        try:
+            model = _model_from_ros(ros_model, dist.size)
+        except LightplaneError as e:
+            raise LightplaneError(f"{p}: {e}") from None
         for key in ("image_width", "image_height"):
             if key not in doc:
                 raise LightplaneError(f"{p}: missing field '{key}'")
         try:
-            return cls(K, dist, doc["image_width"], doc["image_height"], meta={"source": str(p), "format": "ros"})
+            return cls(K, dist, doc["image_width"], doc["image_height"], meta={"source": str(p), "format": "ros"},
+                       model=model)
         except LightplaneError as e:
             raise LightplaneError(f"{p}: {e}") from None
 
@@ -526,9 +576,33 @@ class Camera:
                 raise LightplaneError(f"{p}: field 'camera_matrix' must be 3x3, got {K.shape}")
             dist = mat("distortion_coefficients").ravel()
             w, h = integer("image_width"), integer("image_height")
+            node = fs.getNode("distortion_model")
+            model = None if node.empty() else node.string()
+            if model is not None and not model:
+                raise LightplaneError(f"{p}: field 'distortion_model' must be a lens model name")
         finally:
             fs.release()
         try:
-            return cls(K, dist, w, h, meta={"source": str(p), "format": "opencv"})
+            if model is not None:
+                model = _model_from_ros(model, dist.size) if model in _ROS_NAMES else model
+            return cls(K, dist, w, h, meta={"source": str(p), "format": "opencv"}, model=model)
         except LightplaneError as e:
             raise LightplaneError(f"{p}: {e}") from None
+
+
+_ROS_NAMES = ("rational_polynomial", "equidistant")
+
+
+def _model_from_ros(name: object, n: int) -> str:
+    """Our model of a ROS ``distortion_model`` with ``n`` coefficients (our own names are accepted too)."""
+    if name == "equidistant":
+        return "fisheye"
+    if name == "rational_polynomial":
+        by_n = {8: "rational", 12: "thin_prism", 14: "tilted"}
+        if n not in by_n:
+            raise LightplaneError(f"distortion_model rational_polynomial needs 8, 12 or 14 coefficients, got {n}")
+        return by_n[n]
+    if name in MODELS:
+        return str(name)
+    raise LightplaneError(f"distortion_model {name!r} is not supported "
+                          f"(plumb_bob, rational_polynomial, equidistant; or {', '.join(MODELS)})")

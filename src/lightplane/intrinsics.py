@@ -16,6 +16,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import LightplaneError
+from .lens import COEFF_NAMES, MODELS, coeff_names
 from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
@@ -29,8 +30,8 @@ MIN_BOARD_BLUR_PX = 0.55
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
-#: OpenCV's distortion coefficients, in its order (4, 5, 8, 12 or 14 of them).
-DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "taux", "tauy")
+#: OpenCV's distortion coefficients, in its order (4, 5, 8, 12 or 14 of them; fisheye: lens.coeff_names).
+DIST_NAMES = COEFF_NAMES
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ def _free_parameters(n_dist: int, flags: int) -> np.ndarray:
 
 def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Sequence[np.ndarray],
                           rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray], K: np.ndarray,
-                          dist: np.ndarray, flags: int = 0) -> IntrinsicsCovariance:
+                          dist: np.ndarray, flags: int = 0, *, model: str | None = None) -> IntrinsicsCovariance:
     """Covariance of a Zhang calibration's intrinsics, the board poses marginalised out.
 
     At the solution, ``cv2.projectPoints`` gives the Jacobian of every corner's projection
@@ -90,9 +91,13 @@ def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Seq
     and a point's uncertainty needs the correlations.  Parameters held fixed by ``flags``
     (``CALIB_FIX_K3``, ``CALIB_ZERO_TANGENT_DIST``, ...) get zero rows and columns.
     ``CALIB_FIX_ASPECT_RATIO`` and ``CALIB_USE_LU``-style options that tie parameters
-    together are not supported (LightplaneError).
+    together are not supported (LightplaneError).  ``model="fisheye"``: the Jacobian of
+    ``cv2.fisheye.projectPoints`` (fx, fy, cx, cy, k1..k4 free, skew fixed; ``flags`` ignored).
     """
     import cv2
+
+    if model == "fisheye":
+        return _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist)
 
     if flags & (cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_SAME_FOCAL_LENGTH):
         raise LightplaneError("intrinsics_covariance: CALIB_FIX_ASPECT_RATIO / SAME_FOCAL_LENGTH are not supported")
@@ -102,6 +107,31 @@ def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Seq
     if dist.size not in (4, 5, 8, 12, 14):
         raise LightplaneError(f"intrinsics_covariance: {dist.size} distortion coefficients (4, 5, 8, 12 or 14 expected)")
     free = _free_parameters(dist.size, flags)
+
+    def view(obj, rv, tv):
+        proj, jac = cv2.projectPoints(obj, rv, tv, K, dist)
+        return proj.reshape(-1, 2), jac[:, :6], jac[:, 6:6 + 4 + dist.size]
+
+    return _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view)
+
+
+def _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist) -> IntrinsicsCovariance:
+    import cv2
+
+    K = np.asarray(K, np.float64)
+    dist = np.asarray(dist, np.float64).ravel()
+
+    def view(obj, rv, tv):  # fisheye's Jacobian columns: f (2), c (2), k (4), om (3), T (3), alpha
+        proj, jac = cv2.fisheye.projectPoints(obj.reshape(-1, 1, 3), rv, tv, K, dist)
+        return proj.reshape(-1, 2), jac[:, 8:14], jac[:, :8]
+
+    return _schur_covariance(object_points, image_points, rvecs, tvecs, ("fx", "fy", "cx", "cy") +
+                             coeff_names("fisheye"), np.ones(8, bool), view)
+
+
+def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view) -> IntrinsicsCovariance:
+    """The covariance of :func:`intrinsics_covariance`: ``view(obj, rvec, tvec)`` gives a view's projection
+    ``(N, 2)``, its Jacobian in the pose ``(2N, 6)`` and in the intrinsics ``(2N, len(names))``."""
     idx = np.flatnonzero(free)
     p = idx.size
     S = np.zeros((p, p))
@@ -109,12 +139,11 @@ def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Seq
     for obj, uv, rv, tv in zip(object_points, image_points, rvecs, tvecs):
         obj = np.asarray(obj, np.float64).reshape(-1, 3)
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        proj, jac = cv2.projectPoints(obj, np.asarray(rv, np.float64), np.asarray(tv, np.float64), K, dist)
-        r = (uv - proj.reshape(-1, 2)).ravel()
+        proj, Je, Ji = view(obj, np.asarray(rv, np.float64).reshape(3, 1), np.asarray(tv, np.float64).reshape(3, 1))
+        r = (uv - proj).ravel()
         ssr += float(r @ r)
         n_obs += r.size
-        Je = jac[:, :6]
-        Ji = jac[:, 6:6 + 4 + dist.size][:, idx]
+        Ji = Ji[:, idx]
         B = Je.T @ Je
         C = Ji.T @ Je
         S += Ji.T @ Ji - C @ np.linalg.solve(B, C.T)
@@ -607,6 +636,7 @@ def calibrate_camera(
     *,
     names: Sequence[str] | None = None,
     flags: int = 0,
+    model: str | None = None,
     rotate_deg: int = 0,
     min_views: int = 3,
     refine: bool | str = True,
@@ -621,6 +651,11 @@ def calibrate_camera(
         ``(cols, rows)`` chessboard inner corners with ``square_mm``
     square_mm : chessboard square size, mm, with a ``(cols, rows)`` board (sets the scale of the poses only)
     flags : ``cv2.CALIB_*`` flags for ``calibrateCameraExtended`` (0: 5 coefficients, as OpenCV's default)
+    model : the lens model (:data:`lightplane.lens.MODELS`): ``plumb_bob``, ``rational``
+        (``CALIB_RATIONAL_MODEL``), ``thin_prism`` (``+ CALIB_THIN_PRISM_MODEL``), ``tilted``
+        (``CALIB_TILTED_MODEL``: the plumb bob and tauX, tauY, the other coefficients held at 0) or
+        ``fisheye`` (``cv2.fisheye.calibrate``, skew fixed; its std from the Jacobian of the
+        reprojection, see :func:`reprojection_covariance`); None: from ``flags``
     rotate_deg : clockwise rotation applied to path inputs on reading (0/90/180/270)
     min_views : fewer usable views raise :class:`LightplaneError` (saying why the others were not usable)
     refine : chessboards: polish the corners (see :func:`find_board`): True or ``"saddle"`` fits the
@@ -702,9 +737,22 @@ def calibrate_camera(
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]
     imgpoints = [v.corners_uv.astype(np.float32).reshape(-1, 1, 2) for v in found]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    model, flags = calibration_flags(model, flags)
 
     def solve(imgpoints):
-        return cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
+        if model != "fisheye":
+            return cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
+        o64 = [o.astype(np.float64).reshape(-1, 1, 3) for o in objs]
+        i64 = [u.astype(np.float64).reshape(-1, 1, 2) for u in imgpoints]
+        try:
+            rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(o64, i64, size, None, None, flags=flags, criteria=crit)
+        except cv2.error as e:
+            raise LightplaneError(f"fisheye calibration failed ({str(e).strip().splitlines()[-1]})") from None
+        cam = Camera(K, np.ravel(D), size[0], size[1], model="fisheye")
+        per_view = [np.sqrt(np.mean(np.sum((cam.project(o.astype(np.float64) @ cv2.Rodrigues(rv)[0].T + np.ravel(tv))
+                                            - u.reshape(-1, 2)) ** 2, axis=1))) for o, u, rv, tv in
+                    zip(objs, imgpoints, rvecs, tvecs)]
+        return rms, K, D, rvecs, tvecs, None, None, np.asarray(per_view)
 
     rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
     dot_mm, shift = None, None
@@ -713,31 +761,35 @@ def calibrate_camera(
         dot_mm = float(target.dot_mm or np.median(dots))
         raw = [v.corners_uv for v in found]
         for _ in range(2):
-            cam = Camera(K, np.asarray(dist, np.float64).ravel()[:5], size[0], size[1])
+            cam = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
             fixed = [correct_circle_centres(cam, target, u, v.ids, cv2.Rodrigues(rv)[0], tv.ravel(), dot_mm)
                      for u, v, rv, tv in zip(raw, found, rvecs, tvecs)]
             imgpoints = [f.astype(np.float32).reshape(-1, 1, 2) for f in fixed]
             rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
         shift = float(np.sqrt(np.mean(np.concatenate([np.sum((f - u) ** 2, axis=1) for f, u in zip(fixed, raw)]))))
         found = [BoardView(v.name, f, v.image_size, v.ids) for v, f in zip(found, fixed)]
-    dist = np.asarray(dist, dtype=np.float64).ravel()
-    if dist.size > 5 and np.allclose(dist[5:], 0):
-        dist = dist[:5]
+    dist = _model_dist(dist, model)
     try:
-        icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist[:5], flags)
+        icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist, flags, model=model)
     except LightplaneError:  # options the covariance does not model: the camera carries none
         icov = None
-    camera = Camera(K, dist[:5], size[0], size[1], rms_px=float(rms),
+    camera = Camera(K, dist, size[0], size[1], rms_px=float(rms), model=model,
                     covariance=None if icov is None else icov.covariance,
                     covariance_params=None if icov is None else icov.params)
     centres = [cv2.Rodrigues(rv)[0] @ o.astype(np.float64).mean(axis=0) + np.ravel(tv)
                for o, rv, tv in zip(objs, rvecs, tvecs)]
-    std_int = np.asarray(std_int).ravel()
-    std = {n: float(s) for n, s in zip(INTRINSIC_NAMES, std_int)}
+    names = ("fx", "fy", "cx", "cy") + coeff_names(model)
+    if std_int is not None:  # OpenCV's: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 taux tauy
+        std_int = np.asarray(std_int).ravel()
+        std = {n: float(s) for n, s in zip(names, std_int)}
+    elif icov is not None:  # fisheye: OpenCV gives none; the same from the Jacobian of the reprojection
+        std = icov.std()
+    else:
+        std = {}
     residuals, corners = [], []
     for v, o, rv, tv in zip(found, objs, rvecs, tvecs):
-        proj, _ = cv2.projectPoints(o.astype(np.float64), rv, tv, K, dist)
-        residuals.append(v.corners_uv - proj.reshape(-1, 2))
+        proj = camera.project(o.astype(np.float64) @ cv2.Rodrigues(np.ravel(rv))[0].T + np.ravel(tv))
+        residuals.append(v.corners_uv - proj)
         corners.append(v.corners_uv)
     return IntrinsicsCalibration(
         camera=camera,
@@ -762,3 +814,31 @@ def calibrate_camera(
         ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
         skipped=skipped,
     )
+
+
+def calibration_flags(model: str | None, flags: int = 0) -> tuple[str, int]:
+    """``(model, flags)`` of a calibration: the model named (its OpenCV flags added) or the one
+    ``flags`` select (``CALIB_TILTED_MODEL`` -> tilted, ``THIN_PRISM`` -> thin_prism, ``RATIONAL``
+    -> rational, else plumb_bob).  Fisheye: ``cv2.fisheye`` flags (recompute extrinsics, fixed skew)."""
+    import cv2
+
+    if model is None:
+        model = ("tilted" if flags & cv2.CALIB_TILTED_MODEL else "thin_prism" if flags & cv2.CALIB_THIN_PRISM_MODEL
+                 else "rational" if flags & cv2.CALIB_RATIONAL_MODEL else "plumb_bob")
+    if model not in MODELS:
+        raise LightplaneError(f"unknown lens model {model!r} (known: {', '.join(MODELS)})")
+    if model == "fisheye":
+        return model, cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+    extra = {"plumb_bob": 0, "rational": cv2.CALIB_RATIONAL_MODEL,
+             "thin_prism": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL,
+             "tilted": cv2.CALIB_TILTED_MODEL}[model]
+    return model, int(flags) | extra
+
+
+def _model_dist(dist, model: str) -> np.ndarray:
+    """OpenCV's output vector cut to the model's length (what it holds beyond was not estimated: 0)."""
+    d = np.asarray(dist, dtype=np.float64).ravel()
+    n = MODELS[model]
+    if d.size > n and np.any(d[n:] != 0):
+        raise LightplaneError(f"calibration returned non-zero coefficients beyond the {model} model's {n}")
+    return d[:n]

@@ -177,20 +177,14 @@ def _tangent_basis(n: np.ndarray) -> np.ndarray:
 
 def _pixel_jacobian_inv_t(camera: Camera, xy: np.ndarray) -> np.ndarray:
     """(N, 2, 2): ``J⁻ᵀ`` with ``J = ∂(u, v)/∂(x, y)`` (distortion and K) at normalised ``xy``."""
-    j11, j12, _, j22 = camera.distortion_jacobian(xy)
-    K = camera.K
-    # J = [[fx, s], [0, fy]] @ [[j11, j12], [j12, j22]]
-    a11 = K[0, 0] * j11 + K[0, 1] * j12
-    a12 = K[0, 0] * j12 + K[0, 1] * j22
-    a21 = K[1, 1] * j12
-    a22 = K[1, 1] * j22
-    det = a11 * a22 - a12 * a21
+    J = camera.pixel_jacobian(xy)
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     # inv(J)ᵀ = [[a22, -a21], [-a12, a11]] / det
     out = np.empty((len(xy), 2, 2))
-    out[:, 0, 0] = a22 / det
-    out[:, 0, 1] = -a21 / det
-    out[:, 1, 0] = -a12 / det
-    out[:, 1, 1] = a11 / det
+    out[:, 0, 0] = J[:, 1, 1] / det
+    out[:, 0, 1] = -J[:, 1, 0] / det
+    out[:, 1, 0] = -J[:, 0, 1] / det
+    out[:, 1, 1] = J[:, 0, 0] / det
     return out
 
 

@@ -145,9 +145,9 @@ def rms_triangulation_error_mm(camera: Camera, plane_est: LightPlane, plane_true
 # ------------------------------------------------------------------ the camera's share
 def camera_param_names(camera: Camera) -> tuple[str, ...]:
     """The intrinsic parameters in the order of a camera covariance: ``fx, fy, cx, cy`` then ``dist``'s."""
-    from .intrinsics import DIST_NAMES
+    from .lens import coeff_names
 
-    return ("fx", "fy", "cx", "cy") + DIST_NAMES[:camera.dist.size]
+    return ("fx", "fy", "cx", "cy") + coeff_names(camera.model)
 
 
 def camera_params(camera: Camera) -> np.ndarray:
@@ -160,7 +160,7 @@ def camera_with_params(camera: Camera, p: np.ndarray) -> Camera:
     p = np.asarray(p, np.float64)
     K = camera.K.copy()
     K[0, 0], K[1, 1], K[0, 2], K[1, 2] = p[:4]
-    return Camera(K, p[4:], camera.width, camera.height)
+    return Camera(K, p[4:], camera.width, camera.height, model=camera.model)
 
 
 def camera_steps(camera: Camera) -> np.ndarray:

@@ -86,14 +86,12 @@ class BoardPose:
 
 def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board, square_mm: float | None = None,
                       name: str = "", corner_ok: np.ndarray | None = None, ids=None) -> BoardPose:
-    """Board pose from its detected points: ``cv2.solvePnP`` with the camera's distortion, then LM refinement.
+    """Board pose from its detected points: :meth:`Camera.solve_pnp` (``cv2.solvePnP`` and LM, every lens model).
 
     ``board``: a :class:`lightplane.targets.Target` or ``(cols, rows)`` chessboard inner corners
     (with ``square_mm``); ``ids``: the target's ids of ``corners_uv`` (default: all, id order);
     ``corner_ok`` (N,) bool: only these points are used (all when None).
     """
-    import cv2
-
     from ..targets import as_target
 
     target = as_target(board, square_mm)
@@ -106,12 +104,7 @@ def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board, square_mm: 
     o, u = obj[use], uv[use]
     if len(o) < 4:
         raise LightplaneError(f"{name or 'board'}: {len(o)} points, a pose needs at least 4")
-    ok, rvec, tvec = cv2.solvePnP(o, u, camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        raise LightplaneError(f"{name or 'board'}: solvePnP failed")
-    rvec, tvec = cv2.solvePnPRefineLM(o, u, camera.K, camera.dist, rvec, tvec)
-    R, _ = cv2.Rodrigues(rvec)
-    t = tvec.ravel().astype(np.float64)
+    R, t = camera.solve_pnp(o, u, name=name or "board")
     res = camera.project(o @ R.T + t) - u
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
     return BoardPose(uv, R, t, rms, name, None if corner_ok is None else use,

@@ -44,7 +44,8 @@ def calibrate_camera_cmd(
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     import cv2
 
-    from ..intrinsics import INTRINSIC_NAMES, calibrate_camera
+    from ..intrinsics import calibrate_camera
+    from ..lens import coeff_names
     from ..plots import intrinsics_residuals
     from ..uncertainty import camera_uncertainty_summary
 
@@ -72,7 +73,7 @@ def calibrate_camera_cmd(
     t.add_column("± std", justify="right")
     t.add_column("unit")
     values = [cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]
-    for name, v in zip(INTRINSIC_NAMES, values):
+    for name, v in zip(("fx", "fy", "cx", "cy") + coeff_names(cam.model), values):
         unit = "px" if name in ("fx", "fy", "cx", "cy") else "-"
         t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", f"{result.std.get(name, float('nan')):.2g}", unit)
     console.print(t)

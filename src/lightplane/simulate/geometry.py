@@ -38,6 +38,9 @@ from ..plane import LightPlane
 __all__ = [
     "default_camera",
     "default_plane",
+    "lens_camera",
+    "scheimpflug_camera",
+    "scheimpflug_focal_plane",
     "paper_camera",
     "paper_plane",
     "PAPER_DISTANCE_MM",
@@ -82,6 +85,85 @@ def default_plane() -> LightPlane:
     n = np.array([np.cos(t), 0.0, -np.sin(t)])
     d = -float(n @ np.array([0.0, 0.0, _DEFAULT_AXIS_Z_MM]))
     return LightPlane(n, d, meta={"source": "lightplane.simulate.geometry.default_plane"})
+
+
+#: the lens models :func:`lens_camera` builds
+LENS_CAMERAS = ("plumb_bob", "rational", "thin_prism", "tilted", "fisheye")
+
+
+def scheimpflug_focal_plane(tau_x: float, tau_y: float, f_mm: float, u_mm: float) -> LightPlane:
+    """The plane in focus (thin lens of focal length ``f_mm`` focused at ``u_mm`` on the axis) when the sensor
+    is tilted by OpenCV's ``tauX``, ``tauY`` (radians): the Scheimpflug condition.
+
+    The sensor plane (normal ``n_s``: the third row of OpenCV's sensor rotation ``Ry(tauY) Rx(tauX)``,
+    the sensor's z axis in the camera frame) at the image distance ``v = 1 / (1/f - 1/u)``, the lens
+    plane z = 0 and the plane in focus meet in one line; the plane in focus passes through
+    ``(0, 0, u)``, so its normal is ``(n_sx, n_sy, -n_sz v / u)``.
+    """
+    v = 1.0 / (1.0 / f_mm - 1.0 / u_mm)
+    ns = np.array([np.sin(tau_y), -np.cos(tau_y) * np.sin(tau_x), np.cos(tau_y) * np.cos(tau_x)])
+    n = np.array([ns[0], ns[1], -ns[2] * v / u_mm])
+    n /= np.linalg.norm(n)
+    return LightPlane(n, -float(n[2] * u_mm), meta={"source": "lightplane.simulate.geometry.scheimpflug_focal_plane"})
+
+
+def scheimpflug_camera(plane: LightPlane | None = None, *, f_mm: float = 16.0, pixel_mm: float = 0.00375,
+                       dist=(-0.08, 0.12, 4e-4, -3e-4, 0.0)) -> Camera:
+    """A Scheimpflug laser sensor: the default camera's lens (``f_mm``, ``pixel_mm``, principal point,
+    plumb-bob ``dist``) with its sensor tilted (OpenCV's tilted model, tauX, tauY) so that the plane in
+    focus (:func:`scheimpflug_focal_plane`) is ``plane`` (default :func:`default_plane`: a 4.52° tilt
+    about the y axis).  The renderer has no depth-dependent blur, so "in focus" is the geometry only.
+    """
+    plane = default_plane() if plane is None else plane
+    n = np.asarray(plane.normal, float)
+    if abs(n[2]) < 1e-9:
+        raise LightplaneError("scheimpflug_camera: the plane must cross the optical axis")
+    u = -float(plane.d) / n[2]
+    if not u > f_mm:
+        raise LightplaneError(f"scheimpflug_camera: the plane crosses the axis at {u:.1f} mm, not beyond the lens")
+    v = 1.0 / (1.0 / f_mm - 1.0 / u)
+    ns = np.array([n[0], n[1], -n[2] * u / v])
+    ns *= np.sign(ns[2]) / np.linalg.norm(ns)
+    tau_y = float(np.arcsin(ns[0]))
+    tau_x = float(np.arctan2(-ns[1], ns[2]))
+    f_px = f_mm / pixel_mm
+    K = np.array([[f_px, 0.0, 652.3], [0.0, f_px, 471.8], [0.0, 0.0, 1.0]])
+    d = np.concatenate([np.asarray(dist, float).ravel()[:5], np.zeros(7), [tau_x, tau_y]])
+    return Camera(K, d, 1280, 960, model="tilted",
+                  meta={"source": "lightplane.simulate.geometry.scheimpflug_camera", "f_mm": f_mm, "focus_mm": u})
+
+
+def lens_camera(model: str) -> Camera:
+    """A 1280x960 camera (3.75 µm pixels) with each lens model (:data:`LENS_CAMERAS`):
+
+    - ``plumb_bob``: :func:`default_camera`;
+    - ``rational``: a wide 6 mm lens (``fx = fy = 1600 px``, 44° x 33° field), barrel distortion of
+      ~64 px at the corners: ``(k1..k3, k4..k6) = (-0.28, 0.09, -0.01; 0.06, 0.01, 0)``,
+      tangential ``(2e-4, -1.5e-4)``;
+    - ``thin_prism``: the default lens with thin-prism terms ``s1..s4 = (6e-3, -1e-3, -5e-3, 8e-4)``
+      (~1 px at the corners) and the rational terms ``(k4, k5) = (0.02, 0.005)``;
+    - ``tilted``: :func:`scheimpflug_camera` (sensor tilted 4.52°, the default light plane in focus);
+    - ``fisheye``: a 2.6 mm equidistant lens (``fx = fy = 693.3 px``, ±62° across the width),
+      ``(k1..k4) = (0.04, -0.01, 0.002, -3e-4)``.
+    """
+    src = {"source": f"lightplane.simulate.geometry.lens_camera({model!r})"}
+    c = default_camera()
+    if model == "plumb_bob":
+        return c
+    if model == "rational":
+        f = 6.0 / 0.00375
+        K = np.array([[f, 0.0, 645.2], [0.0, f, 476.9], [0.0, 0.0, 1.0]])
+        return Camera(K, [-0.28, 0.09, 2e-4, -1.5e-4, -0.01, 0.06, 0.01, 0.0], 1280, 960, meta=src)
+    if model == "thin_prism":
+        d = np.concatenate([c.dist, [0.02, 0.005, 0.0], [6e-3, -1e-3, -5e-3, 8e-4]])
+        return Camera(c.K, d, 1280, 960, meta=src)
+    if model == "tilted":
+        return scheimpflug_camera()
+    if model == "fisheye":
+        f = 2.6 / 0.00375
+        K = np.array([[f, 0.0, 641.7], [0.0, f, 478.4], [0.0, 0.0, 1.0]])
+        return Camera(K, [0.04, -0.01, 0.002, -3e-4], 1280, 960, model="fisheye", meta=src)
+    raise LightplaneError(f"lens_camera: unknown model {model!r} ({', '.join(LENS_CAMERAS)})")
 
 
 def paper_camera() -> Camera:

@@ -29,7 +29,7 @@ every pixel, then every pixel whose samples do not all see the same material
 (and its 8 neighbours) is integrated again with ``F x F`` samples, so edges are
 anti-aliased to ~1e-3 px without paying ``F²`` everywhere.  Each sample's pixel
 position is mapped to its camera ray through the *distorted* camera by Newton's
-method on the exact plumb-bob model (docs/conventions.md §Lens model), started from the pixel centre's
+method on the camera's exact lens model (lightplane.lens, docs/conventions.md §Lens model), started from the pixel centre's
 solution (two or three steps reach 1e-15).  Sample positions come from a
 deterministic integer hash, so the same scene gives the same bytes.
 """
@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+
+from ..lens import distort_jac, lens_params, undistort_guess
 
 PATCH_COLS = 26
 SPHERE_COLS = 5
@@ -202,21 +204,21 @@ def _value_noise(x, y, z, seed):
     return acc
 
 
+_distort_jac = nb.njit(**_jit)(distort_jac)
+_undistort_guess = nb.njit(**_jit)(undistort_guess)
+
+
 @nb.njit(**_jit)
-def _undistort(xd, yd, x, y, k1, k2, p1, p2, k3, max_iter):
-    """Newton's method for distort(x, y) = (xd, yd), started at (x, y) (docs/conventions.md §Lens model)."""
+def _undistort(xd, yd, x, y, lens, max_iter):
+    """Newton's method for distort(x, y) = (xd, yd), started at (x, y); ``lens`` the packed model of
+    :func:`lightplane.lens.lens_params` (the one implementation of every lens model)."""
     for _ in range(max_iter):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-        fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-        j11 = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-        j12 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-        j22 = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
-        det = j11 * j22 - j12 * j12
+        ex, ey, j11, j12, j21, j22 = _distort_jac(x, y, lens)
+        fx = ex - xd
+        fy = ey - yd
+        det = j11 * j22 - j12 * j21
         dx = (j22 * fx - j12 * fy) / det
-        dy = (-j12 * fx + j11 * fy) / det
+        dy = (-j21 * fx + j11 * fy) / det
         x -= dx
         y -= dy
         if abs(dx) + abs(dy) < 1e-16:
@@ -420,16 +422,16 @@ def _shade(patches, spheres, laser, ambient, x, y, tex):
 
 
 @nb.njit(parallel=True, **_jit)
-def undistort_grid(fx, fy, cx, cy, dist, width, height, offset):
+def undistort_grid(fx, fy, cx, cy, skew, lens, width, height, offset):
     """Normalised undistorted ``(x, y)`` of the pixel positions ``(j + offset, i + offset)``,
     ``i < height, j < width``: ``(height, width, 2)`` float64 (Newton, docs/conventions.md §Lens model)."""
     out = np.empty((height, width, 2))
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for i in nb.prange(height):
         for j in range(width):
-            xd = (j + offset - cx) / fx
             yd = (i + offset - cy) / fy
-            x, y = _undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3, 50)
+            xd = (j + offset - cx - skew * yd) / fx
+            x0, y0 = _undistort_guess(xd, yd, lens)
+            x, y = _undistort(xd, yd, x0, y0, lens, 50)
             out[i, j, 0] = x
             out[i, j, 1] = y
     return out
@@ -454,7 +456,7 @@ def probe_corners(corner_xy, patches, spheres, laser, ambient, tex):
 
 
 @nb.njit(**_jit)
-def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient, S, salt, tex):
+def _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, ambient, S, salt, tex):
     """S x S stratified jittered samples over pixel (u, v): (mean radiance, mixed materials?)."""
     inv_s = 1.0 / S
     acc = 0.0
@@ -465,9 +467,9 @@ def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, l
         for i in range(S):
             st, ju = _next01(st)
             st, jv = _next01(st)
-            xd = (u - 0.5 + (i + ju) * inv_s - cx) / fx
             yd = (v - 0.5 + (j + jv) * inv_s - cy) / fy
-            x, y = _undistort(xd, yd, x0, y0, k1, k2, p1, p2, k3, 4)
+            xd = (u - 0.5 + (i + ju) * inv_s - cx - skew * yd) / fx
+            x, y = _undistort(xd, yd, x0, y0, lens, 4)
             r, mat, d = _shade(patches, spheres, laser, ambient, x, y, tex)
             acc += r
             if mat0 == -2:
@@ -478,12 +480,11 @@ def _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, l
 
 
 @nb.njit(parallel=True, **_jit)
-def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt, tex):
+def render_modes(fx, fy, cx, cy, skew, lens, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt, tex):
     """Integrate every pixel by its mode: 0 uniform (one sample is the exact mean), 1 S x S
     samples (upgraded to F x F if they see several materials), 2 F x F samples."""
     height, width = mode.shape
     img = np.zeros((height, width))
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     for v in nb.prange(height):
         for u in range(width):
             x0 = centre_xy[v, u, 0]
@@ -494,12 +495,12 @@ def render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, ambie
                 img[v, u] = r
                 continue
             if md == 1:
-                r, mix = _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient,
+                r, mix = _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, ambient,
                                 S, salt, tex)
                 if not mix:
                     img[v, u] = r
                     continue
-            r, mix = _pixel(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, x0, y0, patches, spheres, laser, ambient,
+            r, mix = _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, ambient,
                             F, salt, tex)
             img[v, u] = r
     return img
@@ -511,12 +512,11 @@ _RAY_MAPS: dict = {}
 def _ray_maps(camera) -> tuple[np.ndarray, np.ndarray]:
     """Cached rays (normalised undistorted x, y) of the pixel centres ``(H, W, 2)`` and
     corners ``(H+1, W+1, 2)`` of a camera (the last two cameras used are kept, ~40 MB each at 1280x960)."""
-    key = (camera.K.tobytes(), camera.dist.tobytes(), camera.width, camera.height)
+    key = (camera.K.tobytes(), camera.model, camera.dist.tobytes(), camera.width, camera.height)
     if key not in _RAY_MAPS:
         if len(_RAY_MAPS) >= 2:
             _RAY_MAPS.pop(next(iter(_RAY_MAPS)))
-        d = np.ascontiguousarray(camera.dist, dtype=np.float64)
-        args = (camera.fx, camera.fy, camera.cx, camera.cy, d)
+        args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.skew, lens_params(camera.model, camera.dist))
         centre = undistort_grid(*args, camera.width, camera.height, 0.0)
         corner = undistort_grid(*args, camera.width + 1, camera.height + 1, -0.5)
         _RAY_MAPS[key] = (centre, corner)
@@ -542,15 +542,13 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
 
     from ..errors import LightplaneError
 
-    if abs(camera.skew) > 0:
-        raise LightplaneError(f"the renderer models zero skew (docs/conventions.md §Lens model); camera has K[0, 1] = {camera.skew}")
     if int(samples) < 4:
         raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
     patches = np.ascontiguousarray(patches, dtype=np.float64).reshape(-1, PATCH_COLS)
     spheres = np.ascontiguousarray(spheres, dtype=np.float64).reshape(-1, SPHERE_COLS)
     laser = np.ascontiguousarray(laser, dtype=np.float64)
-    dist = np.ascontiguousarray(camera.dist, dtype=np.float64)
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    lens = lens_params(camera.model, camera.dist)
+    fx, fy, cx, cy, skew = camera.fx, camera.fy, camera.cx, camera.cy, camera.skew
     centre_xy, corner_xy = _ray_maps(camera)
     tex = np.zeros(1, np.uint8) if texels is None else np.ascontiguousarray(texels, dtype=np.uint8).ravel()
     for row in patches[patches[:, _TEX] == TEX_BITMAP]:
@@ -574,6 +572,6 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     edge8 = edge.astype(np.uint8)
     mode = np.maximum(cv2.dilate(np.maximum(lit.astype(np.uint8), edge8), kernel), 2 * edge8)
     mode = np.ascontiguousarray(mode.astype(np.uint8))
-    img = render_modes(fx, fy, cx, cy, dist, centre_xy, patches, spheres, laser, float(ambient), mode, int(samples),
+    img = render_modes(fx, fy, cx, cy, skew, lens, centre_xy, patches, spheres, laser, float(ambient), mode, int(samples),
                        int(max(edge_samples, samples)), int(salt), tex)
     return (img, mode) if return_modes else img
