@@ -111,7 +111,7 @@ def test_serial_profile_launches_no_parallel_kernel(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("parallel kernel called")
 
-    for name in ("profile_candidates", "profile_centres", "estimate_fwhm_lines", "profiles_batch"):
+    for name in ("profile_candidates", "profile_centres", "profiles_batch"):
         monkeypatch.setattr(K, name, boom)
     assert_same(ref, extract_profile(img, parallel=False))
     with threads.serial_kernels():

@@ -328,20 +328,29 @@ def _fwhm_line(A, l, c, half, min_peak):
     return right - left, left, right, best, bg
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
-    """Raw FWHM (samples) at the candidate ``p1`` of each line in ``lines``."""
-    for j in prange(lines.shape[0]):
-        l = lines[j]
-        if p1[l] < 0:
-            out[j] = np.nan
-            continue
-        out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
+@njit(cache=True, nogil=True)
+def lines_argmax(A, lines, p1):
+    """``p1[l]`` = the first sample holding line ``l``'s maximum, for ``l`` in ``lines`` only
+    (``argmax``, as :func:`profile_candidates` gives it): one pass over the rows in memory
+    order, a few lines of each (the width estimate samples ~160 lines)."""
+    n = lines.shape[0]
+    best = np.empty(n, dtype=A.dtype)
+    row = A[0]
+    for j in range(n):
+        best[j] = row[lines[j]]
+        p1[lines[j]] = 0
+    for s in range(1, A.shape[0]):
+        row = A[s]
+        for j in range(n):
+            x = row[lines[j]]
+            if x > best[j]:
+                best[j] = x
+                p1[lines[j]] = s
 
 
 @njit(cache=True, nogil=True)
-def estimate_fwhm_lines_serial(A, p1, lines, half, min_peak, out):
-    """:func:`estimate_fwhm_lines` on the calling thread only."""
+def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
+    """Raw FWHM (samples) at the candidate ``p1`` of each line in ``lines`` (serial: few lines)."""
     for j in range(lines.shape[0]):
         l = lines[j]
         if p1[l] < 0:
@@ -452,11 +461,102 @@ def _across_lines(A, r0, M, c0, n, o, k0, k1, k2, X0, X1, X2):
         m += 1
 
 
+BAND_LINES = 32     # lines per band of across-line sums (vectorised over the lines)
+BAND_DRIFT = 8      # lines whose peak is within this many samples of the band's median share it
+
+
+@njit(cache=True, inline="always")
+def _band_sums(A, r0, nr, l0, n, RX, k0, k1, k2, F, band):
+    """``band[k, r, j] = sum_jj kk[jj] A[r0 + r, l0 + j - RX + jj]`` (jj = 0..2RX, in that order).
+
+    The same sums as :func:`_across_lines` for interior lines, bit for bit, computed a row
+    at a time over ``n`` adjacent lines: the inner loop runs along the row (contiguous,
+    converted to float64 once), which the compiler vectorises.
+    """
+    for r in range(nr):
+        src = A[r0 + r, l0 - RX:l0 + n + RX]
+        for j in range(n + 2 * RX):
+            F[j] = float(src[j])
+        b0 = band[0, r]
+        b1 = band[1, r]
+        b2 = band[2, r]
+        for j in range(n):
+            b0[j] = 0.0
+            b1[j] = 0.0
+            b2[j] = 0.0
+        for jj in range(2 * RX + 1):
+            u = k0[jj]
+            v = k1[jj]
+            g = k2[jj]
+            xs = F[jj:jj + n]
+            for j in range(n):
+                x = xs[j]
+                b0[j] += u * x
+                b1[j] += v * x
+                b2[j] += g * x
+
+
+@njit(cache=True)
+def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status, la, lb):
+    """:func:`_centre_line` of lines ``la .. lb - 1``: interior lines in bands of
+    :data:`BAND_LINES`, whose across-line sums are computed together (:func:`_band_sums`)
+    over the rows the peaks near the band's median need; the other lines alone."""
+    S, L = A.shape
+    R = (w0.shape[0] - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
+    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
+    reach = qpeak + 1 + R
+    nrmax = 2 * (reach + BAND_DRIFT) + 1
+    band = np.empty((3, nrmax, BAND_LINES))
+    F = np.empty(BAND_LINES + 2 * RX)
+    buf = np.empty(BAND_LINES, np.int64)
+    k0 = xw[RX, 0]
+    k1 = xw[RX, 1]
+    k2 = xw[RX, 2]
+    l = la
+    while l < lb:
+        l0 = max(l, RX)
+        l1 = min(l0 + BAND_LINES, lb, L - RX)
+        br0 = 0
+        bnr = 0
+        if l == l0 and l1 - l0 >= 8:
+            n = l1 - l0
+            k = 0
+            for j in range(n):
+                if pos[l0 + j] >= 0:
+                    buf[k] = pos[l0 + j]
+                    k += 1
+            if k > 0:
+                srt = np.sort(buf[:k])
+                med = srt[k // 2]
+                lo = med
+                hi = med
+                for j in range(k):
+                    if abs(srt[j] - med) <= BAND_DRIFT:
+                        lo = min(lo, srt[j])
+                        hi = max(hi, srt[j])
+                br0 = max(0, lo - reach)
+                bnr = min(S - 1, hi + reach) - br0 + 1
+                _band_sums(A, br0, bnr, l0, n, RX, k0, k1, k2, F, band)
+            for q in range(l0, l1):
+                _centre_line(A, q, pos[q], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                             centre, normal, strength, intensity, width, status, band, br0, bnr, l0, l1)
+            l = l1
+        else:   # an edge line (or a short remainder): alone
+            _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                         centre, normal, strength, intensity, width, status, band, 0, 0, 0, 0)
+            l += 1
+
+
 @njit(cache=True)
 def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                 centre, normal, strength, intensity, width, status):
+                 centre, normal, strength, intensity, width, status, band, br0, bnr, bl0, bl1):
     """One line of :func:`profile_centres` (a separate serial function: numba's
-    parfor lowering compiles loops inlined in a prange body into much slower code)."""
+    parfor lowering compiles loops inlined in a prange body into much slower code).
+
+    ``band`` (3, rows, lines): the across-line sums of rows ``br0 .. br0 + bnr - 1`` for
+    lines ``bl0 .. bl1 - 1`` (:func:`_band_sums`), used where they cover this line's patch."""
     S, L = A.shape
     R = (w0.shape[0] - 1) // 2
     RX = (xw.shape[2] - 1) // 2
@@ -490,7 +590,15 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     k0 = xw[re, 0]
     k1 = xw[re, 1]
     k2 = xw[re, 2]
-    _across_lines(A, c - 1 - R, 2 * R + 3, l - re, 2 * re + 1, RX - re, k0, k1, k2, X0, X1, X2)
+    r0 = c - 1 - R
+    if bl0 <= l < bl1 and re == RX and r0 >= br0 and r0 + 2 * R + 3 <= br0 + bnr:
+        j = l - bl0
+        for m in range(2 * R + 3):
+            X0[m] = band[0, r0 - br0 + m, j]
+            X1[m] = band[1, r0 - br0 + m, j]
+            X2[m] = band[2, r0 - br0 + m, j]
+    else:
+        _across_lines(A, r0, 2 * R + 3, l - re, 2 * re + 1, RX - re, k0, k1, k2, X0, X1, X2)
     rl = tmp[3]
     rs = tmp[4]
     rll = tmp[5]
@@ -628,13 +736,10 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
     at the peak, ``width`` (px across the stripe), ``status`` (codes above).
     """
     L = A.shape[1]
-    R = (w0.shape[0] - 1) // 2
     nch = (L + _CHUNK - 1) // _CHUNK
     for ch in prange(nch):
-        tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))   # scratch, once per task
-        for l in range(ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK)):
-            _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                         centre, normal, strength, intensity, width, status)
+        _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                       centre, normal, strength, intensity, width, status, ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK))
 
 
 # ----------------------------------------------------------------------------------------
@@ -912,11 +1017,8 @@ def _candidates_frame(A, sep, p1, v1, p2, v2):
 @njit(cache=True, nogil=True)
 def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                    centre, normal, strength, intensity, width, status):
-    R = (w0.shape[0] - 1) // 2
-    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
-    for l in range(A.shape[1]):
-        _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                     centre, normal, strength, intensity, width, status)
+    _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status, 0, A.shape[1])
 
 
 @njit(cache=True, nogil=True)

@@ -267,21 +267,16 @@ def _check_width(width_px, name="width_px") -> float | None:
     return w
 
 
-def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4, parallel: bool | None = None) -> tuple[float, int]:
+def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4) -> tuple[float, int]:
     """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line.
 
-    ``parallel`` None: :func:`lightplane.threads.profile_parallel` decides (as for the profile)."""
+    Serial kernels: a few hundred lines are too little work to split over threads."""
     S, L = A.shape
-    if parallel is None:
-        parallel = profile_parallel(L, S)
-    p1 = np.empty(L, np.int64)
-    p2 = np.empty(L, np.int64)
-    v1 = np.empty(L, np.float64)
-    v2 = np.empty(L, np.float64)
-    (K.profile_candidates if parallel else K._candidates_frame)(A, S, p1, v1, p2, v2)
     lines = np.arange(0, L, every, dtype=np.int64)
+    p1 = np.full(L, -1, np.int64)
+    K.lines_argmax(A, lines, p1)   # one pass over the rows: the peaks the candidates kernel finds
     out = np.empty(lines.size, np.float64)
-    (K.estimate_fwhm_lines if parallel else K.estimate_fwhm_lines_serial)(A, p1, lines, 40, float(min_peak), out)
+    K.estimate_fwhm_lines(A, p1, lines, 40, float(min_peak), out)
     ok = np.isfinite(out)
     if not ok.any():
         return float("nan"), 0
@@ -479,7 +474,7 @@ def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, 
     mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     w = _check_width(width_px)
     if w is None:
-        w, n = _fwhm_median(A, mp, every=max(1, L // 160), parallel=parallel)
+        w, n = _fwhm_median(A, mp, every=max(1, L // 160))
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
     sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
