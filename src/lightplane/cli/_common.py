@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import sys
-from typing import Callable, Iterator, Literal, TypeVar
+from pathlib import Path
+from typing import Any, Callable, Iterator, Literal, Optional, TypeVar
 
 import typer
 from rich.console import Console
@@ -158,3 +160,41 @@ def target_from_options(board, square, marker=None, dictionary=None, dot=None, t
     from ..targets import parse_target
 
     return parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot, target_file=target_file)
+
+
+_KW = inspect.Parameter.POSITIONAL_OR_KEYWORD
+_TARGET_PARAMS = (
+    inspect.Parameter("board", _KW, default=board_option, annotation=Optional[str]),
+    inspect.Parameter("square", _KW, default=square_option, annotation=Optional[float]),
+    inspect.Parameter("marker", _KW, default=marker_option, annotation=Optional[float]),
+    inspect.Parameter("dictionary", _KW, default=dictionary_option, annotation=Optional[str]),
+    inspect.Parameter("dot", _KW, default=dot_option, annotation=Optional[float]),
+    inspect.Parameter("target_file", _KW, default=target_option, annotation=Optional[Path]),
+)
+
+
+#: The default of a command's ``target`` parameter, replaced by the board options (:func:`takes_target`).
+BOARD_OPTIONS: Any = object()
+
+
+def takes_target(fn: F) -> F:
+    """Give a command the board options (``--board/--square/--marker/--dictionary/--dot`` or
+    ``--target``) in place of its ``target`` parameter, which receives the
+    :class:`~lightplane.targets.Target` they name.  Put it below ``handles_errors``, so
+    that a bad board is one line and exit 2 like any other bad input."""
+    sig = inspect.signature(fn)
+    names = list(sig.parameters)
+    if "target" not in names:
+        raise TypeError(f"{fn.__name__} has no 'target' parameter")
+    at = names.index("target")
+    params = list(sig.parameters.values())
+    params[at:at + 1] = _TARGET_PARAMS
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        given = [kwargs.pop(p.name, None) for p in _TARGET_PARAMS]
+        kwargs["target"] = target_from_options(*given)
+        return fn(*args, **kwargs)
+
+    wrapper.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
+    return wrapper  # type: ignore[return-value]

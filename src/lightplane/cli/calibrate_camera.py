@@ -11,8 +11,8 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      progress_bar, square_option, target_from_options, target_option)
+from ..targets import Target
+from ._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
 
 
 #: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
@@ -22,14 +22,10 @@ _CORNER_METHODS = {"saddle": ("blurred-saddle model fit", "fit_corners"),
 
 @app.command("calibrate-camera")
 @handles_errors
+@takes_target
 def calibrate_camera_cmd(
     images: List[str] = typer.Argument(..., help="Images of the board (files, folders or glob patterns)."),
-    board: Optional[str] = board_option,
-    square: Optional[float] = square_option,
-    marker: Optional[float] = marker_option,
-    dictionary: Optional[str] = dictionary_option,
-    dot: Optional[float] = dot_option,
-    target_file: Optional[Path] = target_option,
+    target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     output: Path = typer.Option(..., "-o", "--output", help="Camera file to write (.json; .yaml for ROS, .xml for OpenCV)."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a residual plot (PNG/PDF/SVG)."),
@@ -51,7 +47,6 @@ def calibrate_camera_cmd(
 
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
-    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")

@@ -11,8 +11,8 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      Channel, progress_bar, square_option, target_from_options, target_option)
+from ..targets import Target
+from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
 
 
 def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
@@ -108,16 +108,12 @@ def read_laser_frames(lasers: list[Path], patterns: list | None, background: lis
 
 @app.command("calibrate-plane-board")
 @handles_errors
+@takes_target
 def calibrate_plane_board_cmd(
     images: List[str] = typer.Argument(..., help="Laser images of the board, one pose each, or with --pattern / "
                                        "--cycle several per pose (files, folders, globs)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
-    board: Optional[str] = board_option,
-    square: Optional[float] = square_option,
-    marker: Optional[float] = marker_option,
-    dictionary: Optional[str] = dictionary_option,
-    dot: Optional[float] = dot_option,
-    target_file: Optional[Path] = target_option,
+    target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     output: Path = typer.Option(..., "-o", "--output", help="Light-plane JSON file to write."),
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; "
                                                    "repeat the option): one per image, same order, or one for all."),
@@ -137,7 +133,6 @@ def calibrate_plane_board_cmd(
     from ..baselines.zhou import calibrate_plane_board
     from ..camera import Camera
 
-    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     check_output(output, force)
     cam = Camera.load(camera)
     files = expand_inputs(images)

@@ -12,8 +12,8 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import atomic_write, check_output, dumps_json, expand_inputs, provenance
-from ._common import (app, board_option, console, dictionary_option, dot_option, handles_errors, marker_option,
-                      Channel, progress_bar, square_option, target_from_options, target_option)
+from ..targets import Target
+from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
 from .calibrate_plane_board import read_laser_frames
 
 
@@ -24,16 +24,12 @@ def _labels(paths: List[Path]) -> list[str]:
 
 @app.command("evaluate")
 @handles_errors
+@takes_target
 def evaluate_cmd(
     images: List[str] = typer.Argument(..., help="Laser-on images of the board (files, folders, globs)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (JSON, ROS YAML or OpenCV YAML/XML)."),
     plane: List[Path] = typer.Option(..., "--plane", help="Light-plane JSON file to evaluate (repeat to compare)."),
-    board: Optional[str] = board_option,
-    square: Optional[float] = square_option,
-    marker: Optional[float] = marker_option,
-    dictionary: Optional[str] = dictionary_option,
-    dot: Optional[float] = dot_option,
-    target_file: Optional[Path] = target_option,
+    target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write per plane its pairs (dt, dm, delta, mm) and RMS."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", help="Write the table as CSV (mm)."),
     background: Optional[List[str]] = typer.Option(None, "--background", help="Laser-off frames (file, folder or glob; repeat the option): one per image or one for all."),
@@ -49,7 +45,6 @@ def evaluate_cmd(
     from ..evaluate import evaluate_images
     from ..plane import LightPlane
 
-    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     for out in (json_out, csv_out):
         if out is not None:
             check_output(out, force)

@@ -11,22 +11,18 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import (app, board_option, console, dictionary_option, dot_option, err_console, handles_errors,
-                      marker_option, progress_bar, square_option, target_from_options, target_option)
+from ..targets import Target
+from ._common import (app, BOARD_OPTIONS, console, err_console, handles_errors, progress_bar, takes_target)
 
 
 @app.command("calibrate-turntable")
 @handles_errors
+@takes_target
 def calibrate_turntable_cmd(
     images: List[str] = typer.Argument(..., help="Images of a board standing on the turntable, the table turned "
                                        "between them (files, folders, globs)."),
     camera: Path = typer.Option(..., "--camera", help="Camera file (calibrated in the frame the images are read in)."),
-    board: Optional[str] = board_option,
-    square: Optional[float] = square_option,
-    marker: Optional[float] = marker_option,
-    dictionary: Optional[str] = dictionary_option,
-    dot: Optional[float] = dot_option,
-    target_file: Optional[Path] = target_option,
+    target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     output: Path = typer.Option(..., "-o", "--output", help="Turntable JSON file to write."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
@@ -42,7 +38,6 @@ def calibrate_turntable_cmd(
     from ..io import try_read_image
     from ..turntable import calibrate_turntable
 
-    target = target_from_options(board, square, marker, dictionary, dot, target_file)
     check_output(output, force)
     cam = Camera.load(camera)
     files = expand_inputs(images)
