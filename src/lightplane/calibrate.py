@@ -41,6 +41,7 @@ import numpy as np
 from .camera import Camera
 from .errors import LightplaneError
 from .geometry import default_workers, robust_line, robust_sigma, tls_line
+from .plane import LightPlane
 from .plane_solvers import (PlacementResult, PlaneCalibration, SolverOptions, calibrate_plane_from_points,
                             check_calibration_args)
 
@@ -48,7 +49,10 @@ if TYPE_CHECKING:
     from .ellipse.model import Ellipse
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
-           "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers"]
+           "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers", "propagate_camera"]
+
+#: The plane file's key for the plane's dependence on the intrinsics (see :func:`propagate_camera`).
+CAMERA_JACOBIAN_KEY = "camera_jacobian"
 
 
 @dataclass(frozen=True, eq=False)
@@ -740,6 +744,11 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     warnings.extend(f"{o.name} not used: {o.reason}" for o in obs if not o.ok)
     meta = dict(cal.plane.meta)
     meta.update({"diameter_mm": diameter, "n_images": n})
+    if camera.covariance is not None and cal.covariance is not None:
+        rims, stripes = [o.rim_uv for o in ok], [o.stripe_uv for o in ok]
+        meta[CAMERA_JACOBIAN_KEY] = propagate_camera(
+            lambda cam: calibrate_plane_from_points(cam, diameter, rims, stripes, method=method, options=solver,
+                                                    min_placements=min_placements).plane, camera, cal.plane)
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cal.plane.covariance, meta=meta)
     return ImagePlaneCalibration(plane=plane, covariance=cal.covariance, sigma_px=cal.sigma_px,
                                  placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,
@@ -748,18 +757,51 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
                                  seconds=seconds + time.perf_counter() - t_start)
 
 
+def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plane: LightPlane) -> dict:
+    """The plane's dependence on the intrinsics, for the plane file (``camera_jacobian``).
+
+    ``solve(camera)`` re-runs the whole plane calibration (circle poses, stripe rays,
+    chord choice, ML) on the same image points with other intrinsics.  It is run at ±1
+    sigma along each principal axis ``s_k`` of the camera's covariance; the central
+    differences ``g_k = (plane(K + s_k) − plane(K − s_k)) / 2`` give
+    ``J = G S⁺`` (4 x P, ``S`` the steps as columns): ``∂(a, b, c, d)/∂(fx, fy, cx, cy, dist)``
+    within the span of the covariance.  Returns ``{"params", "matrix", "covariance_camera"
+    (J Cov(K) Jᵀ, the plane's covariance due to the intrinsics alone), "method"}``.
+    """
+    from .uncertainty import camera_param_names, camera_params, camera_steps, camera_with_params
+
+    steps = camera_steps(camera)
+    p0 = camera_params(camera)
+    G = []
+    for s in steps:
+        th = [solve(camera_with_params(camera, p0 + sign * s)).coefficients for sign in (1.0, -1.0)]
+        if np.dot(th[0][:3], plane.normal) < 0 or np.dot(th[1][:3], plane.normal) < 0:
+            raise LightplaneError("the plane's dependence on the intrinsics: a re-solve flipped the plane")
+        G.append(0.5 * (th[0] - th[1]))
+    J = np.array(G).T @ np.linalg.pinv(steps.T) if len(G) else np.zeros((4, len(p0)))
+    C = J @ np.asarray(camera.covariance) @ J.T
+    return {"params": list(camera_param_names(camera)), "matrix": J.tolist(), "covariance_camera": C.tolist(),
+            "method": "central differences of the whole plane solve at ±1 sigma along the principal axes of "
+                      "the intrinsics' covariance"}
+
+
 def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     """The plane's uncertainty in the user's units (needs ``cal.covariance``, i.e. ``ml``).
 
     Returns a dict: ``normal_sigma_deg`` (the two principal standard deviations of the
     normal's direction, deg, largest first), ``d_sigma_mm``, ``working_distance_mm``
     (where the plane crosses the optical axis), ``point_sigma_axis_mm`` (sigma of a
-    point triangulated there), ``distance_range_mm`` (the used targets' distances) and
-    ``point_sigma_rms_mm`` (RMS over the image region whose rays meet the plane in that
-    range).  Empty without a covariance.  Point sigmas cover the plane's uncertainty
-    only (:mod:`lightplane.uncertainty`).
+    point triangulated there), ``distance_range_mm`` (the used targets' distances),
+    ``point_sigma_rms_mm`` (camera frame) and ``shape_sigma_rms_mm`` (after the best
+    rigid motion), RMS over the image region whose rays meet the plane in that range,
+    with all the sources the files carry, and ``plane_only_sigma_rms_mm`` (the plane's
+    image noise alone); ``covers`` says which sources each covers, ``camera_share``
+    whether the camera's is included (it needs a camera file with a covariance).  With the
+    camera's share also ``normal_sigma_with_camera_deg`` and ``d_sigma_with_camera_mm``
+    (``normal_sigma_deg``, ``d_sigma_mm``: the plane's image noise only).  Empty without a
+    covariance (:mod:`lightplane.uncertainty`).
     """
-    from .uncertainty import point_sigma_mm, rms_point_sigma_mm, working_volume_grid
+    from .uncertainty import WHICH_SIGMA, camera_share_status, point_sigma_mm, volume_sigma, working_volume_grid
 
     C = cal.covariance
     if C is None:
@@ -771,15 +813,24 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
     B = np.column_stack([e1, e2])
-    w = np.linalg.eigvalsh(B.T @ np.asarray(C)[:3, :3] @ B)
-    out = {"normal_sigma_deg": [float(np.degrees(np.sqrt(max(x, 0.0)))) for x in w[::-1]],
-           "d_sigma_mm": float(np.sqrt(max(C[3, 3], 0.0)))}
+    def principal_deg(M):
+        w = np.linalg.eigvalsh(B.T @ np.asarray(M)[:3, :3] @ B)
+        return [float(np.degrees(np.sqrt(max(x, 0.0)))) for x in w[::-1]]
+
+    out: dict = {"normal_sigma_deg": principal_deg(C), "d_sigma_mm": float(np.sqrt(max(C[3, 3], 0.0)))}
+    why_not = camera_share_status(camera, plane)
+    if why_not is None:
+        Ct = np.asarray(C) + np.asarray(plane.meta[CAMERA_JACOBIAN_KEY]["covariance_camera"])
+        out["normal_sigma_with_camera_deg"] = principal_deg(Ct)
+        out["d_sigma_with_camera_mm"] = float(np.sqrt(max(Ct[3, 3], 0.0)))
+    out["camera_share"] = "included" if why_not is None else why_not
     p_axis = plane.point_on_axis()
     if np.all(np.isfinite(p_axis)) and p_axis[2] > 0:
         out["working_distance_mm"] = float(p_axis[2])
         uv = camera.project(p_axis[None])
         if np.all(np.isfinite(uv)):
             out["point_sigma_axis_mm"] = float(point_sigma_mm(camera, plane, uv)[0])
+            out["point_sigma_axis_plane_only_mm"] = float(point_sigma_mm(camera, plane, uv, covariance=C)[0])
     dists = [float(np.linalg.norm(p.pose.center)) for p in cal.placements if p.used and p.pose is not None]
     if dists:
         rng = (min(dists), max(dists))
@@ -788,7 +839,17 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
         out["distance_range_mm"] = [rng[0], rng[1]]
         try:
             vol = working_volume_grid(camera, plane, distance_mm=rng)
-            out["point_sigma_rms_mm"] = rms_point_sigma_mm(camera, plane, vol)
+            vs = volume_sigma(camera, plane, vol)
+            out["point_sigma_rms_mm"] = vs.camera_frame_mm
+            out["shape_sigma_rms_mm"] = vs.shape_mm
+            out["plane_only_sigma_rms_mm"] = vs.plane_only_mm
+            out["covers"] = {
+                "point_sigma_rms_mm": f"camera frame (absolute positions), RMS over the targets' range; {vs.covers}",
+                "shape_sigma_rms_mm": f"after the best rigid motion over that volume (distances, heights, "
+                                      f"flatness); {vs.covers}",
+                "plane_only_sigma_rms_mm": "camera frame; the plane calibration's image noise only (the camera "
+                                           "taken as exact)",
+                "which": WHICH_SIGMA}
         except LightplaneError:
             pass
     return out

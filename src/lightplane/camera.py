@@ -378,7 +378,7 @@ class Camera:
             d["rms_px"] = self.rms_px
         if self.covariance is not None:
             d["covariance"] = self.covariance.tolist()
-            d["covariance_params"] = list(self.covariance_params)
+            d["covariance_params"] = list(self.covariance_params or ())
         return d
 
     @classmethod

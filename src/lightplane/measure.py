@@ -142,8 +142,11 @@ class Profile:
     One entry per image column (``axis="columns"``) or row of the roi:
 
     - ``points`` (N, 3) float64 mm, camera frame; NaN where not ``valid``;
-    - ``sigma_mm`` (N,) σ of each point from the plane's covariance
-      (:func:`points_sigma_mm`; NaN when the plane has none);
+    - ``sigma_mm`` (N,) σ of each point (camera frame) from the plane's covariance and,
+      when the camera file has a covariance and the plane file its dependence on the
+      intrinsics, the camera's share (:func:`lightplane.uncertainty.point_error_basis`;
+      ``ProfileMeasurer.camera_share_missing`` says why not otherwise); NaN when the
+      plane has no covariance;
     - ``uv`` (N, 2) float64 distorted source pixels of the stripe centres;
     - ``valid`` (N,) bool: a stripe centre was found and its ray meets the plane;
     - ``intensity`` (N,) smoothed image value at the stripe's peak (grey levels);
@@ -267,6 +270,10 @@ class ProfileMeasurer:
                                   f"{max_width_ratio!r}")
         self.min_width_ratio, self.max_width_ratio = lo, hi
         self.stripe_options = dict(stripe_options)
+        from .uncertainty import camera_share_status
+
+        #: None when the points' sigma includes the camera's share, else why not (one sentence)
+        self.camera_share_missing = camera_share_status(camera, plane)
         self._lookup = bool(lookup)
         # lookup tables (xy, d xy / d sample per roi pixel) and which blocks of them are built
         self._xy = self._dxy = self._built = None
@@ -466,7 +473,14 @@ class ProfileMeasurer:
         ok = valid & tri.valid
         pts = tri.points
         pts[~ok] = np.nan
-        sigma = points_sigma_mm(self.plane, xy)
+        if self.camera_share_missing is None and self.plane.covariance is not None and np.any(ok):
+            from .uncertainty import point_error_basis
+
+            sigma = np.full(len(uv), np.nan)
+            E, _ = point_error_basis(self.camera, self.plane, uv[ok])
+            sigma[ok] = np.sqrt(np.sum(E**2, axis=(1, 2)))
+        else:
+            sigma = points_sigma_mm(self.plane, xy)
         sigma[~ok] = np.nan
         n = len(uv)
         inten = np.full(n, np.nan) if intensity is None else np.asarray(intensity, float)

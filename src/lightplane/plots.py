@@ -133,12 +133,13 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
                     covariance: np.ndarray | None = None, title: str | None = None) -> Path:
     """Write a PNG map of the triangulated points' sigma (mm) over the image.
 
-    Every pixel of a ``step_px`` grid is coloured by :func:`lightplane.uncertainty.point_sigma_mm`; pixels
+    Every pixel of a ``step_px`` grid is coloured by :func:`lightplane.uncertainty.point_sigma_mm`
+    (camera frame; the camera's share included when the files carry it, as the colour bar says); pixels
     whose ray meets the plane outside ``distance_mm`` are greyed out, and contours
     mark the distance to the camera (mm).  Written atomically.
     """
     from .measure import triangulate
-    from .uncertainty import point_sigma_mm
+    from .uncertainty import camera_share_status, point_sigma_mm
 
     plt = _plt()
     us = np.arange(0, camera.width, step_px)
@@ -161,7 +162,10 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
             cs = ax.contour(U, V, np.where(finite, dist, np.nan), levels=levels, colors="white", linewidths=0.6)
             ax.clabel(cs, fmt="%d mm", fontsize=7)
     cb = fig.colorbar(im, ax=ax, shrink=0.8)
-    cb.set_label("σ of triangulated point from the plane's covariance (µm)")
+    with_camera = covariance is None and camera_share_status(camera, plane) is None
+    cb.set_label("σ of a triangulated point, camera frame (µm): " +
+                 ("plane calibration + camera intrinsics" if with_camera else
+                  "plane calibration only (camera's share not included)"))
     ax.set_xlabel("u (px)")
     ax.set_ylabel("v (px)")
     ax.set_title(title or f"Point uncertainty, working volume {distance_mm[0]:g}–{distance_mm[1]:g} mm from the camera")

@@ -112,13 +112,25 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
                  ("offset d σ", f"{unc['d_sigma_mm']:.4f} mm")]
         if "working_distance_mm" in unc:
             rows.append(("working distance (plane on the optical axis)", f"{unc['working_distance_mm']:.1f} mm"))
+        if "normal_sigma_with_camera_deg" in unc:
+            rows += [("with the camera's share: normal σ",
+                      f"{unc['normal_sigma_with_camera_deg'][0]:.4f} deg, {unc['normal_sigma_with_camera_deg'][1]:.4f} deg"),
+                     ("with the camera's share: offset d σ", f"{unc['d_sigma_with_camera_mm']:.4f} mm")]
         if "point_sigma_axis_mm" in unc:
-            rows.append(("σ of a triangulated point there (plane calibration only)",
-                         f"{unc['point_sigma_axis_mm'] * 1e3:.2f} µm"))
+            rows.append(("σ of a triangulated point there (camera frame; all sources the files carry)",
+                         f"{unc['point_sigma_axis_mm'] * 1e3:.2f} µm (plane calibration only: "
+                         f"{unc['point_sigma_axis_plane_only_mm'] * 1e3:.2f} µm)"))
         if "point_sigma_rms_mm" in unc:
             lo, hi = unc["distance_range_mm"]
-            rows.append((f"RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm",
-                         f"{unc['point_sigma_rms_mm'] * 1e3:.2f} µm"))
+            cov = unc["covers"]
+            rows += [(f"RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm, camera frame",
+                      f"{unc['point_sigma_rms_mm'] * 1e3:.2f} µm — {cov['point_sigma_rms_mm']}"),
+                     ("RMS shape σ there (after the best rigid motion)",
+                      f"{unc['shape_sigma_rms_mm'] * 1e3:.2f} µm — {cov['shape_sigma_rms_mm']}"),
+                     ("RMS point σ, plane calibration only", f"{unc['plane_only_sigma_rms_mm'] * 1e3:.2f} µm"),
+                     ("which σ applies", cov["which"])]
+        if unc.get("camera_share", "included") != "included":
+            rows.append(("camera's share", unc["camera_share"]))
     else:
         rows.append(("uncertainty", f"not available for method '{cal.method}' (use 'ml')"))
     if cal.ambiguity is not None:

@@ -9,10 +9,19 @@ the plane moves it by ``J δ`` with
 so ``Cov(X) = J Σ Jᵀ`` (Σ: the plane's 4x4 covariance).  ``point_sigma_mm`` is
 ``sqrt(trace Cov(X))``: the RMS length of the 3D error vector (mm).
 
+The camera's share (issue 15): a camera file from ``calibrate-camera`` carries the
+covariance of its intrinsics (``fx, fy, cx, cy``, distortion); the plane calibration then
+records ``∂(a, b, c, d)/∂(intrinsics)`` (the circle poses and the stripe rays both depend
+on them).  A point moved by a change δK of the intrinsics moves by
+``dX = ∂X/∂K δK + ∂X/∂plane · ∂plane/∂K δK`` — the ray and the plane are correlated,
+and the two terms partly cancel — evaluated by central differences along the principal
+axes of Cov(K) (:func:`point_error_basis`).  Two figures over a working volume
+(:func:`volume_sigma`): the camera-frame sigma, and the shape sigma after the best rigid
+motion (an error of the principal point mostly rotates the whole frame).
+
 What it does NOT cover: the stripe centre's own image noise (a per-point effect that
-averages out along a profile), errors of the camera intrinsics and distortion, and
-model errors (a curved or thick light sheet); it is the part due to the plane
-calibration only, i.e. the systematic error shared by all points of a scan.
+averages out along a profile) and model errors (a curved or thick light sheet, a lens
+the distortion model does not fit); it is the systematic error shared by all points of a scan.
 
 >>> import numpy as np
 >>> from lightplane import Camera, LightPlane
@@ -35,7 +44,8 @@ from .plane import LightPlane
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
-           "ray_sigma_rad"]
+           "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
+           "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -63,26 +73,30 @@ def point_covariance(camera: Camera, plane: LightPlane, uv: np.ndarray, *,
                      covariance: np.ndarray | None = None) -> np.ndarray:
     """(N, 3, 3) covariance (mm²) of points triangulated from distorted pixels ``uv`` (N, 2).
 
-    From the plane's covariance only (or ``covariance``, a 4x4 of ``(a, b, c, d)``,
-    e.g. a Cramér–Rao bound); NaN for rays nearly parallel to the plane.
+    From the plane's covariance and, when the camera file has a covariance and the plane
+    file records its dependence on the intrinsics, the camera's share with the ray–plane
+    correlation (:func:`point_error_basis`); with ``covariance`` (a 4x4 of ``(a, b, c, d)``,
+    e.g. a Cramér–Rao bound) that matrix alone.  NaN for rays nearly parallel to the plane.
     """
     uv = as_points(uv, 2, "uv")
-    cov = _plane_cov(plane, covariance)
-    J = _point_jacobian(plane, camera.undistort_points(uv, normalized=True))
-    return J @ cov @ np.swapaxes(J, 1, 2)
+    E, _ = point_error_basis(camera, plane, uv, covariance=covariance, camera_share=covariance is None)
+    return E @ np.swapaxes(E, 1, 2)
 
 
 def point_sigma_mm(camera: Camera, plane: LightPlane, uv: np.ndarray, *,
                    covariance: np.ndarray | None = None) -> np.ndarray:
     """(N,) sigma (mm) of points triangulated from distorted pixels ``uv`` (N, 2).
 
-    ``sqrt(trace Cov(X))``: the RMS length of the 3D error due to the plane's
-    uncertainty (first-order propagation, module docstring).  NaN for grazing rays.
-    Raises when there is no covariance.  Computed by
-    :func:`lightplane.measure.points_sigma_mm` from the undistorted rays.
+    ``sqrt(trace Cov(X))``: the RMS length of the 3D error (camera frame) due to the plane's
+    uncertainty and, where the files carry it, the camera's (:func:`point_covariance`;
+    :func:`camera_share_status` says whether).  NaN for grazing rays.  Raises when the
+    plane has no covariance.  Plane only: :func:`lightplane.measure.points_sigma_mm`.
     """
     uv = as_points(uv, 2, "uv")
     cov = _plane_cov(plane, covariance)
+    if covariance is None and camera_share_status(camera, plane) is None:
+        E, _ = point_error_basis(camera, plane, uv)
+        return np.sqrt(np.sum(E**2, axis=(1, 2)))
     return points_sigma_mm(plane, camera.undistort_points(uv, normalized=True), covariance=cov)
 
 
@@ -126,7 +140,7 @@ def working_volume_grid(camera: Camera, plane: LightPlane, *, distance_mm: tuple
 
 def rms_point_sigma_mm(camera: Camera, plane: LightPlane, volume: WorkingVolume, *,
                        covariance: np.ndarray | None = None) -> float:
-    """RMS over the working volume of :func:`point_sigma_mm` (mm)."""
+    """RMS over the working volume of :func:`point_sigma_mm` (mm; camera frame)."""
     s = point_sigma_mm(camera, plane, volume.uv, covariance=covariance)
     return float(np.sqrt(np.nanmean(s**2)))
 
@@ -225,3 +239,135 @@ def camera_uncertainty_summary(camera: Camera, distance_mm: float, step_px: floa
             "ray_sigma_deg_rms": float(np.degrees(rms)), "ray_sigma_deg_max": float(np.degrees(mx)),
             "ray_sigma_mm_rms": rms * float(distance_mm), "ray_sigma_mm_max": mx * float(distance_mm),
             "covers": CAMERA_SHARE_COVERS}
+
+
+# ------------------------------------------------------- points: the plane's and the camera's shares
+#: The plane file's record of the plane's dependence on the intrinsics.
+CAMERA_JACOBIAN_KEY = "camera_jacobian"
+
+
+def plane_camera_jacobian(plane: LightPlane) -> tuple[np.ndarray, tuple[str, ...]] | None:
+    """``(J (4, P), params)``: ∂(a, b, c, d)/∂(intrinsics) recorded by the plane calibration
+    (:func:`lightplane.calibrate.propagate_camera`), or None."""
+    rec = plane.meta.get(CAMERA_JACOBIAN_KEY)
+    if not rec:
+        return None
+    try:
+        J = np.asarray(rec["matrix"], np.float64)
+        names = tuple(str(n) for n in rec["params"])
+    except (KeyError, TypeError, ValueError):
+        raise LightplaneError(f"plane file: field '{CAMERA_JACOBIAN_KEY}' must hold 'matrix' (4xP) and 'params'") from None
+    if J.shape != (4, len(names)) or not np.all(np.isfinite(J)):
+        raise LightplaneError(f"plane file: '{CAMERA_JACOBIAN_KEY}' matrix must be finite 4x{len(names)}, got {J.shape}")
+    return J, names
+
+
+def camera_share_status(camera: Camera, plane: LightPlane) -> str | None:
+    """None when the camera's share can be included in a point's uncertainty, else why not (one sentence)."""
+    if camera.covariance is None:
+        return CAMERA_SHARE_MISSING
+    rec = plane_camera_jacobian(plane)
+    if rec is None:
+        return ("the camera's share is not included (the plane file records no dependence on the intrinsics: "
+                "calibrate the plane with a camera file that has a covariance)")
+    if rec[1] != camera_param_names(camera):
+        raise LightplaneError(f"the plane was calibrated with a camera of parameters ({', '.join(rec[1])}) but this "
+                              f"camera has ({', '.join(camera_param_names(camera))}): wrong camera file?")
+    return None
+
+
+def _shifted_plane(plane: LightPlane, delta: np.ndarray) -> LightPlane:
+    return LightPlane(plane.normal + delta[:3], plane.d + delta[3])
+
+
+def point_error_basis(camera: Camera, plane: LightPlane, uv: np.ndarray, *, covariance: np.ndarray | None = None,
+                      camera_share: bool = True) -> tuple[np.ndarray, bool]:
+    """``(E (N, 3, m), camera_included)``: the points triangulated from distorted pixels
+    ``uv`` (N, 2) err by ``E ξ`` with ``ξ ~ N(0, I_m)`` common to all points (first order).
+
+    The columns: the plane's own covariance (image noise of the plane calibration; or
+    ``covariance``, a 4x4 to use instead), then — when ``camera_share`` and the camera
+    has a covariance and the plane records its dependence on the intrinsics — one column
+    per principal axis of the intrinsics' covariance: each point moved by a one-sigma
+    change of the intrinsics *with* the plane's change it causes (the ray and the plane
+    are correlated through the same intrinsics), by central differences.  A point's
+    covariance is ``E_i E_iᵀ``; two points' cross-covariance ``E_i E_jᵀ``.
+    """
+    uv = as_points(uv, 2, "uv")
+    cov = _plane_cov(plane, covariance)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    U = V * np.sqrt(np.maximum(w, 0.0))
+    xy = camera.undistort_points(uv, normalized=True)
+    cols = [_point_jacobian(plane, xy) @ U]
+    included = bool(camera_share) and camera_share_status(camera, plane) is None
+    if included:
+        J, _ = plane_camera_jacobian(plane)  # type: ignore[misc]
+        p0 = camera_params(camera)
+        D = []
+        for s in camera_steps(camera):
+            a = triangulate_normalized(_shifted_plane(plane, J @ s),
+                                       camera_with_params(camera, p0 + s).undistort_points(uv, normalized=True)).points
+            b = triangulate_normalized(_shifted_plane(plane, -J @ s),
+                                       camera_with_params(camera, p0 - s).undistort_points(uv, normalized=True)).points
+            D.append(0.5 * (a - b))
+        if D:
+            cols.append(np.stack(D, axis=2))
+    return np.concatenate(cols, axis=2), included
+
+
+def rigid_motion_basis(points: np.ndarray) -> np.ndarray:
+    """(3N, 6) orthonormal basis of the point displacements a small rigid motion of the
+    ``points`` (N, 3) makes (3 translations, 3 rotations about their centroid)."""
+    p = points - points.mean(axis=0)
+    n = len(p)
+    B = np.zeros((n, 3, 6))
+    B[:, :, :3] = np.eye(3)
+    for k in range(3):
+        B[:, :, 3 + k] = np.cross(np.eye(3)[k], p)
+    Q, _ = np.linalg.qr(B.reshape(3 * n, 6))
+    return Q
+
+
+def shape_error_basis(E: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``E`` (N, 3, m) with the part a rigid motion of ``points`` explains projected out:
+    the errors left after the best rigid alignment of the point set (first order)."""
+    n, _, m = E.shape
+    Q = rigid_motion_basis(points)
+    flat = E.reshape(3 * n, m)
+    return (flat - Q @ (Q.T @ flat)).reshape(n, 3, m)
+
+
+@dataclass(frozen=True)
+class VolumeSigma:
+    """RMS sigmas (mm) over a working volume's points: ``camera_frame_mm`` (absolute
+    positions), ``shape_mm`` (after the best rigid motion over the volume), both with all
+    the sources the files carry; ``plane_only_mm`` the plane calibration's image noise
+    alone (the figure of earlier versions); ``camera_included`` and ``covers`` say which."""
+
+    camera_frame_mm: float
+    shape_mm: float
+    plane_only_mm: float
+    camera_included: bool
+    covers: str
+
+
+def volume_sigma(camera: Camera, plane: LightPlane, volume: WorkingVolume, *,
+                 covariance: np.ndarray | None = None) -> VolumeSigma:
+    """Camera-frame and shape sigma over ``volume`` (see :class:`VolumeSigma`)."""
+    E, inc = point_error_basis(camera, plane, volume.uv, covariance=covariance)
+    ok = np.all(np.isfinite(E), axis=(1, 2))
+    E = E[ok]
+    if len(E) < 3:
+        raise LightplaneError("fewer than 3 working-volume points to state an uncertainty over")
+    frame = float(np.sqrt(np.sum(E**2) / len(E)))
+    shape = float(np.sqrt(np.sum(shape_error_basis(E, volume.points[ok]) ** 2) / len(E)))
+    plane_only = float(np.sqrt(np.sum(E[:, :, :4] ** 2) / len(E)))
+    covers = ("the plane calibration's image noise and " + CAMERA_SHARE_COVERS if inc else
+              "the plane calibration's image noise only; " + (camera_share_status(camera, plane) or ""))
+    return VolumeSigma(frame, shape, plane_only, inc, covers)
+
+
+#: One sentence saying which sigma applies when (printed next to the two figures).
+WHICH_SIGMA = ("camera-frame σ: absolute positions (robot guidance, registration to a machine); "
+               "shape σ: what remains after the best rigid motion over the working volume (distances, heights, "
+               "flatness)")

@@ -100,7 +100,7 @@ def calibrate_camera_cmd(
     work_mm = float(distance if distance is not None else result.options["median_board_distance_mm"])
     cu = camera_uncertainty_summary(cam, work_mm)
     if cu["included"]:
-        console.print(f"Camera uncertainty (full covariance of {', '.join(cam.covariance_params)}; corner noise "
+        console.print(f"Camera uncertainty (full covariance of {', '.join(cam.covariance_params or ())}; corner noise "
                       f"{result.options['covariance_sigma_px']:.3f} px from the residuals, board poses marginalised): "
                       f"a ray's direction σ {cu['ray_sigma_deg_rms']:.4f} deg RMS over the image "
                       f"(max {cu['ray_sigma_deg_max']:.4f} deg), i.e. {cu['ray_sigma_mm_rms']:.4f} mm "

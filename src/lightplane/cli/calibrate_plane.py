@@ -65,13 +65,23 @@ def calibrate_plane_cmd(
                   f"{cal.plane.d:+.4f} = 0")
     if unc:
         console.print(f"  σ normal {unc['normal_sigma_deg'][0]:.4f} deg / {unc['normal_sigma_deg'][1]:.4f} deg "
-                      f"(principal directions), σ offset {unc['d_sigma_mm']:.4f} mm")
+                      f"(principal directions), σ offset {unc['d_sigma_mm']:.4f} mm (plane calibration's image noise)")
+        if "normal_sigma_with_camera_deg" in unc:
+            console.print(f"  with the camera's share: σ normal {unc['normal_sigma_with_camera_deg'][0]:.4f} deg / "
+                          f"{unc['normal_sigma_with_camera_deg'][1]:.4f} deg, σ offset "
+                          f"{unc['d_sigma_with_camera_mm']:.4f} mm")
         if "point_sigma_axis_mm" in unc:
             console.print(f"  σ of a measured point at the working distance {unc['working_distance_mm']:.0f} mm: "
-                          f"{unc['point_sigma_axis_mm']:.4f} mm (plane calibration only)")
+                          f"{unc['point_sigma_axis_mm']:.4f} mm (camera frame; plane calibration only: "
+                          f"{unc['point_sigma_axis_plane_only_mm']:.4f} mm)")
         if "point_sigma_rms_mm" in unc:
             lo, hi = unc["distance_range_mm"]
-            console.print(f"  RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm: {unc['point_sigma_rms_mm']:.4f} mm")
+            console.print(f"  RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm: camera frame "
+                          f"{unc['point_sigma_rms_mm']:.4f} mm, shape {unc['shape_sigma_rms_mm']:.4f} mm "
+                          f"(plane calibration only: {unc['plane_only_sigma_rms_mm']:.4f} mm)")
+            console.print(f"  ({unc['covers']['which']})")
+        if unc["camera_share"] != "included":
+            console.print(f"  note: {unc['camera_share']}")
     else:
         console.print("  (no covariance with this method; use --method ml for the uncertainty)")
     nm = cal.plane.meta.get("noise_model") or {}

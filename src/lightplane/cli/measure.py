@@ -55,7 +55,7 @@ A sensor file (lightplane sensor, import-fabscan) gives the camera, the named pl
 
   measure frames/ --camera cam.json --plane plane.json --step 0.5 --direction=-1,0,0 -o part.ply
 
-Per point: x, y, z (mm), frame, intensity, sigma_mm (from the plane's covariance), u, v (source pixel); with --sensor also laser (its index; the names are in the file's comments).
+Per point: x, y, z (mm), frame, intensity, sigma_mm (camera frame: the plane's covariance and, when the camera file has one, the camera's share), u, v (source pixel); with --sensor also laser (its index; the names are in the file's comments).
 """
 
 
@@ -163,6 +163,7 @@ def measure_cmd(
     from ..plane import LightPlane
     from ..pointcloud import cloud_format
     from ..scan import measure_scan, open_frames
+    from ..uncertainty import camera_share_status
 
     out = check_output(output, force)
     fmt = cloud_format(out, fmt)
@@ -262,4 +263,11 @@ def measure_cmd(
             err_console.print(f"  frame {idx} ({name}): {reason}")
         if s.n_skipped > 10:
             err_console.print(f"  ... and {s.n_skipped - 10} more")
+    why_not = camera_share_status(cam, pl)
+    if pl.covariance is None:
+        console.print("per-point sigma_mm: NaN (the plane file has no covariance)")
+    else:
+        console.print("per-point sigma_mm: camera frame; " + (
+            "plane calibration and camera intrinsics (their correlation included)" if why_not is None else
+            f"the plane calibration only: {why_not}") + "; the stripe centre's own noise is not included")
     console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
