@@ -115,3 +115,39 @@ def test_calibrate_turntable_then_measure_with_a_sensor_file(scan, tmp_path):
     p = _xyz(m)
     f = fit_sphere(p[p[:, 2] > 1.0])
     assert abs(f.radius_mm - 20.0) <= 0.02, (f.radius_mm, f.rms_mm)
+
+
+def test_axis_estimates_exact_on_exact_poses_and_a_reversed_board_is_restored():
+    """Noise-free poses of a board turned about a known axis: both estimates are exact, and a
+    pose whose points were detected in reverse order (a half turn of a symmetric grid) is
+    put back (docs/method.md §Turntable)."""
+    from lightplane.motion import rotation_about
+    from lightplane.turntable import _consistent_order, axis_from_circles, axis_from_rotations
+
+    c, a = np.array([3.0, 20.0, 300.0]), np.array([0.1, -0.97, -0.2]) / np.linalg.norm([0.1, -0.97, -0.2])
+    obj = np.array([[i * 7.0, j * 7.0, 0.0] for j in range(8) for i in range(10)])
+    R0 = rotation_about([1.0, 0.2, 0.1], 0.3)
+    t0 = c + np.array([-30.0, -25.0, -15.0])
+    Rs, ts = [], []
+    for ang in np.deg2rad([0, 12, 25, 40, 55, 70]):
+        Q = rotation_about(a, ang)
+        Rs.append(Q @ R0)
+        ts.append(c + Q @ (t0 - c))
+    Rs, ts = np.array(Rs), np.array(ts)
+    good = (Rs.copy(), ts.copy())
+    centre = 0.5 * (obj.min(axis=0) + obj.max(axis=0))
+    D = np.diag([-1.0, -1.0, 1.0])
+    Rs[3], ts[3] = Rs[3] @ D, ts[3] + 2 * Rs[3] @ centre  # the same board, its points numbered backwards
+    assert np.allclose(Rs[3] @ obj[::-1].T + ts[3][:, None], good[0][3] @ obj.T + good[1][3][:, None])
+    from lightplane.targets import parse_target
+
+    assert _consistent_order(Rs, ts, obj, parse_target("chessboard:10x8", 7.0)) == [3]
+    assert np.allclose(Rs, good[0]) and np.allclose(ts, good[1])
+    X = np.einsum("jab,kb->jka", Rs, obj) + ts[:, None, :]
+    circ, _, res = axis_from_circles(X)
+    rot, angles = axis_from_rotations(Rs, ts)
+    for est in (circ, rot):
+        assert np.allclose(est.direction, a, atol=1e-9)
+        d = est.point_mm - c
+        assert np.linalg.norm(d - (d @ a) * a) < 1e-7
+    assert np.allclose(angles, [0, 12, 25, 40, 55, 70], atol=1e-7) and res.max() < 1e-7

@@ -484,7 +484,8 @@ class Camera:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Camera":
-        """Read a camera file: our JSON, ROS ``camera_info`` YAML, or OpenCV FileStorage YAML/XML.
+        """Read a camera file: our JSON, ROS ``camera_info`` YAML, or OpenCV FileStorage YAML/XML
+        (or a sensor file's camera, :mod:`lightplane.sensor`).
 
         The format is recognised from the content.  A missing file, a corrupt one, or
         a missing/invalid field raises :class:`LightplaneError` naming the file and field.
@@ -500,7 +501,10 @@ class Camera:
         if head.startswith("{"):
             from .io import read_json
 
-            return cls.from_dict(read_json(p, "camera file"), source=str(p))
+            d = read_json(p, "camera file")
+            if d.get("kind") == "lightplane sensor" and isinstance(d.get("camera"), dict):
+                d = d["camera"]  # a sensor file (lightplane.sensor) holds its camera
+            return cls.from_dict(d, source=str(p))
         if head.startswith("<") or head.startswith("%YAML"):
             return cls._load_opencv(p)
         return cls._load_ros(p, text)

@@ -182,6 +182,33 @@ def _sigmas(cov: np.ndarray, a: np.ndarray) -> tuple[float, float]:
     return sd, sp
 
 
+def _consistent_order(Rs: np.ndarray, ts: np.ndarray, obj: np.ndarray, target) -> list[int]:
+    """Give every pose the same point order (in place); return the images changed.
+
+    A board whose point grid is symmetric under a half turn (a chessboard or a symmetric
+    circle grid) may be detected with its points in reverse order: the pose then differs
+    from the board's by a half turn about its normal through the grid's centre ``c``
+    (``R = R' diag(-1, -1, 1)``, ``t = t' - 2 R c``).  In the order given, each pose takes
+    the variant nearer in rotation to the previous one (so successive images must turn
+    the table by less than 90 deg).
+    """
+    if getattr(target, "kind", "chessboard") not in ("chessboard", "circles"):
+        return []
+    c = 0.5 * (obj.min(axis=0) + obj.max(axis=0))
+    D = np.diag([-1.0, -1.0, 1.0])
+    changed = []
+    for j in range(1, len(Rs)):
+        def angle(R):
+            return np.arccos(np.clip((np.trace(R @ Rs[j - 1].T) - 1) / 2, -1.0, 1.0))
+
+        R2 = Rs[j] @ D
+        if angle(R2) < angle(Rs[j]):
+            ts[j] = ts[j] - 2 * R2 @ c
+            Rs[j] = R2
+            changed.append(j)
+    return changed
+
+
 def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: str | None = None,
                         min_images: int = 4, reasons: dict | None = None, progress=None) -> TurntableCalibration:
     """The turntable's axis from images of a board standing on it at several table angles.
@@ -224,6 +251,7 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     obj = poses[0].object_mm
     Rs = np.array([p.R_cam_board for p in poses])
     ts = np.array([p.t_cam_board for p in poses])
+    flipped = _consistent_order(Rs, ts, obj, target)
     X, circ, rot, orig, res, angles = _estimates(Rs, ts, obj)
     span = float(np.ptp(angles))
     if span < 5.0:
@@ -239,13 +267,14 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     for j, p in enumerate(poses):
         per.append({"name": p.name, "used": True, "angle_deg": float(angles[j]), "pnp_rms_px": float(p.reprojection_rms_px),
                     "circle_rms_mm": float(np.sqrt(np.mean(res[j] ** 2))),
-                    "t_cam_board_mm": p.t_cam_board.tolist()})
+                    "t_cam_board_mm": ts[j].tolist(), "reordered": j in flipped})
     for name, why in skipped.items():
         per.append({"name": name, "used": False, "reason": why})
     point = circ.at(ref)
     meta = {
         "method": "board circles (axis); rotations between poses (check)",
         "n_images": len(poses), "angle_span_deg": span,
+        "reordered_images": [poses[j].name for j in flipped],
         "sense_of_the_images": "counter-clockwise seen from above" if np.mean(np.diff(angles)) > 0
         else "clockwise seen from above",
         "estimates": {"circles": {"point_mm": point.tolist(), "direction": circ.direction.tolist()},
