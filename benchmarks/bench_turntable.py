@@ -1,6 +1,11 @@
 """Turntable benchmarks: the axis from rendered board views, and a sphere scan on the table.
 
-Run: ``.venv/bin/python benchmarks/bench_turntable.py [clean] [realistic]`` (both by default).
+Run: ``.venv/bin/python benchmarks/bench_turntable.py [clean] [realistic]`` (both by default), or
+``... bench_turntable.py fabscan MERGED.ply FIGURE.png``: the FabScan worked example of the
+README (the merged two-laser cloud of ``measure --sensor``): the figure of the object, and
+how far the two lasers' clouds are apart (nearest-neighbour distances, median and 90th
+percentile, after the best turn of laser 1's cloud about the axis: the two scans start at
+different table angles).
 
 Per difficulty (renders of :mod:`lightplane.simulate.turntable`, lightplane's default sensor):
 
@@ -53,21 +58,24 @@ def run(difficulty: str) -> None:
           f"{np.median([im['pnp_rms_px'] for im in cal.images]):.3f} px median")
     scan = render_turntable_scan(n_frames=N_FRAMES, seed=12, difficulty=difficulty)
     T = scan.truth
+    o_t, B_t = true.basis()
+    c_cam = o_t + B_t @ np.asarray(T["sphere"]["center_turntable_mm"])  # the sphere's centre at angle 0, camera frame
     for label, table in (("true axis", true), ("calibrated axis", cal.turntable)):
         motion = Motion.turntable(table, T["step_deg"])
+        o, B = table.basis()
+        z_table = float((o_t - o) @ B[:, 2])  # the table's top in this frame (its origin sits where the board was)
+        centre = B.T @ (c_cam - o)
         fits, pts = [], []
         for li, name in enumerate(T["lasers"]):
             plane = LightPlane.from_dict(T["lasers"][name]["plane"])
             rec, _ = scan_points(ArrayFrames(scan.images[li * N_FRAMES:(li + 1) * N_FRAMES]), scan.camera, plane,
                                  motion=motion, workers=2)
             p = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(float)
-            p = p[p[:, 2] > 1.0]
+            p = p[p[:, 2] > z_table + 1.0]
             f = fit_sphere(p)
             fits.append(f)
             pts.append(p)
-            # the calibrated axis' frame differs from the true one by the calibration error: compare the
-            # centre's distance from the axis (the frame's x-y part) and its height up to that error
-            c = f.center_mm - np.asarray(T["sphere"]["center_turntable_mm"])
+            c = f.center_mm - centre  # the true centre in this axis' frame
             print(f"[{difficulty}] {label}, {name}: {len(p)} points, radius error {f.radius_mm - 20.0:+.4f} mm "
                   f"(bar 0.02), centre error {np.linalg.norm(c):.4f} mm, RMS residual {f.rms_mm:.4f} mm, "
                   f"inliers {f.n_inliers / len(p):.3f}")
@@ -78,7 +86,40 @@ def run(difficulty: str) -> None:
     print(f"[{difficulty}] {time.perf_counter() - t0:.0f} s")
 
 
+def fabscan(cloud: str, figure: str) -> None:
+    from scipy.spatial import cKDTree
+
+    from lightplane.motion import rotation_about
+    from lightplane.plots import point_cloud
+    from lightplane.pointcloud import read_cloud
+
+    r = read_cloud(cloud)
+    p = np.column_stack([r["x"], r["y"], r["z"]]).astype(float)
+    # the object and the table's top: within 60 mm of the axis, below the wall's stripe (z > 95 mm)
+    keep = (np.hypot(p[:, 0], p[:, 1]) < 60) & (p[:, 2] > -3) & (p[:, 2] < 95)
+    point_cloud(p[keep], figure, labels=r["laser"][keep], names=["laser0 (scan 1_1)", "laser1 (scan 1_2)"],
+                title=f"FabScan: both lasers' scans in the turntable frame ({np.count_nonzero(keep)} points)",
+                max_points=80000)
+    obj = keep & (p[:, 2] > 3) & (np.hypot(p[:, 0], p[:, 1]) < 45)
+    a, b = p[obj & (r["laser"] == 0)], p[obj & (r["laser"] == 1)]
+    tree = cKDTree(a)
+    coarse = min((float(np.median(tree.query(b[::8] @ rotation_about([0, 0, 1], np.deg2rad(f)).T)[0])), f)
+                 for f in np.arange(0.0, 360.0, 2.0))
+    fine = []
+    for f in np.arange(coarse[1] - 2, coarse[1] + 2.01, 0.1):
+        d, _ = tree.query(b @ rotation_about([0, 0, 1], np.deg2rad(f)).T)
+        fine.append((float(np.median(d)), float(np.percentile(d, 90)), float(f)))
+    med, p90, f = min(fine)
+    d0, _ = tree.query(b)
+    print(f"laser0 {len(a)} / laser1 {len(b)} object points; as measured: NN median {np.median(d0):.2f} mm, "
+          f"90th percentile {np.percentile(d0, 90):.2f} mm; laser1's cloud turned {f:.1f} deg about the axis: "
+          f"median {med:.2f} mm, 90th percentile {p90:.2f} mm; wrote {figure}")
+
+
 def main(argv: list[str]) -> None:
+    if argv and argv[0] == "fabscan":
+        fabscan(argv[1], argv[2])
+        return
     for d in argv or ["clean", "realistic"]:
         run(d)
 

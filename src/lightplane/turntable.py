@@ -210,7 +210,8 @@ def _consistent_order(Rs: np.ndarray, ts: np.ndarray, obj: np.ndarray, target) -
 
 
 def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: str | None = None,
-                        min_images: int = 4, reasons: dict | None = None, progress=None) -> TurntableCalibration:
+                        min_images: int = 4, reasons: dict | None = None, board_height_mm: float | None = None,
+                        progress=None) -> TurntableCalibration:
     """The turntable's axis from images of a board standing on it at several table angles.
 
     ``images``: arrays (None for an unreadable one: its reason in ``reasons[name]``), ``names``
@@ -220,6 +221,10 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     raise :class:`LightplaneError` saying why the others were not usable.  The images
     must turn the board by more than a few degrees in all (else the axis is not
     determined: an error too).
+
+    The turntable file's point (the turntable frame's origin) is on the axis at the level
+    of the board points' centroid, or, with ``board_height_mm`` (how far the board's lowest
+    row of points is above the table's top), on the table's top.
     """
     from .baselines.zhou import find_board_pose
     from .io import too_few_images_message
@@ -271,13 +276,20 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     for name, why in skipped.items():
         per.append({"name": name, "used": False, "reason": why})
     point = circ.at(ref)
+    origin = "on the axis at the level of the board points' centroid"
+    if board_height_mm is not None:
+        if not np.isfinite(board_height_mm):
+            raise LightplaneError(f"the board height must be a finite number of mm, got {board_height_mm!r}")
+        lowest = float(np.min((X[0] - point) @ circ.direction))
+        point = point + (lowest - float(board_height_mm)) * circ.direction
+        origin = f"on the table's top: the board's lowest points {board_height_mm:g} mm above it"
     meta = {
         "method": "board circles (axis); rotations between poses (check)",
         "n_images": len(poses), "angle_span_deg": span,
-        "reordered_images": [poses[j].name for j in flipped],
+        "reordered_images": [poses[j].name for j in flipped], "origin": origin,
         "sense_of_the_images": "counter-clockwise seen from above" if np.mean(np.diff(angles)) > 0
         else "clockwise seen from above",
-        "estimates": {"circles": {"point_mm": point.tolist(), "direction": circ.direction.tolist()},
+        "estimates": {"circles": {"point_mm": circ.at(ref).tolist(), "direction": circ.direction.tolist()},
                       "rotations": {"point_mm": rot.at(ref).tolist(), "direction": rot.direction.tolist()},
                       "board_origins": {"point_mm": orig.at(ref).tolist(), "direction": orig.direction.tolist()}},
         "agreement": {"angle_deg": ang, "distance_mm": dist, "origins_angle_deg": ang_o, "origins_distance_mm": dist_o},

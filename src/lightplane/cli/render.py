@@ -6,20 +6,23 @@ import time
 from pathlib import Path
 from typing import Literal, Optional
 
+import numpy as np
 import typer
 
 from ..errors import LightplaneError
 from ._common import (app, console, dictionary_option, dot_option, handles_errors, marker_option, parse_board,
                       progress_bar, target_option)
 
-SCENES = ("circle", "chessboard", "target", "scan")
+SCENES = ("circle", "chessboard", "target", "scan", "turntable", "turntable-board")
 
 
 @app.command("render")
 @handles_errors
 def render_cmd(
-    scene: Literal["circle", "chessboard", "target", "scan"] = typer.Argument(..., help="What to render: circle, chessboard, target (any board: --board "
-                                "KIND:COLSxROWS --square MM, or --target FILE) or scan."),
+    scene: Literal["circle", "chessboard", "target", "scan", "turntable", "turntable-board"] = typer.Argument(
+        ..., help="What to render: circle, chessboard, target (any board: --board KIND:COLSxROWS --square MM, or "
+        "--target FILE), scan, turntable (a sphere on a turntable, one frame per angle and laser) or "
+        "turntable-board (a chessboard standing on the turntable, for calibrate-turntable)."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
     n: Optional[int] = typer.Option(None, "--n", min=1, help="Number of images (scan: frames). Default: 12 circle, "
                                     "20 chessboard, 41 sphere / 21 step or plane frames."),
@@ -46,6 +49,9 @@ def render_cmd(
                              "or plane (tilted)."),
     step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
                                          "2.0 step/plane)."),
+    lasers: int = typer.Option(2, "--lasers", min=1, max=2, help="turntable: 1 or 2 lasers (frames of their own)."),
+    turntable_step: Optional[float] = typer.Option(None, "--turntable-step", help="turntable: degrees per frame "
+                                                   "(default: one turn over --n frames)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing files."),
 ) -> None:
     """Render synthetic images with exact ground truth (PNG images, camera.json, truth.json)."""
@@ -93,6 +99,17 @@ def render_cmd(
             ds = render_chessboard_dataset(n=20 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
                                            with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
                                            progress=progress)
+        elif scene == "turntable":
+            from ..simulate.turntable import render_turntable_scan
+
+            ds = render_turntable_scan(n_frames=24 if n is None else n, step_deg=turntable_step, seed=seed,
+                                       difficulty=difficulty or "clean", lasers=lasers, progress=progress)
+        elif scene == "turntable-board":
+            from ..simulate.turntable import render_turntable_board
+
+            k = 7 if n is None else n
+            ds = render_turntable_board(angles_deg=np.linspace(-40.0, 40.0, k) if k > 1 else [0.0], seed=seed,
+                                        difficulty=difficulty or "clean")
         else:
             ds = render_scan_dataset(kind=kind, n_frames=n, step_mm=step, seed=seed,
                                      difficulty=difficulty or "realistic", progress=progress)
@@ -112,6 +129,12 @@ def render_cmd(
     elif scene == "target":
         console.print(f"board: {tgt.describe()}" + (", laser stripe on" if stripe else "")
                       + (" (dark laser frames)" if dark_laser and stripe else ""))
+    elif scene == "turntable":
+        t = ds.truth
+        console.print(f"turntable scan of a {t['sphere']['radius_mm']:g} mm sphere: {len(t['angles_deg'])} frames per laser, "
+                      f"{t['step_deg']:g} deg per frame, lasers {', '.join(t['lasers'])}; true axis in truth.json")
+    elif scene == "turntable-board":
+        console.print(f"chessboard 9x6, 8 mm, standing on the turntable at {len(ds.images)} angles; true axis in truth.json")
     else:
         m = ds.truth["motion"]
         console.print(f"scan of a {kind}: {m['n_frames']} frames, {m['step_mm']:g} mm per frame")

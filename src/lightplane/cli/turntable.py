@@ -24,7 +24,11 @@ def calibrate_turntable_cmd(
     camera: Path = typer.Option(..., "--camera", help="Camera file (calibrated in the frame the images are read in)."),
     target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     output: Path = typer.Option(..., "-o", "--output", help="Turntable JSON file to write."),
-    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image clockwise by 0/90/180/270 "
+                                         "degrees first (default 0, or the sensor file's when --camera is one)."),
+    board_height: Optional[float] = typer.Option(None, "--board-height", help="Height of the board's lowest row "
+                                                 "of points above the table's top, mm: puts the turntable frame's "
+                                                 "origin on the table (default: at the board's level)."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
 ) -> None:
     """The turntable's axis (camera frame) from a board on the table at several angles.
@@ -40,6 +44,8 @@ def calibrate_turntable_cmd(
 
     check_output(output, force)
     cam = Camera.load(camera)
+    if rotate is None:
+        rotate = _sensor_rotation(camera)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
@@ -53,11 +59,11 @@ def calibrate_turntable_cmd(
             cam.check_image(img, str(f))
     with progress_bar("board poses", len(files)) as update:
         cal = calibrate_turntable(imgs, cam, target, names=[str(f) for f in files], reasons=skipped,
-                                  progress=lambda i: update(i + 1))
+                                  board_height_mm=board_height, progress=lambda i: update(i + 1))
     tt = cal.turntable
     m = tt.meta
     t = Table(title="Turntable axis (camera frame)", show_edge=False)
-    for c, j in (("estimate", "left"), ("point x, y, z (mm)", "right"), ("direction (up)", "right")):
+    for c, j in (("estimate", "left"), ("point at the board's level x, y, z (mm)", "right"), ("direction (up)", "right")):
         t.add_column(c, justify=j)
     for name, key in (("circles (result)", "circles"), ("rotations", "rotations"), ("board origins", "board_origins")):
         e = m["estimates"][key]
@@ -86,9 +92,21 @@ def calibrate_turntable_cmd(
     if not cal.agrees:
         err_console.print("warning: the two axis estimates differ by more than 3 σ (board moved on the table, or a "
                           "poor camera calibration?)")
-    opts = {"board": target.spec, "target": target.to_dict(), "rotate_deg": rotate, "camera": str(camera)}
+    console.print(f"turntable frame's origin {', '.join(f'{v:+.3f}' for v in tt.point_mm)} mm: {m['origin']}")
+    opts = {"board": target.spec, "target": target.to_dict(), "rotate_deg": rotate, "camera": str(camera),
+            "board_height_mm": board_height}
     tt.save(output, force=force, extra={"provenance": provenance(files, opts)})
     console.print(f"wrote {output}")
+
+
+def _sensor_rotation(path: Path) -> int:
+    """The frame rotation of a sensor file given as the camera (0 for a camera file)."""
+    if path.suffix.lower() != ".json":
+        return 0
+    from ..io import read_json
+
+    d = read_json(path, "camera file")
+    return int((d.get("frames") or {}).get("rotate_deg", 0)) if d.get("kind") == "lightplane sensor" else 0
 
 
 def _camera_record(path: Path):
