@@ -117,7 +117,7 @@ def test_calibrate_turntable_then_measure_with_a_sensor_file(scan, tmp_path):
     z_table = (true.point_mm - o) @ B[:, 2]
     p = _xyz(m)
     f = fit_sphere(p[p[:, 2] > z_table + 1.0])
-    assert f.n_inliers > 0.99 * f.n_points and f.n_points > 5000
+    assert f.n_inliers > 0.99 * f.n_points and f.n_points > 3000  # 6 frames x 2 lasers x ~1700 points
     assert abs(f.radius_mm - 20.0) <= 0.02, (f.radius_mm, f.rms_mm)
 
 
