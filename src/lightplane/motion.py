@@ -217,11 +217,23 @@ class Turntable:
         if self.camera is None:
             return
         c = self.camera
-        same = (int(c.get("width", -1)), int(c.get("height", -1))) == (camera.width, camera.height)
-        same = same and np.allclose(np.asarray(c.get("K"), float), camera.K, rtol=1e-9, atol=1e-9)
-        same = same and np.allclose(np.asarray(c.get("dist"), float).ravel(), camera.dist, rtol=1e-9, atol=1e-12)
+        mine = camera.to_dict()
+
+        def close(key: str) -> bool:
+            try:
+                a = np.asarray(c.get(key), float).ravel()
+                b = np.asarray(mine.get(key), float).ravel()
+            except (TypeError, ValueError):
+                return False
+            return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-9, atol=1e-12))
+
+        same = (c.get("width"), c.get("height")) == (camera.width, camera.height)
+        same = same and c.get("model", mine.get("model")) == mine.get("model") and close("K") and close("dist")
         if not same:
-            K = np.asarray(c.get("K"), float)
+            try:
+                K = np.asarray(c.get("K"), float).reshape(3, 3)
+            except (TypeError, ValueError):
+                K = np.full((3, 3), np.nan)
             raise LightplaneError(f"{source}: calibrated with another camera ({c.get('width')}x{c.get('height')} px, "
                                   f"fx {K[0, 0]:.3f}) than the one given ({camera.width}x{camera.height} px, "
                                   f"fx {camera.fx:.3f}); recalibrate the turntable with this camera")
