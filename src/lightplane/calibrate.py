@@ -34,7 +34,7 @@ import time
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, cast, Sequence, TYPE_CHECKING
 
 import numpy as np
 
@@ -48,8 +48,9 @@ from .plane_solvers import (PlacementResult, PlaneCalibration, SolverOptions, ca
 if TYPE_CHECKING:
     from .ellipse.model import Ellipse
 
-__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_images", "solve_observations",
-           "calibrate_plane", "stripe_width_along", "uncertainty_summary", "default_workers", "propagate_camera"]
+__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
+           "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
+           "default_workers", "propagate_camera"]
 
 #: The plane file's key for the plane's dependence on the intrinsics (see :func:`propagate_camera`).
 CAMERA_JACOBIAN_KEY = "camera_jacobian"
@@ -461,18 +462,46 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     cannot be used, its file unreadable included).  Raises :class:`LightplaneError` only
     for an image whose size differs from the camera's (a wrong camera, not a bad image).
     """
-    from .ellipse import detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
+    return observe_image_lasers(source, camera, diameter_mm, index, lasers=None,
+                                distance_range_mm=distance_range_mm, channel=channel,
+                                stripe_width_px=stripe_width_px, margin_px=margin_px,
+                                min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)[0]
+
+
+def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int = 0, *, lasers=None,
+                         distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
+                         stripe_width_px: float | None = None, margin_px: float | None = None,
+                         min_stripe_points: int = 20, stripe_bin: int | str = "auto") -> list[ImageObservation]:
+    """:func:`observe_image` for several lasers whose stripes cross the target in the same image.
+
+    ``lasers``: :class:`lightplane.lasers.LaserSelector` s (colour channel and/or image region
+    per laser), or None for one laser seen in ``channel`` (exactly :func:`observe_image`).
+    The target is found once: the ellipses are detected in the image, the target is the
+    ellipse most lasers' stripes cross (each laser's stripe looked for in its own channel and
+    region), refined once; rim points near any laser's chord are dropped, so every laser's
+    observation holds the same rim points (the same placement).  Then each laser's stripe
+    centres are extracted on the target in its channel and region.  Returns one
+    observation per laser (in order); a laser whose stripe misses the target gets
+    ``ok=False`` with the reason while the others are kept.
+    """
+    from .ellipse import detect_ellipses, expected_axis_range_px, refine_ellipse, select_target, stripe_crossing
+    from .io import to_gray_float
+    from .lasers import LaserSelector
     from .stripe import extract_stripe
 
     t0 = time.perf_counter()
+    single = lasers is None
+    sels = [LaserSelector("", channel)] if single else [s for s in lasers]
     img, name, problem = _load(source, index)
     if img is None:
-        return ImageObservation(index=index, source=name, ok=False, reason=problem,
-                                seconds=time.perf_counter() - t0)
+        return [ImageObservation(index=index, source=name, ok=False, reason=problem,
+                                 seconds=time.perf_counter() - t0) for _ in sels]
     try:
         camera.check_image(img)
     except LightplaneError as e:
         raise LightplaneError(f"{name}: {e}") from None
+    for s in sels:
+        s.check_image(img, name)
     shape = tuple(img.shape[:2])
 
     def reject(reason: str, **kw) -> ImageObservation:
@@ -483,20 +512,34 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     # the minor semi-axis of a disc tilted by up to ~70 deg is >= a cos 70 deg
     ellipses = detect_ellipses(img, min_axis_px=max(0.35 * lo, 6.0), max_axis_px=hi)
     if not ellipses:
-        return reject("no target ellipse found")
-    sel = select_target(img, ellipses, axis_range_px=(lo, hi), min_chord_fraction=0.15)
-    if sel.ellipse is None:
+        return [reject("no target ellipse found") for _ in sels]
+    # one laser with no region: its stripe is looked for in the image as given (as always)
+    views = [img] if single or (len(sels) == 1 and sels[0].region is None) else [s.view(img) for s in sels]
+    picks = [select_target(v, ellipses, axis_range_px=(lo, hi), min_chord_fraction=0.15) for v in views]
+    chosen = [p.index for p in picks if p.ellipse is not None]
+    if not chosen:
         why = {"stripe misses the target": "no stripe crossing the target",
                "no plausible ellipse": f"no target ellipse found (none of {len(ellipses)} ellipses has a "
                                        f"plausible size for a {diameter_mm:g} mm disc at "
                                        f"{distance_range_mm[0]:g}-{distance_range_mm[1]:g} mm)"}
-        return reject(why.get(sel.reason, sel.reason or "no target ellipse found"), n_candidates=len(ellipses))
+        return [reject(why.get(p.reason, p.reason or "no target ellipse found"), n_candidates=len(ellipses))
+                for p in picks]
+    # the target: the ellipse most lasers' stripes cross (ties: the first laser's choice)
+    best = max(dict.fromkeys(chosen), key=chosen.count)
+    target = ellipses[best]
+    crossings: list = []  # per laser: its StripeCrossing, or None
+    for p, v in zip(picks, views):
+        if p.ellipse is not None and p.index == best:
+            crossings.append(p.crossing)
+        else:
+            cr = stripe_crossing(v, target)
+            crossings.append(cr if cr.crosses(0.5, 0.15) else None)
     try:
-        ref = refine_ellipse(img, sel.ellipse, camera)
+        ref = refine_ellipse(img, target, camera)
     except LightplaneError as e:
-        return reject(f"target ellipse could not be refined ({e})", ellipse=sel.ellipse, n_candidates=len(ellipses))
+        return [reject(f"target ellipse could not be refined ({e})", ellipse=target, n_candidates=len(ellipses))
+                for _ in sels]
     e_img = ref.image_ellipse
-    chord = None if sel.crossing is None else sel.crossing.chord_px
 
     # stripe: Steger on a crop around the target, inside the ellipse shrunk by a margin
     h, w = shape
@@ -507,66 +550,87 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     crop = np.ascontiguousarray(img[cv0:cv1 + 1, cu0:cu1 + 1])
     off = np.array([cu0, cv0], dtype=np.float64)
     local = type(e_img).from_params(e_img.centre - off, e_img.a, e_img.b, e_img.angle)
-    inside = local.mask(crop.shape[:2], shrink_px=2.0)
-    width, contrast = stripe_width_px, None
-    if chord is not None:
-        from .io import to_gray_float
-
-        w_est, height = stripe_width_along(to_gray_float(crop, channel), chord[0] - off, chord[1] - off)
-        if width is None and np.isfinite(w_est):
-            width = float(np.clip(w_est, 2.0, 40.0))
-        if np.isfinite(height):
-            # a stripe on a dark disc is faint: threshold relative to what this stripe shows
-            contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
-    # no along-stripe smoothing: the joint fit averages hundreds of centres itself, and its noise
-    # model (white or correlated along the curve, measured from the residuals) was validated on
-    # unsmoothed centres (benchmarks/bench_uncertainty.py)
-    sp = extract_stripe(crop, width_px=width, mask=inside, channel=channel, min_contrast=contrast,
-                        sigma_along_px=0.0)
-    uv = sp.uv + off
-    fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
-    # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
-    margin = max(3.0, 3.0 * float(sp.sigma_px) + 1.0) if margin_px is None else float(margin_px)
-    if len(uv):
-        uv = uv[_distance_inside(e_img, uv) >= margin]
-    if len(uv) and chord is not None:
-        # keep the stripe's line through the target (clutter, reflections, rim fragments)
-        uv = uv[np.abs(_line_distance(uv, chord[0], chord[1])) <= max(3.0, 0.6 * fwhm + 2.0)]
-    if len(uv) >= 3:
-        und = camera.undistort_points(uv)
-        uv = uv[_robust_line(und, 0.5)]
-    # rim points where the stripe meets the rim are disturbed by its light
-    rim = ref.edge_points_px
-    if chord is not None and len(rim):
-        far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
-        if far.sum() >= 0.5 * len(rim):
-            rim = rim[far]
-    raw = uv
-    k = 1
-    if len(uv) >= 3:
-        if stripe_bin == "auto":
+    inside_all = local.mask(crop.shape[:2], shrink_px=2.0)
+    per_laser: list[tuple] = []  # (chord, stripe centres, fwhm, -) per laser
+    for s, cr in zip(sels, crossings):
+        chord = None if cr is None else cr.chord_px
+        inside = inside_all
+        region = s.region_mask(crop.shape[:2], (cu0, cv0))
+        if region is not None:
+            inside = inside & region
+        width, contrast = stripe_width_px, None
+        gray = to_gray_float(crop, s.channel)
+        if chord is not None:
+            w_est, height = stripe_width_along(gray if region is None else np.where(region, gray, 0), chord[0] - off,
+                                               chord[1] - off)
+            if width is None and np.isfinite(w_est):
+                width = float(np.clip(w_est, 2.0, 40.0))
+            if np.isfinite(height):
+                # a stripe on a dark disc is faint: threshold relative to what this stripe shows
+                contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
+        if chord is None and not single:
+            per_laser.append((None, np.zeros((0, 2)), 5.0, 1.0))
+            continue
+        # no along-stripe smoothing: the joint fit averages hundreds of centres itself, and its noise
+        # model (white or correlated along the curve, measured from the residuals) was validated on
+        # unsmoothed centres (benchmarks/bench_uncertainty.py)
+        # several lasers: the stripe is read in its own channel alone; extract_stripe's centring of
+        # whitish saturated cores (colour image + channel) takes the speckle dips of a colour stripe
+        # on a bright white disc for cores and can drop the whole stripe (two-colour renders: one
+        # stripe in 8 images lost)
+        sp = extract_stripe(crop if single else gray, width_px=width, mask=inside,
+                            channel=s.channel if single else None, min_contrast=contrast, sigma_along_px=0.0)
+        uv = sp.uv + off
+        fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
+        # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
+        margin = max(3.0, 3.0 * float(sp.sigma_px) + 1.0) if margin_px is None else float(margin_px)
+        if len(uv):
+            uv = uv[_distance_inside(e_img, uv) >= margin]
+        if len(uv) and s.region is not None:
+            uv = uv[s.in_region(uv)]
+        if len(uv) and chord is not None:
+            # keep the stripe's line through the target (clutter, reflections, rim fragments)
+            uv = uv[np.abs(_line_distance(uv, chord[0], chord[1])) <= max(3.0, 0.6 * fwhm + 2.0)]
+        if len(uv) >= 3:
             und = camera.undistort_points(uv)
-            m, _, nrm = tls_line(und)
-            r = (und - m) @ nrm
-            s_stripe = robust_sigma(r)
-            k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
-        else:
-            try:
-                k = int(stripe_bin)
-            except (TypeError, ValueError):
-                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}") from None
-            if k < 1:
-                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}")
-        uv, k = _bin_along_line(uv, k, min_bins=12)
-    obs = ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
-                           seconds=time.perf_counter() - t0, ellipse=e_img, conic_undistorted=ref.conic,
-                           rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw, stripe_bin=k, chord_px=chord,
-                           rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
-    if len(raw) == 0:
-        return replace(obs, ok=False, reason="no stripe crossing the target")
-    if len(raw) < min_stripe_points:
-        return replace(obs, ok=False, reason=f"too few stripe points ({len(raw)})")
-    return obs
+            uv = uv[_robust_line(und, 0.5)]
+        per_laser.append((chord, uv, fwhm, 1.0))
+    # rim points where a stripe meets the rim are disturbed by its light (every laser's stripe)
+    rim = ref.edge_points_px
+    for chord, _, fwhm, _ in per_laser:
+        if chord is not None and len(rim):
+            far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
+            if far.sum() >= 0.5 * len(rim):
+                rim = rim[far]
+    out = []
+    for chord, uv, fwhm, _ in per_laser:
+        raw = uv
+        k = 1
+        if len(uv) >= 3:
+            if stripe_bin == "auto":
+                und = camera.undistort_points(uv)
+                m, _, nrm = tls_line(und)
+                r = (und - m) @ nrm
+                s_stripe = robust_sigma(r)
+                k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
+            else:
+                try:
+                    k = int(stripe_bin)
+                except (TypeError, ValueError):
+                    raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}") from None
+                if k < 1:
+                    raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}")
+            uv, k = _bin_along_line(uv, k, min_bins=12)
+        obs = ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
+                               seconds=time.perf_counter() - t0, ellipse=e_img, conic_undistorted=ref.conic,
+                               rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw, stripe_bin=k, chord_px=chord,
+                               rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
+        if len(raw) == 0:
+            obs = replace(obs, ok=False, reason="no stripe crossing the target")
+        elif len(raw) < min_stripe_points:
+            obs = replace(obs, ok=False, reason=f"too few stripe points ({len(raw)})")
+        out.append(obs)
+    return out
 
 
 def _process_worker_init() -> None:
@@ -581,7 +645,9 @@ def _process_worker_init() -> None:
 def _observe_task(args):
     source, camera, diameter_mm, index, kw = args
     try:
-        return observe_image(source, camera, diameter_mm, index, **kw)
+        if kw.get("lasers") is not None:
+            return observe_image_lasers(source, camera, diameter_mm, index, **kw)
+        return observe_image(source, camera, diameter_mm, index, **{k: v for k, v in kw.items() if k != "lasers"})
     except LightplaneError as e:
         return e
 
@@ -649,6 +715,95 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
                          min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)
     return solve_observations(obs, camera, diameter, method, min_placements=min_placements,
                               seconds=time.perf_counter() - t_start, solver=solver)
+
+
+def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, lasers: Sequence, method: str = "ml", *,
+                     workers: int | None = None, executor: str = "thread",
+                     progress: Callable[[int, int], None] | None = None,
+                     distance_range_mm: tuple[float, float] = (200.0, 1500.0),
+                     stripe_width_px: float | None = None, min_stripe_points: int = 20,
+                     stripe_bin: int | str = "auto", min_placements: int = 3,
+                     solver: SolverOptions | None = None) -> dict:
+    """One light plane per laser from the same images of a circular target (several lasers).
+
+    ``lasers``: :class:`lightplane.lasers.LaserSelector` s; each laser's stripe is told apart
+    by its colour channel, its image region and/or its frames (``frames:`` selects, among the
+    image files, those that are the laser's).  Where several lasers' stripes cross the target
+    in one image, the target is found once and both planes use the same rim points
+    (:func:`observe_image_lasers`); each plane is then solved from its own stripes as
+    :func:`calibrate_plane` does.  An image in which a laser's stripe is missing is skipped
+    for that laser, with the reason.
+
+    Returns ``{name: ImagePlaneCalibration}`` in the order of ``lasers``.  Raises
+    LightplaneError (nothing solved) for a laser whose stripe is found in none of its images,
+    a laser with no images, or one with too few usable placements (the message names the laser).
+    """
+    from .lasers import no_stripe_message
+
+    t_start = time.perf_counter()
+    diameter = check_calibration_args(method, camera, diameter_mm)
+    if isinstance(images, (str, os.PathLike, np.ndarray)):
+        images = [images]
+    images = list(images)
+    if not images:
+        raise LightplaneError("no images given")
+    lasers = list(lasers)
+    if not lasers:
+        raise LightplaneError("no lasers given")
+    for s in lasers:
+        if s.cycle is not None:
+            raise LightplaneError(f"laser {s.name}: cycle:K selects laser frames per board pose (calibrate-plane-board "
+                                  "with --cycle or --pattern); here use frames:PATTERN")
+    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
+    if not (0 < lo < hi):
+        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
+    takes = []
+    for i, src in enumerate(images):
+        if isinstance(src, (str, os.PathLike)):
+            if not Path(src).exists():
+                raise LightplaneError(f"{src}: no such file")
+            takes.append(tuple(k for k, s in enumerate(lasers) if s.takes_file(src)))
+        elif isinstance(src, np.ndarray):
+            takes.append(tuple(range(len(lasers))))
+        else:
+            raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
+    for k, s in enumerate(lasers):
+        if not any(k in t for t in takes):
+            raise LightplaneError(f"laser {s.name} ({s.text}): none of the {len(images)} images is one of its frames")
+    # observe each group of images seen by the same lasers together
+    per_image: list[dict] = [{} for _ in images]
+    groups: dict[tuple, list[int]] = {}
+    for i, t in enumerate(takes):
+        if t:
+            groups.setdefault(t, []).append(i)
+    done = 0
+    for t, idx in groups.items():
+        def step(j, n, base=done):
+            if progress is not None:
+                progress(base + j, len(images))
+
+        obs = observe_images([images[i] for i in idx], camera, diameter, workers=workers, executor=executor,
+                             progress=step, lasers=[lasers[k] for k in t], distance_range_mm=(lo, hi),
+                             stripe_width_px=stripe_width_px, min_stripe_points=min_stripe_points,
+                             stripe_bin=stripe_bin)
+        for i, o in zip(idx, obs):
+            per_image[i] = dict(zip(t, cast(list, o)))
+        done += len(idx)
+    seconds = time.perf_counter() - t_start
+    per_laser = []
+    for k, s in enumerate(lasers):
+        obs = [replace(per_image[i][k], index=j) for j, i in enumerate(i for i in range(len(images)) if k in takes[i])]
+        if not any(o.ok for o in obs):
+            raise LightplaneError(no_stripe_message(s.name, s, len(obs), {o.name: o.reason for o in obs}))
+        per_laser.append(obs)
+    out = {}
+    for s, obs in zip(lasers, per_laser):
+        try:
+            out[s.name] = solve_observations(obs, camera, diameter, method, min_placements=min_placements,
+                                             seconds=seconds, solver=solver)
+        except LightplaneError as e:
+            raise LightplaneError(f"laser {s.name}: {e}") from None
+    return out
 
 
 def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, workers: int | None = None,

@@ -417,7 +417,9 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
                      background_images: Sequence | None = None, pattern_images: Sequence | None = None,
                      image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
                      channel: str | None = None, skip: bool = True, min_stripe_points: int = 0,
-                     progress: Callable[[int], None] | None = None) -> BoardViews:
+                     progress: Callable[[int], None] | None = None,
+                     region_px: tuple[float, float, float, float] | None = None,
+                     pose_cache: dict | None = None) -> BoardViews:
     """Board pose and on-board stripe centres for each image.
 
     ``board``: a :class:`lightplane.targets.Target` or ``(cols, rows)`` chessboard with ``square_mm``.
@@ -432,6 +434,10 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
     With ``skip`` an image whose board is not found, or with fewer than
     ``min_stripe_points`` stripe centres on the board, is skipped with its reason;
     without it the first such image raises LightplaneError.
+    ``region_px``: ``(x0, y0, x1, y1)``: stripe centres only with ``x0 <= u < x1``, ``y0 <= v < y1``
+    (one laser's stripe among several, told apart by where it is in the image).
+    ``pose_cache``: a dict shared between calls on the same pattern frame objects (several
+    lasers' frames of the same poses): each pattern frame's board is searched once.
     """
     from ..targets import as_target
 
@@ -445,7 +451,7 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
     if pattern_images is not None and len(pattern_images) != len(images):
         raise LightplaneError(f"give one pattern frame per laser image ({len(images)}); got {len(pattern_images)}")
     out = BoardViews([], [], [], {})
-    pattern_poses: dict[int, BoardPose | str] = {}
+    pattern_poses: dict[int, BoardPose | str] = {} if pose_cache is None else pose_cache
     for k, img in enumerate(images):
         try:
             if img is None:
@@ -471,6 +477,11 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
             else:
                 pose = find_board_pose(bg if per_image else img, camera, target, name=names[k], channel=channel)
             mask = board_polygon_mask(camera, pose, target)
+            if region_px is not None:
+                x0, y0, x1, y1 = region_px
+                u, v = np.arange(mask.shape[1]), np.arange(mask.shape[0])
+                inside = ((v >= y0) & (v < y1))[:, None] & ((u >= x0) & (u < x1))[None, :]
+                mask = np.where(inside, mask, 0).astype(mask.dtype)
             if pattern_images is not None and bg is None and _same_exposure(img, pat, mask, channel):
                 bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
             stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
@@ -534,7 +545,9 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
                           image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
                           channel: str | None = None, min_points_per_view: int = 10, min_views: int = 2,
                           skipped: dict | None = None,
-                          progress: Callable[[int], None] | None = None) -> ZhouCalibration:
+                          progress: Callable[[int], None] | None = None,
+                          region_px: tuple[float, float, float, float] | None = None,
+                          pose_cache: dict | None = None) -> ZhouCalibration:
     """Zhou's planar-target light-plane calibration from images of a board with the stripe.
 
     Parameters
@@ -553,6 +566,9 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
     min_views : fewer usable images raise LightplaneError, saying why the others were skipped.
     skipped : name → reason of images already skipped by the caller (unreadable files); counted
         in that message and stored in the result.
+    region_px : ``(x0, y0, x1, y1)`` px: only stripe centres in this image region (one laser of
+        several whose stripes are apart in the image); see :func:`find_board_views`.
+    pose_cache : see :func:`find_board_views` (the board of each pattern frame found once for all lasers).
 
     Returns
     -------
@@ -567,7 +583,8 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
     pre = dict(skipped or {})
     v = find_board_views(images, camera, target, background_images=background_images, pattern_images=pattern_images,
                          image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=True,
-                         min_stripe_points=min_points_per_view, progress=progress)
+                         min_stripe_points=min_points_per_view, progress=progress, region_px=region_px,
+                         pose_cache=pose_cache)
     why = {**pre, **v.skipped}
     if len(v.poses) < max(2, min_views):
         raise LightplaneError("Zhou's method: " + too_few_images_message("images", len(v.poses), max(2, min_views),

@@ -198,3 +198,11 @@ def takes_target(fn: F) -> F:
 
     wrapper.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
     return wrapper  # type: ignore[return-value]
+
+
+# Several lasers, the same option in every plane-calibration command (lightplane.lasers).
+LASER_HELP = ("One laser of several, NAME=SELECTOR (repeat per laser; one plane file each): its stripe told apart by "
+              "a colour (red, green, blue, gray), a region x0,y0,x1,y1 (px, after --rotate), frames:PATTERN (its "
+              "image files) or cycle:K (the K-th laser frame of each pose), parts joined by +. E.g. --laser left=red "
+              "--laser right=green. Files: -o plane.json gives plane_NAME.json, or use {laser} in -o.")
+laser_option = typer.Option(None, "--laser", help=LASER_HELP)

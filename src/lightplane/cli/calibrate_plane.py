@@ -10,7 +10,7 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import Channel, app, console, handles_errors, progress_bar
+from ._common import Channel, app, console, handles_errors, laser_option, progress_bar
 
 
 @app.command("calibrate-plane")
@@ -28,11 +28,18 @@ def calibrate_plane_cmd(
     near: float = typer.Option(200.0, "--near", help="Nearest target distance expected, mm (plausible ellipse size)."),
     far: float = typer.Option(1500.0, "--far", help="Farthest target distance expected, mm."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel worker threads (default: all cores)."),
+    laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing plane file / report."),
 ) -> None:
-    """Calibrate the light plane from images of a flat circular target (Wang & Li 2022)."""
-    from ..calibrate import calibrate_plane, uncertainty_summary
+    """Calibrate the light plane from images of a flat circular target (Wang & Li 2022).
+
+    Several lasers: one --laser NAME=SELECTOR per laser, e.g. --laser left=red --laser right=green
+    when both stripes cross the disc in the same images (colour images), or --laser a=frames:'*_a.png'
+    --laser b=frames:'*_b.png' for separate frames; one plane file per laser.
+    """
+    from ..calibrate import calibrate_plane, calibrate_planes
     from ..camera import Camera
+    from ..lasers import output_paths, parse_lasers
 
     if not (diameter > 0):
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
@@ -44,20 +51,93 @@ def calibrate_plane_cmd(
     for f in files:  # a mistyped name stops here; a folder, an unreadable or truncated file is skipped with its reason
         if not f.exists():
             raise LightplaneError(f"{f}: no such file")
+    sels = parse_lasers(laser, channel)
+    names: list[str | None] = [x.name for x in sels] if sels else [None]
+    outputs: dict[str | None, Path] = {None: output}
+    if sels:
+        outputs = {n: f for n, f in output_paths(output, [x.name for x in sels]).items()}
+    reports = {n: (report if n is None or len(names) == 1 else report / n) for n in names} if report is not None else {}
     # every output is checked before any work: nothing is written on bad input
-    check_output(output, force)
+    if len(set(map(str, outputs.values()))) < len(outputs):
+        raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
+    for out in outputs.values():
+        check_output(out, force)
     if report is not None:
         if report.exists() and not report.is_dir():
             raise LightplaneError(f"{report}: exists and is not a folder")
-        if report.exists():
-            check_output(report / "index.html", force)
-        elif not report.parent.is_dir():
+        if not report.exists() and not report.parent.is_dir():
             raise LightplaneError(f"{report}: its parent folder {report.parent} does not exist")
+        for rep in reports.values():
+            if rep.exists() and not rep.is_dir():
+                raise LightplaneError(f"{rep}: exists and is not a folder")
+            if rep.exists():
+                check_output(rep / "index.html", force)
     cam = Camera.load(camera)
 
     with progress_bar("images", len(files)) as update:
-        cal = calibrate_plane([str(f) for f in files], cam, diameter, method, workers=workers, channel=channel,
-                              distance_range_mm=(near, far), progress=lambda i, n: update(i))
+        if sels is None:
+            cals = {None: calibrate_plane([str(f) for f in files], cam, diameter, method, workers=workers,
+                                          channel=channel, distance_range_mm=(near, far),
+                                          progress=lambda i, n: update(i))}
+        else:
+            cals = calibrate_planes([str(f) for f in files], cam, diameter, sels, method, workers=workers,
+                                    distance_range_mm=(near, far), progress=lambda i, n: update(i))
+    results: dict[str | None, dict] = {}
+    for name, cal in cals.items():
+        if name is not None:
+            sel = next(x for x in sels if x.name == name)
+            console.print(f"[bold]laser {name}[/bold] ({sel.text}): {cal.n_used} of {len(cal.images)} images used")
+        results[name] = _print_calibration(cal, cam)
+    if sels is not None and len(sels) > 1:
+        for line in shared_pose_lines(cals):
+            console.print(line)
+
+    options = {"camera": str(camera), "diameter_mm": diameter, "method": method, "channel": channel,
+               "distance_range_mm": [near, far]}
+    if sels is not None:
+        options["lasers"] = [x.to_dict() for x in sels]
+    prov = provenance([*map(str, files), str(camera)], options)
+    for name, cal in cals.items():
+        # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
+        extra = {**({"laser": name} if name is not None else {}), **cal.to_dict(), "uncertainty": results[name],
+                 "provenance": prov, "report_inputs": cal.report_inputs()}
+        cal.plane.save(outputs[name], force=force, extra=extra)
+        console.print(f"wrote {outputs[name]}")
+    if report is not None:
+        from ..report import write_report
+
+        for name, cal in cals.items():
+            rep = reports[name]
+            if name is not None and len(names) > 1:
+                rep.parent.mkdir(exist_ok=True)
+            path = write_report(rep, cal, force=force, provenance=prov)
+            console.print(f"wrote {path}")
+
+
+def shared_pose_lines(cals: dict) -> list[str]:
+    """How far apart the lasers' solves put the same target placement (images used by two lasers)."""
+    import numpy as np
+
+    names = list(cals)
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            pa = {o.source: o.placement.pose for o in cals[a].images if o.used and o.placement is not None}
+            pb = {o.source: o.placement.pose for o in cals[b].images if o.used and o.placement is not None}
+            both = [k for k in pa if k in pb and pa[k] is not None and pb[k] is not None]
+            if not both:
+                continue
+            dc = [float(np.linalg.norm(pa[k].center - pb[k].center)) for k in both]
+            dn = [float(np.degrees(np.arccos(np.clip(pa[k].normal @ pb[k].normal, -1, 1)))) for k in both]
+            out.append(f"target poses of the {len(both)} placements lasers {a} and {b} share: centres "
+                       f"{np.median(dc):.4f} mm apart (median; max {max(dc):.4f} mm), normals {np.median(dn):.4f} "
+                       f"deg (max {max(dn):.4f} deg)")
+    return out
+
+
+def _print_calibration(cal, cam) -> dict:
+    """The plane, its uncertainty and the per-image table on the console; returns the uncertainty summary."""
+    from ..calibrate import uncertainty_summary
 
     unc = uncertainty_summary(cal, cam)
     a, b, c = cal.plane.normal
@@ -107,16 +187,4 @@ def calibrate_plane_cmd(
     console.print(t)
     for w in cal.warnings:
         console.print(f"  warning: {w}")
-
-    options = {"camera": str(camera), "diameter_mm": diameter, "method": method, "channel": channel,
-               "distance_range_mm": [near, far]}
-    prov = provenance([*map(str, files), str(camera)], options)
-    # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
-    extra = {**cal.to_dict(), "uncertainty": unc, "provenance": prov, "report_inputs": cal.report_inputs()}
-    cal.plane.save(output, force=force, extra=extra)
-    console.print(f"wrote {output}")
-    if report is not None:
-        from ..report import write_report
-
-        path = write_report(report, cal, force=force, provenance=prov)
-        console.print(f"wrote {path}")
+    return unc

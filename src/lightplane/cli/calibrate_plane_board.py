@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, List, Optional
 
 import numpy as np
 import typer
@@ -12,7 +12,7 @@ from rich.table import Table
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
 from ..targets import Target
-from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
+from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, progress_bar, takes_target)
 
 
 def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
@@ -55,6 +55,44 @@ def pair_pattern_frames(files: list[Path], pattern_files: list[Path] | None, cyc
         k = len(files) // len(pattern_files)
         return files, [pattern_files[i // k] for i in range(len(files))]
     return files, None
+
+
+def laser_slots(n_files: int, pattern_files: list[Path] | None, cycle: str | None) -> list[int] | None:
+    """For each laser frame of :func:`pair_pattern_frames` (same order), which laser frame of its
+    pose it is (1, 2, ...): the K-th ``L`` of ``--cycle``, or the K-th of the laser frames shared
+    out to each ``--pattern`` frame; None without either (no poses with several laser frames)."""
+    if cycle is not None:
+        roles = [r.strip().upper() for r in cycle.split(",")]
+        out = []
+        for g in range(0, n_files, len(roles)):  # as pair_pattern_frames goes through the groups
+            for i, r in enumerate(roles):
+                if r == "L" and g + i < n_files:
+                    out.append(roles[:i + 1].count("L"))
+        return out
+    if pattern_files:
+        k = n_files // len(pattern_files)
+        return [i % k + 1 for i in range(n_files)]
+    return None
+
+
+def select_laser_frames(sels, lasers: list[Path], slots: list[int] | None, cycle: str | None,
+                        pattern_files) -> dict[str, list[int]]:
+    """Per ``--laser`` selector, the indices of its laser frames (``frames:`` and ``cycle:`` parts)."""
+    out = {}
+    for s in sels:
+        if s.cycle is not None:
+            if slots is None:
+                raise LightplaneError(f"--laser {s.describe()}: cycle:K needs --cycle or --pattern (the laser frames "
+                                      "of each board pose)")
+            if s.cycle > max(slots, default=0):
+                per = "--cycle " + cycle if cycle is not None else f"--pattern ({max(slots, default=0)} per pattern frame)"
+                raise LightplaneError(f"--laser {s.describe()}: {per} has only {max(slots, default=0)} laser frame(s) "
+                                      "per pose")
+        idx = [j for j, f in enumerate(lasers) if s.takes_file(f) and (s.cycle is None or (slots or [])[j] == s.cycle)]
+        if not idx:
+            raise LightplaneError(f"--laser {s.describe()}: none of the {len(lasers)} laser frames is one of its frames")
+        out[s.name] = idx
+    return out
 
 
 def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
@@ -127,13 +165,27 @@ def calibrate_plane_board_cmd(
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
 ) -> None:
-    """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline)."""
+    """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline).
+
+    Several lasers: one --laser NAME=SELECTOR each, e.g. FabScan's frames (lit board, laser 0, laser 1
+    per turntable position): --cycle P,L,L --laser laser0=cycle:1 --laser laser1=cycle:2; one plane file
+    per laser (-o plane.json: plane_laser0.json, plane_laser1.json).
+    """
     from ..baselines.zhou import calibrate_plane_board
     from ..camera import Camera
+    from ..lasers import LaserSelector, output_paths, parse_lasers
 
-    check_output(output, force)
+    sels = parse_lasers(laser, channel)
+    outputs: dict[str | None, Path] = {None: output}
+    if sels:
+        outputs = {n: f for n, f in output_paths(output, [x.name for x in sels]).items()}
+    if len(set(map(str, outputs.values()))) < len(outputs):
+        raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
+    for out in outputs.values():
+        check_output(out, force)
     cam = Camera.load(camera)
     files = expand_inputs(images)
     if not files:
@@ -149,19 +201,59 @@ def calibrate_plane_board_cmd(
     lasers, patterns = pair_pattern_frames(files, pattern_files, cycle)
     if len(lasers) < 2:
         raise LightplaneError(f"Zhou's method needs at least 2 board poses (images), got {len(lasers)}")
+    chosen: dict[str | None, list[int]] = {None: list(range(len(lasers)))}
+    if sels is not None:
+        slots = laser_slots(len(files), pattern_files, cycle)
+        chosen = {n: i for n, i in select_laser_frames(sels, lasers, slots, cycle, pattern_files).items()}
     imgs, pats, bgs, bg_files, skipped = read_laser_frames(lasers, patterns, background, rotate, cycle)
     names = [str(f) for f in lasers]
-    keep = [k for k, n in enumerate(names) if n not in skipped]
+    by_name: dict[str | None, LaserSelector] = {x.name: x for x in sels or []}
+    results: dict[str | None, Any] = {}
+    pose_cache: dict = {}  # each pattern frame's board found once for all lasers
+    for lname, idx in chosen.items():
+        sel = by_name.get(lname)
+        keep = [k for k in idx if names[k] not in skipped]
+        label = "board poses and stripes" + ("" if lname is None else f", laser {lname}")
+        with progress_bar(label, len(keep)) as update:
+            try:
+                res = calibrate_plane_board([imgs[k] for k in keep], cam, target,
+                                            background_images=None if bgs is None else
+                                            (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
+                                            pattern_images=None if pats is None else [pats[k] for k in keep],
+                                            image_names=[names[k] for k in keep], stripe_width_px=stripe_width,
+                                            channel=channel if sel is None else sel.channel,
+                                            skipped={names[k]: skipped[names[k]] for k in idx if names[k] in skipped},
+                                            progress=lambda i: update(i + 1),
+                                            region_px=None if sel is None else sel.region,
+                                            pose_cache=pose_cache)
+            except LightplaneError as e:
+                if sel is None:
+                    raise
+                raise LightplaneError(f"laser {sel.describe()}: {e}") from None
+        results[lname] = res
+    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
+            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
+            "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
+            "cycle": cycle, "camera": str(camera)}
+    if sels is not None:
+        opts["lasers"] = [x.to_dict() for x in sels]
+    for lname, res in results.items():
+        if lname is not None:
+            console.print(f"[bold]laser {lname}[/bold] ({by_name[lname].text}): {len(chosen[lname])} laser frames")
+        _print_board_result(res, target)
+    for lname, res in results.items():
+        idx = chosen[lname]
+        inputs = list(dict.fromkeys([*(lasers[k] for k in idx), *(patterns[k] for k in idx if patterns
+                                                                    and patterns[k] is not None)]))
+        extra: dict = {"provenance": provenance(inputs, opts)}
+        if lname is not None:
+            extra = {"laser": lname, **extra}
+        res.plane.save(outputs[lname], force=force, extra=extra)
+        console.print(f"wrote {outputs[lname]}")
 
-    with progress_bar("board poses and stripes", len(keep)) as update:
-        res = calibrate_plane_board([imgs[k] for k in keep], cam, target,
-                                    background_images=None if bgs is None else
-                                    (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
-                                    pattern_images=None if pats is None else [pats[k] for k in keep],
-                                    image_names=[names[k] for k in keep], stripe_width_px=stripe_width,
-                                    channel=channel, skipped=skipped,
-                                    progress=lambda i: update(i + 1))
 
+def _print_board_result(res, target) -> None:
+    """The plane, its uncertainty and the per-image table of one Zhou calibration on the console."""
     pl = res.plane
     sd = np.sqrt(np.diag(pl.covariance))
     t = Table(title="Light plane, Zhou's planar-target method (camera frame)", show_edge=False)
@@ -185,10 +277,3 @@ def calibrate_plane_board_cmd(
     console.print(v)
     for name, why in pl.meta["skipped"].items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
-    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
-            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
-            "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
-            "cycle": cycle, "camera": str(camera)}
-    inputs = list(dict.fromkeys([*lasers, *(p for p in patterns or [] if p is not None)]))
-    pl.save(output, force=force, extra={"provenance": provenance(inputs, opts)})
-    console.print(f"wrote {output}")

@@ -34,6 +34,7 @@ endpoints; board poses ``T_cam_board``; scan surfaces and motion).
 from __future__ import annotations
 
 import os
+from typing import Sequence
 from dataclasses import dataclass
 from typing import TypedDict
 from pathlib import Path
@@ -54,6 +55,7 @@ __all__ = [
     "laser_source",
     "render_circle_image",
     "render_circle_dataset",
+    "second_laser_plane",
     "render_chessboard_dataset",
     "render_target_dataset",
     "target_spec",
@@ -268,7 +270,8 @@ def _circle_patches(placement: TargetPlacement, polarity: str, background_z_mm: 
 def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
                    difficulty: str, polarity: str, *, noise: bool = True, saturate: bool = False,
                    clutter: bool | None = None, laser: bool = True, samples: int = 4,
-                   edge_samples: int = 16, noise_rng: np.random.Generator | None = None) -> tuple[np.ndarray, dict]:
+                   edge_samples: int = 16, noise_rng: np.random.Generator | None = None,
+                   more_planes: tuple = (), colour: bool = True) -> tuple[np.ndarray, dict]:
     imaging = _IMAGING[difficulty]
     levels = _LIGHT if polarity == "light" else _DARK
     bg_z = float(placement.center[2] + rng.uniform(80.0, 150.0))
@@ -290,11 +293,35 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
     salt = int(rng.integers(0, 2**31 - 1))
     rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser_row, ambient,
                              samples=samples, edge_samples=edge_samples, salt=salt)
-    img = _finish(rad, camera, imaging, rng if noise_rng is None else noise_rng, noise=noise)
+    powers = [power]
+    if more_planes:
+        # more lasers: light adds up, so each laser's stripe is the radiance with it on minus
+        # the radiance with every laser off (same scene, same samples)
+        off = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(plane, imaging, 0.0, rng),
+                                 ambient, samples=samples, edge_samples=edge_samples, salt=salt)
+        stripes = [rad - off]
+        for pl in more_planes:
+            pw = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
+            powers.append(pw)
+            r = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(pl, imaging, pw, rng),
+                                   ambient, samples=samples, edge_samples=edge_samples, salt=salt)
+            stripes.append(r - off)
+        nrng = rng if noise_rng is None else noise_rng
+        if colour:
+            # BGR: laser k in channel red, green, blue (k = 0, 1, 2); a channel without a laser
+            # shows the scene alone
+            chans = [off.copy(), off.copy(), off.copy()]
+            for k, st in enumerate(stripes):
+                chans[2 - k] = chans[2 - k] + st
+            img = np.dstack([_finish(c, camera, imaging, nrng, noise=noise) for c in chans])
+        else:
+            img = _finish(off + sum(stripes), camera, imaging, nrng, noise=noise)
+    else:
+        img = _finish(rad, camera, imaging, rng if noise_rng is None else noise_rng, noise=noise)
     info = {
         "background_plane": {"normal": [0.0, 0.0, -1.0], "d": bg_z},
         "ambient_dn": ambient,
-        "laser_power_dn": power,
+        "laser_power_dn": power if not more_planes else powers,
         "saturated_stripe": bool(saturate),
         "clutter": [{k: v for k, v in c.items() if k not in ("size_px",)} for c in items],
     }
@@ -418,6 +445,22 @@ def _placement_truth(camera: Camera, plane: LightPlane, tp: TargetPlacement) -> 
     }
 
 
+def _chord_fraction(tp: TargetPlacement, plane: LightPlane) -> float:
+    """The plane's chord across the disc as a fraction of its diameter (0 when it misses)."""
+    c = tp.chord(plane)
+    return 0.0 if c is None else float(np.linalg.norm(c[1] - c[0])) / tp.diameter_mm
+
+
+def second_laser_plane(plane: LightPlane | None = None) -> LightPlane:
+    """A second laser for two-laser renders: ``plane`` (default: the default sensor's) turned
+    90 degrees about the optical axis, so its stripe runs across the first one's (a laser
+    beside the camera on its y axis, crossing the optical axis at the same distance)."""
+    plane = default_plane() if plane is None else plane
+    n = plane.normal
+    return LightPlane(np.array([-n[1], n[0], n[2]]), plane.d,
+                      meta={"source": "lightplane.simulate.render.second_laser_plane"})
+
+
 def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, margin_px: float = 20.0) -> TargetPlacement | None:
     """Shift a placement along the light plane's normal until the stripe misses it (still in view)."""
     for extra in (8.0, 15.0, 25.0):
@@ -434,7 +477,9 @@ def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, m
 
 def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realistic", polarity: str = "light",
                           camera: Camera | None = None, plane: LightPlane | None = None, diameter_mm: float = 50.0,
-                          *, laser_off: bool = False, noise: bool = True, progress=None) -> Dataset:
+                          *, laser_off: bool = False, noise: bool = True, progress=None,
+                          more_planes: Sequence[LightPlane] = (), colour: bool = True,
+                          distance_mm: tuple[float, float] = (380.0, 520.0)) -> Dataset:
     """``n`` images of a circular target (docs/conventions.md §Default sensor placements) crossed by the stripe.
 
     Truth (``Dataset.truth``): ``plane``; per image ``file``, ``target`` (centre and
@@ -446,14 +491,33 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
     the same scene with the laser off (``circle_XXX_off.png``, listed after its laser-on
     image; ``file_laser_off`` in the truth).  ``progress``: optional callable
     ``progress(i, n)`` after each image.
+
+    ``more_planes``: the light planes of more lasers (up to two) whose stripes cross the
+    disc in the same images (every placement is drawn until each stripe's chord is at
+    least 0.4 of the diameter).  ``colour`` (default): BGR images, laser 0 (``plane``) in
+    the red channel, the next in green, then blue (a channel without a laser shows the
+    scene alone; each channel has its own noise, no crosstalk); else gray images holding
+    every stripe.  The truth then lists ``lasers`` (name, channel, plane) and each image's
+    ``chords_mm`` per laser.  ``distance_mm``: the range of the discs' distances.
     """
     n = _check_n(n)
+    more_planes = tuple(more_planes)
+    if len(more_planes) > 2:
+        raise LightplaneError(f"at most 3 lasers (one per colour channel), got {1 + len(more_planes)}")
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
     _check_choice(polarity, POLARITIES, "polarity")
     camera = default_camera() if camera is None else camera
     plane = default_plane() if plane is None else plane
     rng = np.random.default_rng(seed)
-    placements = sample_placements(n, rng, camera=camera, plane=plane, diameter_mm=diameter_mm)
+    placements = sample_placements(n, rng, camera=camera, plane=plane, diameter_mm=diameter_mm, distance_mm=distance_mm)
+    for i in range(n):
+        for _ in range(100000):
+            if all(_chord_fraction(placements[i], pl) >= 0.4 for pl in more_planes):
+                break
+            placements[i] = sample_placements(1, rng, camera=camera, plane=plane, diameter_mm=diameter_mm,
+                                              distance_mm=distance_mm)[0]
+        else:
+            raise LightplaneError("render_circle_dataset: no placement found that every laser's stripe crosses")
     miss_index = -1
     if difficulty == "hard":
         miss_index = int(rng.integers(0, n))
@@ -470,15 +534,19 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
     for i, tp in enumerate(placements):
         img_rng = np.random.default_rng([seed, i])
         saturate = difficulty == "hard" and i % 2 == 1 and i != miss_index
-        img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate)
+        img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate,
+                                   more_planes=more_planes, colour=colour)
         name = f"circle_{i:03d}.png"
         entry: dict[str, object] = {"file": name, "target": _placement_truth(camera, plane, tp)}
         off_name = f"circle_{i:03d}_off.png"
+        if more_planes:
+            entry["chords_mm"] = {f"laser{k}": tp.chord(pl) for k, pl in enumerate((plane, *more_planes))}
         if laser_off:
             # the same scene (same draws), laser off, its own noise
             off, _ = _render_circle(camera, plane, tp, np.random.default_rng([seed, i]), difficulty, polarity,
                                     noise=noise, saturate=saturate, laser=False,
-                                    noise_rng=np.random.default_rng([seed, i, 1]))
+                                    noise_rng=np.random.default_rng([seed, i, 1]), more_planes=more_planes,
+                                    colour=colour)
             entry["file_laser_off"] = off_name
         if i == miss_index:
             entry.update(usable=False, reason="stripe misses the target")
@@ -499,12 +567,16 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         "frame": "camera",
         "plane": plane.to_dict(),
         "laser_source_mm": laser_source(plane),
+        **({"lasers": [{"name": f"laser{k}", "channel": ("red", "green", "blue")[k] if colour else "gray",
+                        "plane": pl.to_dict(), "laser_source_mm": laser_source(pl)}
+                       for k, pl in enumerate((plane, *more_planes))]} if more_planes else {}),
         "difficulty": difficulty,
         "polarity": polarity,
         "imaging": _IMAGING[difficulty].__dict__,
         "seed": seed,
         "options": {"n": n, "seed": seed, "difficulty": difficulty, "polarity": polarity, "diameter_mm": diameter_mm,
-                    "laser_off": laser_off},
+                    "laser_off": laser_off, "lasers": 1 + len(more_planes), "colour": colour,
+                    "distance_mm": list(distance_mm)},
         "images": per_image,
     }
     return Dataset(images, names, camera, truth)
