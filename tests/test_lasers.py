@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -26,17 +27,35 @@ from lightplane.plane import LightPlane
 N_IMAGES = 6
 
 
-def cached_two_laser_render(n: int = N_IMAGES, seed: int = 5, difficulty: str = "realistic") -> Path:
+def mirrored_plane() -> LightPlane:
+    """A second laser on the other side of the camera (x -> -x), crossing the optical axis at the
+    same 450 mm: nearer than that its stripe is right of the image centre, the first one's left
+    (FabScan's two lasers)."""
+    from lightplane.simulate.geometry import default_plane
+
+    p = default_plane()
+    return LightPlane(np.array([-p.normal[0], p.normal[1], p.normal[2]]), p.d)
+
+
+def cached_two_laser_render(n: int = N_IMAGES, seed: int = 5, difficulty: str = "realistic",
+                            kind: str = "crossed") -> Path:
+    """``crossed``: colour images, the second laser turned 90 deg (stripes crossing on the disc);
+    ``mirrored``: gray images, the mirrored laser, discs at 395-435 mm (the stripes apart, one
+    each side of the image centre)."""
     import lightplane.simulate.render as R
     import lightplane.simulate.render_core as RC
 
     key = hashlib.sha1((Path(R.__file__).read_bytes() + Path(RC.__file__).read_bytes())).hexdigest()[:10]
-    out = Path(tempfile.gettempdir()) / "lightplane-test-renders" / f"circle2_{difficulty}_n{n}_s{seed}_{key}"
+    out = Path(tempfile.gettempdir()) / "lightplane-test-renders" / f"circle2_{kind}_{difficulty}_n{n}_s{seed}_{key}"
     if not (out / "truth.json").exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(dir=out.parent))
-        R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty,
-                                more_planes=[R.second_laser_plane()]).save(tmp, force=True)
+        if kind == "crossed":
+            ds = R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[R.second_laser_plane()])
+        else:
+            ds = R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[mirrored_plane()],
+                                         colour=False, distance_mm=(395.0, 435.0))
+        ds.save(tmp, force=True)
         try:
             tmp.rename(out)
         except OSError:  # another worker was faster
@@ -236,3 +255,57 @@ def test_cli_colour_selector_on_gray_images(tmp_path):
             "-o", tmp_path / "p.json", "--laser", "a=red", "--laser", "b=green")
     _bad(r, "laser a is told apart by its colour (red)", "no colour channels")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_frames_selector_gives_each_laser_its_images(render):
+    """``frames:`` parts: each laser gets the images whose names match; images shared by both
+    are observed once for both (same rim points), the others for one laser only."""
+    from lightplane.calibrate import calibrate_planes
+
+    _, cam, _, files, _ = render
+    sels = parse_lasers(["a=red+frames:circle_00[0-3].png", "b=green+frames:circle_00[2-5].png"])
+    cals = calibrate_planes(files, cam, 50.0, sels, "global", workers=1)
+    assert [Path(o.source).name for o in cals["a"].images] == [f"circle_00{i}.png" for i in range(4)]
+    assert [Path(o.source).name for o in cals["b"].images] == [f"circle_00{i}.png" for i in range(2, 6)]
+    assert all(o.used for c in cals.values() for o in c.images)
+    assert np.array_equal(cals["a"].images[2].rim_uv, cals["b"].images[0].rim_uv)
+    with pytest.raises(LightplaneError, match=re.escape("laser c (green+frames:none_*.png): none of the 6 images is "
+                                                        "one of its frames")):
+        calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "c=green+frames:none_*.png"]), workers=1)
+
+
+def test_two_stripes_told_apart_by_region():
+    """Gray images, two lasers on either side of the camera (FabScan-like), discs nearer than
+    where the planes cross: the left half of the image is one laser's, the right half the
+    other's.  5 images: the bars of test_calibrate_images' 5-image check (0.03 deg, 0.06 mm,
+    0.06 mm: the 12-image bars scaled by sqrt(12/5) and doubled) and 4 sigma of the predicted
+    uncertainty.  Measured: left 5/5 used, 0.0011 deg, -0.0025 mm, 0.0062 mm; right 4/5 (its
+    chord in circle_000 is 0.42 of the diameter, at the rim: "no stripe crossing the target"),
+    0.0057 deg, -0.0003 mm, 0.0090 mm."""
+    from lightplane.calibrate import calibrate_planes, uncertainty_summary
+    from lightplane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
+
+    folder = cached_two_laser_render(n=5, seed=4, kind="mirrored")
+    truth = json.loads((folder / "truth.json").read_text())
+    cam = Camera.load(folder / "camera.json")
+    files = [folder / im["file"] for im in truth["images"]]
+    half = f"{cam.cx:.0f}"
+    sels = parse_lasers([f"left=0,0,{half},{cam.height}", f"right={half},0,{cam.width},{cam.height}"])
+    cals = calibrate_planes(files, cam, 50.0, sels, workers=1)
+    for (name, cal), las in zip(cals.items(), truth["lasers"]):
+        true = LightPlane.from_dict(las["plane"])
+        assert cal.n_used >= 4, [o.reason for o in cal.images]
+        for o in cal.images:  # every used stripe is the laser's own, on its own side
+            if o.used:
+                assert np.all(sels[0 if name == "left" else 1].in_region(o.stripe_raw_uv))
+        angle = float(np.degrees(cal.plane.angle_to(true)))
+        offset = float(cal.plane.signed_distance(true.point_on_axis()[None])[0])
+        vol = working_volume_grid(cam, true)
+        tri = rms_triangulation_error_mm(cam, cal.plane, true, vol)
+        unc = uncertainty_summary(cal, cam)
+        s_tri = rms_point_sigma_mm(cam, cal.plane, vol, covariance=cal.covariance)
+        print(f"\nlaser {name}: {cal.n_used} used, angle {angle:.4f} deg, offset {offset:+.4f} mm, "
+              f"triangulation {tri:.4f} mm (sigma {s_tri:.4f})")
+        assert angle < 0.03 and angle < 4 * float(np.hypot(*unc["normal_sigma_deg"]))
+        assert abs(offset) < 0.06 and abs(offset) < 4 * unc["point_sigma_axis_mm"]
+        assert tri < 0.06 and tri < 4 * s_tri

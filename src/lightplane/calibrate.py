@@ -559,10 +559,9 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
         if region is not None:
             inside = inside & region
         width, contrast = stripe_width_px, None
-        gray = to_gray_float(crop, s.channel)
+        gray = s.outside_removed(to_gray_float(crop, s.channel), (cu0, cv0))
         if chord is not None:
-            w_est, height = stripe_width_along(gray if region is None else np.where(region, gray, 0), chord[0] - off,
-                                               chord[1] - off)
+            w_est, height = stripe_width_along(gray, chord[0] - off, chord[1] - off)
             if width is None and np.isfinite(w_est):
                 width = float(np.clip(w_est, 2.0, 40.0))
             if np.isfinite(height):

@@ -109,14 +109,29 @@ class LaserSelector:
 
     def view(self, img: np.ndarray) -> np.ndarray:
         """The image as this laser's stripe is looked for in it: its channel (float32 gray),
-        zero outside its region."""
+        without bright lines outside its region (:meth:`outside_removed`)."""
         from .io import to_gray_float
 
-        g = to_gray_float(img, self.channel)
-        m = self.region_mask(g.shape[:2])
-        if m is not None:
-            g = np.where(m, g, np.float32(0.0)).astype(np.float32)
-        return g
+        return self.outside_removed(to_gray_float(img, self.channel))
+
+    def outside_removed(self, gray: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        """``gray`` (float32) with the bright lines outside this laser's region taken out: there
+        the image is replaced by its morphological opening (a disc of 25 px removes stripes up
+        to ~20 px wide and keeps the target and the background) raised by the median of
+        ``gray - opening`` outside (an opening sits below a noisy level by about the noise),
+        so no other laser's stripe is seen and the region's border adds no step.
+        ``offset``: the (u, v) of pixel (0, 0)."""
+        import cv2
+
+        m = self.region_mask(gray.shape[:2], offset)
+        if m is None:
+            return gray
+        opened = cv2.morphologyEx(np.ascontiguousarray(gray, dtype=np.float32), cv2.MORPH_OPEN,
+                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (25, 25)))
+        out = ~m
+        if out.any():
+            opened = opened + np.float32(np.median((gray - opened)[out]))
+        return np.where(m, gray, opened).astype(np.float32)
 
 
 def _fmt_region(r) -> str:

@@ -32,6 +32,9 @@ def render_cmd(
     polarity: Literal["light", "dark"] = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
                                  "printed disc on a light board."),
     diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
+    lasers: int = typer.Option(1, "--lasers", min=1, max=2, help="circle: 2 renders a second laser whose stripe "
+                               "crosses the first on the disc (colour images: laser0 red, laser1 green; "
+                               "calibrate with --laser laser0=red --laser laser1=green)."),
     board: Optional[str] = typer.Option(None, "--board", help="chessboard: inner corners COLSxROWS (default: 15x11 "
                                         "for the calibration capture, 9x6 with --stripe); target: KIND:COLSxROWS."),
     square: Optional[float] = typer.Option(None, "--square", help="chessboard: square size in mm (default 8); "
@@ -61,6 +64,7 @@ def render_cmd(
         render_circle_dataset,
         render_scan_dataset,
         render_target_dataset,
+        second_laser_plane,
     )
 
     if not diameter > 0:
@@ -90,7 +94,8 @@ def render_cmd(
         if scene == "circle":
             ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",
                                        polarity=polarity, diameter_mm=diameter, laser_off=laser_off,
-                                       progress=progress)
+                                       progress=progress,
+                                       more_planes=[second_laser_plane()] if lasers == 2 else [])
         elif scene == "target":
             ds = render_target_dataset(tgt, n=(6 if stripe else 30) if n is None else n, seed=seed,
                                        difficulty=difficulty or "realistic", with_stripe=stripe, laser_off=laser_off,
@@ -122,6 +127,10 @@ def render_cmd(
         bad = [e["file"] for e in ds.truth["images"] if not e["usable"]]
         console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
                       f"{len(ds.truth['images']) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
+        from ..plane import LightPlane
+
+        for las in ds.truth.get("lasers", []):
+            console.print(f"  {las['name']} ({las['channel']} channel): plane {LightPlane.from_dict(las['plane'])}")
     elif scene == "chessboard":
         b = ds.truth["board"]
         console.print(f"board {b['inner_corners'][0]}x{b['inner_corners'][1]} inner corners, square {b['square_mm']:g} mm"
