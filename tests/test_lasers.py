@@ -11,13 +11,13 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from _cli import lightplane as run, one_error_line as _bad
 
 from lightplane.camera import Camera
 from lightplane.errors import LightplaneError
@@ -204,19 +204,6 @@ def test_image_without_one_lasers_stripe_is_skipped_for_that_laser(render):
 
 
 # ----------------------------------------------------------------------------- command line
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lightplane", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=300)
-
-
-def _bad(r, *needles):
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("lightplane: error:"), r.stderr
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-
-
 def test_cli_two_lasers_one_file_each(render, two_planes, tmp_path):
     folder, _, _, files, _ = render
     out = tmp_path / "plane.json"
