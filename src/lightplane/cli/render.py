@@ -32,9 +32,6 @@ def render_cmd(
     polarity: Literal["light", "dark"] = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "
                                  "printed disc on a light board."),
     diameter: float = typer.Option(50.0, "--diameter", help="circle: disc diameter in mm."),
-    lasers: int = typer.Option(1, "--lasers", min=1, max=2, help="circle: 2 renders a second laser whose stripe "
-                               "crosses the first on the disc (colour images: laser0 red, laser1 green; "
-                               "calibrate with --laser laser0=red --laser laser1=green)."),
     board: Optional[str] = typer.Option(None, "--board", help="chessboard: inner corners COLSxROWS (default: 15x11 "
                                         "for the calibration capture, 9x6 with --stripe); target: KIND:COLSxROWS."),
     square: Optional[float] = typer.Option(None, "--square", help="chessboard: square size in mm (default 8); "
@@ -52,7 +49,10 @@ def render_cmd(
                              "or plane (tilted)."),
     step: Optional[float] = typer.Option(None, "--step", help="scan: motion per frame in mm (default 1.5 sphere, "
                                          "2.0 step/plane)."),
-    lasers: int = typer.Option(2, "--lasers", min=1, max=2, help="turntable: 1 or 2 lasers (frames of their own)."),
+    lasers: Optional[int] = typer.Option(None, "--lasers", min=1, max=2, help="turntable: 1 or 2 lasers (frames of "
+                                         "their own; default 2). circle: 2 renders a second laser whose stripe crosses "
+                                         "the first on the disc (colour images: laser0 red, laser1 green; calibrate "
+                                         "with --laser laser0=red --laser laser1=green; default 1)."),
     turntable_step: Optional[float] = typer.Option(None, "--turntable-step", help="turntable: degrees per frame "
                                                    "(default: one turn over --n frames)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing files."),
@@ -108,7 +108,8 @@ def render_cmd(
             from ..simulate.turntable import render_turntable_scan
 
             ds = render_turntable_scan(n_frames=24 if n is None else n, step_deg=turntable_step, seed=seed,
-                                       difficulty=difficulty or "clean", lasers=lasers, progress=progress)
+                                       difficulty=difficulty or "clean", lasers=2 if lasers is None else lasers,
+                                       progress=progress)
         elif scene == "turntable-board":
             from ..simulate.turntable import render_turntable_board
 
