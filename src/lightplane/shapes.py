@@ -286,10 +286,13 @@ def plane_accuracy(plane_est, camera_est, plane_true, camera_true, *,
     the best rigid alignment of the two point sets (:func:`rigid_align`: an error of the
     principal point rotates the whole camera frame: no shape or distance error, but
     camera-frame coordinates move); ``point_sigma_rms_mm``: the RMS predicted sigma there
-    (None without a covariance).
+    (camera frame, with the camera's share when ``camera_est`` has a covariance and the
+    plane records its dependence on it), ``shape_sigma_rms_mm`` the predicted sigma after
+    the best rigid motion, ``plane_only_sigma_rms_mm`` the plane's image noise alone, and
+    ``camera_share_included`` (sigmas None / absent without a plane covariance).
     """
     from .measure import triangulate
-    from .uncertainty import point_sigma_mm, working_volume_grid
+    from .uncertainty import WorkingVolume, point_sigma_mm, volume_sigma, working_volume_grid
 
     vol = working_volume_grid(camera_true, plane_true, distance_mm=distance_mm)
     a = triangulate(camera_est, plane_est, vol.uv)
@@ -307,4 +310,8 @@ def plane_accuracy(plane_est, camera_est, plane_true, camera_true, *,
     if plane_est.covariance is not None:
         s = point_sigma_mm(camera_est, plane_est, vol.uv[ok])
         out["point_sigma_rms_mm"] = float(np.sqrt(np.nanmean(s**2)))
+        vs = volume_sigma(camera_est, plane_est, WorkingVolume(vol.uv[ok], b, vol.distance_mm, vol.step_px))
+        out["shape_sigma_rms_mm"] = vs.shape_mm
+        out["plane_only_sigma_rms_mm"] = vs.plane_only_mm
+        out["camera_share_included"] = vs.camera_included
     return out
