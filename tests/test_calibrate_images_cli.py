@@ -111,3 +111,41 @@ def test_ros_and_opencv_camera_files(tmp_path, render, suffix):
     assert r.returncode == 0, r.stderr
     truth = LightPlane.from_dict(json.loads((render / "truth.json").read_text())["plane"])
     assert np.degrees(LightPlane.load(out).angle_to(truth)) < 0.1
+
+
+def test_camera_share_in_every_output(render, tmp_path):
+    """A camera file with a covariance: the plane file, the summary and the report carry the
+    camera-frame and the shape sigma with the camera's share; without one they say it is missing."""
+    cam = Camera.load(render / "camera.json")
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    sd = np.array([0.5, 0.5, 0.3, 0.3, 1e-3, 1e-2, 2e-5, 2e-5, 0.0])
+    cov_cam = Camera(cam.K, cam.dist, cam.width, cam.height, covariance=np.diag(sd**2), covariance_params=names)
+    camfile = cov_cam.save_json(tmp_path / "cam_cov.json")
+    out, rep = tmp_path / "plane.json", tmp_path / "report"
+    r = run(render, "--camera", camfile, "--diameter", "50", "-o", out, "--report", rep)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(out.read_text())
+    u = d["uncertainty"]
+    assert u["camera_share"] == "included" and d["camera_jacobian"]["params"] == list(names)
+    assert u["point_sigma_rms_mm"] > 3 * u["plane_only_sigma_rms_mm"] and u["shape_sigma_rms_mm"] < u["point_sigma_rms_mm"]
+    assert "intrinsics" in u["covers"]["point_sigma_rms_mm"] and "rigid motion" in u["covers"]["shape_sigma_rms_mm"]
+    assert "camera frame" in r.stdout and "shape" in r.stdout and "with the camera's share" in r.stdout
+    assert "RMS shape σ" in (rep / "index.html").read_text()
+    # the plane file's sigma is what the library computes for the same files (measure's per-point sigma too)
+    from lightplane.measure import ProfileMeasurer
+    from lightplane.uncertainty import point_sigma_mm
+
+    plane = LightPlane.load(out)
+    cam2 = Camera.load(camfile)
+    uv = np.array([[640.0, 300.0], [700.0, 500.0]])
+    prof = ProfileMeasurer(cam2, plane, lookup=False).from_stripe(uv, np.ones(2, bool))
+    assert np.allclose(prof.sigma_mm, point_sigma_mm(cam2, plane, uv))
+    assert np.all(prof.sigma_mm > point_sigma_mm(cam2, plane, uv, covariance=plane.covariance))
+    # the same images with the covariance-free camera file: every output says the share is missing
+    out2 = tmp_path / "plane2.json"
+    r = run(render, "--camera", render / "camera.json", "--diameter", "50", "-o", out2)
+    assert r.returncode == 0, r.stderr
+    u2 = json.loads(out2.read_text())["uncertainty"]
+    assert "not included" in u2["camera_share"] and "not included" in u2["covers"]["point_sigma_rms_mm"]
+    assert "not included" in r.stdout
+    assert u2["point_sigma_rms_mm"] == pytest.approx(u2["plane_only_sigma_rms_mm"])
