@@ -532,23 +532,23 @@ def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
     found, corners = cv2.findChessboardCornersSB(gray, tuple(board), flags=flags)
     if not found or corners is None:
         return none
-    c = corners.reshape(-1, 2).astype(np.float32)
+    c32 = corners.reshape(-1, 2).astype(np.float32)
     if not subpix:
-        return c.astype(np.float64), None, np.zeros(0)
+        return c32.astype(np.float64), None, np.zeros(0)
     cols, rows = board
-    grid = c.reshape(rows, cols, 2)
+    grid = c32.reshape(rows, cols, 2)
     spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
                   np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
     half = int(np.clip(np.floor(0.3 * spacing), 2, 11))
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
-    c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
+    c = cv2.cornerSubPix(gray, c32.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
     c = c.astype(np.float64)
     if method is None or spacing < 8:
         return c, None, np.zeros(0)
     c = refine_corners(gray, c, float(spacing))
     if method != "saddle":
         return c, None, np.zeros(0)
-    q, blur, ok = _fit_corners(gray_in, c, tuple(board))  # corners it cannot fit keep Förstner's position
+    q, blur, ok = _fit_corners(gray_in, c, (cols, rows))  # corners it cannot fit keep Förstner's position
     return c, q, blur[ok]
 
 
@@ -729,13 +729,15 @@ def calibrate_camera(
         else:
             method = "forstner"
     found = [v for v in views if v.corners_uv is not None]
+    found_uv: list[np.ndarray] = [v.corners_uv for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     for n in not_found:
         skipped[n] = f"{target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
     if len(found) < min_views:
         raise LightplaneError(too_few_images_message("images", len(found), min_views, skipped.items()))
+    assert size is not None  # set by the first readable image, and some were found
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]
-    imgpoints = [v.corners_uv.astype(np.float32).reshape(-1, 1, 2) for v in found]
+    imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     model, flags = calibration_flags(model, flags)
 
@@ -759,7 +761,7 @@ def calibrate_camera(
     if target.kind in ("circles", "acircles"):
         # centroids -> projected centres at the poses found, then solve again (twice: the poses move a little)
         dot_mm = float(target.dot_mm or np.median(dots))
-        raw = [v.corners_uv for v in found]
+        raw = found_uv
         for _ in range(2):
             cam = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
             fixed = [correct_circle_centres(cam, target, u, v.ids, cv2.Rodrigues(rv)[0], tv.ravel(), dot_mm)
@@ -768,6 +770,7 @@ def calibrate_camera(
             rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
         shift = float(np.sqrt(np.mean(np.concatenate([np.sum((f - u) ** 2, axis=1) for f, u in zip(fixed, raw)]))))
         found = [BoardView(v.name, f, v.image_size, v.ids) for v, f in zip(found, fixed)]
+        found_uv = fixed
     dist = _model_dist(dist, model)
     try:
         icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist, flags, model=model)
@@ -787,10 +790,10 @@ def calibrate_camera(
     else:
         std = {}
     residuals, corners = [], []
-    for v, o, rv, tv in zip(found, objs, rvecs, tvecs):
+    for uv, o, rv, tv in zip(found_uv, objs, rvecs, tvecs):
         proj = camera.project(o.astype(np.float64) @ cv2.Rodrigues(np.ravel(rv))[0].T + np.ravel(tv))
-        residuals.append(v.corners_uv - proj)
-        corners.append(v.corners_uv)
+        residuals.append(uv - proj)
+        corners.append(uv)
     return IntrinsicsCalibration(
         camera=camera,
         rms_px=float(rms),
