@@ -276,7 +276,9 @@ class ProfileMeasurer:
         self.camera_share_missing = camera_share_status(camera, plane)
         self._lookup = bool(lookup)
         # lookup tables (xy, d xy / d sample per roi pixel) and which blocks of them are built
-        self._xy = self._dxy = self._built = None
+        self._xy: np.ndarray | None = None
+        self._dxy: np.ndarray | None = None
+        self._built: np.ndarray | None = None
         #: how many table blocks this measurer has built (a diagnostic: repeated frames build none)
         self.blocks_built = 0
         self._lock = threading.Lock()
@@ -299,8 +301,8 @@ class ProfileMeasurer:
         """Build all the lookup tables now (otherwise block by block as centres need them).  Thread-safe."""
         if not self._lookup:
             return
-        self._alloc_tables()
-        nlb, nsb = self._built.shape
+        _, _, built = self._alloc_tables()
+        nlb, nsb = built.shape
         for lb in range(nlb):  # one row of blocks at a time: the undistortion's temporaries stay small
             self._ensure_blocks(np.full(nsb, lb), np.arange(nsb))
 
@@ -322,21 +324,23 @@ class ProfileMeasurer:
             return np.arange(x, x + w), np.arange(y, y + h)
         return np.arange(y, y + h), np.arange(x, x + w)
 
-    def _alloc_tables(self) -> None:
+    def _alloc_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The (uninitialised) table arrays and the map of built blocks; pages are touched only when filled."""
-        if self._built is not None:
-            return
-        with self._lock:
-            if self._built is None:
-                lines, samples = self._line_grid()
-                L, S = lines.size, samples.size
-                self._xy = np.empty((L, S, 2))
-                self._dxy = np.empty((L, S, 2), np.float32)
-                self._built = np.zeros((-(-L // self.BLOCK_LINES), -(-S // self.BLOCK_SAMPLES)), bool)
+        if self._built is None:
+            with self._lock:
+                if self._built is None:
+                    lines, samples = self._line_grid()
+                    L, S = lines.size, samples.size
+                    self._xy = np.empty((L, S, 2))
+                    self._dxy = np.empty((L, S, 2), np.float32)
+                    self._built = np.zeros((-(-L // self.BLOCK_LINES), -(-S // self.BLOCK_SAMPLES)), bool)
+        # the map of built blocks is set last: once it exists, so do the tables
+        assert self._xy is not None and self._dxy is not None and self._built is not None
+        return self._xy, self._dxy, self._built
 
     def _ensure_blocks(self, lb: np.ndarray, sb: np.ndarray) -> None:
         """Build the blocks ``(lb[i], sb[i])`` not built yet (one undistortion call for all of them)."""
-        built = self._built
+        _, _, built = self._alloc_tables()
         need = ~built[lb, sb]
         if not need.any():
             return
@@ -355,23 +359,24 @@ class ProfileMeasurer:
         K = self.camera.K
         dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
             else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
-        li, si = [], []
+        li_parts, si_parts = [], []
         for lb, sb in zip(lbs, sbs):
             l_idx = np.arange(lb * BL, min((lb + 1) * BL, lines.size))
             s_idx = np.arange(sb * BS, min((sb + 1) * BS, samples.size))
             ll, ss = np.meshgrid(l_idx, s_idx, indexing="ij")
-            li.append(ll.ravel())
-            si.append(ss.ravel())
-        li, si = np.concatenate(li), np.concatenate(si)
+            li_parts.append(ll.ravel())
+            si_parts.append(ss.ravel())
+        li, si = np.concatenate(li_parts), np.concatenate(si_parts)
         lv, sv = lines[li].astype(float), samples[si].astype(float)
         uv = np.column_stack([lv, sv]) if self.axis == "columns" else np.column_stack([sv, lv])
         xy = self.camera.undistort_points(uv, normalized=True)
         j11, j12, j21, j22 = self.camera.distortion_jacobian(xy)
         det = j11 * j22 - j12 * j21
         d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
-        self._xy[li, si] = xy
-        self._dxy[li, si] = d
-        self._built[lbs, sbs] = True  # after the values: a reader that sees the flag sees them
+        tab_xy, tab_dxy, built = self._alloc_tables()
+        tab_xy[li, si] = xy
+        tab_dxy[li, si] = d
+        built[lbs, sbs] = True  # after the values: a reader that sees the flag sees them
         self.blocks_built += len(lbs)
 
     def normalized(self, uv: np.ndarray) -> np.ndarray:
@@ -385,8 +390,7 @@ class ProfileMeasurer:
         uv = as_points(uv, 2, "uv")
         if not self._lookup:
             return self.camera.undistort_points(uv, normalized=True)
-        self._alloc_tables()
-        tab_xy, tab_dxy = self._xy, self._dxy
+        tab_xy, tab_dxy, _ = self._alloc_tables()
         lines, samples = self._line_grid()
         line0, sample0 = int(lines[0]), int(samples[0])
         li, si = (0, 1) if self.axis == "columns" else (1, 0)

@@ -7,6 +7,7 @@ from typing import List, Optional
 
 import numpy as np
 import typer
+from rich.console import JustifyMethod
 from rich.table import Table
 
 from ..errors import LightplaneError
@@ -76,7 +77,7 @@ def calibrate_camera_cmd(
                   f"({cam.width}x{cam.height} px); board: {target.describe()}")
     if target.kind == "chessboard":
         label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
-        blur = result.options.get("median_blur_px")
+        blur = result.options.get("median_blur_px", float("nan"))
         console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if np.isfinite(blur) else ""))
         detector = f"findChessboardCornersSB+cornerSubPix+{refiner}"
     elif target.kind == "charuco":
@@ -89,7 +90,8 @@ def calibrate_camera_cmd(
                       f"(dot {o['dot_mm']:.2f} mm; RMS shift {o['circle_centre_correction_px']:.3f} px)")
         detector = "findCirclesGrid+weighted-centroid+perspective-correction"
     v = Table(title="Per image used: RMS reprojection error, worst first", show_edge=False)
-    for c, j in (("image", "left"), ("points", "right"), ("RMS px", "right")):
+    columns: tuple[tuple[str, JustifyMethod], ...] = (("image", "left"), ("points", "right"), ("RMS px", "right"))
+    for c, j in columns:
         v.add_column(c, justify=j)
     npts = dict(zip(result.used, (len(c) for c in result.corners_uv)))
     for name, e in result.ranked_views():

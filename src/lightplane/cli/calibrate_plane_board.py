@@ -7,6 +7,7 @@ from typing import Any, List, Optional
 
 import numpy as np
 import typer
+from rich.console import JustifyMethod
 from rich.table import Table
 
 from ..errors import LightplaneError
@@ -24,13 +25,14 @@ def check_background(files: list[Path], bg_files: list[Path], option: str = "--b
 
 
 def pair_pattern_frames(files: list[Path], pattern_files: list[Path] | None, cycle: str | None
-                        ) -> tuple[list[Path], list[Path] | None]:
+                        ) -> tuple[list[Path], list[Path | None] | None]:
     """Laser frames and, for each, the pattern frame of its pose.
 
     ``cycle`` (e.g. ``P,L,-``): the images, in order, repeat this sequence of roles per pose
     (P the lit pattern frame, L a laser frame to use, - a frame to leave out).
     ``pattern_files``: one lit frame per pose; the laser frames, in order, are shared out
-    evenly, the first k to the first pattern frame and so on.
+    evenly, the first k to the first pattern frame and so on.  A pose whose last group of
+    frames lacks its pattern frame gets None for it (that image is skipped with its reason).
     """
     if cycle is not None and pattern_files:
         raise LightplaneError("give either --pattern or --cycle, not both")
@@ -255,14 +257,18 @@ def calibrate_plane_board_cmd(
 def _print_board_result(res, target) -> None:
     """The plane, its uncertainty and the per-image table of one Zhou calibration on the console."""
     pl = res.plane
-    sd = np.sqrt(np.diag(pl.covariance))
+    cov = pl.covariance
+    assert cov is not None  # Zhou's fit always gives the plane its covariance
+    sd = np.sqrt(np.diag(cov))
     t = Table(title="Light plane, Zhou's planar-target method (camera frame)", show_edge=False)
-    for c, j in (("coefficient", "left"), ("value", "right"), ("± std", "right"), ("unit", "left")):
+    columns: tuple[tuple[str, JustifyMethod], ...] = (("coefficient", "left"), ("value", "right"),
+                                                      ("± std", "right"), ("unit", "left"))
+    for c, j in columns:
         t.add_column(c, justify=j)
     for name, v, s, u in zip("abcd", pl.coefficients, sd, ("-", "-", "-", "mm")):
         t.add_row(name, f"{v:+.6f}" if u == "-" else f"{v:+.4f}", f"{s:.2g}", u)
     console.print(t)
-    sigma_deg = float(np.degrees(np.sqrt(np.trace(pl.covariance[:3, :3]))))
+    sigma_deg = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]))))
     console.print(f"normal direction σ ≈ {sigma_deg:.4f} deg (covariance: {pl.meta['covariance_method']})")
     console.print(f"{len(res.points_cam_mm)} stripe points from {len(set(res.view_index.tolist()))} board poses, "
                   f"residual RMS {res.residual_rms_mm:.4f} mm; board: {target.describe()}")

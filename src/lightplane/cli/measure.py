@@ -8,7 +8,7 @@ from typing import List, Literal, Optional
 import typer
 
 from ..errors import LightplaneError
-from ._common import Channel, app, console, err_console, handles_errors, progress_bar
+from ._common import Channel, along_stripe, app, console, err_console, handles_errors, progress_bar
 
 
 def parse_vector(text: str, name: str) -> tuple[float, float, float]:
@@ -19,7 +19,7 @@ def parse_vector(text: str, name: str) -> tuple[float, float, float]:
         raise LightplaneError(f"{name} must be X,Y,Z (three numbers), got {text!r}") from None
     if len(v) != 3:
         raise LightplaneError(f"{name} must be X,Y,Z (three numbers), got {text!r}")
-    return v  # type: ignore[return-value]
+    return v
 
 
 def parse_roi(text: str) -> tuple[int, int, int, int]:
@@ -210,7 +210,6 @@ def measure_cmd(
                                  turntable_start=turntable_start, counts_per_rev=counts_per_rev, poses=poses,
                                  flange=flange, flange_from_sensor=None if sens is None else sens.flange, camera=cam)
     roi_box = parse_roi(roi) if roi is not None else None
-    stripe_opts = {"smooth_lines": smooth, **({} if sigma_along is None else {"sigma_along_px": sigma_along})}
 
     if sens is not None:
         from ..sensor import measure_lasers
@@ -222,7 +221,8 @@ def measure_cmd(
         with progress_bar("measuring frames", total) as update:
             s = measure_lasers(scans, cam, out, motion=motion, fmt=fmt, ascii=ascii_ply, force=force,
                                channel=channel, width_px=stripe_width, workers=workers, roi=roi_box, axis=axis,
-                               progress=lambda done, tot: update(done, total=tot), **stripe_opts)
+                               progress=lambda done, tot: update(done, total=tot), smooth_lines=smooth,
+                               **along_stripe(sigma_along))
         for name, nf, nu, npts, skipped, ax, w in s.lasers:
             console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
                           f"stripe width {w:.2f} px" + (f", {len(skipped)} frames skipped" if skipped else ""))
@@ -242,7 +242,7 @@ def measure_cmd(
 
         s = measure_scan(source, cam, pl, out, fmt=fmt, ascii=ascii_ply, motion=motion, axis=axis, roi=roi_box,
                          width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress,
-                         **stripe_opts)
+                         smooth_lines=smooth, **along_stripe(sigma_along))
 
     console.print(f"{s.n_frames} frames ({source.description}), {s.n_points} points "
                   f"({s.n_points / max(s.n_frames_used, 1):.0f} per frame), axis {s.axis}, "

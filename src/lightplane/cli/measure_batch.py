@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..errors import LightplaneError
-from ._common import app, console, err_console, fail, handles_errors
+from ._common import along_stripe, app, console, err_console, fail, handles_errors
 
 #: per-scan progress bars up to this many scans (then the overall bar only)
 MAX_SCAN_BARS = 12
@@ -61,7 +61,6 @@ def measure_batch_cmd(
         raise LightplaneError(f"--axis must be auto, columns or rows, got {axis!r}")
     roi_box = parse_roi(roi) if roi is not None else None
     scans = read_manifest(manifest)
-    stripe = {"smooth_lines": smooth, **({} if sigma_along is None else {"sigma_along_px": sigma_along})}
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
@@ -83,7 +82,8 @@ def measure_batch_cmd(
 
         r = measure_batch(scans, output, scheduler=scheduler, local_workers=local_workers, chunk_frames=chunk_frames,
                           axis=axis, roi=roi_box, width_px=stripe_width, channel=channel, ply=ply,
-                          progress=progress, on_dashboard=dashboard, **stripe)
+                          progress=progress, on_dashboard=dashboard, smooth_lines=smooth,
+                          **along_stripe(sigma_along))
 
     ok = [s for s in r.scans if s["status"] == "ok"]
     console.print(f"{len(ok)} of {len(r.scans)} scans measured: {r.n_frames} frames, {r.n_points} points, "

@@ -137,6 +137,7 @@ def render_cmd(
         console.print(f"board {b['inner_corners'][0]}x{b['inner_corners'][1]} inner corners, square {b['square_mm']:g} mm"
                       + (", laser stripe on" if stripe else ""))
     elif scene == "target":
+        assert tgt is not None  # parsed above for this scene
         console.print(f"board: {tgt.describe()}" + (", laser stripe on" if stripe else "")
                       + (" (dark laser frames)" if dark_laser and stripe else ""))
     elif scene == "turntable":

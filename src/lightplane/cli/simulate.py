@@ -40,8 +40,8 @@ def simulate_cmd(
         raise LightplaneError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     targets = [out / f"{f}.{ext}" for f in factors for ext in ("csv", "png")] + [out / "study.json"]
-    for t in targets:  # refuse before the long run, not after it
-        check_output(t, force)
+    for target in targets:  # refuse before the long run, not after it
+        check_output(target, force)
 
     results = {}
     with progress_bar("simulating", n_trials_total(factors, trials), remaining=True) as update:
