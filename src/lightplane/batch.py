@@ -46,12 +46,18 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from .errors import LightplaneError
-from .pointcloud import POINT_DTYPE
+from .pointcloud import POINT_DTYPE, POINT_FIELDS
+from .scan import FrameSource
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .plane import LightPlane
+    from .motion import Motion
 
 __all__ = ["BatchScan", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
            "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]
@@ -135,7 +141,7 @@ def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
 
 
 def _motion_of(scan: BatchScan):
-    from .scan import Motion
+    from .motion import Motion
 
     dvec = None
     if scan.direction:
@@ -168,9 +174,9 @@ class _Plan:
     """A scan ready to run: calibration, frames, chunks (filled on the client)."""
 
     scan: BatchScan
-    camera: object = None
-    plane: object = None
-    motion: object = None
+    camera: Camera | None = None
+    plane: LightPlane | None = None
+    motion: Motion | None = None
     frames: list = field(default_factory=list)  # frame paths (images) or [video path]
     video: bool = False
     chunks: list = field(default_factory=list)  # [(k, start, stop)]; stop None: to the end (video)
@@ -221,6 +227,7 @@ def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
     except (OSError, ValueError) as e:
         pl.error = f"{type(e).__name__}: {e}"
         return pl
+    assert pl.camera is not None and pl.plane is not None and pl.motion is not None  # read above, or returned
     base = {"layout": _LAYOUT, "camera": pl.camera.to_dict(), "plane": pl.plane.to_dict(),
             "motion": pl.motion.to_dict(), "options": options, "versions": _code_versions(),
             # every frame of the scan (name, size, mtime): the stripe width comes from its first readable frame
@@ -273,7 +280,7 @@ def _list_url_frames(url: str) -> tuple[list[str], list]:
     return [fs.unstrip_protocol(n) for n in names], stamps
 
 
-class _RemoteFrames:
+class _RemoteFrames(FrameSource):
     """Frames named by fsspec URLs: each is copied to a local temporary file and read there
     exactly as a local file is (:func:`lightplane.io.try_read_image`), then removed."""
 
@@ -326,7 +333,7 @@ def _code_versions() -> dict:
 
 
 # ----------------------------------------------------------------------------- worker side
-class _ChunkFrames:
+class _ChunkFrames(FrameSource):
     """Frames ``start..stop`` of a scan's image list, with their global indices."""
 
     def __init__(self, paths: Sequence[str], start: int) -> None:
@@ -341,7 +348,7 @@ class _ChunkFrames:
         pass
 
 
-class _VideoChunk:
+class _VideoChunk(FrameSource):
     """All frames of a video (one chunk)."""
 
     def __init__(self, path: str) -> None:
@@ -396,7 +403,7 @@ def _processor(key: str, camera, plane, motion, axis: str, width_px, options: di
 def _table(records: np.ndarray, meta: dict):
     import pyarrow as pa
 
-    cols = {name: pa.array(np.ascontiguousarray(records[name])) for name in POINT_DTYPE.names}
+    cols = {name: pa.array(np.ascontiguousarray(records[name])) for name in POINT_FIELDS}
     t = pa.table(cols)
     return t.replace_schema_metadata({_META_KEY: json.dumps(meta).encode()})
 
@@ -413,6 +420,7 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
         return {"chunk": k, "error": prep["error"]}
     key = f"{spec['proc_key']}:{prep['axis']}:{prep['width_px']!r}"
     proc = _processor(key, camera, plane, motion, prep["axis"], prep["width_px"], options)
+    src: FrameSource
     if spec["video"]:
         src = _VideoChunk(spec["frames"][0])
     elif _is_url(spec["frames"][0]):
@@ -421,17 +429,20 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
         src = _ChunkFrames(spec["frames"], start)
     from .threads import frames_across_threads
 
+    # remote frames that could not be fetched (filled while the frames are read)
+    fetch_errors: dict = src.errors if isinstance(src, _RemoteFrames) else {}
     parts, skipped, n, empty = [], [], 0, 0
     try:
         with frames_across_threads():  # the parallelism is across Dask's workers: serial kernels, one OpenCV thread
             scan = list(iter_scan(src, proc, workers=1))  # in this process, serial: measure's own path
         for r in scan:
             n += 1
-            if r.index in getattr(src, "errors", {}):
-                skipped.append([r.index, r.name, src.errors[r.index]])
+            if r.index in fetch_errors:
+                skipped.append([r.index, r.name, fetch_errors[r.index]])
             elif r.error is not None:
                 skipped.append([r.index, r.name, r.error])
             else:
+                assert r.records is not None  # a frame without an error has its records
                 empty += r.records.size == 0
                 parts.append(r.records)
     except LightplaneError as e:  # a frame of the wrong size, positions too short: the scan's fault
@@ -558,6 +569,7 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
             if scheduler is not None:
                 client = own_client = Client(scheduler)
             else:
+                assert local_workers is not None  # exactly one of the three was checked above
                 own_cluster = local_cluster(local_workers)
                 client = own_client = Client(own_cluster)
         dashboard = getattr(client, "dashboard_link", None)
@@ -683,7 +695,7 @@ def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
     for q in parts:
         t = pq.read_table(q)
         rec = np.empty(t.num_rows, POINT_DTYPE)
-        for name in POINT_DTYPE.names:
+        for name in POINT_FIELDS:
             rec[name] = t.column(name).to_numpy()
         arrays.append(rec)
     return np.concatenate(arrays) if arrays else np.empty(0, POINT_DTYPE)
@@ -694,13 +706,14 @@ def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
 
     import pyarrow.parquet as pq
 
+    assert pl.motion is not None  # only planned scans get this far
     (out / "ply").mkdir(exist_ok=True)
     dest = out / "ply" / f"{pl.scan.id}.ply"
     with PointSpool(out / "ply") as spool:
         for part in e["partitions"]:
             t = pq.read_table(out / part["path"])
             rec = np.empty(t.num_rows, POINT_DTYPE)
-            for name in POINT_DTYPE.names:
+            for name in POINT_FIELDS:
                 rec[name] = t.column(name).to_numpy()
             spool.append(rec)
         lines = ["lightplane point cloud: x y z in mm (camera frame"
@@ -718,7 +731,7 @@ def _write_manifest(out: Path, result: BatchResult, options: dict, chunk_frames:
     ok = [s for s in result.scans if s["status"] == "ok"]
     doc = {"format": "lightplane batch", "layout": _LAYOUT, "provenance": prov,
            "dataset": {"path": "points", "format": "parquet", "partitioning": "hive", "partition_key": "scan",
-                       "columns": list(POINT_DTYPE.names)},
+                       "columns": list(POINT_FIELDS)},
            "summary": {"scans": len(result.scans), "ok": len(ok), "failed": len(result.failed),
                        "frames": result.n_frames, "points": result.n_points,
                        "partitions_written": result.partitions_written,

@@ -114,6 +114,7 @@ def robust_line(p: np.ndarray, *, refits: int = 4, k_mad: float = 4.0, min_tol: 
         if new.sum() < min_points or np.array_equal(new, inl):
             break
         inl = new
+    assert m is not None and d is not None and n is not None  # the loop runs at least once
     return m, d, n, inl
 
 
@@ -184,7 +185,7 @@ def sampson_distance(C: np.ndarray, uv: np.ndarray, *, signed: bool = True) -> n
 
 
 # ------------------------------------------------------------------ conics
-def _ellipse_problems(E: np.ndarray) -> list:
+def _ellipse_problems(E: np.ndarray) -> list[str | None]:
     """For (n, 3, 3) symmetric conics (well scaled, Frobenius norm 1): per item None if a real,
     non-degenerate ellipse, else the reason (str).
 
@@ -198,7 +199,7 @@ def _ellipse_problems(E: np.ndarray) -> list:
     det2 = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
     det3 = np.linalg.det(E)
     tr = A[:, 0, 0] + A[:, 1, 1]
-    out = []
+    out: list[str | None] = []
     for k in range(len(E)):
         if not det2[k] > 1e-12 * float(np.sum(A[k] * A[k])):
             out.append(f"is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2[k]:.3g})")
@@ -306,7 +307,7 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     with np.errstate(divide="ignore", invalid="ignore"):
         Cm = Cm / np.linalg.norm(Cm, axis=(1, 2))[:, None, None]
     Cm = np.where((Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None], -Cm, Cm)
-    for j, k in enumerate(np.flatnonzero(good)):
+    for j, k in enumerate(np.flatnonzero(good).tolist()):
         if not ok3[j]:
             problems[k] = "degenerate point set (collinear?)"
         elif not (np.isfinite(score[j, pick[j]]) and fin[j]) or shape_problems[j] is not None:

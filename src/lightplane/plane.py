@@ -53,7 +53,7 @@ class LightPlane:
             raise LightplaneError(f"plane d must be a number, got {self.d!r}") from None
         if not np.isfinite(d):
             raise LightplaneError("plane d must be finite")
-        norm = np.linalg.norm(n)
+        norm = float(np.linalg.norm(n))
         if norm < 1e-12:
             raise LightplaneError("plane normal must not be zero")
         n, d = n / norm, d / norm

@@ -52,13 +52,25 @@ import numpy as np
 from .errors import LightplaneError
 from .io import atomic_write
 
-__all__ = ["POINT_DTYPE", "FORMATS", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format"]
+__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format"]
 
 POINT_DTYPE = np.dtype([
     ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
     ("frame", "<u4"), ("intensity", "<f4"), ("sigma_mm", "<f4"),
     ("u", "<f4"), ("v", "<f4"),
 ])
+
+
+
+def record_fields(dtype: np.dtype) -> tuple[str, ...]:
+    """The field names of a structured dtype of point records, in order."""
+    if dtype.names is None:
+        raise LightplaneError(f"point records need a structured dtype, got {dtype}")
+    return dtype.names
+
+
+#: the fields of :data:`POINT_DTYPE`, in order
+POINT_FIELDS = record_fields(POINT_DTYPE)
 
 FORMATS = ("ply", "csv", "npy")
 
@@ -166,7 +178,7 @@ def _chunks_of(data, n: int = CHUNK_RECORDS) -> tuple[int, np.dtype, Iterable[np
 def _ply_header(dtype: np.dtype, count: int, ascii: bool, comments: Iterable[str]) -> bytes:
     from plyfile import PlyData, PlyElement
 
-    le = np.dtype([(name, dtype[name].newbyteorder("<")) for name in dtype.names])
+    le = np.dtype([(name, dtype[name].newbyteorder("<")) for name in record_fields(dtype)])
     props = PlyElement.describe(np.empty(0, le), "vertex").properties
     element = PlyElement("vertex", props, count)
     ply = PlyData([element], text=ascii, byte_order="<", comments=[c.replace("\n", " ") for c in comments])
@@ -175,7 +187,7 @@ def _ply_header(dtype: np.dtype, count: int, ascii: bool, comments: Iterable[str
 
 def _text_format(dtype: np.dtype, sep: str) -> str:
     parts = []
-    for name in dtype.names:
+    for name in record_fields(dtype):
         kind = dtype[name].kind
         parts.append("%d" if kind in "iu" else "%.9g" if dtype[name].itemsize <= 4 else "%.17g")
     return sep.join(parts)
@@ -183,7 +195,7 @@ def _text_format(dtype: np.dtype, sep: str) -> str:
 
 def _write_text_rows(f, chunk: np.ndarray, fmt: str) -> None:
     # one formatting per row; float32 fields go through float() so "%.9g" sees the exact value
-    cols = [chunk[name].tolist() for name in chunk.dtype.names]
+    cols = [chunk[name].tolist() for name in record_fields(chunk.dtype)]
     f.write("".join((fmt % row) + "\n" for row in zip(*cols)))
 
 
@@ -221,7 +233,7 @@ def write_cloud(path: str | os.PathLike, data, *, fmt: str | None = None, ascii:
         elif fmt == "csv":
             text = _text_format(dtype, ",")
             with open(tmp, "w", newline="") as f:
-                f.write(",".join(dtype.names) + "\n")
+                f.write(",".join(record_fields(dtype)) + "\n")
                 for c in chunks:
                     _write_text_rows(f, c, text)
         else:
@@ -271,7 +283,7 @@ def read_cloud(path: str | os.PathLike, fmt: str | None = None) -> np.ndarray:
         names = [h.strip() for h in header.split(",")]
         if not header or any(not n or n[0].isdigit() or n[0] in "+-." for n in names):
             raise LightplaneError(f"{p}: first row must name the columns (x,y,z,...), got {header!r}")
-        dtype = np.dtype([(n, POINT_DTYPE[n] if n in (POINT_DTYPE.names or ()) else "<f8") for n in names])
+        dtype = np.dtype([(n, POINT_DTYPE[n] if n in POINT_FIELDS else "<f8") for n in names])
         import warnings
 
         try:

@@ -239,7 +239,10 @@ class _Problem:
         for a, b in zip(sb[:-1], sb[1:]):
             q = sxy[a:b] - sxy[a:b].mean(axis=0)
             self.st_order.append(np.argsort(q @ np.linalg.svd(q, full_matrices=False)[2][0]))
-        self._cache_x = None
+        # the last evaluation (x, residuals, Jacobian blocks or None)
+        self._cache_x: np.ndarray | None = None
+        self._cache_r: np.ndarray | None = None
+        self._cache_J: tuple | None = None
 
     def set_row_weights(self, row_w: np.ndarray) -> None:
         """Multiply residual row k (and its Jacobian row) by ``row_w[k]`` (sqrt of its weight)."""
@@ -796,6 +799,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
                  "sigma_stripe_px": float(sig_type[1]),
                  "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise})
     plane = LightPlane(nvec, d, cov4, meta=meta)
+    assert plane.covariance is not None  # cov4, as the plane keeps it
     # orient each normal towards the camera (docs/conventions.md §Target pose)
     poses = []
     for i in range(prob.n):

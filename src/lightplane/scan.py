@@ -72,6 +72,8 @@ class FrameSource:
 
     n_frames: int | None = None
     description: str = ""
+    #: whether ``n_frames`` is exact (a video container's count may not be: checked at the end)
+    exact_count: bool = True
 
     def items(self) -> Iterator[tuple[int, str, object]]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -579,6 +581,7 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motio
         if r.error is not None:
             skipped.append((r.index, r.name, r.error))
             continue
+        assert r.records is not None  # a frame without an error has its records
         empty += r.records.size == 0
         parts.append(r.records)
     recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
@@ -625,6 +628,7 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
                 if r.error is not None:
                     skipped.append((r.index, r.name, r.error))
                 else:
+                    assert r.records is not None  # a frame without an error has its records
                     empty += r.records.size == 0
                     spool.append(r.records)
                 if progress is not None:

@@ -1037,9 +1037,9 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
         width[is_core] = core_len[is_core] * np.max(np.abs(nrm[is_core]), axis=1)
         keep |= is_core
     if min_chroma is not None:
-        k = np.arange(-int(math.ceil(w)), int(math.ceil(w)) + 1)
-        cols = np.clip(np.round(uv[:, :1] + k[None, :] * nrm[:, :1]).astype(np.int64), 0, W - 1)
-        rows = np.clip(np.round(uv[:, 1:] + k[None, :] * nrm[:, 1:]).astype(np.int64), 0, H - 1)
+        steps = np.arange(-int(math.ceil(w)), int(math.ceil(w)) + 1)
+        cols = np.clip(np.round(uv[:, :1] + steps[None, :] * nrm[:, :1]).astype(np.int64), 0, W - 1)
+        rows = np.clip(np.round(uv[:, 1:] + steps[None, :] * nrm[:, 1:]).astype(np.int64), 0, H - 1)
         if image.ndim != 3:
             raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
         keep &= (_chroma(image, rows, cols) >= float(min_chroma)) | is_core

@@ -276,6 +276,7 @@ class Target:
         # window that stays inside the white gap between a corner and the nearest marker's edge
         H, _ = cv2.findHomography(obj[:, :2], uv, 0)
         if H is not None:
+            assert self.marker_mm is not None  # a charuco target has its marker size (checked on construction)
             J = _jacobians(H, obj[:, :2])
             px_per_mm = float(np.median(np.sqrt(np.abs(np.linalg.det(J)))))
             gap_px = 0.5 * (self.square_mm - self.marker_mm) * px_per_mm
@@ -295,7 +296,8 @@ class Target:
         h, w = gray.shape
         tries = [(colour, extra) for colour in (0, 255) for extra in (0, cv2.CALIB_CB_CLUSTERING)]
         for colour, extra in tries:  # dark dots on a light board, then light on dark; clustering for steep views
-            p = cv2.SimpleBlobDetector_Params()
+            # SimpleBlobDetector_Params exists at runtime (OpenCV 4.x and 5.x); the stubs only know the nested name
+            p = cv2.SimpleBlobDetector_Params()  # type: ignore[attr-defined]
             p.filterByColor, p.blobColor = True, colour
             p.minArea, p.maxArea = 8.0, 0.25 * h * w / self.n_points
             p.filterByCircularity, p.minCircularity = True, 0.5  # tilted dots are ellipses
@@ -303,7 +305,7 @@ class Target:
             p.filterByInertia, p.minInertiaRatio = True, 0.05
             p.minDistBetweenBlobs = 3.0
             found, centres = cv2.findCirclesGrid(gray, (self.cols, self.rows), flags=flags | extra,
-                                                 blobDetector=cv2.SimpleBlobDetector_create(p))
+                                                 blobDetector=cv2.SimpleBlobDetector.create(p))
             if found and centres is not None and len(centres) == self.n_points:
                 c = self._grid_order(centres.reshape(-1, 2).astype(np.float64))
                 if c is None:

@@ -289,7 +289,9 @@ def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes
     P, I = np.vstack(pts), np.concatenate(idx)
     plane = fit_plane(P)
     res = plane.signed_distance(P)
-    cov, cov_method = plane.covariance, "fit residuals (optimistic: ignores board-pose errors)"
+    cov_fit = plane.covariance
+    assert cov_fit is not None  # fit_plane gives its covariance
+    cov, cov_method = cov_fit, "fit residuals (optimistic: ignores board-pose errors)"
     if len(pts) >= jackknife_min_views:
         # leave-one-pose-out jackknife: each pose's error moves all its points together,
         # which the residual scatter cannot see
@@ -301,7 +303,7 @@ def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes
         sel = I == k
         dg["residual_rms_mm"] = float(np.sqrt(np.mean(res[sel] ** 2))) if sel.any() else None
     m = {**plane.meta, "method": "zhou", "covariance_method": cov_method,
-         "covariance_fit": plane.covariance.tolist(), "images": diag, **(meta or {})}
+         "covariance_fit": cov_fit.tolist(), "images": diag, **(meta or {})}
     plane = LightPlane(plane.normal, plane.d, cov, meta=m)
     return ZhouCalibration(plane, P, I, tuple(poses), res)
 
@@ -387,7 +389,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             white = float(np.percentile(raw[mask > 0], 90))
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
         uv = uv[keep]
-    if len(uv) and spacing is not None:
+    if len(uv) and grid is not None and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
         d2 = ((uv[:, None, :] - grid[None, :, :]) ** 2).sum(axis=2).min(axis=1)
         uv = uv[d2 > (0.2 * spacing) ** 2]
@@ -459,7 +461,7 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
             bg = None
             if background_images is not None:
                 bg = background_images[k if len(background_images) > 1 else 0]
-            per_image = bg is not None and len(background_images) == len(images)
+            per_image = background_images is not None and bg is not None and len(background_images) == len(images)
             if pattern_images is not None:
                 pat = pattern_images[k]
                 if pat is None:
@@ -475,7 +477,8 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
                 camera.check_image(img, names[k])
                 pose = replace(pose, name=names[k])
             else:
-                pose = find_board_pose(bg if per_image else img, camera, target, name=names[k], channel=channel)
+                pose = find_board_pose(bg if per_image and bg is not None else img, camera, target, name=names[k],
+                                       channel=channel)
             mask = board_polygon_mask(camera, pose, target)
             if region_px is not None:
                 x0, y0, x1, y1 = region_px

@@ -66,9 +66,9 @@ def _remap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     cols = 1024
     rows = -(-m // cols)
     pad = rows * cols - m
-    mu = np.concatenate([mu, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
-    mv = np.concatenate([mv, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
-    out = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    map_u = np.concatenate([mu, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
+    map_v = np.concatenate([mv, np.full(pad, -10.0, np.float32)]).reshape(rows, cols)
+    out = cv2.remap(img, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out.ravel()[:m].reshape(shp)
 
 

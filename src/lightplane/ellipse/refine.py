@@ -260,6 +260,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     local = Ellipse.from_params(ellipse.centre - off, ellipse.a, ellipse.b, ellipse.angle)
     n = int(np.clip(round(ellipse.perimeter), 64, 4000))
     # weak-edge floor: a fraction of the strongest gradient in the crop
+    assert grad.mag is not None  # gradients() computes the magnitude by default
     min_mag = 0.05 * float(np.percentile(grad.mag, 99.5))
     band = band_px
     uv = None
@@ -280,6 +281,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
         local = new_local
         uv = pts
         band = 2.0
+    assert samples is not None and uv is not None and keep is not None  # the loop runs at least once
     blur = edge_blur_sigma(samples.width_sq[keep], samples.normal[keep], sigma_px)
     shift_mean = 0.0
     if correct_curvature and np.isfinite(blur):

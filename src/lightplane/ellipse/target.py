@@ -93,7 +93,7 @@ def _line_ransac(pts: np.ndarray, rng: np.random.Generator, tol_px: float, iters
     return m, d, dist <= tol_px
 
 
-def _chord(e: Ellipse, p0: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _chord(e: Ellipse, p0: np.ndarray, d: np.ndarray) -> tuple[float, float] | None:
     """Intersections (s0 < s1) of the line p0 + s d with the ellipse, as parameters s."""
     c, s = math.cos(e.angle), math.sin(e.angle)
     q = p0 - e.centre
@@ -166,7 +166,7 @@ def _coverage(pts: np.ndarray, m: np.ndarray, d: np.ndarray, s0: float, s1: floa
     return np.unique(bins).size / nb
 
 
-def stripe_crossing(image: np.ndarray, ellipse: Ellipse, *, stripe_hint: np.ndarray | None = None,
+def stripe_crossing(image: np.ndarray | None, ellipse: Ellipse, *, stripe_hint: np.ndarray | None = None,
                     shrink: float = 0.9, outer: float = 1.4, stripe_width_px: float = 10.0,
                     seed: int = 0) -> StripeCrossing:
     """Measure how a bright line (the laser stripe) crosses ``ellipse``.
@@ -178,7 +178,8 @@ def stripe_crossing(image: np.ndarray, ellipse: Ellipse, *, stripe_hint: np.ndar
     disc) the line is fitted to the inside and the surrounding ring (up to ``outer``)
     together, and a stripe seen on both sides of the ellipse along that line counts as
     full coverage of a chord that is at least partly (>= 20 %) seen inside.
-    ``stripe_hint``: optional (N, 2) stripe centre points (px) used instead of the image.
+    ``stripe_hint``: optional (N, 2) stripe centre points (px) used instead of the image
+    (``image`` may then be None).
     """
     rng = np.random.default_rng(seed)
     inner = ellipse.scaled(shrink)
@@ -189,6 +190,8 @@ def stripe_crossing(image: np.ndarray, ellipse: Ellipse, *, stripe_hint: np.ndar
         p_in, p_ring = pts[rho <= shrink], pts[(rho >= 1.1) & (rho <= outer)]
         tol, step = 2.0, 1.0
     else:
+        if image is None:
+            raise LightplaneError("stripe_crossing: give the image or a stripe_hint")
         gray = prepare_gray(image)
         p_in, p_ring, step = _stripe_pixels(gray, ellipse, shrink, outer, stripe_width_px)
         tol = max(2.0, 0.6 * stripe_width_px)
