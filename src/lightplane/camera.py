@@ -89,7 +89,7 @@ class Camera:
     rms_px: float | None = None
     meta: dict = field(default_factory=dict, compare=False, repr=False)
     covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
-    covariance_params: tuple | None = field(default=None, compare=False, repr=False)
+    covariance_params: tuple[str, ...] | None = field(default=None, compare=False, repr=False)
     model: str | None = None
 
     def __post_init__(self) -> None:
@@ -378,7 +378,7 @@ class Camera:
             d["rms_px"] = self.rms_px
         if self.covariance is not None:
             d["covariance"] = self.covariance.tolist()
-            d["covariance_params"] = list(self.covariance_params or ())
+            d["covariance_params"] = list(self.covariance_params or ())  # set with the covariance
         return d
 
     @classmethod

@@ -207,7 +207,7 @@ class Turntable:
         """
         z = self.direction
         x = -self.point_mm - (-self.point_mm @ z) * z
-        if np.linalg.norm(x) < 1e-6 * max(1.0, np.linalg.norm(self.point_mm)):
+        if np.linalg.norm(x) < 1e-6 * max(1.0, float(np.linalg.norm(self.point_mm))):
             x = np.array([1.0, 0.0, 0.0]) - z[0] * z
         x = x / np.linalg.norm(x)
         return self.point_mm.copy(), np.column_stack([x, np.cross(z, x), z])
@@ -310,6 +310,15 @@ class Motion:
     angles_deg: np.ndarray | None = None       # (F,) turntable angles from a file
     source: str | None = None
 
+    def __post_init__(self) -> None:
+        # the fields that go together (the constructors above set them so)
+        if (self.step_mm is None) != (self.direction is None):
+            raise LightplaneError("a step motion needs both step_mm and direction (see Motion.linear)")
+        if (self.rotations is None) != (self.translations is None):
+            raise LightplaneError("a pose motion needs both rotations and translations (see Motion.from_poses)")
+        if self.table is not None and (self.step_deg is None) == (self.angles_deg is None):
+            raise LightplaneError("a turntable motion needs step_deg or angles_deg (see Motion.turntable)")
+
     @classmethod
     def none(cls) -> "Motion":
         return cls()
@@ -348,7 +357,11 @@ class Motion:
         elif width == 3 and names is None:
             pass
         elif width == 1 or (names is not None and width == 2 and "frame" in names):
-            col = a[:, 0] if width == 1 else a[:, 1 - names.index("frame")]
+            if width == 1:
+                col = a[:, 0]
+            else:
+                assert names is not None  # the condition above
+                col = a[:, 1 - names.index("frame")]
             if direction is None:
                 raise LightplaneError(f"{p}: a single column of positions needs a direction (--direction X,Y,Z)")
             a = col[:, None] * _unit(direction)[None, :]
@@ -485,7 +498,7 @@ class Motion:
         if self.positions_mm is not None:
             self._check_index(index)
             return self.positions_mm[index] - self.positions_mm[0]
-        if self.step_mm is not None:
+        if self.step_mm is not None and self.direction is not None:  # both or neither (__post_init__)
             return index * self.step_mm * self.direction
         return np.zeros(3)
 
@@ -496,11 +509,12 @@ class Motion:
         self._check_index(index)
         if self.angles_deg is not None:
             return float(self.start_deg + self.angles_deg[index] - self.angles_deg[0])
+        assert self.step_deg is not None  # a turntable has angles or a step (__post_init__)
         return float(self.start_deg + index * self.step_deg)
 
     def transform(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """``(R, t)`` of frame ``index``: ``p_object = R p_camera + t``."""
-        if self.rotations is not None:
+        if self.rotations is not None and self.translations is not None:  # both or neither (__post_init__)
             self._check_index(index)
             return self.rotations[index], self.translations[index]
         if self.table is not None:
@@ -528,9 +542,9 @@ class Motion:
         k = self.kind
         if k == "positions":
             return {"kind": "positions", "n_frames": self.n_frames}
-        if k == "step":
+        if k == "step" and self.direction is not None:  # a step has its direction (__post_init__)
             return {"kind": "step", "step_mm": self.step_mm, "direction": self.direction.tolist()}
-        if k == "turntable":
+        if k == "turntable" and self.table is not None:
             o, B = self.table.basis()
             d = {"kind": "turntable", "axis_point_mm": o.tolist(), "axis_direction": B[:, 2].tolist(),
                  "start_deg": self.start_deg}

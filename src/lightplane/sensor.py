@@ -26,7 +26,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -39,7 +39,10 @@ __all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "p
 
 SENSOR_KIND = "lightplane sensor"
 
-from .pointcloud import POINT_DTYPE  # noqa: E402
+from .pointcloud import POINT_DTYPE, POINT_FIELDS  # noqa: E402
+
+if TYPE_CHECKING:
+    from .scan import FrameSource
 
 #: a merged cloud's records: :data:`lightplane.pointcloud.POINT_DTYPE` and the laser's index
 #: (the names are listed in the file's comments, ``laser 0: NAME``)
@@ -221,7 +224,7 @@ class LaserScanSummary:
     seconds: float
 
 
-def measure_lasers(scans: Sequence[tuple[str, object, LightPlane]], camera: Camera, out_path, *,
+def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera: Camera, out_path, *,
                    motion: Motion | None = None, fmt: str | None = None, ascii: bool = False,
                    force: bool = False, channel: str | None = None, width_px: float | None = None,
                    workers: int | None = None, roi=None, axis: str = "auto",
@@ -275,9 +278,9 @@ def measure_lasers(scans: Sequence[tuple[str, object, LightPlane]], camera: Came
                     done += 1
                     if r.error is not None:
                         skipped.append((r.index, r.name, r.error))
-                    elif r.records.size:
+                    elif r.records is not None and r.records.size:  # no error: the frame has its records
                         rec = np.empty(r.records.size, LASER_POINT_DTYPE)
-                        for f in POINT_DTYPE.names:
+                        for f in POINT_FIELDS:
                             rec[f] = r.records[f]
                         rec["laser"] = li
                         spool.append(rec)

@@ -573,16 +573,18 @@ def _stack_lines(frames, axis: str, channel, roi):
                 fs = np.where(top <= 1.0, 1.0, 255.0)
         return A3, fs, line0, sample0
     seq = [frames[i] for i in range(frames.shape[0])] if isinstance(frames, np.ndarray) else list(frames)
-    arrays, fss, offs = [], [], None
+    arrays: list[np.ndarray] = []
+    fss: list[float] = []
+    offs: tuple[int, int] | None = None
     for img in seq:
-        g, fs = _channel_image(img, channel, "frame")
+        g, fs_img = _channel_image(img, channel, "frame")
         A, line0, sample0 = _lines_array(g, axis, roi)
         if arrays and (A.shape != arrays[0].shape or A.dtype != arrays[0].dtype):
             raise LightplaneError("frames must all have the same size and type")
         arrays.append(A)
-        fss.append(fs)
+        fss.append(fs_img)
         offs = (line0, sample0)
-    if not arrays:
+    if not arrays or offs is None:
         return None, None, 0, 0
     return np.stack(arrays), np.asarray(fss, float), offs[0], offs[1]
 

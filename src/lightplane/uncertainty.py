@@ -185,8 +185,9 @@ def camera_steps(camera: Camera) -> np.ndarray:
     names = camera_param_names(camera)
     if camera.covariance is None:
         return np.zeros((0, len(names)))
-    if tuple(camera.covariance_params) != names:
-        raise LightplaneError(f"the camera's covariance is of ({', '.join(camera.covariance_params)}) but its model "
+    params = camera.covariance_params or ()  # set with the covariance
+    if tuple(params) != names:
+        raise LightplaneError(f"the camera's covariance is of ({', '.join(params)}) but its model "
                               f"has ({', '.join(names)}): a camera file from another model?")
     w, V = np.linalg.eigh(camera.covariance)
     keep = w > 1e-12 * max(w.max(initial=0.0), 1e-300)

@@ -217,21 +217,22 @@ def measure_cmd(
         scans = []
         for name, glob in lasers:
             scans.append((name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name]))
-        total = sum(s.n_frames or 0 for _, s, _ in scans) or None
+        total = sum(src.n_frames or 0 for _, src, _ in scans) or None
         with progress_bar("measuring frames", total) as update:
-            s = measure_lasers(scans, cam, out, motion=motion, fmt=fmt, ascii=ascii_ply, force=force,
-                               channel=channel, width_px=stripe_width, workers=workers, roi=roi_box, axis=axis,
-                               progress=lambda done, tot: update(done, total=tot), smooth_lines=smooth,
-                               **along_stripe(sigma_along))
-        for name, nf, nu, npts, skipped, ax, w in s.lasers:
+            ls = measure_lasers(scans, cam, out, motion=motion, fmt=fmt, ascii=ascii_ply, force=force,
+                                channel=channel, width_px=stripe_width, workers=workers, roi=roi_box, axis=axis,
+                                progress=lambda done, tot: update(done, total=tot), smooth_lines=smooth,
+                                **along_stripe(sigma_along))
+        for name, nf, nu, npts, skipped, ax, w in ls.lasers:
             console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
                           f"stripe width {w:.2f} px" + (f", {len(skipped)} frames skipped" if skipped else ""))
             for idx, fname, reason in skipped[:10]:
                 err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
-        console.print(f"{s.n_points} points, motion {s.motion['kind']}, {s.seconds:.1f} s")
-        console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
+        console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
+        console.print(f"wrote {ls.path} ({ls.format}{' ascii' if ascii_ply else ''})")
         return
 
+    assert plane is not None  # checked above when there is no sensor
     pl = LightPlane.load(plane)
     source = open_frames(inputs, rot)
 

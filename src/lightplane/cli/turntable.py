@@ -7,6 +7,7 @@ from typing import List, Optional
 
 import numpy as np
 import typer
+from rich.console import JustifyMethod
 from rich.table import Table
 
 from ..errors import LightplaneError
@@ -63,7 +64,10 @@ def calibrate_turntable_cmd(
     tt = cal.turntable
     m = tt.meta
     t = Table(title="Turntable axis (camera frame)", show_edge=False)
-    for c, j in (("estimate", "left"), ("point at the board's level x, y, z (mm)", "right"), ("direction (up)", "right")):
+    columns: tuple[tuple[str, JustifyMethod], ...] = (("estimate", "left"),
+                                                      ("point at the board's level x, y, z (mm)", "right"),
+                                                      ("direction (up)", "right"))
+    for c, j in columns:
         t.add_column(c, justify=j)
     for name, key in (("circles (result)", "circles"), ("rotations", "rotations"), ("board origins", "board_origins")):
         e = m["estimates"][key]
