@@ -91,6 +91,8 @@ class Camera:
     covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
     covariance_params: tuple[str, ...] | None = field(default=None, compare=False, repr=False)
     model: str | None = None
+    # the packed parameters of lightplane.lens (set in __post_init__ from model and dist)
+    _lens: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
@@ -434,6 +436,7 @@ class Camera:
         import yaml
 
         P = np.hstack([self.K, np.zeros((3, 1))])
+        assert self.model is not None  # __post_init__ names the model
         doc = {
             "image_width": self.width,
             "image_height": self.height,
@@ -462,7 +465,7 @@ class Camera:
             fs.write("image_width", self.width)
             fs.write("image_height", self.height)
             fs.write("camera_matrix", self.K)
-            fs.write("distortion_model", self.model)
+            fs.write("distortion_model", str(self.model))  # named by __post_init__
             fs.write("distortion_coefficients", self.dist.reshape(1, -1))
             fs.release()
 

@@ -831,7 +831,10 @@ def calibration_flags(model: str | None, flags: int = 0) -> tuple[str, int]:
     if model not in MODELS:
         raise LightplaneError(f"unknown lens model {model!r} (known: {', '.join(MODELS)})")
     if model == "fisheye":
-        return model, cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+        # OpenCV 4 names these flags in cv2.fisheye; OpenCV 5 has them (only) beside the others
+        fe = cv2.fisheye
+        return model, (getattr(fe, "CALIB_RECOMPUTE_EXTRINSIC", cv2.CALIB_RECOMPUTE_EXTRINSIC)
+                       | getattr(fe, "CALIB_FIX_SKEW", cv2.CALIB_FIX_SKEW))
     extra = {"plumb_bob": 0, "rational": cv2.CALIB_RATIONAL_MODEL,
              "thin_prism": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL,
              "tilted": cv2.CALIB_TILTED_MODEL}[model]

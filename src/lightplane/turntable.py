@@ -254,6 +254,7 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
         raise LightplaneError("calibrate-turntable needs every board point in every image (a board seen whole: "
                               "chessboard or circle grid); partial ChArUco views are not supported")
     obj = poses[0].object_mm
+    assert obj is not None  # find_board_pose records the board points of the pose
     Rs = np.array([p.R_cam_board for p in poses])
     ts = np.array([p.t_cam_board for p in poses])
     flipped = _consistent_order(Rs, ts, obj, target)

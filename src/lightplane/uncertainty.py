@@ -161,6 +161,7 @@ def camera_param_names(camera: Camera) -> tuple[str, ...]:
     """The intrinsic parameters in the order of a camera covariance: ``fx, fy, cx, cy`` then ``dist``'s."""
     from .lens import coeff_names
 
+    assert camera.model is not None  # a Camera names its model on construction
     return ("fx", "fy", "cx", "cy") + coeff_names(camera.model)
 
 

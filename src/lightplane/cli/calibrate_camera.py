@@ -69,6 +69,7 @@ def calibrate_camera_cmd(
     t.add_column("± std", justify="right")
     t.add_column("unit")
     values = [cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]
+    assert cam.model is not None  # a Camera names its model on construction
     for name, v in zip(("fx", "fy", "cx", "cy") + coeff_names(cam.model), values):
         unit = "px" if name in ("fx", "fy", "cx", "cy") else "-"
         t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", f"{result.std.get(name, float('nan')):.2g}", unit)

@@ -153,7 +153,7 @@ def lens_camera(model: str) -> Camera:
     if model == "rational":
         f = 6.0 / 0.00375
         K = np.array([[f, 0.0, 645.2], [0.0, f, 476.9], [0.0, 0.0, 1.0]])
-        return Camera(K, [-0.28, 0.09, 2e-4, -1.5e-4, -0.01, 0.06, 0.01, 0.0], 1280, 960, meta=src)
+        return Camera(K, np.array([-0.28, 0.09, 2e-4, -1.5e-4, -0.01, 0.06, 0.01, 0.0]), 1280, 960, meta=src)
     if model == "thin_prism":
         d = np.concatenate([c.dist, [0.02, 0.005, 0.0], [6e-3, -1e-3, -5e-3, 8e-4]])
         return Camera(c.K, d, 1280, 960, meta=src)
@@ -162,7 +162,7 @@ def lens_camera(model: str) -> Camera:
     if model == "fisheye":
         f = 2.6 / 0.00375
         K = np.array([[f, 0.0, 641.7], [0.0, f, 478.4], [0.0, 0.0, 1.0]])
-        return Camera(K, [0.04, -0.01, 0.002, -3e-4], 1280, 960, model="fisheye", meta=src)
+        return Camera(K, np.array([0.04, -0.01, 0.002, -3e-4]), 1280, 960, model="fisheye", meta=src)
     raise LightplaneError(f"lens_camera: unknown model {model!r} ({', '.join(LENS_CAMERAS)})")
 
 
