@@ -158,8 +158,10 @@ def main() -> None:
     folder = sets[0][2]
     cam = Camera.load(folder / "camera.json")
     files = expand_inputs([folder / "*.png"])
+    from lightplane.threads import describe
+
     print(f"\nSpeed: calibrate_plane(12 images of 1280x960 from PNG files, ml), median of {args.repeats} runs "
-          "(target <= 3 s on 2 cores)")
+          f"(target <= 3 s on 2 cores); {describe()}")
     for workers, executor in ((1, "process"), (2, "process"), (2, "thread")):
         ts = []
         for _ in range(args.repeats):

@@ -15,7 +15,7 @@ times, at each level:
   ``ml``) on 12 rendered realistic 1280x960 circle-target images;
 - batched region-of-interest profiles: :func:`lightplane.stripe.extract_profiles` on a
   stack of 1000 frames of 1280x64 (50 distinct noisy 64-row regions with a stripe near their
-  middle, :func:`roi_frame`), profiles per second.
+  middle, ``bench_stripe.roi_frame``), profiles per second.
 
 Each is compared with the fair-share bound: a machine shared with ``k`` busy processes
 owes us ``1 / (k + 1)`` of it, so a time within ``(k + 1) x`` the *idle serial* time
@@ -52,16 +52,6 @@ while time.monotonic() < end:
     for _ in range(100000):
         x += 1
 """
-
-
-def roi_frame(rng: np.random.Generator, H: int = 64, W: int = 1280, width_px: float = 5.0) -> np.ndarray:
-    """A 1280x64 region of interest: a slightly tilted, slightly curved stripe near its middle row,
-    noise 2 grey levels, 8-bit (the stripe model of ``bench_stripe.frame``)."""
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    centre = 0.5 * H + rng.uniform(-4, 4) + 0.004 * (u - W / 2) + 6.0 * np.sin(u / W * np.pi) - 3.0
-    s = width_px / 2.3548
-    img = 10.0 + 200.0 * np.exp(-0.5 * ((v - centre) / s) ** 2) + rng.normal(0.0, 2.0, (H, W))
-    return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
 def start_busy(k: int, cpus, limit_s: float) -> list[subprocess.Popen]:
@@ -121,7 +111,7 @@ def main() -> None:
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_measure import cached, speed_frames
-    from bench_stripe import frame
+    from bench_stripe import frame, roi_frame
 
     from lightplane import threads
     from lightplane.calibrate import calibrate_plane
@@ -176,7 +166,9 @@ def main() -> None:
                                                       args.repeat)
                 ref["measure, per frame"] = np.array([measure(workers=1) for _ in range(args.runs)])
                 ref["calibrate-plane, 12 images"] = np.array([calibrate(workers=1) for _ in range(args.runs)])
-            r["profile, width estimated"] = samples(lambda: extract_profile(img), args.repeat)
+            par = []
+            r["profile, width estimated"] = samples(lambda: (par.append(threads.profile_parallel(1280, 960)),
+                                                             extract_profile(img)), args.repeat)
             r["profile, width given"] = samples(lambda: extract_profile(img, width_px=w_img), args.repeat)
             r["measure, per frame"] = np.array([measure() for _ in range(args.runs)])
             r["calibrate-plane, 12 images"] = np.array([calibrate() for _ in range(args.runs)])
@@ -184,7 +176,8 @@ def main() -> None:
         finally:
             stop_busy(procs)
         res[k] = r
-        print(f"   {threads.describe()}")
+        print(f"   {threads.describe()}; a single 1280x960 frame took the parallel kernels in "
+              f"{100.0 * np.mean(par):.0f} % of the calls")
     print(f"after: {load()}")
 
     print("\nidle serial references (k = 0, one thread): median / max")

@@ -374,7 +374,10 @@ def memory(n_frames: int = 10_000) -> None:
 
 def main(argv: list[str]) -> None:
     parts = argv or ["accuracy", "speed", "profile", "memory"]
+    from lightplane.threads import describe
+
     print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (timings on a shared machine are noisy)")
+    print(describe())
     for p in parts:
         {"accuracy": accuracy, "speed": speed, "profile": profile_speed, "memory": memory}[p]()
 

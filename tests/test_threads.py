@@ -88,9 +88,18 @@ def test_batched_profiles_identical_other_types_roi_and_options():
         assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red", min_chroma=0.3))
 
 
-def test_serial_and_parallel_kernels_give_the_same_numbers():
-    stack = roi_stack(n=8, H=600, W=600)   # frames large enough for the parallel kernels by default
+def test_single_frame_parallel_only_when_large_and_a_core_is_free(monkeypatch):
+    monkeypatch.setattr(threads, "idle_cpus", lambda: 1)
     assert threads.profile_parallel(600, 600) == (numba.get_num_threads() > 1)
+    assert not threads.profile_parallel(1280, 64) and not threads.profile_parallel(100, 4000)
+    monkeypatch.setattr(threads, "idle_cpus", lambda: 0)   # other processes want every core
+    assert not threads.profile_parallel(1280, 960)
+    monkeypatch.setattr(threads, "idle_cpus", lambda: None)   # unknown: by the size alone
+    assert threads.profile_parallel(1280, 960) == (numba.get_num_threads() > 1)
+
+
+def test_serial_and_parallel_kernels_give_the_same_numbers():
+    stack = roi_stack(n=8, H=600, W=600)
     for img in stack[:3]:
         for w in (None, 5.0):
             a = extract_profile(img, width_px=w, parallel=False)

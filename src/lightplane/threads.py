@@ -11,7 +11,8 @@ other processes hold the cores.  The rules, applied by the library itself:
   (:func:`frames_across_threads`);
 - **a parallel kernel only for a single large frame** (:func:`profile_parallel`:
   at least :data:`PARALLEL_MIN_PIXELS` pixels and :data:`PARALLEL_MIN_LINES`
-  lines, outside any frame pool), never nested inside a pool.
+  lines, outside any frame pool, and only while a core is free: :func:`idle_cpus`),
+  never nested inside a pool.
 
 Threading layer: OpenMP first (thread-safe for launches from several Python threads,
 unlike ``workqueue``; TBB is rarely installed), with the *passive* wait policy
@@ -28,8 +29,9 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
+import time
 
-__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "profile_parallel",
+__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "profile_parallel", "idle_cpus",
            "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
 
 #: which OpenMP runtime was already loaded before lightplane set its wait policy (then it has no effect)
@@ -138,16 +140,43 @@ def frames_across_threads():
                 _cv_saved = None
 
 
+#: how long a reading of the machine's run queue (:func:`idle_cpus`) is reused, s
+IDLE_REFRESH_S = 0.02
+_idle_cache = [-1.0, None]
+
+
+def idle_cpus() -> int | None:
+    """CPUs of the machine not wanted by a runnable task right now (``/proc/loadavg``: runnable
+    tasks, this one included), re-read every :data:`IDLE_REFRESH_S`; None where unknown."""
+    now = time.monotonic()
+    if now - _idle_cache[0] < IDLE_REFRESH_S:
+        return _idle_cache[1]
+    try:
+        with open("/proc/loadavg") as f:
+            runnable = int(f.read().split()[3].split("/")[0])
+        val = (os.cpu_count() or 1) - runnable
+    except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
+        val = None
+    _idle_cache[0], _idle_cache[1] = now, val
+    return val
+
+
 def profile_parallel(n_lines: int, n_samples: int) -> bool:
     """Whether a single profile of ``n_lines`` x ``n_samples`` should use the parallel kernels.
 
-    Only for a large frame (:data:`PARALLEL_MIN_PIXELS`, :data:`PARALLEL_MIN_LINES`),
-    outside :func:`serial_kernels`, and with more than one numba thread.
+    Only where it pays: a large frame (:data:`PARALLEL_MIN_PIXELS`,
+    :data:`PARALLEL_MIN_LINES`), outside :func:`serial_kernels`, more than one numba
+    thread, and a core free for the second thread right now (:func:`idle_cpus`): when
+    other processes hold the cores, a split frame waits for its slowest part (a thread
+    the scheduler has put aside), while the serial kernel just takes its share.
     """
     if in_serial_context() or n_lines < PARALLEL_MIN_LINES or n_lines * n_samples < PARALLEL_MIN_PIXELS:
         return False
     nb = _numba()
-    return nb is not None and nb.get_num_threads() > 1
+    if nb is None or nb.get_num_threads() < 2:
+        return False
+    idle = idle_cpus()
+    return idle is None or idle >= 1
 
 
 def threading_info() -> dict:
@@ -177,6 +206,7 @@ def threading_info() -> dict:
         "opencv_threads": cv2.getNumThreads(),
         "opencv_parallel_framework": fw,
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "idle_cpus_now": idle_cpus(),
     }
 
 
@@ -187,4 +217,4 @@ def describe() -> str:
             f"numba threads {i['numba_threads']}/{i['numba_max_threads']}, OMP_WAIT_POLICY={i['OMP_WAIT_POLICY']}, "
             f"KMP_BLOCKTIME={i['KMP_BLOCKTIME']}, OpenMP runtime loaded before lightplane: "
             f"{i['omp_runtime_loaded_before'] or 'none'}; OpenCV threads {i['opencv_threads']} "
-            f"({i['opencv_parallel_framework']}); usable CPUs {i['cpus_usable']}")
+            f"({i['opencv_parallel_framework']}); usable CPUs {i['cpus_usable']}, idle CPUs now {i['idle_cpus_now']}")
