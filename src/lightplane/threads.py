@@ -109,8 +109,8 @@ def serial_kernels():
         nb.set_num_threads(1)
     try:
         yield
-    finally:
-        _local.depth -= 1
+    finally:   # (a generator closed on another thread leaves that thread as it was)
+        _local.depth = max(0, getattr(_local, "depth", 1) - 1)
         if nb is not None:
             nb.set_num_threads(old)
 
