@@ -142,22 +142,24 @@ def frames_across_threads():
 
 #: how long a reading of the machine's run queue (:func:`idle_cpus`) is reused, s
 IDLE_REFRESH_S = 0.02
-_idle_cache = [-1.0, None]
+_idle_time = [-1.0]
+_idle_value: list[int | None] = [None]
 
 
 def idle_cpus() -> int | None:
     """CPUs of the machine not wanted by a runnable task right now (``/proc/loadavg``: runnable
     tasks, this one included), re-read every :data:`IDLE_REFRESH_S`; None where unknown."""
     now = time.monotonic()
-    if now - _idle_cache[0] < IDLE_REFRESH_S:
-        return _idle_cache[1]
+    if now - _idle_time[0] < IDLE_REFRESH_S:
+        return _idle_value[0]
+    val: int | None
     try:
         with open("/proc/loadavg") as f:
             runnable = int(f.read().split()[3].split("/")[0])
         val = (os.cpu_count() or 1) - runnable
     except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
         val = None
-    _idle_cache[0], _idle_cache[1] = now, val
+    _idle_time[0], _idle_value[0] = now, val
     return val
 
 
