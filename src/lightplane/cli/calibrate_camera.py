@@ -34,6 +34,9 @@ def calibrate_camera_cmd(
                                 "poorly determined)."),
     zero_tangent: bool = typer.Option(False, "--zero-tangent", help="Keep p1 = p2 = 0 (only if the lens has no "
                                       "tangential distortion: otherwise the principal point is biased)."),
+    model: str = typer.Option("plumb_bob", "--model", help="Lens model: plumb_bob (5 coefficients), rational (8), "
+                              "thin_prism (12), tilted (the plumb bob + tauX, tauY: a Scheimpflug sensor) or "
+                              "fisheye (cv2.fisheye, 4)."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Working distance (mm) at which to state "
                                              "the camera's uncertainty (default: the boards' median distance)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
@@ -46,6 +49,12 @@ def calibrate_camera_cmd(
     from ..plots import intrinsics_residuals
     from ..uncertainty import camera_uncertainty_summary
 
+    from ..lens import MODELS
+
+    if model not in MODELS:
+        raise LightplaneError(f"--model {model!r} is not a lens model (plumb_bob, rational, thin_prism, tilted, fisheye)")
+    if model == "fisheye" and (fix_k3 or zero_tangent):
+        raise LightplaneError("--fix-k3 / --zero-tangent apply to OpenCV's standard models, not to --model fisheye")
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
     files = expand_inputs(images)
@@ -59,11 +68,11 @@ def calibrate_camera_cmd(
 
     with progress_bar("finding corners", len(files)) as update:
         flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
-        result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags,
+        result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags, model=model,
                                   progress=lambda i, n: update(i))
 
     cam = result.camera
-    t = Table(title="Camera intrinsics (Zhang, OpenCV)", show_edge=False)
+    t = Table(title=f"Camera intrinsics (Zhang, OpenCV; lens model {cam.model})", show_edge=False)
     t.add_column("parameter")
     t.add_column("value", justify="right")
     t.add_column("± std", justify="right")
@@ -72,8 +81,14 @@ def calibrate_camera_cmd(
     assert cam.model is not None  # a Camera names its model on construction
     for name, v in zip(("fx", "fy", "cx", "cy") + coeff_names(cam.model), values):
         unit = "px" if name in ("fx", "fy", "cx", "cy") else "-"
-        t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", f"{result.std.get(name, float('nan')):.2g}", unit)
+        sd = result.std.get(name, float("nan"))
+        t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", "fixed" if sd == 0 else f"{sd:.2g}", unit)
     console.print(t)
+    console.print("± std: " + ("from the Jacobian of the reprojection (cv2.fisheye gives none), board poses "
+                               "marginalised" if cam.model == "fisheye" else "OpenCV's (calibrateCameraExtended)")
+                  + ", corner noise estimated from the residuals; covers the corner noise only")
+    for w in result.warnings:
+        console.print(f"[bold yellow]warning:[/] {w}")
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
                   f"({cam.width}x{cam.height} px); board: {target.describe()}")
     if target.kind == "chessboard":
@@ -118,8 +133,9 @@ def calibrate_camera_cmd(
         "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
                                          "target": target.to_dict(), "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
-                                         "detector": detector,
-                                         "solver": "calibrateCameraExtended"}),
+                                         "model": cam.model, "detector": detector,
+                                         "solver": "fisheye.calibrate" if cam.model == "fisheye"
+                                         else "calibrateCameraExtended"}),
     }
     suffix = output.suffix.lower()
     if suffix == ".json" or suffix == "":
