@@ -552,7 +552,7 @@ def _profile_cache_key(image: np.ndarray, camera: Camera, plane: LightPlane, axi
     try:
         opts = tuple(sorted((k, v if not isinstance(v, np.ndarray) else _array_key(v)) for k, v in options.items()))
         roi_key = None if roi is None else tuple(float(v) for v in roi)
-        key = (_array_key(camera.K), _array_key(camera.dist), camera.width, camera.height,
+        key = (_array_key(camera.K), camera.model, _array_key(camera.dist), camera.width, camera.height,
                _array_key(plane.normal), float(plane.d), _array_key(plane.covariance),
                tuple(image.shape), axis, roi_key, opts)
         hash(key)
