@@ -880,7 +880,7 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
     marginalised; fx with fy and the principal point with p1, p2 are always strongly correlated and
     are not what this is about).  Empty when the model is determined.
     """
-    model = camera.model
+    model = str(camera.model)  # set on construction
     names = ("fx", "fy", "cx", "cy") + coeff_names(model)
     values = dict(zip(names, np.concatenate([[camera.fx, camera.fy, camera.cx, camera.cy], camera.dist])))
     extra = set(coeff_names(model)) - {"k1", "k2", "p1", "p2"} if model != "fisheye" else {"k3", "k4"}
