@@ -34,12 +34,11 @@ from .camera import Camera
 from .errors import LightplaneError
 from .motion import Motion, Turntable, _rigid_from_dict
 from .plane import LightPlane
+from .pointcloud import POINT_DTYPE, POINT_FIELDS
 
 __all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
 
 SENSOR_KIND = "lightplane sensor"
-
-from .pointcloud import POINT_DTYPE, POINT_FIELDS  # noqa: E402
 
 if TYPE_CHECKING:
     from .scan import FrameSource
@@ -216,6 +215,9 @@ def import_fabscan(path: str | os.PathLike) -> Sensor:
 # ----------------------------------------------------------------------------- measuring
 @dataclass(frozen=True)
 class LaserScanSummary:
+    """What :func:`measure_lasers` did; ``lasers``: per laser ``(name, frames, frames used, points,
+    skipped (index, name, reason)..., profile axis, stripe width px or None)``."""
+
     path: Path
     format: str
     lasers: tuple  # (name, n_frames, n_used, n_points, skipped)

@@ -224,8 +224,9 @@ def measure_cmd(
                                 progress=lambda done, tot: update(done, total=tot), smooth_lines=smooth,
                                 **along_stripe(sigma_along))
         for name, nf, nu, npts, skipped, ax, w in ls.lasers:
+            width = "estimated per frame" if w is None else f"{w:.2f} px"
             console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
-                          f"stripe width {w:.2f} px" + (f", {len(skipped)} frames skipped" if skipped else ""))
+                          f"stripe width {width}" + (f", {len(skipped)} frames skipped" if skipped else ""))
             for idx, fname, reason in skipped[:10]:
                 err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
         console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
