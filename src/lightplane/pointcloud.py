@@ -14,6 +14,10 @@ u, v           float32  the stripe centre in the source frame, distorted pixels
 
 float32 holds 500 mm to 3e-5 mm and 1280 px to 1e-4 px: far below the measurement noise.
 
+A cloud of several lasers (``measure --sensor``, :func:`lightplane.sensor.measure_lasers`)
+adds ``laser`` (uint8, the laser's index; the names are in the file's comments):
+:data:`lightplane.sensor.LASER_POINT_DTYPE`.
+
 Formats (by :func:`write_cloud`'s ``fmt`` or the file suffix):
 
 - PLY (``.ply``), binary little-endian by default, ASCII with ``ascii=True``: one
