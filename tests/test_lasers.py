@@ -296,3 +296,20 @@ def test_two_stripes_told_apart_by_region():
         assert angle < 0.03 and angle < 4 * float(np.hypot(*unc["normal_sigma_deg"]))
         assert abs(offset) < 0.06 and abs(offset) < 4 * unc["point_sigma_axis_mm"]
         assert tri < 0.06 and tri < 4 * s_tri
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--cycle", "P,L,L", "--laser", "a=cycle:1", "--laser", "b=cycle:3"], "has only 2 laser frame(s) per pose"),
+    (["--laser", "a=cycle:1", "--laser", "b=cycle:2"], "cycle:K needs --cycle or --pattern"),
+    (["--cycle", "P,L,L", "--laser", "a=cycle:1", "--laser", "b=frames:nothing_*.png"],
+     "b=frames:nothing_*.png: none of the 4 laser frames is one of its frames"),
+    (["--laser", "a=0,0,700,960", "--laser", "b=600,0,1280,960"], "overlap"),
+    (["--laser", "a=infrared"], "unknown selector 'infrared'"),
+])
+def test_board_cli_bad_lasers_exit_2_nothing_written(render, tmp_path, extra, needle):
+    """calibrate-plane-board: selectors that cannot work are refused before any image is read."""
+    folder, _, _, files, _ = render
+    r = run("calibrate-plane-board", *files, "--camera", folder / "camera.json", "--board", "9x6", "--square", "10",
+            "-o", tmp_path / "plane.json", *extra)
+    _bad(r, needle)
+    assert list(tmp_path.iterdir()) == []
