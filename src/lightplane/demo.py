@@ -253,7 +253,12 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             if unc:
                 say(f"    sigma: normal {unc['normal_sigma_deg'][0]:.4f} deg, offset {unc['d_sigma_mm']:.4f} mm, "
                     f"point at {unc.get('working_distance_mm', float('nan')):.0f} mm "
-                    f"{unc.get('point_sigma_axis_mm', float('nan')) * 1e3:.1f} µm")
+                    f"{unc.get('point_sigma_axis_mm', float('nan')) * 1e3:.1f} µm (camera frame)")
+                if "shape_sigma_rms_mm" in unc:
+                    say(f"    RMS point sigma over the targets' range: camera frame "
+                        f"{unc['point_sigma_rms_mm'] * 1e3:.1f} µm, shape {unc['shape_sigma_rms_mm'] * 1e3:.1f} µm, "
+                        f"plane calibration only {unc['plane_only_sigma_rms_mm'] * 1e3:.1f} µm; the camera's share "
+                        + ("included" if unc["camera_share"] == "included" else "not included"))
             say("    vs truth  method   angle (deg)  offset (mm)  triangulation RMS (mm, camera frame / rigidly aligned)")
             for m, c in cals.items():
                 acc = plane_accuracy(c.plane, camera, plane_true, camera_true)

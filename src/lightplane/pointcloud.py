@@ -8,7 +8,7 @@ field          type     meaning
 x, y, z        float32  mm; camera frame, or the object's frame-0 position after motion
 frame          uint32   index of the source frame (0-based, in input order)
 intensity      float32  smoothed image value at the stripe's peak (grey levels)
-sigma_mm       float32  σ of the point from the light plane's covariance (NaN if none)
+sigma_mm       float32  camera-frame σ: plane calibration (+ camera's share if carried)
 u, v           float32  the stripe centre in the source frame, distorted pixels
 =============  =======  ==================================================================
 
