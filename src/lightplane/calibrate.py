@@ -651,6 +651,27 @@ def _observe_task(args):
         return e
 
 
+def _checked_inputs(images, distance_range_mm) -> tuple[list, tuple[float, float]]:
+    """The calibration commands' cheap checks, before any work: the images as a list (one
+    path or array becomes a list of one; none is an error; a missing file is an error, a
+    folder or a bad file is skipped later with its reason) and the distance range."""
+    if isinstance(images, (str, os.PathLike, np.ndarray)):
+        images = [images]
+    images = list(images)
+    if not images:
+        raise LightplaneError("no images given")
+    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
+    if not (0 < lo < hi):
+        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
+    for i, src in enumerate(images):
+        if isinstance(src, (str, os.PathLike)):
+            if not Path(src).exists():  # a mistyped name
+                raise LightplaneError(f"{src}: no such file")
+        elif not isinstance(src, np.ndarray):
+            raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
+    return images, (lo, hi)
+
+
 # ------------------------------------------------------------------------ public
 def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml", *,
                     workers: int | None = None, executor: str = "thread",
@@ -694,21 +715,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     """
     t_start = time.perf_counter()
     diameter = check_calibration_args(method, camera, diameter_mm)
-    if isinstance(images, (str, os.PathLike, np.ndarray)):
-        images = [images]
-    images = list(images)
-    if not images:
-        raise LightplaneError("no images given")
-    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
-    if not (0 < lo < hi):
-        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
-    for i, src in enumerate(images):  # cheap checks first: a missing file fails before any work
-        if isinstance(src, (str, os.PathLike)):
-            p = Path(src)
-            if not p.exists():  # a mistyped name; a folder or a bad file is skipped with its reason
-                raise LightplaneError(f"{p}: no such file")
-        elif not isinstance(src, np.ndarray):
-            raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
+    images, (lo, hi) = _checked_inputs(images, distance_range_mm)
     obs = observe_images(images, camera, diameter, workers=workers, executor=executor, progress=progress,
                          distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
                          min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)
@@ -741,11 +748,7 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
 
     t_start = time.perf_counter()
     diameter = check_calibration_args(method, camera, diameter_mm)
-    if isinstance(images, (str, os.PathLike, np.ndarray)):
-        images = [images]
-    images = list(images)
-    if not images:
-        raise LightplaneError("no images given")
+    images, (lo, hi) = _checked_inputs(images, distance_range_mm)
     lasers = list(lasers)
     if not lasers:
         raise LightplaneError("no lasers given")
@@ -753,19 +756,8 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
         if s.cycle is not None:
             raise LightplaneError(f"laser {s.name}: cycle:K selects laser frames per board pose (calibrate-plane-board "
                                   "with --cycle or --pattern); here use frames:PATTERN")
-    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
-    if not (0 < lo < hi):
-        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
-    takes = []
-    for i, src in enumerate(images):
-        if isinstance(src, (str, os.PathLike)):
-            if not Path(src).exists():
-                raise LightplaneError(f"{src}: no such file")
-            takes.append(tuple(k for k, s in enumerate(lasers) if s.takes_file(src)))
-        elif isinstance(src, np.ndarray):
-            takes.append(tuple(range(len(lasers))))
-        else:
-            raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
+    takes = [tuple(k for k, s in enumerate(lasers) if s.takes_file(src)) if isinstance(src, (str, os.PathLike))
+             else tuple(range(len(lasers))) for src in images]
     for k, s in enumerate(lasers):
         if not any(k in t for t in takes):
             raise LightplaneError(f"laser {s.name} ({s.text}): none of the {len(images)} images is one of its frames")
