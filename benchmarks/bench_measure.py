@@ -45,11 +45,25 @@ SCANS = {"sphere": dict(n_frames=21, step_mm=3.0), "step": dict(n_frames=11, ste
          "plane": dict(n_frames=11, step_mm=4.0)}
 
 
+def _code_tag() -> str:
+    """Short hash of the package's sources: a pickled data set holds the package's own
+    objects (Camera, LightPlane), so a cache written by other code is not reused."""
+    import hashlib
+
+    import lightplane
+
+    h = hashlib.sha1()
+    for f in sorted(Path(lightplane.__file__).parent.rglob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def cache_file(name: str) -> Path:
-    """The cache file of a rendered data set, named with the renderer's settings tag (stale ones are not reused)."""
+    """The cache file of a rendered data set, named with the renderer's settings tag and the
+    code's hash (stale ones are not reused)."""
     from lightplane.simulate.render import settings_tag
 
-    return CACHE / f"{name}_{settings_tag()}.pkl"
+    return CACHE / f"{name}_{settings_tag()}_{_code_tag()}.pkl"
 
 
 def cached(name: str, make):
