@@ -18,6 +18,7 @@ from . import (  # noqa: E402,F401
     evaluate,
     measure,
     measure_batch,
+    refine_turntable,
     render,
     report,
     simulate,
