@@ -204,8 +204,9 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
             break
     point, direction, st = unpack(x)
     after = agreement(clouds(point, direction, st))
+    # the board calibration's records (estimates, jackknife...) describe the old axis: not carried over
     new = Turntable.from_axis(point, direction, covariance=None, camera=table.camera,
-                              counts_per_rev=table.counts_per_rev, meta=dict(table.meta))
+                              counts_per_rev=table.counts_per_rev)
     moved_deg = float(np.degrees(np.arccos(min(1.0, abs(float(new.direction @ d0))))))
     v = p0 - new.point_mm
     moved_mm = float(np.linalg.norm(v - (v @ new.direction) * new.direction))
