@@ -7,9 +7,7 @@ The 12-image accuracy bars are checked by benchmarks/bench_calibrate.py.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,24 +17,15 @@ from lightplane.calibrate import calibrate_plane, observe_image, observe_images,
 from lightplane.camera import Camera
 from lightplane.errors import LightplaneError
 from lightplane.plane import LightPlane, PlaneCalibration
+from _renders import cached_render
 
 
 def cached_circle_render(n: int = 5, seed: int = 11, difficulty: str = "realistic", polarity: str = "light") -> Path:
     """Folder with ``n`` rendered circle images, camera.json and truth.json (rendered once per renderer version)."""
     import lightplane.simulate.render as R
-    import lightplane.simulate.render_core as RC
 
-    key = hashlib.sha1((Path(R.__file__).read_bytes() + Path(RC.__file__).read_bytes())).hexdigest()[:10]
-    out = Path(tempfile.gettempdir()) / "lightplane-test-renders" / f"circle_{difficulty}_{polarity}_n{n}_s{seed}_{key}"
-    if not (out / "truth.json").exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=out.parent))
-        R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, polarity=polarity).save(tmp, force=True)
-        try:
-            tmp.rename(out)
-        except OSError:  # another worker was faster
-            pass
-    return out
+    return cached_render(f"circle_{difficulty}_{polarity}_n{n}_s{seed}",
+                         lambda: R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, polarity=polarity))
 
 
 @pytest.fixture(scope="module")

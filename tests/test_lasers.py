@@ -8,10 +8,8 @@ version (cached like test_calibrate_images' renders): 6 images, ~20 s on 2 loade
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,7 @@ from lightplane.camera import Camera
 from lightplane.errors import LightplaneError
 from lightplane.lasers import output_paths, parse_laser, parse_lasers
 from lightplane.plane import LightPlane
+from _renders import cached_render
 
 N_IMAGES = 6
 
@@ -43,24 +42,14 @@ def cached_two_laser_render(n: int = N_IMAGES, seed: int = 5, difficulty: str = 
     ``mirrored``: gray images, the mirrored laser, discs at 395-435 mm (the stripes apart, one
     each side of the image centre)."""
     import lightplane.simulate.render as R
-    import lightplane.simulate.render_core as RC
 
-    key = hashlib.sha1((Path(R.__file__).read_bytes() + Path(RC.__file__).read_bytes())).hexdigest()[:10]
-    out = Path(tempfile.gettempdir()) / "lightplane-test-renders" / f"circle2_{kind}_{difficulty}_n{n}_s{seed}_{key}"
-    if not (out / "truth.json").exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=out.parent))
+    def make():
         if kind == "crossed":
-            ds = R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[R.second_laser_plane()])
-        else:
-            ds = R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[mirrored_plane()],
-                                         colour=False, distance_mm=(395.0, 435.0))
-        ds.save(tmp, force=True)
-        try:
-            tmp.rename(out)
-        except OSError:  # another worker was faster
-            pass
-    return out
+            return R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[R.second_laser_plane()])
+        return R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[mirrored_plane()],
+                                       colour=False, distance_mm=(395.0, 435.0))
+
+    return cached_render(f"circle2_{kind}_{difficulty}_n{n}_s{seed}", make)
 
 
 @pytest.fixture(scope="module")
