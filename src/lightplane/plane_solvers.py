@@ -64,7 +64,7 @@ from typing import TYPE_CHECKING, Sequence  # noqa: E402
 if TYPE_CHECKING:
     from .circle_pose import CirclePose
 
-from .refine import MLOptions  # noqa: E402
+from .refine import MLOptions, refine_ml  # noqa: E402
 
 _KAPPA = 5.0
 _TAU_FLOOR_REL = 1e-9  # tau >= 1e-9 * z: rounding of noise-free data (~1e-11 mm) stays below it
@@ -989,8 +989,6 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     rim_rms = {c.index: c.rim_rms_px for c in cands}
     st_rms = {c.index: c.stripe_rms_px for c in cands}
     if method == "ml":
-        from .refine import refine_ml
-
         g_plane = LightPlane(normal, d)
         res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
                                                              for i in used], g_plane, [poses_final[i] for i in used],

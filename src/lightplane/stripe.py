@@ -227,24 +227,23 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
     if not isinstance(image, np.ndarray):
         raise LightplaneError(f"{name} must be a numpy array, got {type(image).__name__}")
     out = to_gray_float(image, channel, name=name, native=True)
-    src = image if image.dtype != np.bool_ else image.astype(np.uint8) * 255
-    if src.dtype == np.uint8:
+    # the full scale is the input's (a bool image falls to 255 below)
+    if image.dtype == np.uint8:
         fs = 255.0
-    elif src.dtype == np.uint16:
+    elif image.dtype == np.uint16:
         # 10-, 12- or 14-bit data in a 16-bit container: the smallest such range that holds the image
-        top = int(src.max()) if src.size else 0
+        top = int(image.max()) if image.size else 0
         fs = next(float(2**b - 1) for b in (10, 12, 14, 16) if top <= 2**b - 1)
-    elif src.dtype.kind == "f":
-        fs = 1.0 if (src.size == 0 or float(np.max(src)) <= 1.0) else 255.0
+    elif image.dtype.kind == "f":
+        fs = 1.0 if (image.size == 0 or float(np.max(image)) <= 1.0) else 255.0
     else:
         fs = 255.0
-    if channel == "sum" and src.ndim == 3:
+    if channel == "sum" and image.ndim == 3:
         fs *= 3.0
     if out.shape[0] < 3 or out.shape[1] < 3:
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
-    # one float type and two integer types: fewer numba specialisations to compile
-    if out.dtype not in (np.uint8, np.uint16, np.float32):
-        out = out.astype(np.float32)
+    # to_gray_float(native=True) gives one float type and two integer types: fewer numba
+    # specialisations to compile
     return out, fs
 
 
