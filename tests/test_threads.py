@@ -195,3 +195,19 @@ def test_measure_batches_a_short_roi_with_the_same_records():
     for workers in (1, 2):
         rec, _ = scan_points(ArrayFrames(frames), CAM, PLANE, roi=roi, width_px=3.5, workers=workers, executor="thread")
         assert np.array_equal(rec.view(np.uint8), ref.view(np.uint8))
+
+
+def test_idle_cpus_does_not_count_this_process_own_threads(monkeypatch):
+    # 2 CPUs, 3 runnable tasks: busy, unless two of the three are our own threads
+    # (numba's workers still falling asleep after the previous kernel)
+    monkeypatch.setattr(threads, "_usable_cpus", lambda: 2)
+    monkeypatch.setattr(threads, "_runnable_tasks", lambda: 3)
+    for own, idle in ((1, -1), (2, 0), (3, 1), (5, 1)):
+        monkeypatch.setattr(threads, "_own_running_threads", lambda own=own: own)
+        threads._idle_time[0] = -1.0     # no cached reading
+        assert threads.idle_cpus() == idle
+    monkeypatch.setattr(threads, "_runnable_tasks", lambda: 1)   # only the caller: one core free
+    threads._idle_time[0] = -1.0
+    assert threads.idle_cpus() == 1
+    threads._idle_time[0] = -1.0
+    assert threads._own_running_threads() >= 1   # the real reading counts at least the caller

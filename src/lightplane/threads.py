@@ -63,7 +63,7 @@ def _configure() -> None:
 _configure()
 
 #: a single frame is split over numba's threads only from this many pixels (lines x samples) ...
-PARALLEL_MIN_PIXELS = 1 << 18
+PARALLEL_MIN_PIXELS = 1 << 17
 #: ... and this many lines (the per-line work is most of a profile's cost)
 PARALLEL_MIN_LINES = 256
 
@@ -146,17 +146,55 @@ _idle_time = [-1.0]
 _idle_value: list[int | None] = [None]
 
 
+def _own_running_threads() -> int:
+    """Threads of this process that are running or runnable now (``/proc/self/task/*/stat``)."""
+    n = 0
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:  # pragma: no cover - not Linux
+        return 1
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                st = f.read()
+        except OSError:   # the thread ended meanwhile
+            continue
+        if st[st.rindex(")") + 2:st.rindex(")") + 3] == "R":
+            n += 1
+    return max(n, 1)
+
+
+def _runnable_tasks() -> int:
+    """Runnable tasks of the whole machine now, the caller included (``/proc/loadavg``)."""
+    with open("/proc/loadavg") as f:
+        return int(f.read().split()[3].split("/")[0])
+
+
+def _usable_cpus() -> int:
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1  # pragma: no cover - not Linux
+
+
 def idle_cpus() -> int | None:
-    """CPUs of the machine not wanted by a runnable task right now (``/proc/loadavg``: runnable
-    tasks, this one included), re-read every :data:`IDLE_REFRESH_S`; None where unknown."""
+    """CPUs free for a second thread of this caller right now; None where unknown.
+
+    The usable CPUs less the one the calling thread runs on, less the runnable tasks
+    of *other* processes (``/proc/loadavg`` counts every runnable task; this
+    process's own running threads, read from ``/proc/self/task``, are taken out, so
+    that numba's workers falling asleep after the previous kernel do not make the
+    next frame look like it has a busy machine).  Re-read every :data:`IDLE_REFRESH_S`.
+    """
     now = time.monotonic()
     if now - _idle_time[0] < IDLE_REFRESH_S:
         return _idle_value[0]
     val: int | None
     try:
-        with open("/proc/loadavg") as f:
-            runnable = int(f.read().split()[3].split("/")[0])
-        val = (os.cpu_count() or 1) - runnable
+        runnable = _runnable_tasks()
+        cpus = _usable_cpus()
+        val = cpus - runnable        # the caller is one of the runnable tasks
+        if val < 1 and runnable > 1:  # busy? unless the others are our own threads
+            val = cpus - 1 - max(0, runnable - _own_running_threads())
     except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
         val = None
     _idle_time[0], _idle_value[0] = now, val
@@ -207,7 +245,7 @@ def threading_info() -> dict:
         "omp_runtime_loaded_before": _OMP_PRELOADED,
         "opencv_threads": cv2.getNumThreads(),
         "opencv_parallel_framework": fw,
-        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "cpus_usable": _usable_cpus(),
         "idle_cpus_now": idle_cpus(),
     }
 
