@@ -68,6 +68,18 @@ def parse_laser(text: str) -> tuple[str, str | None]:
     return name, (glob.strip() or None) if sep else None
 
 
+def sigma_line(camera, plane) -> str:
+    """What the per-point ``sigma_mm`` of a cloud measured with ``plane`` covers (one line)."""
+    from ..uncertainty import camera_share_status
+
+    if plane.covariance is None:
+        return "per-point sigma_mm: NaN (the plane file has no covariance)"
+    why_not = camera_share_status(camera, plane)
+    return "per-point sigma_mm: camera frame; " + (
+        "plane calibration and camera intrinsics (their correlation included)" if why_not is None else
+        f"the plane calibration only: {why_not}") + "; the stripe centre's own noise is not included"
+
+
 def motion_from_options(*, step, direction, positions, turntable, table_from_sensor, turntable_step,
                         turntable_angles, turntable_start, counts_per_rev, poses, flange, flange_from_sensor, camera):
     """The :class:`lightplane.motion.Motion` named by the measure options (one form at most)."""
@@ -163,8 +175,6 @@ def measure_cmd(
     from ..plane import LightPlane
     from ..pointcloud import cloud_format
     from ..scan import measure_scan, open_frames
-    from ..uncertainty import camera_share_status
-
     out = check_output(output, force)
     fmt = cloud_format(out, fmt)
     if ascii_ply and fmt != "ply":
@@ -230,6 +240,8 @@ def measure_cmd(
             for idx, fname, reason in skipped[:10]:
                 err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
         console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
+        for name, _ in lasers:
+            console.print(f"laser {name}: " + sigma_line(cam, sens.planes[name]))
         console.print(f"wrote {ls.path} ({ls.format}{' ascii' if ascii_ply else ''})")
         return
 
@@ -265,11 +277,5 @@ def measure_cmd(
             err_console.print(f"  frame {idx} ({name}): {reason}")
         if s.n_skipped > 10:
             err_console.print(f"  ... and {s.n_skipped - 10} more")
-    why_not = camera_share_status(cam, pl)
-    if pl.covariance is None:
-        console.print("per-point sigma_mm: NaN (the plane file has no covariance)")
-    else:
-        console.print("per-point sigma_mm: camera frame; " + (
-            "plane calibration and camera intrinsics (their correlation included)" if why_not is None else
-            f"the plane calibration only: {why_not}") + "; the stripe centre's own noise is not included")
+    console.print(sigma_line(cam, pl))
     console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
