@@ -63,6 +63,7 @@ def main() -> None:
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--summary", action="store_true", help="only summarise the sets already in out/")
     ap.add_argument("--fresh", action="store_true", help="forget the sets already in out/")
+    ap.add_argument("--no-joint", action="store_true", help="without the joint refinement's columns")
     args = ap.parse_args()
     if args.render_only:
         for k in range(args.first, args.first + args.sets):
@@ -81,14 +82,98 @@ def _save(f: Path, images) -> None:
     tmp.replace(f)
 
 
-def one_set(cache: Path, k: int) -> dict:
-    """Calibrate camera and plane from set ``k``; errors against the truth and predicted sigmas."""
-    from lightplane.calibrate import observe_images, solve_observations
-    from lightplane.intrinsics import calibrate_camera
+def _errors(cam, plane, cam_true, plane_true, vol, prefix: str = "") -> dict:
+    """Actual and predicted errors of (camera, plane) against the truth over ``vol``."""
     from lightplane.measure import triangulate
     from lightplane.shapes import rigid_align
+    from lightplane.uncertainty import volume_sigma
+
+    est = triangulate(cam, plane, vol.uv)
+    e = est - vol.points
+    ok = np.all(np.isfinite(e), axis=1)
+    pred = volume_sigma(cam, plane, vol)
+    C = np.asarray(plane.covariance)
+    rec = plane.meta.get("camera_jacobian")
+    Cc = np.asarray(rec["covariance_camera"]) if rec else np.zeros((4, 4))
+    h = np.append(plane_true.point_on_axis(), 1.0)
+    out = {
+        "frame_mm": float(np.sqrt(np.mean(np.sum(e[ok] ** 2, axis=1)))),
+        "shape_mm": rigid_align(est[ok], vol.points[ok]).rms_mm,
+        "pred_frame_mm": pred.camera_frame_mm, "pred_shape_mm": pred.shape_mm, "pred_plane_only_mm": pred.plane_only_mm,
+        "angle_deg": float(np.degrees(plane.angle_to(plane_true))),
+        "offset_mm": float(plane.signed_distance(plane_true.point_on_axis()[None])[0]),
+        "pred_angle_deg": float(np.degrees(np.sqrt(np.trace((C + Cc)[:3, :3])))),
+        "pred_angle_plane_only_deg": float(np.degrees(np.sqrt(np.trace(C[:3, :3])))),
+        "pred_offset_mm": float(np.sqrt(h @ (C + Cc) @ h)), "pred_offset_plane_only_mm": float(np.sqrt(h @ C @ h)),
+    }
+    if cam.covariance is not None:
+        p_true = np.r_[cam_true.fx, cam_true.fy, cam_true.cx, cam_true.cy, cam_true.dist]
+        p_est = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
+        out.update({"cx_err_px": float(p_est[2] - p_true[2]), "cy_err_px": float(p_est[3] - p_true[3]),
+                    "cx_sigma_px": float(np.sqrt(cam.covariance[2, 2])),
+                    "cy_sigma_px": float(np.sqrt(cam.covariance[3, 3])),
+                    "intrinsics_mahalanobis2": float((p_est - p_true) @ np.linalg.pinv(cam.covariance)
+                                                     @ (p_est - p_true)),
+                    "n_free": int(np.sum(np.diag(cam.covariance) > 0))})
+    return {prefix + k: v for k, v in out.items()}
+
+
+def _corner_truth_error(res, k: int) -> dict:
+    """The corners against the renderer's exact ones (its poses re-drawn from its seed), over the
+    views used: RMS of the detection error and of the calibration's residuals (px, per
+    coordinate), the neighbour correlation of the error along the board's rows, and the
+    Mahalanobis² of the intrinsics' change that the detection error alone causes (first order:
+    ``δK`` of the Gauss–Newton solve on the errors, board poses marginalised, against the
+    covariance the calibration states): white corner noise gives the number of free parameters."""
+    import cv2
+
+    from lightplane.simulate.geometry import default_camera
+    from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
+    from lightplane.simulate.render import board_corners, sample_board_poses
+
+    cam_true = default_camera()
+    poses = sample_board_poses(N_BOARDS, np.random.default_rng(1000 + k), camera=cam_true, board=BOARD,
+                               square_mm=SQUARE_MM, distance_mm=CC["distance_mm"], tilt_deg=CC["tilt_deg"],
+                               centre_frac=CC["centre_frac"], spin_deg=CC["spin_deg"])
+    obj = board_corners(BOARD, SQUARE_MM)
+    cam = res.camera
+    err, corr = [], []
+    P = 4 + cam.dist.size
+    S = np.zeros((P, P))
+    g = np.zeros(P)
+    for name, uv, rv, tv in zip(res.used, res.corners_uv, res.rvecs, res.tvecs):
+        R, t = poses[int(name.split()[-1])]
+        true = cam_true.project(obj @ R.T + t)
+        if np.sum((uv[::-1] - true) ** 2) < np.sum((uv - true) ** 2):  # the board's 180° ambiguity
+            true = true[::-1]
+        e = uv - true
+        err.append(e)
+        g3 = e.reshape(BOARD[1], BOARD[0], 2)
+        corr.append(np.mean(g3[:, 1:] * g3[:, :-1]))
+        _, jac = cv2.projectPoints(obj, rv, tv, cam.K, cam.dist)
+        Je, Ji = jac[:, :6], jac[:, 6:6 + P]
+        C = Ji.T @ Je
+        Bi = np.linalg.inv(Je.T @ Je)
+        S += Ji.T @ Ji - C @ Bi @ C.T
+        g += Ji.T @ e.ravel() - C @ Bi @ (Je.T @ e.ravel())
+    e = np.concatenate(err)
+    r = np.concatenate(res.residuals_px)
+    sig = res.options["covariance_sigma_px"]
+    dK = np.linalg.solve(S, g)
+    return {"corner_truth_rms_px": float(np.sqrt(np.mean(e**2))), "corner_residual_rms_px": float(np.sqrt(np.mean(r**2))),
+            "corner_truth_neighbour_corr": float(np.mean(corr) / np.mean(e**2)),
+            "detector_mahalanobis2": float(dK @ S @ dK / sig**2)}
+
+
+def one_set(cache: Path, k: int, joint: bool = True) -> dict:
+    """Calibrate camera and plane from set ``k``; errors against the truth and predicted sigmas,
+    two-step and (``joint``) with the joint refinement; and the plane solved with the true camera
+    (the plane calibration's own share)."""
+    from lightplane.calibrate import observe_images, solve_observations
+    from lightplane.intrinsics import calibrate_camera
+    from lightplane.joint import refine_joint
     from lightplane.simulate.geometry import default_camera, default_plane
-    from lightplane.uncertainty import volume_sigma, working_volume_grid
+    from lightplane.uncertainty import working_volume_grid
 
     t0 = time.perf_counter()
     cam_true, plane_true = default_camera(), default_plane()
@@ -96,48 +181,69 @@ def one_set(cache: Path, k: int) -> dict:
     cam = res.camera
     obs = observe_images(_circles(cache, k), cam, 50.0, workers=2)
     cal = solve_observations(obs, cam, 50.0, "ml")
-    plane = cal.plane
     vol = working_volume_grid(cam_true, plane_true, distance_mm=(380.0, 520.0))
-    est = triangulate(cam, plane, vol.uv)
-    e = est - vol.points
-    ok = np.all(np.isfinite(e), axis=1)
-    frame = float(np.sqrt(np.mean(np.sum(e[ok] ** 2, axis=1))))
-    shape = rigid_align(est[ok], vol.points[ok]).rms_mm
-    pred = volume_sigma(cam, plane, vol)
-    C = np.asarray(plane.covariance)
-    Cc = np.asarray(plane.meta["camera_jacobian"]["covariance_camera"])
-    h = np.append(plane_true.point_on_axis(), 1.0)
-    p_true = np.r_[cam_true.fx, cam_true.fy, cam_true.cx, cam_true.cy, cam_true.dist]
-    p_est = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
-    return {
-        "set": k, "views": len(res.used), "images_used": cal.n_used, "corner_sigma_px": res.options["covariance_sigma_px"],
-        "frame_mm": frame, "shape_mm": shape,
-        "pred_frame_mm": pred.camera_frame_mm, "pred_shape_mm": pred.shape_mm, "pred_plane_only_mm": pred.plane_only_mm,
-        "angle_deg": float(np.degrees(plane.angle_to(plane_true))),
-        "offset_mm": float(plane.signed_distance(plane_true.point_on_axis()[None])[0]),
-        "pred_angle_deg": float(np.degrees(np.sqrt(np.trace((C + Cc)[:3, :3])))),
-        "pred_angle_plane_only_deg": float(np.degrees(np.sqrt(np.trace(C[:3, :3])))),
-        "pred_offset_mm": float(np.sqrt(h @ (C + Cc) @ h)), "pred_offset_plane_only_mm": float(np.sqrt(h @ C @ h)),
-        "cx_err_px": float(p_est[2] - p_true[2]), "cy_err_px": float(p_est[3] - p_true[3]),
-        "cx_sigma_px": float(np.sqrt(cam.covariance[2, 2])), "cy_sigma_px": float(np.sqrt(cam.covariance[3, 3])),
-        "intrinsics_mahalanobis2": float((p_est - p_true) @ np.linalg.pinv(cam.covariance) @ (p_est - p_true)),
-        "seconds": time.perf_counter() - t0,
-    }
+    row = {"set": k, "views": len(res.used), "images_used": cal.n_used,
+           "corner_sigma_px": res.options["covariance_sigma_px"]}
+    row.update(_corner_truth_error(res, k))
+    row.update(_errors(cam, cal.plane, cam_true, plane_true, vol))
+    t1 = time.perf_counter()
+    row["seconds"] = t1 - t0
+    # the plane calibration's own share: the same observations solved with the exact camera
+    cal_t = solve_observations(obs, cam_true, 50.0, "ml")
+    row.update(_errors(cam_true, cal_t.plane, cam_true, plane_true, vol, "truecam_"))
+    if joint:
+        t2 = time.perf_counter()
+        jc = refine_joint(res, cal)
+        row.update(_errors(jc.camera, jc.plane_cal.plane, cam_true, plane_true, vol, "joint_"))
+        row["joint_seconds"] = time.perf_counter() - t2
+        row["joint_cost_drop"] = jc.result.cost_start - jc.result.cost
+    return row
+
+
+QUANTITIES = (("camera frame", "frame_mm", "pred_frame_mm"), ("shape", "shape_mm", "pred_shape_mm"),
+              ("camera frame, plane-only sigma", "frame_mm", "pred_plane_only_mm"),
+              ("normal angle", "angle_deg", "pred_angle_deg"),
+              ("offset at the axis", "offset_mm", "pred_offset_mm"),
+              ("offset, plane-only sigma", "offset_mm", "pred_offset_plane_only_mm"))
+#: Column sets: two-step, joint refinement, plane solved with the exact camera (the plane's own share).
+VARIANTS = (("two-step", ""), ("joint", "joint_"), ("true camera", "truecam_"))
 
 
 def summarise(rows: list[dict]) -> dict:
-    a = {k: np.array([r[k] for r in rows], float) for k in rows[0] if k != "set"}
+    keys = [k for k in rows[0] if k != "set" and all(k in r for r in rows)]
+    a = {k: np.array([r[k] for r in rows], float) for k in keys}
     rms = {k: float(np.sqrt(np.mean(v**2))) for k, v in a.items()}
-    out = {"sets": len(rows)}
-    for name, act, pred in (("camera frame", "frame_mm", "pred_frame_mm"), ("shape", "shape_mm", "pred_shape_mm"),
-                            ("camera frame, plane-only sigma", "frame_mm", "pred_plane_only_mm"),
-                            ("normal angle", "angle_deg", "pred_angle_deg"),
-                            ("offset at the axis", "offset_mm", "pred_offset_mm"),
-                            ("offset, plane-only sigma", "offset_mm", "pred_offset_plane_only_mm")):
-        out[name] = {"actual_rms": rms[act], "predicted_rms": rms[pred], "ratio": rms[pred] / rms[act]}
+    out: dict = {"sets": len(rows)}
+    for label, pre in VARIANTS:
+        if pre + "frame_mm" not in rms:
+            continue
+        block = {}
+        for name, act, pred in QUANTITIES:
+            if pre == "truecam_" and "plane-only" in name:
+                continue
+            block[name] = {"actual_rms": rms[pre + act], "predicted_rms": rms[pre + pred],
+                           "ratio": rms[pre + pred] / rms[pre + act]}
+        if pre + "intrinsics_mahalanobis2" in a:
+            block["mean_intrinsics_mahalanobis2"] = float(np.mean(a[pre + "intrinsics_mahalanobis2"]))
+            block["n_free"] = int(np.max(a[pre + "n_free"]))
+            block["cx_err_rms_px"], block["cy_err_rms_px"] = rms[pre + "cx_err_px"], rms[pre + "cy_err_px"]
+            block["cx_sigma_rms_px"], block["cy_sigma_rms_px"] = rms[pre + "cx_sigma_px"], rms[pre + "cy_sigma_px"]
+        out[label] = block
+    if "joint_frame_mm" in a:
+        # per set: joint / two-step error (never worse: every ratio <= 1 within the sets' noise)
+        for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
+            r = np.abs(a["joint_" + q]) / np.abs(a[q])
+            out[f"joint_over_two_step_{q}"] = {"median": float(np.median(r)), "max": float(np.max(r)),
+                                               "sets_worse": int(np.sum(r > 1.0)),
+                                               "rms_ratio": rms["joint_" + q] / rms[q]}
+        out["median_joint_seconds"] = float(np.median(a["joint_seconds"]))
     # sampling tolerance of an RMS over n sets of a ~1-dof error: relative sd ~ 1/sqrt(2n)
     out["rms_relative_sd"] = float(1 / np.sqrt(2 * len(rows)))
-    out["mean_intrinsics_mahalanobis2"] = float(np.mean(a["intrinsics_mahalanobis2"]))
+    out["corner_truth_rms_px"] = rms.get("corner_truth_rms_px")
+    out["corner_sigma_rms_px"] = rms.get("corner_sigma_px")
+    out["corner_residual_rms_px"] = rms.get("corner_residual_rms_px")
+    out["mean_corner_truth_neighbour_corr"] = float(np.mean(a["corner_truth_neighbour_corr"]))
+    out["mean_detector_mahalanobis2"] = float(np.mean(a["detector_mahalanobis2"]))
     out["median_seconds_per_set"] = float(np.median(a["seconds"]))
     return out
 
@@ -152,24 +258,46 @@ def run(args) -> None:
         for k in range(args.first, args.first + args.sets):
             if k in done:
                 continue
-            r = one_set(args.cache, k)
+            r = one_set(args.cache, k, joint=not args.no_joint)
             rows.append(r)
             with log.open("a") as f:
                 f.write(json.dumps(r) + "\n")
             print(f"set {k}: camera frame {r['frame_mm']:.4f} mm (predicted {r['pred_frame_mm']:.4f}), shape "
-                  f"{r['shape_mm']:.4f} mm (predicted {r['pred_shape_mm']:.4f}), plane-only sigma "
-                  f"{r['pred_plane_only_mm']:.4f} mm; {r['seconds']:.0f} s", flush=True)
+                  f"{r['shape_mm']:.4f} mm (predicted {r['pred_shape_mm']:.4f}); joint: camera frame "
+                  f"{r.get('joint_frame_mm', np.nan):.4f} mm (predicted {r.get('joint_pred_frame_mm', np.nan):.4f}), "
+                  f"shape {r.get('joint_shape_mm', np.nan):.4f} mm (predicted "
+                  f"{r.get('joint_pred_shape_mm', np.nan):.4f}); {r['seconds']:.0f} s + joint "
+                  f"{r.get('joint_seconds', np.nan):.0f} s", flush=True)
     s = summarise(rows)
     print(f"\n{s['sets']} independent sets (each: {N_BOARDS} chessboard views {BOARD[0]}x{BOARD[1]}, "
           f"{N_CIRCLES} circle images, realistic renders), working volume 380-520 mm")
-    print(f"{'quantity':<32} {'actual RMS':>11} {'predicted':>10} {'pred/act':>8}")
-    for name in ("camera frame", "shape", "camera frame, plane-only sigma", "normal angle", "offset at the axis",
-                 "offset, plane-only sigma"):
-        v = s[name]
-        unit = "deg" if "angle" in name else "mm"
-        print(f"{name:<32} {v['actual_rms']:>8.4f} {unit:<3}{v['predicted_rms']:>9.4f} {v['ratio']:>8.2f}")
-    print(f"sampling sd of an RMS over {s['sets']} sets: ~{100 * s['rms_relative_sd']:.0f} %; "
-          f"mean Mahalanobis² of the intrinsics' error {s['mean_intrinsics_mahalanobis2']:.1f} (9 expected)")
+    for label, _ in VARIANTS:
+        if label not in s:
+            continue
+        print(f"\n{label}:")
+        print(f"{'quantity':<32} {'actual RMS':>11} {'predicted':>10} {'pred/act':>8}")
+        for name, _a, _p in QUANTITIES:
+            if name not in s[label]:
+                continue
+            v = s[label][name]
+            unit = "deg" if "angle" in name else "mm"
+            print(f"{name:<32} {v['actual_rms']:>8.4f} {unit:<3}{v['predicted_rms']:>9.4f} {v['ratio']:>8.2f}")
+        if "mean_intrinsics_mahalanobis2" in s[label]:
+            b = s[label]
+            print(f"principal point error RMS cx {b['cx_err_rms_px']:.3f} px, cy {b['cy_err_rms_px']:.3f} px "
+                  f"(sigma RMS {b['cx_sigma_rms_px']:.3f}, {b['cy_sigma_rms_px']:.3f} px); mean Mahalanobis² of "
+                  f"the intrinsics' error {b['mean_intrinsics_mahalanobis2']:.1f} ({b['n_free']} expected)")
+    for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
+        key = f"joint_over_two_step_{q}"
+        if key in s:
+            v = s[key]
+            print(f"joint / two-step |error| per set, {q}: median {v['median']:.2f}, max {v['max']:.2f}, "
+                  f"{v['sets_worse']} of {s['sets']} sets worse; ratio of the RMS {v['rms_ratio']:.2f}")
+    print(f"corners against the exact ones: RMS {s['corner_truth_rms_px']:.4f} px per coordinate; residual-based "
+          f"sigma {s['corner_sigma_rms_px']:.4f} px (residual RMS {s['corner_residual_rms_px']:.4f} px); neighbour "
+          f"correlation {s['mean_corner_truth_neighbour_corr']:.2f}; mean Mahalanobis² of the intrinsics' change "
+          f"the detection errors alone cause (first order) {s['mean_detector_mahalanobis2']:.1f}")
+    print(f"sampling sd of an RMS over {s['sets']} sets: ~{100 * s['rms_relative_sd']:.0f} %")
     (out_dir / "bench_camera_uncertainty.json").write_text(json.dumps({"summary": s, "rows": rows}, indent=1))
 
 

@@ -96,6 +96,9 @@ class PlacementResult:
         RMS distance of stripe points to their fitted image line (``ml``: to the projected chord), px.
     chord_rms_mm : float
         RMS distance of the chosen chord's 3D points to the final plane, mm (NaN if unused).
+    stripe_inliers : (K,) bool or None
+        Which of the stripe points given were kept (on the stripe's line): the points the
+        solver used (for the joint refinement, :mod:`lightplane.joint`).
     """
 
     index: int
@@ -109,6 +112,7 @@ class PlacementResult:
     rim_rms_px: float
     stripe_rms_px: float
     chord_rms_mm: float
+    stripe_inliers: np.ndarray | None = _field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {
@@ -1026,7 +1030,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         results.append(PlacementResult(
             index=i, used=k is not None, reason=reasons.get(i, "used"), candidate=k,
             pose=poses_final.get(i), poses=c.poses, n_rim=c.n_rim, n_stripe=int(c.stripe_inliers.sum()),
-            rim_rms_px=float(rim_rms[i]), stripe_rms_px=float(st_rms[i]), chord_rms_mm=chord_rms))
+            rim_rms_px=float(rim_rms[i]), stripe_rms_px=float(st_rms[i]), chord_rms_mm=chord_rms,
+            stripe_inliers=c.stripe_inliers))
     for c in cands:
         if not c.usable:
             warnings.append(f"placement {c.index} not used: {c.reason}")

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from ..errors import LightplaneError
 from ..io import check_output, expand_inputs, provenance
-from ._common import Channel, app, console, handles_errors, laser_option, progress_bar
+from ._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
 
 
 @app.command("calibrate-plane")
@@ -18,7 +18,8 @@ from ._common import Channel, app, console, handles_errors, laser_option, progre
 def calibrate_plane_cmd(
     images: List[str] = typer.Argument(..., help="Images of the circular target with the stripe across it "
                                                  "(files, folders or glob patterns)."),
-    camera: Path = typer.Option(..., "--camera", help="Camera file: lightplane JSON, ROS YAML or OpenCV YAML/XML."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file: lightplane JSON, ROS YAML or OpenCV "
+                                                                 "YAML/XML (or --joint-camera)."),
     diameter: float = typer.Option(..., "--diameter", help="Target diameter in mm."),
     output: Path = typer.Option(..., "-o", "--output", help="Light-plane file to write (JSON)."),
     method: Literal["ml", "global", "paper"] = typer.Option("ml", "--method", help="ml (default: joint maximum likelihood, with covariance), "
@@ -30,12 +31,25 @@ def calibrate_plane_cmd(
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Parallel worker threads (default: all cores)."),
     laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing plane file / report."),
+    joint_camera: Optional[str] = typer.Option(
+        None, "--joint-camera", help="Chessboard images (folder or glob) to calibrate the camera from, jointly with "
+                                     "the plane: intrinsics, board poses, target poses and plane in one maximum-"
+                                     "likelihood problem (needs --board, --square, --camera-out; instead of --camera)."),
+    board: Optional[str] = board_option,
+    square: Optional[float] = square_option,
+    camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --joint-camera: the camera file to "
+                                              "write (JSON, with the joint covariance of the intrinsics)."),
 ) -> None:
     """Calibrate the light plane from images of a flat circular target (Wang & Li 2022).
 
     Several lasers: one --laser NAME=SELECTOR per laser, e.g. --laser left=red --laser right=green
     when both stripes cross the disc in the same images (colour images), or --laser a=frames:'*_a.png'
     --laser b=frames:'*_b.png' for separate frames; one plane file per laser.
+
+    --joint-camera 'boards/*.png' --board 9x7 --square 8 --camera-out cam.json: the camera is
+    calibrated from the chessboards (as calibrate-camera), the plane from the circle images with
+    it, then both are refined jointly (the circle images inform the intrinsics too); the camera
+    file gets the refined intrinsics and their covariance, the plane file the refined plane.
     """
     from ..calibrate import calibrate_plane, calibrate_planes
     from ..camera import Camera
@@ -51,6 +65,9 @@ def calibrate_plane_cmd(
     for f in files:  # a mistyped name stops here; a folder, an unreadable or truncated file is skipped with its reason
         if not f.exists():
             raise LightplaneError(f"{f}: no such file")
+    joint = _joint_inputs(joint_camera, board, square, camera, camera_out, output, method, laser, force)
+    if joint is None and camera is None:
+        raise LightplaneError("give --camera FILE (or --joint-camera GLOB with --board, --square and --camera-out)")
     sels = parse_lasers(laser, channel)
     names: list[str | None] = [x.name for x in sels] if sels else [None]
     outputs: dict[str | None, Path] = {None: output}
@@ -72,7 +89,22 @@ def calibrate_plane_cmd(
                 raise LightplaneError(f"{rep}: exists and is not a folder")
             if rep.exists():
                 check_output(rep / "index.html", force)
-    cam = Camera.load(camera)
+    intr = None
+    if joint is not None:
+        from ..intrinsics import calibrate_camera
+
+        board_files, target = joint
+        with progress_bar("chessboard images", len(board_files)) as update:
+            intr = calibrate_camera([str(f) for f in board_files], target, progress=lambda i, n: update(i))
+        cam = intr.camera
+        console.print(f"camera from {len(intr.used)} of {len(board_files)} chessboard views ({target.spec}): "
+                      f"fx {cam.fx:.2f} px, fy {cam.fy:.2f} px, cx {cam.cx:.2f} px, cy {cam.cy:.2f} px, "
+                      f"RMS reprojection {intr.rms_px:.3f} px")
+        for name, why in intr.skipped.items():
+            console.print(f"  skipped {name}: {why}")
+    else:
+        assert camera is not None  # checked above
+        cam = Camera.load(camera)
 
     with progress_bar("images", len(files)) as update:
         if sels is None:
@@ -82,6 +114,17 @@ def calibrate_plane_cmd(
         else:
             cals = calibrate_planes([str(f) for f in files], cam, diameter, sels, method, workers=workers,
                                     distance_range_mm=(near, far), progress=lambda i, n: update(i))
+    jc = None
+    if intr is not None:
+        from ..joint import refine_joint
+
+        console.print("[bold]two-step[/bold] (camera from the chessboards alone, then the plane with it):")
+        _print_calibration(cals[None], cam)
+        jc = refine_joint(intr, cals[None])
+        _print_joint(intr.camera, jc)
+        cals = {None: jc.plane_cal}
+        cam = jc.camera
+        console.print("[bold]joint refinement[/bold]:")
     results: dict[str | None, dict] = {}
     for name, cal in cals.items():
         if name is not None:
@@ -92,11 +135,29 @@ def calibrate_plane_cmd(
         for line in shared_pose_lines(cals):
             console.print(line)
 
-    options = {"camera": str(camera), "diameter_mm": diameter, "method": method, "channel": channel,
-               "distance_range_mm": [near, far]}
+    options: dict = {"camera": None if camera is None else str(camera), "diameter_mm": diameter, "method": method,
+               "channel": channel, "distance_range_mm": [near, far]}
     if sels is not None:
         options["lasers"] = [x.to_dict() for x in sels]
-    prov = provenance([*map(str, files), str(camera)], options)
+    inputs = [*map(str, files)] + ([str(camera)] if camera is not None else [])
+    if joint is not None:
+        options.update({"joint_camera": joint_camera, "board": joint[1].spec, "square_mm": joint[1].square_mm,
+                        "camera_out": str(camera_out)})
+        inputs += [str(f) for f in joint[0]]
+    prov = provenance(inputs, options)
+    if jc is not None and intr is not None:
+        assert camera_out is not None  # checked by _joint_inputs
+        r = jc.result
+        jc.camera.save_json(camera_out, force=force, extra={
+            "calibration": {**intr.to_dict(), "joint_refinement": {
+                "covariance_covers": "the corner noise (from the camera calibration's residuals) and the rim and "
+                                     "stripe noise of the circle images (the plane calibration's noise model), board "
+                                     "and target poses and the plane marginalised",
+                "target_images_used": [o.source for o in jc.plane_cal.images if o.used],
+                "corner_rms_px": r.corner_rms_px, "rim_rms_px": r.rim_rms_px, "stripe_rms_px": r.stripe_rms_px,
+                "cost_start": r.cost_start, "cost": r.cost, "evaluations": r.nfev, "converged": r.converged}},
+            "provenance": prov})
+        console.print(f"wrote {camera_out}")
     for name, cal in cals.items():
         # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
         extra = {**({"laser": name} if name is not None else {}), **cal.to_dict(), "uncertainty": results[name],
@@ -188,3 +249,59 @@ def _print_calibration(cal, cam) -> dict:
     for w in cal.warnings:
         console.print(f"  warning: {w}")
     return unc
+
+
+def _joint_inputs(joint_camera, board, square, camera, camera_out, output, method, laser, force):
+    """``(board files, target)`` for --joint-camera, checked before any work; None without it."""
+    from ._common import target_from_options
+
+    if joint_camera is None:
+        given = [n for n, v in (("--board", board), ("--square", square), ("--camera-out", camera_out)) if v is not None]
+        if given:
+            raise LightplaneError(f"{', '.join(given)}: only with --joint-camera")
+        return None
+    if camera is not None:
+        raise LightplaneError("give either --camera or --joint-camera, not both")
+    if camera_out is None:
+        raise LightplaneError("--joint-camera needs --camera-out FILE (the refined camera)")
+    if method != "ml":
+        raise LightplaneError(f"--joint-camera needs --method ml (got {method})")
+    if laser:
+        raise LightplaneError("--joint-camera works with one laser (no --laser)")
+    if board is None or square is None:
+        raise LightplaneError("--joint-camera needs --board COLSxROWS and --square MM")
+    target = target_from_options(board, square)
+    if target.kind != "chessboard":
+        raise LightplaneError(f"--joint-camera: a chessboard is needed, got {target.kind}")
+    files = expand_inputs([joint_camera])
+    if not files:
+        raise LightplaneError(f"--joint-camera: no images found in {joint_camera}")
+    if Path(camera_out).resolve() == Path(output).resolve():
+        raise LightplaneError("--camera-out and -o name the same file")
+    check_output(camera_out, force)
+    return files, target
+
+
+def _print_joint(cam0, jc) -> None:
+    """What the joint refinement changed in the intrinsics and their uncertainty."""
+    import numpy as np
+
+    from ..uncertainty import camera_param_names, camera_params, camera_uncertainty_summary
+
+    cam = jc.camera
+    names = camera_param_names(cam)
+    a, b = camera_params(cam0), camera_params(cam)
+    sa = np.sqrt(np.clip(np.diag(cam0.covariance), 0, None)) if cam0.covariance is not None else np.full(len(a), np.nan)
+    sb = np.sqrt(np.clip(np.diag(cam.covariance), 0, None))
+    console.print("[bold]joint refinement[/bold] of the intrinsics with the circle images "
+                  f"({jc.result.nfev} evaluations; corner RMS {jc.result.corner_rms_px:.4f} px, rim "
+                  f"{jc.result.rim_rms_px:.4f} px, stripe {jc.result.stripe_rms_px:.4f} px):")
+    unit = {"fx": "px", "fy": "px", "cx": "px", "cy": "px"}
+    parts = [f"{n} {x:.4g} → {y:.4g} (σ {s0:.2g} → {s1:.2g}{' ' + unit[n] if n in unit else ''})"
+             for n, x, y, s0, s1 in zip(names, a, b, sa, sb) if s1 > 0]
+    console.print("  " + "; ".join(parts))
+    dist = jc.plane_cal.plane.point_on_axis()[2]
+    if np.isfinite(dist) and dist > 0 and cam0.covariance is not None:
+        u0, u1 = camera_uncertainty_summary(cam0, dist), camera_uncertainty_summary(cam, dist)
+        console.print(f"  σ of a ray at {dist:.0f} mm (RMS over the image): chessboards alone "
+                      f"{u0['ray_sigma_mm_rms']:.4f} mm, with the circle images {u1['ray_sigma_mm_rms']:.4f} mm")
