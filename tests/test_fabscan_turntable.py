@@ -6,7 +6,7 @@ the table turned between them), with FabScan's own published camera (the frame i
 platform pose refers to), against FabScan's published platform pose.  Measured (this
 test's data, docs: README §Turntables): 0.33 deg between the axis directions, the
 published platform centre 1.02 mm from our axis (mostly along the optical axis), the
-table's mean step 3.604 deg (64 of its 6400 motor steps are 3.6 deg).
+table's mean step 3.585 deg (64 of its 6400 motor steps are 3.6 deg).
 """
 
 from __future__ import annotations
