@@ -20,7 +20,7 @@ from .lens import COEFF_NAMES, MODELS, coeff_names
 from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
-           "board_points",
+           "board_points", "lens_bend", "LENS_REFIT_BEND_PX", "opencv_std_ratio",
            "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
@@ -42,6 +42,10 @@ class IntrinsicsCovariance:
     ``covariance`` (P, P) in the parameters' units (px, unitless), zero rows and columns
     for the parameters the calibration kept fixed (``free`` False); ``sigma_px`` the
     corner noise estimated from the residuals; ``dof`` the degrees of freedom it has.
+    ``undetermined``: the free parameters in a direction the views do not determine at all
+    (the normal matrix singular to machine precision, e.g. the rational model's numerator
+    and denominator sharing a factor); ``covariance`` leaves those directions out (they do
+    not move the corners seen), and :meth:`std` gives them ``inf``.
     """
 
     covariance: np.ndarray
@@ -49,9 +53,11 @@ class IntrinsicsCovariance:
     free: np.ndarray
     sigma_px: float
     dof: int
+    undetermined: tuple[str, ...] = ()
 
     def std(self) -> dict[str, float]:
-        return {n: float(np.sqrt(max(c, 0.0))) for n, c in zip(self.params, np.diag(self.covariance))}
+        return {n: float("inf") if n in self.undetermined else float(np.sqrt(max(c, 0.0)))
+                for n, c in zip(self.params, np.diag(self.covariance))}
 
 
 def _free_parameters(n_dist: int, flags: int) -> np.ndarray:
@@ -153,12 +159,22 @@ def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, vi
                               f"degrees of freedom for {p} intrinsics")
     sigma2 = ssr / dof
     cov = np.zeros((names.__len__(), len(names)))
-    try:
-        cov[np.ix_(idx, idx)] = sigma2 * np.linalg.inv(S)
-    except np.linalg.LinAlgError:
+    # inverted scaled to unit diagonal (the parameters' units differ by ~1e10): an eigenvalue of the
+    # scaled matrix below UNDETERMINED_EIGENVALUE of the largest is zero to machine precision
+    dg = np.sqrt(np.diag(S))
+    if not (np.all(np.isfinite(S)) and np.all(dg > 0)):
         raise LightplaneError("intrinsics_covariance: the intrinsics are not determined by these views "
-                              "(singular normal matrix)") from None
-    return IntrinsicsCovariance(0.5 * (cov + cov.T), names, free, float(np.sqrt(sigma2)), int(dof))
+                              "(singular normal matrix)")
+    w, V = np.linalg.eigh(S / np.outer(dg, dg))
+    keep = w > UNDETERMINED_EIGENVALUE * w.max()
+    cov[np.ix_(idx, idx)] = sigma2 * ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(dg, dg)
+    undetermined = tuple(names[idx[i]] for i in range(p) if np.linalg.norm(V[i, ~keep]) > 1e-3)
+    return IntrinsicsCovariance(0.5 * (cov + cov.T), names, free, float(np.sqrt(sigma2)), int(dof), undetermined)
+
+
+#: Relative eigenvalue (of the normal matrix scaled to unit diagonal) below which a direction of the
+#: intrinsics counts as not determined at all (:class:`IntrinsicsCovariance`, ``undetermined``).
+UNDETERMINED_EIGENVALUE = 1e-12
 
 
 def board_points(board: tuple[int, int], square_mm: float) -> np.ndarray:
@@ -308,11 +324,44 @@ def _solve_each(A: np.ndarray, b: np.ndarray) -> np.ndarray:
         return x
 
 
+class _LensFrame:
+    """Locally rectified coordinates about corners ``q0`` (n, 2) distorted px of ``camera``.
+
+    ``p -> q0 + J0 (x(p) - x(q0))`` with ``x`` the normalised undistorted coordinates and
+    ``J0 = ∂(u, v)/∂(x, y)`` at ``q0``: the identity to first order at each corner (pixel
+    scale, the same edge angles and blur), with the lens's bending of straight lines
+    (second and higher orders) taken out.  A straight board edge is straight in it."""
+
+    def __init__(self, camera: Camera, q0: np.ndarray) -> None:
+        self.camera = camera
+        self.q0 = np.asarray(q0, np.float64)
+        self.x0 = camera.undistort_points(self.q0, normalized=True)
+        self.J0 = camera.pixel_jacobian(self.x0)  # (n, 2, 2)
+
+    def forward(self, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel centres (n, K) -> their rectified coordinates (n, K) each, and the area element
+        ``|det ∂(rectified)/∂(pixel)|`` (n, K) by which a pixel sum becomes the integral there."""
+        n, k = px.shape
+        x = self.camera.undistort_points(np.column_stack([px.ravel(), py.ravel()]), normalized=True)
+        d = x.reshape(n, k, 2) - self.x0[:, None, :]
+        X = self.q0[:, :1] + self.J0[:, None, 0, 0] * d[..., 0] + self.J0[:, None, 0, 1] * d[..., 1]
+        Y = self.q0[:, 1:] + self.J0[:, None, 1, 0] * d[..., 0] + self.J0[:, None, 1, 1] * d[..., 1]
+        Jp = self.camera.pixel_jacobian(x).reshape(n, k, 2, 2)
+        area = np.abs(np.linalg.det(self.J0))[:, None] / np.abs(np.linalg.det(Jp))
+        return X, Y, area
+
+    def back(self, q: np.ndarray) -> np.ndarray:
+        """Rectified coordinates (n, 2) -> distorted px (n, 2) (the exact inverse of :meth:`forward`)."""
+        d = np.linalg.solve(self.J0, (q - self.q0)[..., None])[..., 0]
+        return self.camera.normalized_to_pixels(self.x0 + d)
+
+
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
-                 tol_px: float) -> tuple[np.ndarray, np.ndarray]:
+                 tol_px: float, camera: Camera | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg–Marquardt fit of :func:`_saddle_model` to ``g`` for corners with starting
     parameters ``P`` (n, 11) and window radii ``radius`` (n,) px: the fitted parameters
-    and the weighted mean squared residual (n,)."""
+    and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
+    the :class:`_LensFrame` about the starting corners (the corners returned in distorted px)."""
     h, w = g.shape
     q0 = P[:, :2].copy()
     r = int(np.ceil(radius.max())) + 1
@@ -323,11 +372,19 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     px, py = base[:, :1] + ox, base[:, 1:] + oy  # (n, K) pixel centres, fixed
     inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
     img = g[np.clip(py, 0, h - 1).astype(np.intp), np.clip(px, 0, w - 1).astype(np.intp)]
+    frame = None if camera is None or not camera.has_distortion else _LensFrame(camera, q0)
+    if frame is not None:
+        px, py, area = frame.forward(px, py)
+        ok = np.isfinite(px) & np.isfinite(py) & np.isfinite(area)
+        inside &= ok
+        px, py, area = np.where(ok, px, 0.0), np.where(ok, py, 0.0), np.where(ok, area, 0.0)
+    else:
+        area = np.ones_like(px)
 
     def weight(q):
         ux, uy = px - q[:, :1], py - q[:, 1:]
         t = np.clip((radius[:, None] - np.hypot(ux, uy)) / taper_px, 0.0, 1.0)
-        return ux, uy, inside * np.sin(0.5 * np.pi * t) ** 2
+        return ux, uy, inside * area * np.sin(0.5 * np.pi * t) ** 2
 
     n = len(P)
     P = P.copy()
@@ -367,12 +424,15 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
         P = best_P + step
         if np.all(better) and np.abs(step[:, :2]).max(initial=0.0) < tol_px:
             break
+    if frame is not None:
+        best_P[:, :2] = frame.back(best_P[:, :2])
     return best_P, best_cost
 
 
 def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
                 max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12,
-                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24) -> np.ndarray:
+                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24,
+                camera: Camera | None = None) -> np.ndarray:
     """Chessboard corners by fitting a blurred-saddle model to the image, ``(N, 2)`` px.
 
     Around each corner ``q`` the image is modelled as
@@ -405,9 +465,19 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     (realistic imaging, 30 views of 15x11 corners) the error against the exact corners
     is 0.006 px RMS (noise-free renders: 0.004 px, 8-bit quantisation and the renderer's
     sampling), against 0.019 px for :func:`refine_corners` and 0.031 px for
-    ``cornerSubPix``; ~0.3 s per view of 165 corners.  Not modelled: lens distortion
-    bending the edges within the disc (not symmetric; no radial trend of the error is
-    visible on the default camera's renders).
+    ``cornerSubPix``; ~0.3 s per view of 165 corners.
+
+    Lens distortion bends the board edges across the disc, which breaks the symmetry: the
+    straight-edge model then pulls the corners towards the image centre (a rendered wide
+    6 mm lens, ~0.06 px of bend per window: -0.003 px at r < 200 px, -0.01 px at 400–600 px,
+    enough to bias the focal length by 12 sigma).  With ``camera`` (the lens, e.g. from a
+    first calibration) the model is fitted in the lens frame about each corner
+    (:class:`_LensFrame`: the pixel centres mapped through the undistortion and back by the
+    local Jacobian, so the first-order geometry is unchanged and only the bending removed;
+    each pixel weighted by the area element so the sums stay integrals): the edges are
+    straight there and the pull is gone (+0.0003 px at every radius on the same renders).
+    :func:`calibrate_camera` does this for the corners whose windows its first
+    calibration's lens bends by more than :data:`LENS_REFIT_BEND_PX`.
 
     Parameters
     ----------
@@ -418,6 +488,7 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
         local spacing of every corner
 
     min_blur_px : corners whose fitted blur ``|s|`` is below this keep their input
+    camera : the lens (any model): fit in its lens frame (the corners returned in distorted px)
 
     Corners whose fit fails (singular, not finite, blur outside ``min_blur_px`` … half
     the radius, contrast below 5x the residual noise, edge directions turned by more
@@ -426,13 +497,16 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     """
     return _fit_corners(gray, corners_uv, board, radius_frac=radius_frac, max_radius_px=max_radius_px,
                         taper_px=taper_px, max_iter=max_iter, tol_px=tol_px, min_blur_px=min_blur_px,
-                        chunk_size=chunk_size)[0]
+                        chunk_size=chunk_size, camera=camera)[0]
 
 
 def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
                  max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12, tol_px: float = 1e-4,
-                 min_blur_px: float = 0.4, chunk_size: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px and which corners were fitted (N,) bool."""
+                 min_blur_px: float = 0.4, chunk_size: int = 24, camera: Camera | None = None,
+                 min_bend_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px and which corners were fitted (N,) bool.
+    With ``camera`` only the corners whose window the lens bends by more than ``min_bend_px``
+    (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted)."""
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
@@ -452,6 +526,9 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
     radius = np.clip(np.minimum(radius_frac * gap, border), 2.0, max_radius_px)
     n = len(q0)
+    sel = np.ones(n, bool)
+    if camera is not None and min_bend_px > 0:
+        sel = lens_bend(camera, q0, radius) > min_bend_px
     P = np.zeros((n, 11))
     P[:, :2] = q0
     P[:, 2] = np.arctan2(e_row[:, 0], -e_row[:, 1])  # normal of the edge along the row
@@ -459,9 +536,11 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     P[:, 4] = 1.0
     cost = np.full(n, np.inf)
     # corners in chunks of similar radius: bounded memory, few padded pixels
-    order = np.argsort(radius)
-    for chunk in np.array_split(order, max(1, int(np.ceil(n / chunk_size)))):
-        P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px)
+    order = np.flatnonzero(sel)[np.argsort(radius[sel])]
+    for chunk in np.array_split(order, max(1, int(np.ceil(order.size / chunk_size)))):
+        if chunk.size == 0:
+            continue
+        P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px, camera)
     q = P[:, :2].copy()
 
     def turned(phi, e):  # angle between the fitted edge and the grid direction
@@ -472,9 +551,27 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     max_turn = np.sin(np.radians(20.0))
     bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
            | ~(blur >= min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
-           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn))
+           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
     q[bad] = q0[bad]
+    blur[~sel] = np.nan
     return q, blur, ~bad
+
+
+def lens_bend(camera: Camera, corners_uv: np.ndarray, radius_px: np.ndarray | float) -> np.ndarray:
+    """How far ``camera``'s lens bends the corner windows of :func:`fit_corners` (N,) px: the
+    largest distance, over the rim of each window (radius ``radius_px`` about each corner of
+    ``corners_uv`` (N, 2), distorted px), between a pixel and its place in the
+    :class:`_LensFrame` about the corner: the part of the lens mapping that is not affine
+    across the window (straight board edges curved by up to about this much)."""
+    q = np.asarray(corners_uv, np.float64).reshape(-1, 2)
+    r = np.broadcast_to(np.asarray(radius_px, np.float64), (len(q),))[:, None]
+    if not camera.has_distortion or len(q) == 0:
+        return np.zeros(len(q))
+    a = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    px, py = q[:, :1] + r * np.cos(a), q[:, 1:] + r * np.sin(a)
+    X, Y, _ = _LensFrame(camera, q).forward(px, py)
+    bend = np.hypot(X - px, Y - py).max(axis=1)
+    return np.where(np.isfinite(bend), bend, np.inf)
 
 
 def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True,
@@ -611,7 +708,7 @@ class IntrinsicsCalibration:
     def to_dict(self) -> dict:
         target = self.target or as_target(self.board, self.square_mm)
         return {
-            "std": self.std,
+            "std": {n: (v if np.isfinite(v) else None) for n, v in self.std.items()},  # None: not determined
             "std_covers": ("the corner noise (estimated from the residuals), board poses marginalised; "
                            + ("OpenCV's stdDeviationsIntrinsics" if self.camera.model == "plumb_bob"
                               else "from the full covariance (intrinsics_covariance)")),
@@ -632,6 +729,7 @@ class IntrinsicsCalibration:
             "corners": {"refine": self.options.get("refine"),
                         "median_blur_px": (float(self.options["median_blur_px"])
                                            if np.isfinite(self.options.get("median_blur_px", np.nan)) else None),
+                        "lens_frame_refit_corners": self.options.get("lens_frame_refit_corners", 0),
                         "dot_mm": self.options.get("dot_mm"),
                         "circle_centre_correction_px": self.options.get("circle_centre_correction_px")},
         }
@@ -672,7 +770,11 @@ def calibrate_camera(
         imaging, 16 mm lens, k3 fixed) corner errors of 0.031 / 0.019 / 0.006 px RMS
         (cornerSubPix / Förstner / saddle) give OpenCV std of (cx, cy) of (0.47, 0.31) /
         (0.28, 0.19) / (0.09, 0.06) px with 30 views, and the principal-point error
-        drops to <= 0.06 px; the saddle fit costs ~0.3 s per 1280x960 view of 165 corners
+        drops to <= 0.06 px; the saddle fit costs ~0.3 s per 1280x960 view of 165 corners.
+        The saddle model's edges are straight: after a first calibration the corners whose
+        windows its lens bends by more than :data:`LENS_REFIT_BEND_PX` are fitted again in
+        its lens frame (:func:`fit_corners` with ``camera``) and the calibration is solved
+        again (``options["lens_frame_refit_corners"]``: how many)
 
     Circle grids: the dots' centroids are moved to the projected circle centres
     (:func:`lightplane.targets.correct_circle_centres`) with the poses of a first
@@ -692,6 +794,7 @@ def calibrate_camera(
         names = [str(im) if isinstance(im, (str, Path)) else f"image {i}" for i, im in enumerate(images)]
     method = _refine_method(refine) if target.kind == "chessboard" else None
     views: list[BoardView] = []
+    sources: list = []  # the image (array or path) of each view, for the refit in the lens frame
     saddles: list[np.ndarray | None] = []
     blurs: list[np.ndarray] = []
     dots: list[float] = []
@@ -718,12 +821,14 @@ def calibrate_camera(
             elif target.kind == "chessboard":
                 c, saddle, blur = _detect_board(img, (target.cols, target.rows), True, method)
                 views.append(BoardView(name, c, (w, h)))
+                sources.append(im)
                 saddles.append(saddle)
                 blurs.append(blur)
             else:
                 det = target.detect(img)
                 views.append(BoardView(name, None if det is None else det.uv, (w, h),
                                        None if det is None else det.ids))
+                sources.append(im)
                 saddles.append(None)
                 if det is not None and target.kind in ("circles", "acircles"):
                     dots.append(dot_diameter_mm(img, det, target))
@@ -737,6 +842,7 @@ def calibrate_camera(
         else:
             method = "forstner"
     found = [v for v in views if v.corners_uv is not None]
+    found_src = [src for v, src in zip(views, sources) if v.corners_uv is not None]
     found_uv: list[np.ndarray] = [v.corners_uv for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     for n in not_found:
@@ -768,6 +874,16 @@ def calibrate_camera(
         return rms, K, D, rvecs, tvecs, None, None, np.asarray(per_view)
 
     rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
+    n_refit = 0
+    if method == "saddle":
+        # the saddle model's edges are straight: refit, in the lens frame of this first calibration, the
+        # corners whose windows its lens bends (LENS_REFIT_BEND_PX), then solve again
+        cam1 = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
+        found_uv, n_refit = _refit_in_lens_frame(cam1, found_uv, found_src, (target.cols, target.rows), rotate_deg)
+        if n_refit:
+            found = [BoardView(v.name, u, v.image_size, v.ids) for v, u in zip(found, found_uv)]
+            imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
+            rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
     dot_mm, shift = None, None
     if target.kind in ("circles", "acircles"):
         # centroids -> projected centres at the poses found, then solve again (twice: the poses move a little)
@@ -820,6 +936,7 @@ def calibrate_camera(
         square_mm=float(target.square_mm),
         flags=int(flags),
         options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur,
+                 "lens_frame_refit_corners": n_refit,
                  "dot_mm": dot_mm, "circle_centre_correction_px": shift,
                  "median_board_distance_mm": float(np.median([np.linalg.norm(c) for c in centres])),
                  "covariance_sigma_px": None if icov is None else icov.sigma_px,
@@ -830,6 +947,52 @@ def calibrate_camera(
         warnings=tuple(overparameterisation_warnings(camera, icov, std, len(found))),
         std_opencv=std_cv,
     )
+
+
+#: Saddle-fit corners whose window the first calibration's lens bends by more than this (px,
+#: :func:`lens_bend`) are fitted again in its lens frame (:func:`calibrate_camera`).  The pull of the
+#: straight-edge model is ~1/6 of the bend (rendered 6 mm wide lens, benchmarks/bench_lens_models.py),
+#: so the corners left alone are pulled by less than ~0.001 px, a sixth of the fit's noise.
+LENS_REFIT_BEND_PX = 0.005
+
+
+def _refit_in_lens_frame(camera: Camera, corners: list[np.ndarray], sources: list, board: tuple[int, int],
+                         rotate_deg: int) -> tuple[list[np.ndarray], int]:
+    """Every view's saddle corners fitted again in ``camera``'s lens frame where it bends their
+    windows by more than :data:`LENS_REFIT_BEND_PX` (:func:`_fit_corners`): the corners, and how many
+    were refitted.  ``sources``: each view's image (array or path, read again)."""
+    from .io import to_gray_float, try_read_image
+
+    out, n = [], 0
+    for uv, src in zip(corners, sources):
+        img = try_read_image(src, rotate_deg=rotate_deg)[0] if isinstance(src, (str, Path)) else np.asarray(src)
+        if img is None:  # read once already: only a file changed in between
+            out.append(uv)
+            continue
+        gray = img if img.ndim == 2 else to_gray_float(img)
+        q, _, ok = _fit_corners(gray, uv, board, camera=camera, min_bend_px=LENS_REFIT_BEND_PX)
+        out.append(q)
+        n += int(ok.sum())
+    return out, n
+
+
+def opencv_std_ratio(cal: "IntrinsicsCalibration") -> tuple[str, float] | None:
+    """The parameter whose std OpenCV's ``stdDeviationsIntrinsics`` understates most against the
+    calibration's covariance, and by what factor (None without both).  OpenCV inverts the full,
+    unscaled normal matrix by a pseudo-inverse (``cv2.invert``, DECOMP_EIG / DECOMP_SVD) that drops
+    eigenvalues below ~2 ε Σλ; where parameters trade against each other (a Scheimpflug tilt
+    against p1, p2 and the principal point, the rational model's numerator against its
+    denominator) the weakest direction falls under the cut and its variance is lost
+    (benchmarks/bench_lens_models.py reproduces OpenCV's numbers that way)."""
+    cv, sd = cal.std_opencv, cal.std
+    if not cv or sd is cv:
+        return None
+    ratios = {n: sd[n] / cv[n] for n in sd
+              if 0 < sd[n] < np.inf and cv.get(n, 0) > 0 and np.isfinite(cv[n])}
+    if not ratios:
+        return None
+    worst = max(ratios, key=lambda n: ratios[n])
+    return worst, float(ratios[worst])
 
 
 def calibration_flags(model: str | None, flags: int = 0) -> tuple[str, int]:
@@ -884,13 +1047,15 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
     names = ("fx", "fy", "cx", "cy") + coeff_names(model)
     values = dict(zip(names, np.concatenate([[camera.fx, camera.fy, camera.cx, camera.cy], camera.dist])))
     extra = set(coeff_names(model)) - {"k1", "k2", "p1", "p2"} if model != "fisheye" else {"k3", "k4"}
+    undetermined = set(icov.undetermined) if icov is not None else set()
     weak = [f"{n} = {values[n]:.3g} ± {std[n]:.2g}" for n in names
-            if n in extra and std.get(n, 0) > 0 and std[n] > OVERPARAM_STD_RATIO * abs(values[n])]
+            if n in extra and n not in undetermined and std.get(n, 0) > 0
+            and std[n] > OVERPARAM_STD_RATIO * abs(values[n])]
     pairs = []
     if icov is not None:
         C = icov.covariance
         sd = np.sqrt(np.clip(np.diag(C), 0, None))
-        free = np.flatnonzero(sd > 0)
+        free = np.flatnonzero((sd > 0) & ~np.isin(np.asarray(icov.params), list(undetermined)))
         R = C[np.ix_(free, free)] / np.outer(sd[free], sd[free])
         iu = np.triu_indices(len(free), 1)
         strong = (np.abs(R[iu]) > OVERPARAM_CORRELATION) & np.array(
@@ -898,6 +1063,10 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
         pairs = [f"corr({icov.params[free[i]]}, {icov.params[free[j]]}) = {R[i, j]:+.4f}"
                  for i, j in zip(iu[0][strong], iu[1][strong])]
     out = []
+    if icov is not None and icov.undetermined:
+        out.append(f"the {model} model's {', '.join(icov.undetermined)} are not determined by these {n_views} views at "
+                   f"all (the normal matrix is singular to machine precision in them): their std are infinite; "
+                   f"the camera's covariance leaves that direction out (it does not move the corners seen)")
     if weak:
         out.append(f"the {model} model looks over-parameterised for these {n_views} views: "
                    f"{'; '.join(weak)} (std larger than the value: not determined)")

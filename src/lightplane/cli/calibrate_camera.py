@@ -44,7 +44,7 @@ def calibrate_camera_cmd(
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     import cv2
 
-    from ..intrinsics import calibrate_camera
+    from ..intrinsics import calibrate_camera, opencv_std_ratio
     from ..lens import coeff_names
     from ..plots import intrinsics_residuals
     from ..uncertainty import camera_uncertainty_summary
@@ -82,11 +82,18 @@ def calibrate_camera_cmd(
     for name, v in zip(("fx", "fy", "cx", "cy") + coeff_names(cam.model), values):
         unit = "px" if name in ("fx", "fy", "cx", "cy") else "-"
         sd = result.std.get(name, float("nan"))
-        t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}", "fixed" if sd == 0 else f"{sd:.2g}", unit)
+        t.add_row(name, f"{v:.6g}" if unit == "-" else f"{v:.3f}",
+                  "fixed" if sd == 0 else "not determined" if sd == float("inf") else f"{sd:.2g}", unit)
     console.print(t)
     console.print("± std: " + ("from the Jacobian of the reprojection (cv2.fisheye gives none), board poses "
-                               "marginalised" if cam.model == "fisheye" else "OpenCV's (calibrateCameraExtended)")
+                               "marginalised" if cam.model == "fisheye" else "OpenCV's (calibrateCameraExtended)"
+                               if cam.model == "plumb_bob" else "from the full covariance, board poses marginalised")
                   + ", corner noise estimated from the residuals; covers the corner noise only")
+    ratio = opencv_std_ratio(result)
+    if cam.model != "plumb_bob" and ratio is not None and ratio[1] > 2.0:
+        console.print(f"note: OpenCV's own stdDeviationsIntrinsics are up to {ratio[1]:.3g}x smaller ({ratio[0]}): "
+                      "its pseudo-inverse of the normal matrix drops the directions in which the parameters "
+                      "trade against each other; not shown")
     for w in result.warnings:
         console.print(f"[bold yellow]warning:[/] {w}")
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
@@ -94,7 +101,10 @@ def calibrate_camera_cmd(
     if target.kind == "chessboard":
         label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
         blur = result.options.get("median_blur_px", float("nan"))
-        console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if np.isfinite(blur) else ""))
+        refit = int(result.options.get("lens_frame_refit_corners") or 0)
+        console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if np.isfinite(blur) else "")
+                      + (f"; {refit} fitted again in the lens frame of a first calibration (edges bent by the lens)"
+                         if refit else ""))
         detector = f"findChessboardCornersSB+cornerSubPix+{refiner}"
     elif target.kind == "charuco":
         console.print("Corners: cv2.aruco.CharucoDetector, then cornerSubPix inside the marker gap; "
