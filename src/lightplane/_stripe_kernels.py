@@ -143,6 +143,8 @@ def _hermite_root(g0, d0, g1, d1):
         tn = t - h / dh if dh != 0.0 else 0.5 * (lo + hi)
         if not (lo <= tn <= hi):
             tn = 0.5 * (lo + hi)
+        if tn == t:   # a fixed point: the remaining steps would repeat it exactly
+            break
         t = tn
     return t
 
@@ -191,17 +193,23 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
     nb = (S + B - 1) // B
     n = l1 - l0
     bm = np.empty((nb, n), dtype=A.dtype)
+    ba = np.empty((nb, n), dtype=np.int32)
     for b in range(nb):
         s0 = b * B
         s1 = min(S, s0 + B)
         acc = bm[b]
+        arg = ba[b]
         r0 = A[s0, l0:l1]
         for l in range(n):
             acc[l] = r0[l]
+            arg[l] = s0
         for s in range(s0 + 1, s1):
             r = A[s, l0:l1]
             for l in range(n):
-                acc[l] = max(acc[l], r[l])
+                x = r[l]
+                up = x > acc[l]
+                acc[l] = x if up else acc[l]
+                arg[l] = s if up else arg[l]
     for l in range(n):
         lg = l0 + l
         bb = 0
@@ -210,9 +218,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
             if bm[b, l] > best:
                 best = bm[b, l]
                 bb = b
-        q1 = bb * B
-        while A[q1, lg] != best:
-            q1 += 1
+        q1 = ba[bb, l]
         p1[lg] = q1
         v1[lg] = float(best)
         b2 = -1
@@ -228,10 +234,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
             p2[lg] = -1
             v2[lg] = -np.inf
             continue
-        q2 = b2 * B
-        while A[q2, lg] != best2:
-            q2 += 1
-        p2[lg] = q2
+        p2[lg] = ba[b2, l]
         v2[lg] = float(best2)
 
 
@@ -462,7 +465,8 @@ def _across_lines(A, r0, M, c0, n, o, k0, k1, k2, X0, X1, X2):
 
 
 BAND_LINES = 32     # lines per band of across-line sums (vectorised over the lines)
-BAND_DRIFT = 8      # lines whose peak is within this many samples of the band's median share it
+BAND_DRIFT = 8      # lines whose centre is within this many samples of the band's median share it
+N_SUMS = 6          # along-line sums per row: r_s, r_ss, r_l, r_ls, r_ll, r (see _along_sums)
 
 
 @njit(cache=True, inline="always")
@@ -496,70 +500,52 @@ def _band_sums(A, r0, nr, l0, n, RX, k0, k1, k2, F, band):
                 b2[j] += g * x
 
 
-@njit(cache=True)
-def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                   centre, normal, strength, intensity, width, status, la, lb):
-    """:func:`_centre_line` of lines ``la .. lb - 1``: interior lines in bands of
-    :data:`BAND_LINES`, whose across-line sums are computed together (:func:`_band_sums`)
-    over the rows the peaks near the band's median need; the other lines alone."""
-    S, L = A.shape
+@njit(cache=True, inline="always")
+def _band_along(band, rb0, d0, nd, n, w0, w1, w2, D):
+    """The along-line sums of :func:`_along_sums` at the rows ``d0 .. d0 + nd - 1`` of every
+    line of a band at once (``band``: across-line sums of the rows from ``rb0`` on):
+    ``D[k, r, j]`` for row ``d0 + r`` of line ``j``; the same numbers, bit for bit (each
+    sum in the order of the kernel's taps), vectorised over the lines."""
     R = (w0.shape[0] - 1) // 2
-    RX = (xw.shape[2] - 1) // 2
-    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
-    reach = qpeak + 1 + R
-    nrmax = 2 * (reach + BAND_DRIFT) + 1
-    band = np.empty((3, nrmax, BAND_LINES))
-    F = np.empty(BAND_LINES + 2 * RX)
-    buf = np.empty(BAND_LINES, np.int64)
-    k0 = xw[RX, 0]
-    k1 = xw[RX, 1]
-    k2 = xw[RX, 2]
-    l = la
-    while l < lb:
-        l0 = max(l, RX)
-        l1 = min(l0 + BAND_LINES, lb, L - RX)
-        br0 = 0
-        bnr = 0
-        if l == l0 and l1 - l0 >= 8:
-            n = l1 - l0
-            k = 0
+    for r in range(nd):
+        Ds = D[0, r]
+        Dss = D[1, r]
+        Dl = D[2, r]
+        Dls = D[3, r]
+        Dll = D[4, r]
+        D0 = D[5, r]
+        for j in range(n):
+            Ds[j] = 0.0
+            Dss[j] = 0.0
+            Dl[j] = 0.0
+            Dls[j] = 0.0
+            Dll[j] = 0.0
+            D0[j] = 0.0
+        for i in range(2 * R + 1):
+            a = w0[i]
+            b = w1[i]
+            g = w2[i]
+            X0 = band[0, d0 - R + i - rb0 + r]
+            X1 = band[1, d0 - R + i - rb0 + r]
+            X2 = band[2, d0 - R + i - rb0 + r]
             for j in range(n):
-                if pos[l0 + j] >= 0:
-                    buf[k] = pos[l0 + j]
-                    k += 1
-            if k > 0:
-                srt = np.sort(buf[:k])
-                med = srt[k // 2]
-                lo = med
-                hi = med
-                for j in range(k):
-                    if abs(srt[j] - med) <= BAND_DRIFT:
-                        lo = min(lo, srt[j])
-                        hi = max(hi, srt[j])
-                br0 = max(0, lo - reach)
-                bnr = min(S - 1, hi + reach) - br0 + 1
-                _band_sums(A, br0, bnr, l0, n, RX, k0, k1, k2, F, band)
-            for q in range(l0, l1):
-                _centre_line(A, q, pos[q], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                             centre, normal, strength, intensity, width, status, band, br0, bnr, l0, l1)
-            l = l1
-        else:   # an edge line (or a short remainder): alone
-            _centre_line(A, l, pos[l], w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                         centre, normal, strength, intensity, width, status, band, 0, 0, 0, 0)
-            l += 1
+                x0 = X0[j]
+                x1 = X1[j]
+                Ds[j] += b * x0
+                Dss[j] += g * x0
+                Dl[j] += a * x1
+                Dls[j] += b * x1
+                Dll[j] += a * X2[j]
+                D0[j] += a * x0
 
 
-@njit(cache=True)
-def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                 centre, normal, strength, intensity, width, status, band, br0, bnr, bl0, bl1):
-    """One line of :func:`profile_centres` (a separate serial function: numba's
-    parfor lowering compiles loops inlined in a prange body into much slower code).
+@njit(cache=True, inline="always")
+def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
+    """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
 
-    ``band`` (3, rows, lines): the across-line sums of rows ``br0 .. br0 + bnr - 1`` for
-    lines ``bl0 .. bl1 - 1`` (:func:`_band_sums`), used where they cover this line's patch."""
-    S, L = A.shape
-    R = (w0.shape[0] - 1) // 2
-    RX = (xw.shape[2] - 1) // 2
+    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set).
+    """
+    S = A.shape[0]
     centre[l] = np.nan
     normal[l, 0] = np.nan
     normal[l, 1] = np.nan
@@ -568,9 +554,9 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     width[l] = np.nan
     if p < 0:
         status[l] = NO_PEAK
-        return
-    # 1. the stripe's middle: midpoint of the raw half-level crossings around the
-    #    highest sample (robust to a flat, saturated top and to one hot pixel)
+        return -1, np.nan, 0.0, 0.0, False
+    # the stripe's middle: midpoint of the raw half-level crossings around the highest
+    # sample (robust to a flat, saturated top and to one hot pixel)
     fw, left, right, best, bg = _fwhm_line(A, l, p, half, 0.0)
     c = p
     if fw == fw:
@@ -579,33 +565,16 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
             c = cm
     if c - 1 - R < 0 or c + 1 + R > S - 1:
         status[l] = EDGE
-        return
-    flat = _is_flat(A, l, p, fw, best, bg, half)
-    # 2. across the lines first (rows of A are contiguous): X_k[m] for the 2R+3
-    #    samples c-1-R .. c+1+R, then along the line at c-1, c, c+1
-    re = min(RX, l, L - 1 - l)
-    X0 = tmp[0]
-    X1 = tmp[1]
-    X2 = tmp[2]
-    k0 = xw[re, 0]
-    k1 = xw[re, 1]
-    k2 = xw[re, 2]
-    r0 = c - 1 - R
-    if bl0 <= l < bl1 and re == RX and r0 >= br0 and r0 + 2 * R + 3 <= br0 + bnr:
-        j = l - bl0
-        for m in range(2 * R + 3):
-            X0[m] = band[0, r0 - br0 + m, j]
-            X1[m] = band[1, r0 - br0 + m, j]
-            X2[m] = band[2, r0 - br0 + m, j]
-    else:
-        _across_lines(A, r0, 2 * R + 3, l - re, 2 * re + 1, RX - re, k0, k1, k2, X0, X1, X2)
-    rl = tmp[3]
-    rs = tmp[4]
-    rll = tmp[5]
-    rls = tmp[6]
-    rss = tmp[7]
-    # the derivatives along the line at c-1, c, c+1 (q = 0, 1, 2), all sums in one pass
-    # (independent accumulators; each sum in the order of i: the same numbers as one sum at a time)
+        return -1, fw, best, bg, False
+    return c, fw, best, bg, _is_flat(A, l, p, fw, best, bg, half)
+
+
+@njit(cache=True, inline="always")
+def _along_sums(X0, X1, X2, w0, w1, w2, out):
+    """The derivatives along the line at the rows c-1, c, c+1 from the across-line sums
+    ``Xk`` of rows c-1-R .. c+1+R: ``out`` = r_s(3), r_ss(3), r_l(3), r_ls(3), r_ll, r at c
+    (independent accumulators; each sum in the order of the taps)."""
+    R = (w0.shape[0] - 1) // 2
     s0 = s1 = s2 = ss0 = ss1 = ss2 = 0.0
     l0 = l1 = l2 = ls0 = ls1 = ls2 = 0.0
     ll1 = 0.0
@@ -634,28 +603,36 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
         ls2 += b * yc
         ll1 += a * X2[i + 1]
         r0c += a * xb
-    rs[0] = s0
-    rs[1] = s1
-    rs[2] = s2
-    rss[0] = ss0
-    rss[1] = ss1
-    rss[2] = ss2
-    rl[0] = l0
-    rl[1] = l1
-    rl[2] = l2
-    rls[0] = ls0
-    rls[1] = ls1
-    rls[2] = ls2
-    rll[1] = ll1
-    intensity[l] = r0c
-    lam, nl, ns = _ridge_normal(rll[1], rls[1], rss[1])
+    out[0] = s0
+    out[1] = s1
+    out[2] = s2
+    out[3] = ss0
+    out[4] = ss1
+    out[5] = ss2
+    out[6] = l0
+    out[7] = l1
+    out[8] = l2
+    out[9] = ls0
+    out[10] = ls1
+    out[11] = ls2
+    out[12] = ll1
+    out[13] = r0c
+
+
+@njit(cache=True, inline="always")
+def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
+                 centre, normal, strength, intensity, width, status):
+    """The rest of a profile line from its along-line sums ``sm`` (:func:`_along_sums`):
+    the ridge's normal, the zero crossing of the derivative across the stripe, the width."""
+    intensity[l] = sm[13]
+    lam, nl, ns = _ridge_normal(sm[12], sm[10], sm[4])
     normal[l, 0] = nl
     normal[l, 1] = ns
     strength[l] = -lam
     if best - bg < min_peak:
         status[l] = NO_PEAK
         return
-    # 3. zero crossing of g = n . grad r along the line
+    # zero crossing of g = n . grad r along the line
     st = OK
     cc = np.nan
     if lam >= 0.0:
@@ -663,12 +640,12 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     elif abs(ns) < min_cos:
         st = ALONG_LINE
     else:
-        g0 = nl * rl[0] + ns * rs[0]
-        g1 = nl * rl[1] + ns * rs[1]
-        g2 = nl * rl[2] + ns * rs[2]
-        d0 = nl * rls[0] + ns * rss[0]
-        d1 = nl * rls[1] + ns * rss[1]
-        d2 = nl * rls[2] + ns * rss[2]
+        g0 = nl * sm[6] + ns * sm[0]
+        g1 = nl * sm[7] + ns * sm[1]
+        g2 = nl * sm[8] + ns * sm[2]
+        d0 = nl * sm[9] + ns * sm[3]
+        d1 = nl * sm[10] + ns * sm[4]
+        d2 = nl * sm[11] + ns * sm[5]
         if g1 == 0.0:
             cc = float(c)
         else:
@@ -700,13 +677,123 @@ def _centre_line(A, l, p, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
             normal[l, 0] = 0.0
             normal[l, 1] = 1.0
             ns = 1.0
-    # 4. width across the stripe
+    # width across the stripe
     width[l] = fw * ns
     if not (fw == fw) or fw * ns > max_width:
         status[l] = TOO_WIDE
         return
     centre[l] = cc
     status[l] = OK
+
+
+@njit(cache=True, inline="always")
+def _line_alone(A, l, p, c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
+                sm, centre, normal, strength, intensity, width, status):
+    """A profile line from ``c`` on (after :func:`_line_start`), its sums computed alone."""
+    L = A.shape[1]
+    R = (w0.shape[0] - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
+    # across the lines first (rows of A are contiguous): X_k[m] for the 2R+3 samples
+    # c-1-R .. c+1+R, then along the line at c-1, c, c+1
+    re = min(RX, l, L - 1 - l)
+    _across_lines(A, c - 1 - R, 2 * R + 3, l - re, 2 * re + 1, RX - re, xw[re, 0], xw[re, 1], xw[re, 2],
+                  tmp[0], tmp[1], tmp[2])
+    _along_sums(tmp[0], tmp[1], tmp[2], w0, w1, w2, sm)
+    _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
+                 centre, normal, strength, intensity, width, status)
+
+
+@njit(cache=True)
+def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status, la, lb):
+    """The profile of lines ``la .. lb - 1`` (see :func:`profile_centres`).
+
+    Interior lines go in bands of :data:`BAND_LINES`: first each line's middle ``c``
+    (:func:`_line_start`), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
+    of the band's median the across-line sums of just the rows they need
+    (:func:`_band_sums`) and the along-line sums at their rows c-1 .. c+1
+    (:func:`_band_along`), both vectorised over the lines, then each line's end
+    (:func:`_line_finish`).  The other lines are computed alone (:func:`_line_alone`).
+    The numbers are the same either way, bit for bit.
+    """
+    S, L = A.shape
+    R = (w0.shape[0] - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
+    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
+    sm = np.empty(14)
+    nrmax = 2 * BAND_DRIFT + 2 * R + 3
+    band = np.empty((3, nrmax, BAND_LINES))
+    D = np.empty((N_SUMS, 2 * BAND_DRIFT + 3, BAND_LINES))
+    F = np.empty(BAND_LINES + 2 * RX)
+    cs = np.empty(BAND_LINES, np.int64)
+    fws = np.empty(BAND_LINES)
+    bests = np.empty(BAND_LINES)
+    bgs = np.empty(BAND_LINES)
+    flats = np.empty(BAND_LINES, np.bool_)
+    srt = np.empty(BAND_LINES, np.int64)
+    l = la
+    while l < lb:
+        l0 = max(l, RX)
+        l1 = min(l0 + BAND_LINES, lb, L - RX)
+        if l == l0 and l1 - l0 >= 8:
+            n = l1 - l0
+            k = 0
+            for j in range(n):
+                q = l0 + j
+                c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength,
+                                                    intensity, width, status)
+                cs[j] = c
+                fws[j] = fw
+                bests[j] = best
+                bgs[j] = bg
+                flats[j] = flat
+                if c >= 0:
+                    srt[k] = c
+                    k += 1
+            lo = 0
+            hi = -1
+            if k > 0:
+                srt[:k].sort()
+                med = srt[k // 2]
+                lo = med
+                hi = med
+                for j in range(k):
+                    if abs(srt[j] - med) <= BAND_DRIFT:
+                        lo = min(lo, srt[j])
+                        hi = max(hi, srt[j])
+                # rows c-1-R .. c+1+R of every c in lo..hi (inside A: _line_start checked each)
+                rb0 = lo - 1 - R
+                _band_sums(A, rb0, hi - lo + 2 * R + 3, l0, n, RX, xw[RX, 0], xw[RX, 1], xw[RX, 2], F, band)
+                _band_along(band, rb0, lo - 1, hi - lo + 3, n, w0, w1, w2, D)
+            for j in range(n):
+                q = l0 + j
+                c = cs[j]
+                if c < 0:
+                    continue
+                if lo <= c <= hi:
+                    r = c - 1 - (lo - 1)
+                    for m in range(3):
+                        sm[m] = D[0, r + m, j]
+                        sm[3 + m] = D[1, r + m, j]
+                        sm[6 + m] = D[2, r + m, j]
+                        sm[9 + m] = D[3, r + m, j]
+                    sm[12] = D[4, r + 1, j]
+                    sm[13] = D[5, r + 1, j]
+                    _line_finish(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], sm, xw, RX, qpeak, half,
+                                 min_peak, max_width, min_cos, tmp, centre, normal, strength, intensity, width,
+                                 status)
+                else:
+                    _line_alone(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], w0, w1, w2, xw, qpeak, half,
+                                min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
+                                status)
+            l = l1
+        else:   # an edge line (or a short remainder): alone
+            c, fw, best, bg, flat = _line_start(A, l, pos[l], half, qpeak, R, centre, normal, strength,
+                                                intensity, width, status)
+            if c >= 0:
+                _line_alone(A, l, pos[l], c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width,
+                            min_cos, tmp, sm, centre, normal, strength, intensity, width, status)
+            l += 1
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -747,7 +834,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
 
 @njit(cache=True)
 def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row, u0, v0):
-    """One row of :func:`ridge_points` (serial: see :func:`_centre_line`)."""
+    """One row of :func:`ridge_points` (serial: see :func:`_centres_range`)."""
     H, W = ru.shape
     # vectorisable pass: most negative Hessian eigenvalue of every pixel of the row
     a_row = ruu[v]
