@@ -70,6 +70,29 @@ def test_tilted_sensor_calibrates_to_the_truth(tilted_boards):
     assert d["model"] == "tilted" and "corner noise" in d["std_covers"] and set(d["std_opencv"]) >= {"taux", "tauy"}
 
 
+def test_calibrate_camera_cli_tilted_says_which_std(tmp_path, tilted_boards):
+    """The std printed and written for the tilted model are the covariance's (OpenCV's own are its
+    pseudo-inverse's, which can drop the tilt's weak direction: test_opencv_sigma_of_the_tilted_model;
+    on these 8 small clean views they are not truncated, and no note is printed)."""
+    cam, ds = tilted_boards
+    for i, img in enumerate(ds.images):
+        cv2.imwrite(str(tmp_path / f"b{i}.png"), img)
+    out = tmp_path / "cam.json"
+    r = lightplane("calibrate-camera", tmp_path / "b*.png", "--board", f"{BOARD[0]}x{BOARD[1]}", "--square", SQUARE,
+                   "--model", "tilted", "-o", out)
+    assert r.returncode == 0, r.stderr
+    text = " ".join(r.stdout.split())
+    assert "± std: from the full covariance" in text
+    d = json.loads(out.read_text())
+    back = Camera.load(out)
+    sd = dict(zip(back.covariance_params, np.sqrt(np.diag(back.covariance))))
+    for n in ("fx", "cx", "cy", "p1", "taux", "tauy"):
+        assert np.isclose(d["calibration"]["std"][n], sd[n], rtol=1e-9), n
+    ratio = max(d["calibration"]["std"][n] / d["calibration"]["std_opencv"][n] for n in sd if sd[n] > 0)
+    assert ("OpenCV's own stdDeviationsIntrinsics are up to" in text) == (ratio > 2.0)
+    assert isinstance(d["calibration"]["corners"]["lens_frame_refit_corners"], int)
+
+
 def test_over_parameterised_model_is_flagged(tilted_boards):
     """The thin-prism terms of a lens that has none, from 4 views: undetermined and correlated."""
     cam, ds = tilted_boards
