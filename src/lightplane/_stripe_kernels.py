@@ -113,6 +113,7 @@ def edge_kernels(w0: np.ndarray, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
 # small scalar helpers (shared by the 2-D and profile kernels)
 
 HERMITE_ITER = 6    # safeguarded Newton steps (quadratic convergence: ~1e-15 px)
+HERMITE_TOL = 1e-12  # ... or fewer: a root stops once a step is below this (samples)
 
 
 @njit(cache=True, inline="always")
@@ -120,8 +121,9 @@ def _hermite_root(g0, d0, g1, d1):
     """Root in [0, 1] of the cubic Hermite interpolant (values g, slopes d) with g0*g1 <= 0.
 
     Safeguarded Newton from the secant estimate, keeping a bracket (bisection
-    when a step leaves it); a fixed number of steps so that the numpy version
-    reproduces it exactly.
+    when a step leaves it); at most :data:`HERMITE_ITER` steps, stopping after the
+    first step shorter than :data:`HERMITE_TOL`, as the numpy version does (so that it
+    reproduces the numbers exactly).
     """
     if g0 == 0.0:
         return 0.0
@@ -143,9 +145,10 @@ def _hermite_root(g0, d0, g1, d1):
         tn = t - h / dh if dh != 0.0 else 0.5 * (lo + hi)
         if not (lo <= tn <= hi):
             tn = 0.5 * (lo + hi)
-        if tn == t:   # a fixed point: the remaining steps would repeat it exactly
-            break
+        done = abs(tn - t) <= HERMITE_TOL   # converged: the next step would be ~tol^2
         t = tn
+        if done:
+            break
     return t
 
 

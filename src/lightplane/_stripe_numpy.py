@@ -95,6 +95,7 @@ def _hermite_root_np(g0, d0, g1, d1):
     with np.errstate(divide="ignore", invalid="ignore"):
         t = g0 / (g0 - g1)
         pos0 = g0 > 0.0
+        active = np.ones(np.shape(t), dtype=bool)
         for _ in range(K.HERMITE_ITER):
             t2 = t * t
             t3 = t2 * t
@@ -104,7 +105,12 @@ def _hermite_root_np(g0, d0, g1, d1):
             lo = np.where(same, t, lo)
             hi = np.where(same, hi, t)
             tn = np.where(dh != 0.0, t - h / dh, 0.5 * (lo + hi))
-            t = np.where((lo <= tn) & (tn <= hi), tn, 0.5 * (lo + hi))
+            tn = np.where((lo <= tn) & (tn <= hi), tn, 0.5 * (lo + hi))
+            done = np.abs(tn - t) <= K.HERMITE_TOL
+            t = np.where(active, tn, t)
+            active &= ~done
+            if not active.any():
+                break
     t = np.where(g1 == 0.0, 1.0, t)
     return np.where(g0 == 0.0, 0.0, t)
 
