@@ -64,6 +64,7 @@ def main() -> None:
     ap.add_argument("--summary", action="store_true", help="only summarise the sets already in out/")
     ap.add_argument("--fresh", action="store_true", help="forget the sets already in out/")
     ap.add_argument("--no-joint", action="store_true", help="without the joint refinement's columns")
+    ap.add_argument("--name", default="bench_camera_uncertainty", help="name of the result files in out/")
     args = ap.parse_args()
     if args.render_only:
         for k in range(args.first, args.first + args.sets):
@@ -115,7 +116,32 @@ def _errors(cam, plane, cam_true, plane_true, vol, prefix: str = "") -> dict:
                     "intrinsics_mahalanobis2": float((p_est - p_true) @ np.linalg.pinv(cam.covariance)
                                                      @ (p_est - p_true)),
                     "n_free": int(np.sum(np.diag(cam.covariance) > 0))})
+        out.update(_shape_from_intrinsics_error(cam, plane, cam_true, vol, p_est - p_true))
     return {prefix + k: v for k, v in out.items()}
+
+
+def _shape_from_intrinsics_error(cam, plane, cam_true, vol, dK) -> dict:
+    """The point errors the intrinsics' *actual* error ``dK`` causes through the recorded
+    propagation (first order: the camera columns of the error basis, ``dK`` written in their
+    steps), camera frame and shape (RMS, mm): when they match the actual errors' camera part,
+    the propagation (ray-plane correlation, rigid-motion projection, volume sampling) is right
+    and a low prediction is the intrinsics' error exceeding their covariance."""
+    from lightplane.uncertainty import camera_steps, point_error_basis, shape_error_basis
+
+    if not plane.meta.get("camera_jacobian"):
+        return {}
+    E, inc = point_error_basis(cam, plane, vol.uv)
+    steps = camera_steps(cam)
+    if not inc or len(steps) == 0:
+        return {}
+    xi = np.linalg.lstsq(steps.T, dK, rcond=None)[0]
+    ok = np.all(np.isfinite(E), axis=(1, 2))
+    Ec = E[ok][:, :, 4:]
+    d = Ec @ xi
+    ds = shape_error_basis(Ec, vol.points[ok]) @ xi
+    return {"from_dK_frame_mm": float(np.sqrt(np.mean(np.sum(d**2, axis=1)))),
+            "from_dK_shape_mm": float(np.sqrt(np.mean(np.sum(ds**2, axis=1)))),
+            "xi_norm2": float(xi @ xi)}
 
 
 def _corner_truth_error(res, k: int) -> dict:
@@ -242,6 +268,16 @@ def summarise(rows: list[dict]) -> dict:
     out["corner_truth_rms_px"] = rms.get("corner_truth_rms_px")
     out["corner_sigma_rms_px"] = rms.get("corner_sigma_px")
     out["corner_residual_rms_px"] = rms.get("corner_residual_rms_px")
+    for pre in ("", "joint_"):
+        if pre + "from_dK_shape_mm" in rms:
+            out[pre + "from_dK"] = {"frame_mm": rms[pre + "from_dK_frame_mm"], "shape_mm": rms[pre + "from_dK_shape_mm"],
+                                    "mean_xi_norm2": float(np.mean(a[pre + "xi_norm2"]))}
+    if "truecam_shape_mm" in rms:
+        # the actual errors' camera part: what the exact camera removes (in quadrature)
+        for q in ("frame_mm", "shape_mm"):
+            out["camera_part_actual_" + q] = float(np.sqrt(max(rms[q] ** 2 - rms["truecam_" + q] ** 2, 0.0)))
+            out["camera_part_predicted_" + q] = float(np.sqrt(max(rms["pred_" + q] ** 2
+                                                                  - rms["truecam_pred_" + q] ** 2, 0.0)))
     out["mean_corner_truth_neighbour_corr"] = float(np.mean(a["corner_truth_neighbour_corr"]))
     out["mean_detector_mahalanobis2"] = float(np.mean(a["detector_mahalanobis2"]))
     out["median_seconds_per_set"] = float(np.median(a["seconds"]))
@@ -251,7 +287,7 @@ def summarise(rows: list[dict]) -> dict:
 def run(args) -> None:
     out_dir = Path(__file__).resolve().parent / "out"
     out_dir.mkdir(exist_ok=True)
-    log = out_dir / "bench_camera_uncertainty.jsonl"
+    log = out_dir / f"{args.name}.jsonl"
     rows = [json.loads(line) for line in log.read_text().splitlines()] if log.exists() and not args.fresh else []
     done = {r["set"] for r in rows}
     if not args.summary:
@@ -297,8 +333,17 @@ def run(args) -> None:
           f"sigma {s['corner_sigma_rms_px']:.4f} px (residual RMS {s['corner_residual_rms_px']:.4f} px); neighbour "
           f"correlation {s['mean_corner_truth_neighbour_corr']:.2f}; mean Mahalanobis² of the intrinsics' change "
           f"the detection errors alone cause (first order) {s['mean_detector_mahalanobis2']:.1f}")
+    if "camera_part_actual_shape_mm" in s:
+        print(f"camera's part (total minus the exact camera's, in quadrature): camera frame actual "
+              f"{s['camera_part_actual_frame_mm']:.4f} mm, predicted {s['camera_part_predicted_frame_mm']:.4f} mm; "
+              f"shape actual {s['camera_part_actual_shape_mm']:.4f} mm, predicted "
+              f"{s['camera_part_predicted_shape_mm']:.4f} mm")
+    if "from_dK" in s:
+        v = s["from_dK"]
+        print(f"errors the intrinsics' actual error causes through the propagation: camera frame {v['frame_mm']:.4f} mm, "
+              f"shape {v['shape_mm']:.4f} mm (|dK|² in sigma units, mean {v['mean_xi_norm2']:.1f})")
     print(f"sampling sd of an RMS over {s['sets']} sets: ~{100 * s['rms_relative_sd']:.0f} %")
-    (out_dir / "bench_camera_uncertainty.json").write_text(json.dumps({"summary": s, "rows": rows}, indent=1))
+    (out_dir / f"{args.name}.json").write_text(json.dumps({"summary": s, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ def test_joint_run_writes_camera_and_plane_within_their_covariance(boards, tmp_p
 
 
 @pytest.mark.parametrize("case", ["no_glob_match", "no_board", "no_camera_out", "with_camera", "no_board_spec",
-                                  "board_without_joint", "method"])
+                                  "board_without_joint", "method", "no_camera_at_all"])
 def test_joint_bad_input_one_line_exit_2_nothing_written(boards, tmp_path, case):
     circles = cached_circle_render()
     out, cam_out = tmp_path / "plane.json", tmp_path / "cam.json"
@@ -81,8 +81,11 @@ def test_joint_bad_input_one_line_exit_2_nothing_written(boards, tmp_path, case)
     elif case == "board_without_joint":
         r = _run(circles, "--camera", circles / "camera.json", *base)
         msg = "only with --joint-camera"
-    else:
+    elif case == "method":
         r = _run(circles, "--joint-camera", boards / "*.png", "--camera-out", cam_out, "--method", "global", *base)
         msg = "--method ml"
+    else:
+        r = _run(circles, "-o", out)
+        msg = "give --camera FILE"
     one_error_line(r, msg)
     assert not out.exists() and not cam_out.exists()
