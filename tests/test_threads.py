@@ -132,6 +132,7 @@ def test_threading_configuration_is_applied():
     info = threads.threading_info()
     if "OMP_WAIT_POLICY" not in os.environ or os.environ["OMP_WAIT_POLICY"] == "PASSIVE":
         assert info["OMP_WAIT_POLICY"] == "PASSIVE"
+    assert info["GOMP_SPINCOUNT"] == os.environ["GOMP_SPINCOUNT"]   # a short spin, then sleep
     if "NUMBA_THREADING_LAYER" not in os.environ:
         assert info["numba_layer_priority"][0] == "omp"
         extract_profile(roi_stack(n=1, H=600, W=600)[0], parallel=True)
