@@ -672,7 +672,7 @@ def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_pe
         # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
         # Centre = midpoint of the half-level crossings of the flanks, smoothed across
         # the lines (along the stripe)
-        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[8:9].T)
+        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[3:4].T)
         if not (cc == cc):
             status[l] = TOO_WIDE
             return
@@ -722,7 +722,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     S, L = A.shape
     R = (w0.shape[0] - 1) // 2
     RX = (xw.shape[2] - 1) // 2
-    tmp = np.empty((9, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))
+    tmp = np.empty((4, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))   # X0, X1, X2; the flat centre's Y
     sm = np.empty(14)
     nrmax = 2 * BAND_DRIFT + 2 * R + 3
     band = np.empty((3, nrmax, BAND_LINES))

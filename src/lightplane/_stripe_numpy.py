@@ -181,7 +181,7 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     width = fw * ns
     too_wide = ~np.isfinite(fw) | (width > max_width)
     # clipped (flat) tops where Steger's ridge test fails: midpoint of the smoothed
-    # half-level crossings (as in _stripe_kernels._line_start)
+    # half-level crossings (as in _stripe_kernels._line_finish)
     steger_fail = (lam >= 0.0) | (np.abs(ns) < min_cos) | ~crossing
     flat = flat_numpy(A, p, fw, best, bg, half) & has & ~edge & (best - bg >= min_peak) & steger_fail
     cc_flat = np.full(L, np.nan)

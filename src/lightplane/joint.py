@@ -297,11 +297,7 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
     images = tuple(replace(o, placement=replace(o.placement, pose=by_index[o.index])) if o.index in by_index else o
                    for o in plane_cal.images)
     placements = tuple(replace(p, pose=by_index.get(p.index, p.pose)) for p in plane_cal.placements)
-    meta = dict(res.plane.meta)
-    for k in ("diameter_mm", "n_images", "noise_model", "method", "n_used", "sigma_px"):
-        if k in plane_cal.plane.meta:
-            meta[k] = plane_cal.plane.meta[k]
-    plane = LightPlane(res.plane.normal, res.plane.d, res.plane.covariance, meta=meta)
+    plane = res.plane   # its meta: the two-step plane's, plus the camera Jacobian and the joint flag
     new_cal = replace(plane_cal, plane=plane, covariance=plane.covariance, images=images, placements=placements,
                       camera=res.camera)
     return JointCalibration(result=res, plane_cal=new_cal, camera=res.camera)
