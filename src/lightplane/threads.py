@@ -17,8 +17,8 @@ other processes hold the cores.  The rules, applied by the library itself:
 Threading layer: OpenMP first (thread-safe for launches from several Python threads,
 unlike ``workqueue``; TBB is rarely installed), with the *passive* wait policy
 (``OMP_WAIT_POLICY=PASSIVE``, ``KMP_BLOCKTIME=0``, and for GNU OpenMP a short spin first,
-``GOMP_SPINCOUNT=20000``, ~0.1 ms): a thread that has finished its
-share sleeps at once instead of spinning on a core another process needs.  Both are
+``GOMP_SPINCOUNT=20000`` iterations): a thread that has finished its
+share sleeps soon instead of spinning on a core another process needs.  They are
 set here before numba loads its OpenMP runtime (that is, at the import of
 :mod:`lightplane`), unless the user has set them (environment variables
 ``NUMBA_THREADING_LAYER``, ``OMP_WAIT_POLICY``, ``KMP_BLOCKTIME``, ``GOMP_SPINCOUNT``, which win).
@@ -57,9 +57,9 @@ def _configure() -> None:
     _OMP_PRELOADED = _omp_runtimes_loaded()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # GNU and LLVM/Intel OpenMP: sleep, do not spin
     os.environ.setdefault("KMP_BLOCKTIME", "0")           # LLVM/Intel OpenMP: the same, in ms of spinning
-    # GNU OpenMP: a short spin before sleeping (~0.1 ms here), so that a frame's consecutive
-    # kernels find the worker awake: on a virtual machine waking a sleeping vCPU costs
-    # 0.1-0.5 ms, which made a single 1280x960 profile 0.7-1.2 ms instead of 0.5 ms
+    # GNU OpenMP: a short spin before sleeping, so that a frame's consecutive kernels find
+    # the worker awake: on a virtual machine the passive sleep alone made a single 1280x960
+    # profile 0.7-1.2 ms instead of 0.5 ms (same-run A/B)
     os.environ.setdefault("GOMP_SPINCOUNT", str(GOMP_SPINCOUNT))
     try:
         import numba
@@ -168,7 +168,8 @@ def _own_running_threads() -> int:
                 st = f.read()
         except OSError:   # the thread ended meanwhile
             continue
-        if st[st.rindex(")") + 2:st.rindex(")") + 3] == "R":
+        state = st[st.rindex(")") + 2:].split(maxsplit=1)[0]   # after "pid (comm) "
+        if state == "R":
             n += 1
     return max(n, 1)
 
