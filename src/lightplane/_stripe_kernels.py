@@ -290,7 +290,43 @@ def _clamp(i, n):
     return i
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _fwhm_inside(A, l, c, half, min_peak):
+    """:func:`_fwhm_line` of a window inside ``A`` (the same steps, no clamping)."""
+    # centre index: the highest of c-1, c, c+1
+    k0 = c
+    best = np.float64(A[c, l])
+    for k in (c - 1, c + 1):
+        x = np.float64(A[k, l])
+        if x > best:
+            best = x
+            k0 = k
+    bg = best
+    for k in range(c - half, c + half + 1):
+        bg = min(bg, np.float64(A[k, l]))
+    if best - bg < min_peak:
+        return np.nan, np.nan, np.nan, best, bg
+    level = bg + 0.5 * (best - bg)
+    right = np.nan
+    prev = best
+    for k in range(k0 + 1, k0 + half + 1):
+        x = np.float64(A[k, l])
+        if x < level:
+            right = (k - 1) + (prev - level) / (prev - x)
+            break
+        prev = x
+    left = np.nan
+    prev = best
+    for k in range(k0 - 1, k0 - half - 1, -1):
+        x = np.float64(A[k, l])
+        if x < level:
+            left = (k + 1) - (prev - level) / (prev - x)
+            break
+        prev = x
+    return right - left, left, right, best, bg
+
+
+@njit(cache=True, inline="always")
 def _fwhm_line(A, l, c, half, min_peak):
     """Raw full width at half level along line ``l`` around sample ``c``.
 
@@ -299,26 +335,26 @@ def _fwhm_line(A, l, c, half, min_peak):
     below ``min_peak``.
     """
     S = A.shape[0]
+    if c - half - 1 >= 0 and c + half + 1 <= S - 1:   # no sample to clamp (the usual case)
+        return _fwhm_inside(A, l, c, half, min_peak)
     # centre index: the highest of c-1, c, c+1
     k0 = c
-    best = float(A[_clamp(c, S), l])
+    best = np.float64(A[_clamp(c, S), l])
     for k in (c - 1, c + 1):
-        x = float(A[_clamp(k, S), l])
+        x = np.float64(A[_clamp(k, S), l])
         if x > best:
             best = x
             k0 = k
     bg = best
     for k in range(c - half, c + half + 1):
-        x = float(A[_clamp(k, S), l])
-        if x < bg:
-            bg = x
+        bg = min(bg, np.float64(A[_clamp(k, S), l]))
     if best - bg < min_peak:
         return np.nan, np.nan, np.nan, best, bg
     level = bg + 0.5 * (best - bg)
     right = np.nan
     prev = best
     for k in range(k0 + 1, k0 + half + 1):
-        x = float(A[_clamp(k, S), l])
+        x = np.float64(A[_clamp(k, S), l])
         if x < level:
             right = (k - 1) + (prev - level) / (prev - x)
             break
@@ -326,7 +362,7 @@ def _fwhm_line(A, l, c, half, min_peak):
     left = np.nan
     prev = best
     for k in range(k0 - 1, k0 - half - 1, -1):
-        x = float(A[_clamp(k, S), l])
+        x = np.float64(A[_clamp(k, S), l])
         if x < level:
             left = (k + 1) - (prev - level) / (prev - x)
             break
@@ -365,13 +401,16 @@ def estimate_fwhm_lines(A, p1, lines, half, min_peak, out):
         out[j] = _fwhm_line(A, l, p1[l], half, min_peak)[0]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _is_flat(A, l, p, fw, best, bg, half):
     """Whether line ``l`` has a flat (clipped) top at sample ``p`` (see FLAT_TOL)."""
     if not (fw == fw) or best - bg <= 0.0:
         return False
     S = A.shape[0]
     thr = best - FLAT_TOL * (best - bg)
+    # a run of >= 3 needs a neighbour of p in it (the usual case: a peak, no plateau)
+    if not ((p + 1 < S and float(A[p + 1, l]) >= thr) or (p >= 1 and float(A[p - 1, l]) >= thr)):
+        return False
     n = 1
     k = p + 1
     while k < S and k <= p + 2 * half and float(A[k, l]) >= thr:
@@ -706,7 +745,315 @@ def _line_alone(A, l, p, c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min
                  centre, normal, strength, intensity, width, status)
 
 
-@njit(cache=True)
+# rows of the band's scratch array V (see _band_start / _band_finish)
+_V_XM, _V_XC, _V_XP, _V_BG, _V_BEST, _V_LEV, _V_LEFT, _V_RIGHT, _V_FW = 0, 1, 2, 3, 4, 5, 6, 7, 8
+_V_LAM, _V_NL, _V_NS, _V_G0, _V_D0, _V_G1, _V_D1, _V_T, _V_LO, _V_HI = 9, 10, 11, 12, 13, 14, 15, 16, 17, 18
+_V_ROWS = 19
+_NO_ROW = -(1 << 40)   # a "row" no sample is at: lanes that take no part in a vectorised pass
+
+
+@njit(cache=True, inline="always")
+def _band_start(A, pos, l0, n, half, qpeak, R, srt, P, K0, V, fl, fr, cs, fws, bests, bgs, flats,
+                centre, normal, strength, intensity, width, status):
+    """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``, vectorised over the lines.
+
+    The lines whose candidate is at least ``half + 1`` samples inside ``A`` and within
+    :data:`BAND_DRIFT` of the band's median candidate are computed together: a pass over
+    the rows those windows cover, in memory order (a row's ``n`` samples are contiguous),
+    gathers each line's centre samples and its background, a second pass finds the
+    half-level crossings (the first below the level on each side of ``k0``: on the way
+    up the first found, on the left the last one before ``k0``).  Every number is the
+    one :func:`_fwhm_line` computes, by the same operations.  The other lines go through
+    :func:`_line_start` one by one.  Outputs ``cs`` (``-1``: the line ends here),
+    ``fws``, ``bests``, ``bgs``, ``flats``, as :func:`_centres_range` keeps them.
+    """
+    S = A.shape[0]
+    k = 0
+    for j in range(n):
+        p = pos[l0 + j]
+        if half + 1 <= p <= S - 2 - half:
+            srt[k] = p
+            k += 1
+    med = 0
+    if k > 0:
+        srt[:k].sort()
+        med = srt[k // 2]
+    pmin = med
+    pmax = med
+    nv = 0
+    for j in range(n):
+        p = pos[l0 + j]
+        if k > 0 and half + 1 <= p <= S - 2 - half and abs(p - med) <= BAND_DRIFT:
+            P[j] = p
+            pmin = min(pmin, p)
+            pmax = max(pmax, p)
+            nv += 1
+        else:
+            P[j] = _NO_ROW
+    xm = V[_V_XM]
+    xc = V[_V_XC]
+    xp = V[_V_XP]
+    bg = V[_V_BG]
+    best = V[_V_BEST]
+    lev = V[_V_LEV]
+    left = V[_V_LEFT]
+    right = V[_V_RIGHT]
+    if nv > 0:
+        for j in range(n):
+            bg[j] = np.inf
+            xm[j] = 0.0
+            xc[j] = 0.0
+            xp[j] = 0.0
+        # pass 1: the three centre samples and the background (minimum over p +- half)
+        for r in range(pmin - half, pmax + half + 1):
+            row = A[r, l0:l0 + n]
+            for j in range(n):
+                x = np.float64(row[j])   # (float() keeps float32 as float32)
+                d = r - P[j]
+                inw = -half <= d <= half
+                bg[j] = min(bg[j], x) if inw else bg[j]
+                xm[j] = x if d == -1 else xm[j]
+                xc[j] = x if d == 0 else xc[j]
+                xp[j] = x if d == 1 else xp[j]
+        for j in range(n):
+            b = xc[j]
+            kk = P[j]
+            if xm[j] > b:
+                b = xm[j]
+                kk = P[j] - 1
+            if xp[j] > b:
+                b = xp[j]
+                kk = P[j] + 1
+            best[j] = b
+            K0[j] = kk if P[j] != _NO_ROW else _NO_ROW
+            lev[j] = bg[j] + 0.5 * (b - bg[j])
+            fl[j] = False
+            fr[j] = False
+            left[j] = np.nan
+            right[j] = np.nan
+        # pass 2: the half-level crossings, from each row and the one before it
+        prev = A[pmin - half - 1, l0:l0 + n]
+        for r in range(pmin - half, pmax + half + 2):
+            row = A[r, l0:l0 + n]
+            for j in range(n):
+                x = np.float64(row[j])
+                xq = np.float64(prev[j])
+                d = r - K0[j]
+                lv = lev[j]
+                hit_r = (1 <= d <= half) and (not fr[j]) and x < lv
+                right[j] = ((r - 1) + (xq - lv) / (xq - x)) if hit_r else right[j]
+                fr[j] = fr[j] or hit_r
+                hit_l = (-half <= d - 1 <= -1) and xq < lv
+                left[j] = (r - (x - lv) / (x - xq)) if hit_l else left[j]
+                fl[j] = fl[j] or hit_l
+            prev = row
+    for j in range(n):
+        q = l0 + j
+        if P[j] == _NO_ROW:
+            c, fw, b, g, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength, intensity, width,
+                                            status)
+            cs[j] = c
+            fws[j] = fw
+            bests[j] = b
+            bgs[j] = g
+            flats[j] = flat
+            continue
+        centre[q] = np.nan
+        normal[q, 0] = np.nan
+        normal[q, 1] = np.nan
+        strength[q] = np.nan
+        intensity[q] = np.nan
+        width[q] = np.nan
+        p = P[j]
+        fw = right[j] - left[j]
+        c = p
+        if fw == fw:
+            cm = np.int64(math.floor(0.5 * (left[j] + right[j]) + 0.5))
+            if abs(cm - p) <= qpeak:
+                c = cm
+        b = best[j]
+        g = bg[j]
+        fws[j] = fw
+        bests[j] = b
+        bgs[j] = g
+        if c - 1 - R < 0 or c + 1 + R > S - 1:
+            status[q] = EDGE
+            cs[j] = -1
+            flats[j] = False
+            continue
+        cs[j] = c
+        # flat top: a run of >= 3 samples within FLAT_TOL of the peak needs a neighbour of p in it
+        thr = b - FLAT_TOL * (b - g)
+        flats[j] = (fw == fw and b - g > 0.0 and (xm[j] >= thr or xp[j] >= thr)
+                    and _is_flat(A, q, p, fw, b, g, half))
+
+
+@njit(cache=True, inline="always")
+def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half, min_peak,
+                 max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width, status):
+    """:func:`_line_finish` of the band's lines whose middle ``c`` is in ``lo .. hi``, from
+    the along-line sums ``D`` (:func:`_band_along`), vectorised over the lines: the
+    ridge's normal, the derivative across the stripe at c-1, c, c+1, and the zero
+    crossing (:func:`_hermite_root`'s safeguarded Newton steps, all lanes at once, each
+    lane stopping where the scalar root stops).  The same numbers as :func:`_line_finish`,
+    bit for bit; the rare lines whose derivative brackets a root on both sides, and the
+    flat tops, go through the scalar code."""
+    lam = V[_V_LAM]
+    nlv = V[_V_NL]
+    nsv = V[_V_NS]
+    G0 = V[_V_G0]
+    D0v = V[_V_D0]
+    G1 = V[_V_G1]
+    D1v = V[_V_D1]
+    T = V[_V_T]
+    LO = V[_V_LO]
+    HI = V[_V_HI]
+    nact = 0
+    for j in range(n):
+        c = cs[j]
+        inb = lo <= c <= hi
+        r = (c - lo) if inb else 0
+        ruu = D[4, r + 1, j]
+        ruv = D[3, r + 1, j]
+        rvv = D[1, r + 1, j]
+        # _ridge_normal, branch-free
+        half_tr = 0.5 * (ruu + rvv)
+        half_df = 0.5 * (ruu - rvv)
+        root = math.sqrt(half_df * half_df + ruv * ruv)
+        lm = half_tr - root
+        pos_df = half_df > 0.0
+        nu = ruv if pos_df else half_df - root
+        nvv = (-half_df - root) if pos_df else ruv
+        nrm = math.sqrt(nu * nu + nvv * nvv)
+        zero = nrm == 0.0
+        nu = 1.0 if zero else nu / nrm
+        nvv = 0.0 if zero else nvv / nrm
+        flip = nvv < 0.0 or (nvv == 0.0 and nu < 0.0)
+        nu = -nu if flip else nu
+        nvv = -nvv if flip else nvv
+        lam[j] = lm
+        nlv[j] = nu
+        nsv[j] = nvv
+        g0 = nu * D[2, r, j] + nvv * D[0, r, j]
+        g1 = nu * D[2, r + 1, j] + nvv * D[0, r + 1, j]
+        g2 = nu * D[2, r + 2, j] + nvv * D[0, r + 2, j]
+        d0 = nu * D[3, r, j] + nvv * D[1, r, j]
+        d1 = nu * D[3, r + 1, j] + nvv * D[1, r + 1, j]
+        d2 = nu * D[3, r + 2, j] + nvv * D[1, r + 2, j]
+        lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
+        hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+        # the one bracket's cubic (the lower one's values when both or neither), in the
+        # order of the pair as _hermite_root is called: (g0, d0, g1, d1) or (g1, d1, g2, d2)
+        a = g1 if hi_ok and not lo_ok else g0
+        b = g2 if hi_ok and not lo_ok else g1
+        da = d1 if hi_ok and not lo_ok else d0
+        db = d2 if hi_ok and not lo_ok else d1
+        G0[j] = a
+        G1[j] = b
+        D0v[j] = da
+        D1v[j] = db
+        go = inb and lm < 0.0 and abs(nvv) >= min_cos and g1 != 0.0 and (lo_ok != hi_ok) and a != 0.0 and b != 0.0
+        act[j] = go
+        nact += go
+        T[j] = a / (a - b) if go else 0.0
+        LO[j] = 0.0
+        HI[j] = 1.0
+    it = 0
+    while nact > 0 and it < HERMITE_ITER:
+        nact = 0
+        for j in range(n):
+            g0 = G0[j]
+            g1 = G1[j]
+            d0 = D0v[j]
+            d1 = D1v[j]
+            t = T[j]
+            t2 = t * t
+            t3 = t2 * t
+            h = (2.0 * t3 - 3.0 * t2 + 1.0) * g0 + (t3 - 2.0 * t2 + t) * d0 + (-2.0 * t3 + 3.0 * t2) * g1 \
+                + (t3 - t2) * d1
+            dh = (6.0 * t2 - 6.0 * t) * (g0 - g1) + (3.0 * t2 - 4.0 * t + 1.0) * d0 + (3.0 * t2 - 2.0 * t) * d1
+            same = (h > 0.0) == (g0 > 0.0)
+            lo_ = t if same else LO[j]
+            hi_ = HI[j] if same else t
+            mid = 0.5 * (lo_ + hi_)
+            tn = (t - h / dh) if dh != 0.0 else mid
+            tn = tn if lo_ <= tn <= hi_ else mid
+            on = act[j]
+            done = abs(tn - t) <= HERMITE_TOL
+            T[j] = tn if on else t
+            LO[j] = lo_ if on else LO[j]
+            HI[j] = hi_ if on else HI[j]
+            still = on and not done
+            act[j] = still
+            nact += still
+        it += 1
+    for j in range(n):
+        q = l0 + j
+        c = cs[j]
+        if not (lo <= c <= hi):
+            continue
+        r = c - lo
+        intensity[q] = D[5, r + 1, j]
+        nl = nlv[j]
+        ns = nsv[j]
+        normal[q, 0] = nl
+        normal[q, 1] = ns
+        strength[q] = -lam[j]
+        fw = fws[j]
+        if bests[j] - bgs[j] < min_peak:
+            status[q] = NO_PEAK
+            continue
+        st = OK
+        cc = np.nan
+        if lam[j] >= 0.0:
+            st = NOT_RIDGE
+        elif abs(ns) < min_cos:
+            st = ALONG_LINE
+        else:
+            g0 = nl * D[2, r, j] + ns * D[0, r, j]
+            g1 = nl * D[2, r + 1, j] + ns * D[0, r + 1, j]
+            g2 = nl * D[2, r + 2, j] + ns * D[0, r + 2, j]
+            if g1 == 0.0:
+                cc = float(c)
+            else:
+                lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
+                hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+                if lo_ok and hi_ok:
+                    d0 = nl * D[3, r, j] + ns * D[1, r, j]
+                    d1 = nl * D[3, r + 1, j] + ns * D[1, r + 1, j]
+                    d2 = nl * D[3, r + 2, j] + ns * D[1, r + 2, j]
+                    t_lo = _hermite_root(g0, d0, g1, d1)
+                    t_hi = _hermite_root(g1, d1, g2, d2)
+                    cc = (c - 1 + t_lo) if (1.0 - t_lo) < t_hi else (c + t_hi)
+                elif lo_ok:
+                    t = 0.0 if g0 == 0.0 else T[j]
+                    cc = c - 1 + t
+                elif hi_ok:
+                    t = 1.0 if g2 == 0.0 else T[j]
+                    cc = c + t
+                else:
+                    st = NO_CROSSING
+        if st != OK:
+            if not flats[j]:
+                status[q] = st
+                continue
+            cc = _flat_centre(A, q, pos[q], c, xw, RX, qpeak, half, tmp[3:4].T)
+            if not (cc == cc):
+                status[q] = TOO_WIDE
+                continue
+            if st == NOT_RIDGE or st == ALONG_LINE:
+                normal[q, 0] = 0.0
+                normal[q, 1] = 1.0
+                ns = 1.0
+        width[q] = fw * ns
+        if not (fw == fw) or fw * ns > max_width:
+            status[q] = TOO_WIDE
+            continue
+        centre[q] = cc
+        status[q] = OK
+
+
+@njit(cache=True, error_model="numpy")
 def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                    centre, normal, strength, intensity, width, status, la, lb):
     """The profile of lines ``la .. lb - 1`` (see :func:`profile_centres`).
@@ -734,6 +1081,12 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     bgs = np.empty(BAND_LINES)
     flats = np.empty(BAND_LINES, np.bool_)
     srt = np.empty(BAND_LINES, np.int64)
+    P = np.empty(BAND_LINES, np.int64)
+    K0 = np.empty(BAND_LINES, np.int64)
+    V = np.empty((_V_ROWS, BAND_LINES))
+    fl = np.empty(BAND_LINES, np.bool_)
+    fr = np.empty(BAND_LINES, np.bool_)
+    act = np.empty(BAND_LINES, np.bool_)
     l = la
     while l < lb:
         l0 = max(l, RX)
@@ -768,24 +1121,13 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                 rb0 = lo - 1 - R
                 _band_sums(A, rb0, hi - lo + 2 * R + 3, l0, n, RX, xw[RX, 0], xw[RX, 1], xw[RX, 2], F, band)
                 _band_along(band, rb0, lo - 1, hi - lo + 3, n, w0, w1, w2, D)
+                _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half,
+                             min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
+                             status)
             for j in range(n):
                 q = l0 + j
                 c = cs[j]
-                if c < 0:
-                    continue
-                if lo <= c <= hi:
-                    r = c - 1 - (lo - 1)
-                    for m in range(3):
-                        sm[m] = D[0, r + m, j]
-                        sm[3 + m] = D[1, r + m, j]
-                        sm[6 + m] = D[2, r + m, j]
-                        sm[9 + m] = D[3, r + m, j]
-                    sm[12] = D[4, r + 1, j]
-                    sm[13] = D[5, r + 1, j]
-                    _line_finish(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], sm, xw, RX, qpeak, half,
-                                 min_peak, max_width, min_cos, tmp, centre, normal, strength, intensity, width,
-                                 status)
-                else:
+                if c >= 0 and not (lo <= c <= hi):
                     _line_alone(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], w0, w1, w2, xw, qpeak, half,
                                 min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
                                 status)
