@@ -443,112 +443,49 @@ def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
     return c - H2 + 0.5 * (left + right)
 
 
-@njit(cache=True, inline="always")
-def _across_lines(A, r0, M, c0, n, o, k0, k1, k2, X0, X1, X2):
-    """``Xk[m] = sum_j kk[o + j] A[r0 + m, c0 + j]`` (j = 0..n-1, in that order) for m < M.
-
-    Four rows at a time: twelve independent sums instead of three dependent chains
-    (the additions' latency bounded the loop); every sum keeps its order, so the
-    numbers are those of the plain loop, bit for bit.
-    """
-    m = 0
-    while m + 4 <= M:
-        ra = A[r0 + m]
-        rb = A[r0 + m + 1]
-        rc = A[r0 + m + 2]
-        rd = A[r0 + m + 3]
-        a0 = a1 = a2 = b0 = b1 = b2 = 0.0
-        c0_ = c1 = c2 = d0 = d1 = d2 = 0.0
-        for j in range(n):
-            u = k0[o + j]
-            v = k1[o + j]
-            w = k2[o + j]
-            x = float(ra[c0 + j])
-            y = float(rb[c0 + j])
-            z = float(rc[c0 + j])
-            t = float(rd[c0 + j])
-            a0 += u * x
-            a1 += v * x
-            a2 += w * x
-            b0 += u * y
-            b1 += v * y
-            b2 += w * y
-            c0_ += u * z
-            c1 += v * z
-            c2 += w * z
-            d0 += u * t
-            d1 += v * t
-            d2 += w * t
-        X0[m] = a0
-        X1[m] = a1
-        X2[m] = a2
-        X0[m + 1] = b0
-        X1[m + 1] = b1
-        X2[m + 1] = b2
-        X0[m + 2] = c0_
-        X1[m + 2] = c1
-        X2[m + 2] = c2
-        X0[m + 3] = d0
-        X1[m + 3] = d1
-        X2[m + 3] = d2
-        m += 4
-    while m < M:
-        ra = A[r0 + m]
-        a0 = a1 = a2 = 0.0
-        for j in range(n):
-            x = float(ra[c0 + j])
-            a0 += k0[o + j] * x
-            a1 += k1[o + j] * x
-            a2 += k2[o + j] * x
-        X0[m] = a0
-        X1[m] = a1
-        X2[m] = a2
-        m += 1
-
-
-BAND_LINES = 32     # lines per band of across-line sums (vectorised over the lines)
+BAND_LINES = 32     # lines per band (the along-line sums and the line ends vectorised over them)
 BAND_DRIFT = 8      # lines whose centre is within this many samples of the band's median share it
-N_SUMS = 6          # along-line sums per row: r_s, r_ss, r_l, r_ls, r_ll, r (see _along_sums)
+N_SUMS = 6          # derivative sums per row: r_s, r_ss, r_l, r_ls, r_ll, r (see _band_sums)
 
 
 @njit(cache=True, inline="always")
-def _band_sums(A, r0, nr, l0, n, RX, k0, k1, k2, F, band):
-    """``band[k, r, j] = sum_jj kk[jj] A[r0 + r, l0 + j - RX + jj]`` (jj = 0..2RX, in that order).
+def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
+    """The six derivative sums at the rows ``d0 .. d0 + nd - 1`` of the lines ``l0 .. l0 + n - 1``:
+    ``D[k, r, j]`` for row ``d0 + r`` of line ``l0 + j``, k = r_s, r_ss, r_l, r_ls, r_ll, r.
 
-    The same sums as :func:`_across_lines` for interior lines, bit for bit, computed a row
-    at a time over ``n`` adjacent lines: the inner loop runs along the row (contiguous,
-    converted to float64 once), which the compiler vectorises.
+    Along the lines first: ``C[k, r, m]`` = sum_i w_k[i] A[d0 + r - R + i, l0 - RX + m] for
+    the band's columns and their RX neighbours on each side (rows converted to float64 once,
+    in ``Fb``), then across the lines with the across-line kernels ``k0, k1, k2``
+    (r_s = k0 * C1, r_ss = k0 * C2, r_l = k1 * C0, r_ls = k1 * C1, r_ll = k2 * C0, r = k0 * C0).
+    Every loop innermost over the lines (contiguous: vectorised); every sum from 0.0 in the
+    order of its kernel's taps, as :func:`_line_sums` does for a line alone, so a line gets
+    the same numbers either way.  Along first needs half the products of across first
+    (the across sums of every row of the window were needed before).
     """
-    for r in range(nr):
-        src = A[r0 + r, l0 - RX:l0 + n + RX]
-        for j in range(n + 2 * RX):
-            F[j] = float(src[j])
-        b0 = band[0, r]
-        b1 = band[1, r]
-        b2 = band[2, r]
-        for j in range(n):
-            b0[j] = 0.0
-            b1[j] = 0.0
-            b2[j] = 0.0
-        for jj in range(2 * RX + 1):
-            u = k0[jj]
-            v = k1[jj]
-            g = k2[jj]
-            xs = F[jj:jj + n]
-            for j in range(n):
-                x = xs[j]
-                b0[j] += u * x
-                b1[j] += v * x
-                b2[j] += g * x
-
-
-@njit(cache=True, inline="always")
-def _band_along(band, rb0, d0, nd, n, w0, w1, w2, D):
-    """The along-line sums of :func:`_along_sums` at the rows ``d0 .. d0 + nd - 1`` of every
-    line of a band at once (``band``: across-line sums of the rows from ``rb0`` on):
-    ``D[k, r, j]`` for row ``d0 + r`` of line ``j``; the same numbers, bit for bit (each
-    sum in the order of the kernel's taps), vectorised over the lines."""
     R = (w0.shape[0] - 1) // 2
+    m = n + 2 * RX
+    for r in range(nd + 2 * R):
+        src = A[d0 - R + r, l0 - RX:l0 - RX + m]
+        f = Fb[r]
+        for j in range(m):
+            f[j] = np.float64(src[j])
+    for r in range(nd):
+        c0 = C[0, r]
+        c1 = C[1, r]
+        c2 = C[2, r]
+        for j in range(m):
+            c0[j] = 0.0
+            c1[j] = 0.0
+            c2[j] = 0.0
+        for i in range(2 * R + 1):
+            a = w0[i]
+            b = w1[i]
+            g = w2[i]
+            x = Fb[r + i]
+            for j in range(m):
+                c0[j] += a * x[j]
+                c1[j] += b * x[j]
+                c2[j] += g * x[j]
     for r in range(nd):
         Ds = D[0, r]
         Dss = D[1, r]
@@ -563,22 +500,72 @@ def _band_along(band, rb0, d0, nd, n, w0, w1, w2, D):
             Dls[j] = 0.0
             Dll[j] = 0.0
             D0[j] = 0.0
-        for i in range(2 * R + 1):
-            a = w0[i]
-            b = w1[i]
-            g = w2[i]
-            X0 = band[0, d0 - R + i - rb0 + r]
-            X1 = band[1, d0 - R + i - rb0 + r]
-            X2 = band[2, d0 - R + i - rb0 + r]
+        for jj in range(2 * RX + 1):
+            u = k0[jj]
+            v = k1[jj]
+            q = k2[jj]
+            X0 = C[0, r, jj:jj + n]
+            X1 = C[1, r, jj:jj + n]
+            X2 = C[2, r, jj:jj + n]
             for j in range(n):
                 x0 = X0[j]
                 x1 = X1[j]
-                Ds[j] += b * x0
-                Dss[j] += g * x0
-                Dl[j] += a * x1
-                Dls[j] += b * x1
-                Dll[j] += a * X2[j]
-                D0[j] += a * x0
+                Ds[j] += u * x1
+                Dss[j] += u * X2[j]
+                Dl[j] += v * x0
+                Dls[j] += v * x1
+                Dll[j] += q * x0
+                D0[j] += u * x0
+
+
+@njit(cache=True, inline="always")
+def _line_sums(A, l, c, re, RX, w0, w1, w2, xw, T, sm):
+    """The derivative sums of line ``l`` alone at the rows c-1, c, c+1 (:func:`_band_sums`'s
+    numbers, by the same operations; the across-line kernels truncated to radius ``re``
+    near the first and last lines): ``sm`` = r_s(3), r_ss(3), r_l(3), r_ls(3), r_ll, r at c."""
+    R = (w0.shape[0] - 1) // 2
+    o = RX - re
+    k0 = xw[re, 0]
+    k1 = xw[re, 1]
+    k2 = xw[re, 2]
+    for m in range(3):
+        for jj in range(2 * re + 1):
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            col = l - re + jj
+            for i in range(2 * R + 1):
+                x = np.float64(A[c - 1 + m - R + i, col])
+                a0 += w0[i] * x
+                a1 += w1[i] * x
+                a2 += w2[i] * x
+            T[0, m, jj] = a0
+            T[1, m, jj] = a1
+            T[2, m, jj] = a2
+    for m in range(3):
+        s_ = 0.0
+        ss = 0.0
+        sl = 0.0
+        sls = 0.0
+        sll = 0.0
+        s0 = 0.0
+        for jj in range(2 * re + 1):
+            u = k0[o + jj]
+            v = k1[o + jj]
+            q = k2[o + jj]
+            s_ += u * T[1, m, jj]
+            ss += u * T[2, m, jj]
+            sl += v * T[0, m, jj]
+            sls += v * T[1, m, jj]
+            sll += q * T[0, m, jj]
+            s0 += u * T[0, m, jj]
+        sm[m] = s_
+        sm[3 + m] = ss
+        sm[6 + m] = sl
+        sm[9 + m] = sls
+        if m == 1:
+            sm[12] = sll
+            sm[13] = s0
 
 
 @njit(cache=True, inline="always")
@@ -609,56 +596,6 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
         status[l] = EDGE
         return -1, fw, best, bg, False
     return c, fw, best, bg, _is_flat(A, l, p, fw, best, bg, half)
-
-
-@njit(cache=True, inline="always")
-def _along_sums(X0, X1, X2, w0, w1, w2, out):
-    """The derivatives along the line at the rows c-1, c, c+1 from the across-line sums
-    ``Xk`` of rows c-1-R .. c+1+R: ``out`` = r_s(3), r_ss(3), r_l(3), r_ls(3), r_ll, r at c
-    (independent accumulators; each sum in the order of the taps)."""
-    R = (w0.shape[0] - 1) // 2
-    s0 = s1 = s2 = ss0 = ss1 = ss2 = 0.0
-    l0 = l1 = l2 = ls0 = ls1 = ls2 = 0.0
-    ll1 = 0.0
-    r0c = 0.0
-    for i in range(2 * R + 1):
-        a = w0[i]
-        b = w1[i]
-        g = w2[i]
-        xa = X0[i]
-        xb = X0[i + 1]
-        xc = X0[i + 2]
-        ya = X1[i]
-        yb = X1[i + 1]
-        yc = X1[i + 2]
-        s0 += b * xa
-        s1 += b * xb
-        s2 += b * xc
-        ss0 += g * xa
-        ss1 += g * xb
-        ss2 += g * xc
-        l0 += a * ya
-        l1 += a * yb
-        l2 += a * yc
-        ls0 += b * ya
-        ls1 += b * yb
-        ls2 += b * yc
-        ll1 += a * X2[i + 1]
-        r0c += a * xb
-    out[0] = s0
-    out[1] = s1
-    out[2] = s2
-    out[3] = ss0
-    out[4] = ss1
-    out[5] = ss2
-    out[6] = l0
-    out[7] = l1
-    out[8] = l2
-    out[9] = ls0
-    out[10] = ls1
-    out[11] = ls2
-    out[12] = ll1
-    out[13] = r0c
 
 
 @njit(cache=True, inline="always")
@@ -730,162 +667,19 @@ def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_pe
 
 @njit(cache=True, inline="always")
 def _line_alone(A, l, p, c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
-                sm, centre, normal, strength, intensity, width, status):
+                T, sm, centre, normal, strength, intensity, width, status):
     """A profile line from ``c`` on (after :func:`_line_start`), its sums computed alone."""
     L = A.shape[1]
-    R = (w0.shape[0] - 1) // 2
     RX = (xw.shape[2] - 1) // 2
-    # across the lines first (rows of A are contiguous): X_k[m] for the 2R+3 samples
-    # c-1-R .. c+1+R, then along the line at c-1, c, c+1
     re = min(RX, l, L - 1 - l)
-    _across_lines(A, c - 1 - R, 2 * R + 3, l - re, 2 * re + 1, RX - re, xw[re, 0], xw[re, 1], xw[re, 2],
-                  tmp[0], tmp[1], tmp[2])
-    _along_sums(tmp[0], tmp[1], tmp[2], w0, w1, w2, sm)
+    _line_sums(A, l, c, re, RX, w0, w1, w2, xw, T, sm)
     _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status)
 
 
-# rows of the band's scratch array V (see _band_start / _band_finish)
-_V_XM, _V_XC, _V_XP, _V_BG, _V_BEST, _V_LEV, _V_LEFT, _V_RIGHT, _V_FW = 0, 1, 2, 3, 4, 5, 6, 7, 8
-_V_LAM, _V_NL, _V_NS, _V_G0, _V_D0, _V_G1, _V_D1, _V_T, _V_LO, _V_HI = 9, 10, 11, 12, 13, 14, 15, 16, 17, 18
-_V_ROWS = 19
-_NO_ROW = -(1 << 40)   # a "row" no sample is at: lanes that take no part in a vectorised pass
-
-
-@njit(cache=True, inline="always")
-def _band_start(A, pos, l0, n, half, qpeak, R, srt, P, K0, V, fl, fr, cs, fws, bests, bgs, flats,
-                centre, normal, strength, intensity, width, status):
-    """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``, vectorised over the lines.
-
-    The lines whose candidate is at least ``half + 1`` samples inside ``A`` and within
-    :data:`BAND_DRIFT` of the band's median candidate are computed together: a pass over
-    the rows those windows cover, in memory order (a row's ``n`` samples are contiguous),
-    gathers each line's centre samples and its background, a second pass finds the
-    half-level crossings (the first below the level on each side of ``k0``: on the way
-    up the first found, on the left the last one before ``k0``).  Every number is the
-    one :func:`_fwhm_line` computes, by the same operations.  The other lines go through
-    :func:`_line_start` one by one.  Outputs ``cs`` (``-1``: the line ends here),
-    ``fws``, ``bests``, ``bgs``, ``flats``, as :func:`_centres_range` keeps them.
-    """
-    S = A.shape[0]
-    k = 0
-    for j in range(n):
-        p = pos[l0 + j]
-        if half + 1 <= p <= S - 2 - half:
-            srt[k] = p
-            k += 1
-    med = 0
-    if k > 0:
-        srt[:k].sort()
-        med = srt[k // 2]
-    pmin = med
-    pmax = med
-    nv = 0
-    for j in range(n):
-        p = pos[l0 + j]
-        if k > 0 and half + 1 <= p <= S - 2 - half and abs(p - med) <= BAND_DRIFT:
-            P[j] = p
-            pmin = min(pmin, p)
-            pmax = max(pmax, p)
-            nv += 1
-        else:
-            P[j] = _NO_ROW
-    xm = V[_V_XM]
-    xc = V[_V_XC]
-    xp = V[_V_XP]
-    bg = V[_V_BG]
-    best = V[_V_BEST]
-    lev = V[_V_LEV]
-    left = V[_V_LEFT]
-    right = V[_V_RIGHT]
-    if nv > 0:
-        for j in range(n):
-            bg[j] = np.inf
-            xm[j] = 0.0
-            xc[j] = 0.0
-            xp[j] = 0.0
-        # pass 1: the three centre samples and the background (minimum over p +- half)
-        for r in range(pmin - half, pmax + half + 1):
-            row = A[r, l0:l0 + n]
-            for j in range(n):
-                x = np.float64(row[j])   # (float() keeps float32 as float32)
-                d = r - P[j]
-                inw = -half <= d <= half
-                bg[j] = min(bg[j], x) if inw else bg[j]
-                xm[j] = x if d == -1 else xm[j]
-                xc[j] = x if d == 0 else xc[j]
-                xp[j] = x if d == 1 else xp[j]
-        for j in range(n):
-            b = xc[j]
-            kk = P[j]
-            if xm[j] > b:
-                b = xm[j]
-                kk = P[j] - 1
-            if xp[j] > b:
-                b = xp[j]
-                kk = P[j] + 1
-            best[j] = b
-            K0[j] = kk if P[j] != _NO_ROW else _NO_ROW
-            lev[j] = bg[j] + 0.5 * (b - bg[j])
-            fl[j] = False
-            fr[j] = False
-            left[j] = np.nan
-            right[j] = np.nan
-        # pass 2: the half-level crossings, from each row and the one before it
-        prev = A[pmin - half - 1, l0:l0 + n]
-        for r in range(pmin - half, pmax + half + 2):
-            row = A[r, l0:l0 + n]
-            for j in range(n):
-                x = np.float64(row[j])
-                xq = np.float64(prev[j])
-                d = r - K0[j]
-                lv = lev[j]
-                hit_r = (1 <= d <= half) and (not fr[j]) and x < lv
-                right[j] = ((r - 1) + (xq - lv) / (xq - x)) if hit_r else right[j]
-                fr[j] = fr[j] or hit_r
-                hit_l = (-half <= d - 1 <= -1) and xq < lv
-                left[j] = (r - (x - lv) / (x - xq)) if hit_l else left[j]
-                fl[j] = fl[j] or hit_l
-            prev = row
-    for j in range(n):
-        q = l0 + j
-        if P[j] == _NO_ROW:
-            c, fw, b, g, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength, intensity, width,
-                                            status)
-            cs[j] = c
-            fws[j] = fw
-            bests[j] = b
-            bgs[j] = g
-            flats[j] = flat
-            continue
-        centre[q] = np.nan
-        normal[q, 0] = np.nan
-        normal[q, 1] = np.nan
-        strength[q] = np.nan
-        intensity[q] = np.nan
-        width[q] = np.nan
-        p = P[j]
-        fw = right[j] - left[j]
-        c = p
-        if fw == fw:
-            cm = np.int64(math.floor(0.5 * (left[j] + right[j]) + 0.5))
-            if abs(cm - p) <= qpeak:
-                c = cm
-        b = best[j]
-        g = bg[j]
-        fws[j] = fw
-        bests[j] = b
-        bgs[j] = g
-        if c - 1 - R < 0 or c + 1 + R > S - 1:
-            status[q] = EDGE
-            cs[j] = -1
-            flats[j] = False
-            continue
-        cs[j] = c
-        # flat top: a run of >= 3 samples within FLAT_TOL of the peak needs a neighbour of p in it
-        thr = b - FLAT_TOL * (b - g)
-        flats[j] = (fw == fw and b - g > 0.0 and (xm[j] >= thr or xp[j] >= thr)
-                    and _is_flat(A, q, p, fw, b, g, half))
+# rows of the band's scratch array V (see _band_finish)
+_V_LAM, _V_NL, _V_NS, _V_G0, _V_D0, _V_G1, _V_D1, _V_T, _V_LO, _V_HI = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
+_V_ROWS = 10
 
 
 @njit(cache=True, inline="always")
@@ -1060,32 +854,29 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
 
     Interior lines go in bands of :data:`BAND_LINES`: first each line's middle ``c``
     (:func:`_line_start`), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
-    of the band's median the across-line sums of just the rows they need
-    (:func:`_band_sums`) and the along-line sums at their rows c-1 .. c+1
-    (:func:`_band_along`), both vectorised over the lines, then each line's end
-    (:func:`_line_finish`).  The other lines are computed alone (:func:`_line_alone`).
-    The numbers are the same either way, bit for bit.
+    of the band's median the derivative sums at the rows c-1 .. c+1 of every such c
+    (:func:`_band_sums`) and the lines' ends (:func:`_band_finish`), both vectorised
+    over the lines.  The other lines are computed alone (:func:`_line_alone`).  The
+    numbers are the same either way, bit for bit, so they do not depend on how the
+    lines are split into bands or tasks.
     """
     S, L = A.shape
     R = (w0.shape[0] - 1) // 2
     RX = (xw.shape[2] - 1) // 2
-    tmp = np.empty((4, max(2 * R + 3, 2 * (half + qpeak + 2) + 1)))   # X0, X1, X2; the flat centre's Y
+    tmp = np.empty((4, 2 * (half + qpeak + 2) + 1))   # row 3: the flat centre's Y
     sm = np.empty(14)
-    nrmax = 2 * BAND_DRIFT + 2 * R + 3
-    band = np.empty((3, nrmax, BAND_LINES))
-    D = np.empty((N_SUMS, 2 * BAND_DRIFT + 3, BAND_LINES))
-    F = np.empty(BAND_LINES + 2 * RX)
+    ndmax = 2 * BAND_DRIFT + 3
+    Fb = np.empty((ndmax + 2 * R, BAND_LINES + 2 * RX))
+    C = np.empty((3, ndmax, BAND_LINES + 2 * RX))
+    D = np.empty((N_SUMS, ndmax, BAND_LINES))
+    T = np.empty((3, 3, 2 * RX + 1))
     cs = np.empty(BAND_LINES, np.int64)
     fws = np.empty(BAND_LINES)
     bests = np.empty(BAND_LINES)
     bgs = np.empty(BAND_LINES)
     flats = np.empty(BAND_LINES, np.bool_)
     srt = np.empty(BAND_LINES, np.int64)
-    P = np.empty(BAND_LINES, np.int64)
-    K0 = np.empty(BAND_LINES, np.int64)
     V = np.empty((_V_ROWS, BAND_LINES))
-    fl = np.empty(BAND_LINES, np.bool_)
-    fr = np.empty(BAND_LINES, np.bool_)
     act = np.empty(BAND_LINES, np.bool_)
     l = la
     while l < lb:
@@ -1117,10 +908,8 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                     if abs(srt[j] - med) <= BAND_DRIFT:
                         lo = min(lo, srt[j])
                         hi = max(hi, srt[j])
-                # rows c-1-R .. c+1+R of every c in lo..hi (inside A: _line_start checked each)
-                rb0 = lo - 1 - R
-                _band_sums(A, rb0, hi - lo + 2 * R + 3, l0, n, RX, xw[RX, 0], xw[RX, 1], xw[RX, 2], F, band)
-                _band_along(band, rb0, lo - 1, hi - lo + 3, n, w0, w1, w2, D)
+                # the rows c-1 .. c+1 of every c in lo..hi (their windows inside A: _line_start checked)
+                _band_sums(A, lo - 1, hi - lo + 3, l0, n, RX, w0, w1, w2, xw[RX, 0], xw[RX, 1], xw[RX, 2], Fb, C, D)
                 _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half,
                              min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
                              status)
@@ -1129,7 +918,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                 c = cs[j]
                 if c >= 0 and not (lo <= c <= hi):
                     _line_alone(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], w0, w1, w2, xw, qpeak, half,
-                                min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
+                                min_peak, max_width, min_cos, tmp, T, sm, centre, normal, strength, intensity, width,
                                 status)
             l = l1
         else:   # an edge line (or a short remainder): alone
@@ -1137,7 +926,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                                                 intensity, width, status)
             if c >= 0:
                 _line_alone(A, l, pos[l], c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width,
-                            min_cos, tmp, sm, centre, normal, strength, intensity, width, status)
+                            min_cos, tmp, T, sm, centre, normal, strength, intensity, width, status)
             l += 1
 
 
@@ -1492,11 +1281,36 @@ def profiles_batch_serial(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qp
                       centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _frame_points(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
+    """A frame's profile in image coordinates (as ``stripe._profile_finish`` makes them):
+    ``uv`` (NaN off the valid lines), ``nrm`` (u, v), ``valid``; the curvature correction
+    when ``curv``."""
+    L = centre.shape[0]
+    iu = 0 if columns else 1
+    for i in range(L):
+        ok = status[i] == OK
+        valid[i] = ok
+        uv[i, iu] = np.float64(lines[i]) if ok else np.nan
+        uv[i, 1 - iu] = centre[i] + sample0
+        nrm[i, iu] = normal[i, 0]
+        nrm[i, 1 - iu] = normal[i, 1]
+    if curv:
+        profile_curvature(uv, nrm, valid, c2, m, 1 - iu)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def frames_points(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
+    """:func:`_frame_points` of every frame of a batch, frames across numba's threads."""
+    for f in prange(centre.shape[0]):
+        _frame_points(centre[f], normal[f], status[f], lines, sample0, columns, curv, c2, m, uv[f], nrm[f], valid[f])
+
+
 @njit(cache=True, nogil=True)
-def profile_curvature_batch(uv, nrm, valid, c2, m, k):
-    """:func:`profile_curvature` of every frame of (N, L, 2) arrays."""
-    for f in range(uv.shape[0]):
-        profile_curvature(uv[f], nrm[f], valid[f], c2, m, k)
+def frames_points_serial(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
+    """:func:`frames_points` on the calling thread only."""
+    for f in range(centre.shape[0]):
+        _frame_points(centre[f], normal[f], status[f], lines, sample0, columns, curv, c2, m, uv[f], nrm[f], valid[f])
 
 
 @njit(cache=True)

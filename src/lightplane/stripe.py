@@ -633,25 +633,17 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
         seq = [frames[i] for i in range(N)]
         return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
                                 setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
-    # _profile_finish for the whole stack at once
-    valid = status == K.OK
+    # _profile_finish for the whole stack at once, frames across threads as the profiles were
     lines = np.arange(L, dtype=np.int64) + line0
     lines.setflags(write=False)   # shared by the frames' profiles
     uv = np.empty((N, L, 2))
     nrm = np.empty((N, L, 2))
-    if axis == "columns":
-        uv[:, :, 0] = np.where(valid, lines[None, :], np.nan)
-        uv[:, :, 1] = centre + sample0
-        nrm[:] = normal
-    else:
-        uv[:, :, 0] = centre + sample0
-        uv[:, :, 1] = np.where(valid, lines[None, :], np.nan)
-        nrm[:, :, 0] = normal[:, :, 1]
-        nrm[:, :, 1] = normal[:, :, 0]
+    valid = np.empty((N, L), np.bool_)
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
-    if correct_curvature:
-        m = max(5, int(math.ceil(4.0 * sigma_al)))
-        K.profile_curvature_batch(uv, nrm, valid, sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, 1 if axis == "columns" else 0)
+    m = max(5, int(math.ceil(4.0 * sigma_al)))
+    (K.frames_points if par else K.frames_points_serial)(
+        centre, normal, status, lines, float(sample0), axis == "columns", bool(correct_curvature),
+        sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, uv, nrm, valid)
     return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
                           normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
                           width_px=float(w)) for f in range(N)]
