@@ -96,6 +96,29 @@ def test_scheimpflug_rig_focuses_the_light_plane():
     assert np.allclose(np.abs(flat.normal), [0, 0, 1]) and abs(flat.normal @ [0, 0, 450.0] + flat.d) < 1e-9
 
 
+def test_tilted_pinhole_is_a_rotated_pinhole():
+    """OpenCV's tilt matrix is P R (R: the sensor's rotation, P: a scale and shift), so without distortion
+    a tilted sensor projects exactly like an untilted one with K' = K P viewing the frame turned by R:
+    the tilt then cannot be told from a rotation of the camera frame plus a principal-point shift at all,
+    and only the lens distortion, applied before the tilt, tells them apart (README, Lens models)."""
+    from lightplane.lens import tilt_matrix
+
+    tx, ty = np.deg2rad(1.3), np.deg2rad(4.52)
+    cam = scheimpflug_camera(dist=(0.0, 0.0, 0.0, 0.0, 0.0))
+    cam = Camera(cam.K, np.concatenate([np.zeros(12), [tx, ty]]), cam.width, cam.height, model="tilted")
+    ry = np.array([[np.cos(ty), 0, -np.sin(ty)], [0, 1, 0], [np.sin(ty), 0, np.cos(ty)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(tx), np.sin(tx)], [0, -np.sin(tx), np.cos(tx)]])
+    R = ry @ rx
+    P = tilt_matrix(tx, ty) @ R.T
+    assert np.allclose(P[2], [0, 0, 1], atol=1e-15) and abs(P[0, 1]) + abs(P[1, 0]) < 1e-15  # scale and shift
+    turned = Camera(cam.K @ P, np.zeros(5), cam.width, cam.height)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-60, 60, 500), rng.uniform(-45, 45, 500), rng.uniform(350, 650, 500)])
+    assert np.abs(cam.project(pts) - turned.project(pts @ R.T)).max() < 1e-9
+    # the principal point moves by f sin(tauY) (~337 px here): what an untilted model of the camera reports
+    assert np.isclose(turned.cx - cam.cx, cam.fx * np.sin(ty) * np.cos(tx), rtol=1e-12)
+
+
 @pytest.mark.parametrize("model", LENS_CAMERAS)
 def test_camera_files_round_trip_exactly(tmp_path, model):
     cam = lens_camera(model)

@@ -20,7 +20,7 @@ from .lens import COEFF_NAMES, MODELS, coeff_names
 from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
-           "board_points", "lens_bend", "LENS_REFIT_BEND_PX", "opencv_std_ratio",
+           "board_points", "lens_bend", "LENS_REFIT_BEND_PX", "opencv_std_ratio", "rays_up_to_rotation",
            "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
@@ -996,6 +996,47 @@ def opencv_std_ratio(cal: "IntrinsicsCalibration") -> tuple[str, float] | None:
     return worst, float(ratios[worst])
 
 
+@dataclass(frozen=True)
+class RayComparison:
+    """Two cameras' rays compared over an image (:func:`rays_up_to_rotation`), px in the reference camera:
+    ``rms_px``, ``max_px`` as they are; ``rotated_rms_px``, ``rotated_max_px`` after the best rotation
+    ``rotation`` (3x3, applied to ``other``'s rays) of ``rotation_deg``."""
+
+    rms_px: float
+    max_px: float
+    rotated_rms_px: float
+    rotated_max_px: float
+    rotation: np.ndarray
+    rotation_deg: float
+
+
+def rays_up_to_rotation(reference: Camera, other: Camera, step_px: float = 16.0) -> RayComparison:
+    """How far ``other``'s rays land from the pixels they come from when projected by ``reference``,
+    on a grid of ``step_px`` over the whole image, as they are and after the rotation of ``other``'s
+    frame that fits them best (least squares in px).
+
+    A rotation of the camera frame about the centre of projection moves every camera-frame point
+    but no distance between points: a laser sensor calibrated with either camera (plane and camera
+    from the same images) measures the same shapes.  A Scheimpflug tilt of a narrow lens is, to
+    the corners' noise, such a rotation plus a principal-point shift and tangential terms (README,
+    Lens models): two calibrations of it can differ by pixels and agree to ~0.01 px here."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    v, u = np.mgrid[0:reference.height:step_px, 0:reference.width:step_px]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    r = other.rays(uv, unit=True)
+
+    def resid(w):
+        return (reference.project(r @ Rotation.from_rotvec(w).as_matrix().T) - uv).ravel()
+
+    d0 = np.linalg.norm(resid(np.zeros(3)).reshape(-1, 2), axis=1)
+    fit = least_squares(resid, np.zeros(3), x_scale=1e-3)
+    d1 = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
+    return RayComparison(float(np.sqrt(np.mean(d0 ** 2))), float(d0.max()), float(np.sqrt(np.mean(d1 ** 2))),
+                         float(d1.max()), Rotation.from_rotvec(fit.x).as_matrix(), float(np.rad2deg(np.linalg.norm(fit.x))))
+
+
 def calibration_flags(model: str | None, flags: int = 0) -> tuple[str, int]:
     """``(model, flags)`` of a calibration: the model named (its OpenCV flags added) or the one
     ``flags`` select (``CALIB_TILTED_MODEL`` -> tilted, ``THIN_PRISM`` -> thin_prism, ``RATIONAL``
@@ -1071,11 +1112,21 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
     if weak:
         out.append(f"the {model} model looks over-parameterised for these {n_views} views: "
                    f"{'; '.join(weak)} (std larger than the value: not determined)")
-    if pairs:
-        shown = "; ".join(pairs[:6]) + (f" and {len(pairs) - 6} more" if len(pairs) > 6 else "")
+    tilt_pairs = [q for q in pairs if "tau" in q and ("cx" in q or "cy" in q)]
+    other_pairs = [q for q in pairs if q not in tilt_pairs]
+    if other_pairs:
+        shown = "; ".join(other_pairs[:6]) + (f" and {len(other_pairs) - 6} more" if len(other_pairs) > 6 else "")
         out.append(f"strongly correlated parameters ({model}, {n_views} views): {shown} "
                    f"(|corr| > {OVERPARAM_CORRELATION}: the views do not separate them; a simpler model, "
                    f"more views or more tilted views help)")
+    if tilt_pairs:
+        out.append(f"the sensor tilt is not separated from the principal point ({'; '.join(tilt_pairs)}): through "
+                   f"a lens of this field the tilt shows as a rotation of the camera frame plus a principal-point "
+                   f"shift and tangential distortion, which other views do not change; the projection is "
+                   f"determined (shapes measured are not affected), the frame's orientation and the principal "
+                   f"point only within their std. To pin them, hold the tilt at the mechanical design's value or "
+                   f"the principal point (OpenCV's CALIB_FIX_TAUX_TAUY / CALIB_FIX_PRINCIPAL_POINT with "
+                   f"CALIB_USE_INTRINSIC_GUESS)")
     return out
 
 
