@@ -1093,7 +1093,7 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
     weak = [f"{n} = {values[n]:.3g} ± {std[n]:.2g}" for n in names
             if n in extra and n not in undetermined and std.get(n, 0) > 0
             and std[n] > OVERPARAM_STD_RATIO * abs(values[n])]
-    pairs = []
+    pairs: list[tuple[str, str, float]] = []
     if icov is not None:
         C = icov.covariance
         sd = np.sqrt(np.clip(np.diag(C), 0, None))
@@ -1102,8 +1102,7 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
         iu = np.triu_indices(len(free), 1)
         strong = (np.abs(R[iu]) > OVERPARAM_CORRELATION) & np.array(
             [icov.params[free[i]] in extra or icov.params[free[j]] in extra for i, j in zip(*iu)], bool)
-        pairs = [f"corr({icov.params[free[i]]}, {icov.params[free[j]]}) = {R[i, j]:+.4f}"
-                 for i, j in zip(iu[0][strong], iu[1][strong])]
+        pairs = [(icov.params[free[i]], icov.params[free[j]], float(R[i, j])) for i, j in zip(iu[0][strong], iu[1][strong])]
     out = []
     if icov is not None and icov.undetermined:
         out.append(f"the {model} model's {', '.join(icov.undetermined)} are not determined by these {n_views} views at "
@@ -1112,16 +1111,21 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
     if weak:
         out.append(f"the {model} model looks over-parameterised for these {n_views} views: "
                    f"{'; '.join(weak)} (std larger than the value: not determined)")
-    tilt_pairs = [q for q in pairs if "tau" in q and ("cx" in q or "cy" in q)]
-    other_pairs = [q for q in pairs if q not in tilt_pairs]
+    # a tilt that trades against the principal point: every pair of the tilt's is that one degeneracy
+    def tilt(a: str, b: str) -> bool:
+        return a.startswith("tau") or b.startswith("tau")
+
+    tilt_vs_pp = any(tilt(a, b) and {a, b} & {"cx", "cy"} for a, b, _ in pairs)
+    tilt_pairs = [f"corr({a}, {b}) = {r:+.4f}" for a, b, r in pairs if tilt_vs_pp and tilt(a, b)]
+    other_pairs = [f"corr({a}, {b}) = {r:+.4f}" for a, b, r in pairs if not (tilt_vs_pp and tilt(a, b))]
     if other_pairs:
         shown = "; ".join(other_pairs[:6]) + (f" and {len(other_pairs) - 6} more" if len(other_pairs) > 6 else "")
         out.append(f"strongly correlated parameters ({model}, {n_views} views): {shown} "
                    f"(|corr| > {OVERPARAM_CORRELATION}: the views do not separate them; a simpler model, "
                    f"more views or more tilted views help)")
     if tilt_pairs:
-        out.append(f"the sensor tilt is not separated from the principal point ({'; '.join(tilt_pairs)}): through "
-                   f"a lens of this field the tilt shows as a rotation of the camera frame plus a principal-point "
+        out.append(f"the sensor tilt is not separated from the principal point and p1, p2 ({'; '.join(tilt_pairs)}): "
+                   f"through a lens of this field the tilt shows as a rotation of the camera frame plus a principal-point "
                    f"shift and tangential distortion, which other views do not change; the projection is "
                    f"determined (shapes measured are not affected), the frame's orientation and the principal "
                    f"point only within their std. To pin them, hold the tilt at the mechanical design's value or "
