@@ -743,6 +743,7 @@ def calibrate_camera(
     names: Sequence[str] | None = None,
     flags: int = 0,
     model: str | None = None,
+    tilt_deg: tuple[float, float] | None = None,
     rotate_deg: int = 0,
     min_views: int = 3,
     refine: bool | str = True,
@@ -762,6 +763,12 @@ def calibrate_camera(
         (``CALIB_TILTED_MODEL``: the plumb bob and tauX, tauY, the other coefficients held at 0) or
         ``fisheye`` (``cv2.fisheye.calibrate``, skew fixed; its std from the Jacobian of the
         reprojection, see :func:`reprojection_covariance`); None: from ``flags``
+    tilt_deg : ``model="tilted"``: hold the sensor tilt (tauX, tauY, degrees) at this value, e.g. the
+        mechanical design's (``CALIB_FIX_TAUX_TAUY`` from OpenCV's initial guess).  Through a narrow
+        lens the views do not separate the tilt from the principal point (README, Lens models):
+        held, the principal point is determined, relative to that tilt (a tilt off by δ moves it
+        by ~f δ and turns the camera frame by δ; shapes measured are not affected), and OpenCV's
+        own std are then right
     rotate_deg : clockwise rotation applied to path inputs on reading (0/90/180/270)
     min_views : fewer usable views raise :class:`LightplaneError` (saying why the others were not usable)
     refine : chessboards: polish the corners (see :func:`find_board`): True or ``"saddle"`` fits the
@@ -788,6 +795,16 @@ def calibrate_camera(
     from .io import too_few_images_message, try_read_image
 
     target = as_target(board, square_mm)
+    guess_dist = None  # a held tilt (checked before any image is read)
+    if tilt_deg is not None:
+        tilt = np.asarray(tilt_deg, dtype=np.float64).ravel()
+        if calibration_flags(model, flags)[0] != "tilted":
+            raise LightplaneError(f"a held sensor tilt needs the tilted model, not {calibration_flags(model, flags)[0]}")
+        if tilt.size != 2 or not np.all(np.isfinite(tilt)) or np.any(np.abs(tilt) >= 45.0):
+            raise LightplaneError(f"the sensor tilt must be two finite angles (tauX, tauY) under 45 degrees, "
+                                  f"got {tilt.tolist()}")
+        guess_dist = np.zeros(14)
+        guess_dist[12:] = np.deg2rad(tilt)
     if len(images) == 0:
         raise LightplaneError("no images given")
     if names is None:
@@ -854,10 +871,17 @@ def calibrate_camera(
     imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     model, flags = calibration_flags(model, flags)
+    if guess_dist is not None:
+        flags |= cv2.CALIB_FIX_TAUX_TAUY | cv2.CALIB_USE_INTRINSIC_GUESS
 
     def solve(imgpoints):
         if model != "fisheye":
-            out = cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
+            if guess_dist is not None:  # OpenCV starts from the guess; the tilt stays where it is put
+                K0 = cv2.initCameraMatrix2D(objs, imgpoints, size)
+                out = cv2.calibrateCameraExtended(objs, imgpoints, size, K0, guess_dist.copy(), flags=flags,
+                                                  criteria=crit)
+            else:
+                out = cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
             if model in POLISHED_MODELS:
                 out = _polish(objs, imgpoints, out, flags)
             return out
@@ -1128,9 +1152,9 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
                    f"through a lens of this field the tilt shows as a rotation of the camera frame plus a principal-point "
                    f"shift and tangential distortion, which other views do not change; the projection is "
                    f"determined (shapes measured are not affected), the frame's orientation and the principal "
-                   f"point only within their std. To pin them, hold the tilt at the mechanical design's value or "
-                   f"the principal point (OpenCV's CALIB_FIX_TAUX_TAUY / CALIB_FIX_PRINCIPAL_POINT with "
-                   f"CALIB_USE_INTRINSIC_GUESS)")
+                   f"point only within their std. To pin them, hold the tilt at the mechanical design's value "
+                   f"(calibrate-camera --tilt TAUX,TAUY; calibrate_camera(tilt_deg=...)): the principal point is "
+                   f"then determined relative to it")
     return out
 
 

@@ -37,6 +37,10 @@ def calibrate_camera_cmd(
     model: str = typer.Option("plumb_bob", "--model", help="Lens model: plumb_bob (5 coefficients), rational (8), "
                               "thin_prism (12), tilted (the plumb bob + tauX, tauY: a Scheimpflug sensor) or "
                               "fisheye (cv2.fisheye, 4)."),
+    tilt: Optional[str] = typer.Option(None, "--tilt", help="With --model tilted: hold the sensor tilt at "
+                                       "TAUX,TAUY degrees (e.g. the mechanical design's). Through a narrow lens the "
+                                       "views do not separate the tilt from the principal point; held, the "
+                                       "principal point is determined relative to it."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Working distance (mm) at which to state "
                                              "the camera's uncertainty (default: the boards' median distance)."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
@@ -55,6 +59,16 @@ def calibrate_camera_cmd(
         raise LightplaneError(f"--model {model!r} is not a lens model (plumb_bob, rational, thin_prism, tilted, fisheye)")
     if model == "fisheye" and (fix_k3 or zero_tangent):
         raise LightplaneError("--fix-k3 / --zero-tangent apply to OpenCV's standard models, not to --model fisheye")
+    tilt_deg = None
+    if tilt is not None:
+        if model != "tilted":
+            raise LightplaneError(f"--tilt holds the sensor tilt of --model tilted, not of --model {model}")
+        try:
+            tilt_deg = tuple(float(x) for x in tilt.split(","))
+        except ValueError:
+            tilt_deg = ()
+        if len(tilt_deg) != 2:
+            raise LightplaneError(f"--tilt must be TAUX,TAUY in degrees (e.g. 0,4.5), got {tilt!r}")
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
     files = expand_inputs(images)
@@ -69,6 +83,7 @@ def calibrate_camera_cmd(
     with progress_bar("finding corners", len(files)) as update:
         flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
         result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags, model=model,
+                                  tilt_deg=None if tilt_deg is None else (tilt_deg[0], tilt_deg[1]),
                                   progress=lambda i, n: update(i))
 
     cam = result.camera
@@ -143,6 +158,7 @@ def calibrate_camera_cmd(
         "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
                                          "target": target.to_dict(), "rotate_deg": rotate,
                                          "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
+                                         "tilt_deg_held": None if tilt_deg is None else list(tilt_deg),
                                          "model": cam.model, "detector": detector,
                                          "solver": "fisheye.calibrate" if cam.model == "fisheye"
                                          else "calibrateCameraExtended"}),
