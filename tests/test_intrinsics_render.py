@@ -33,7 +33,7 @@ def _corner_errors(ds):
         if i < 3:
             c = find_board(img, board, refine=False)
             errs["subpix"].append(_oriented(c, t) - t)
-        c, saddle, _ = _detect_board(img, board, True, "saddle")
+        c, saddle, _, _ = _detect_board(img, board, True, "saddle")
         assert c is not None and saddle is not None
         errs["forstner"].append(_oriented(c, t) - t)
         errs["saddle"].append(_oriented(saddle, t) - t)

@@ -282,6 +282,51 @@ class Camera:
         out[:, 1, 1] = K[1, 1] * j22
         return out
 
+    def _undistort_near(self, uv: np.ndarray, start: np.ndarray, *, iters: int = 8,
+                        tol_px: float = 1e-5) -> tuple[np.ndarray, tuple]:
+        """:meth:`undistort_points` (normalised) of pixels ``uv`` (N, 2) by Newton from ``start`` (N, 2), a
+        close guess (e.g. a local linearisation of the lens about a nearby point), with
+        :meth:`distortion_jacobian` (j11, j12, j21, j22) at the result.
+
+        Each point iterates until its step is below ``tol_px``: Newton's error squares each step, so
+        that step ends within ~(tol_px / f)² f of the root (1e-14 px for 1e-5 px, f = 4000 px); the
+        Jacobian kept is the one at that step's start (a relative change of ~1e-10 over tol_px).  A
+        point not there after ``iters`` steps, or not finite, is solved by :meth:`undistort_points`
+        instead.  From a start within ~1 px: two evaluations of the lens model instead of ~6."""
+        target = self.pixels_to_normalized_linear(uv)
+        x, y = np.array(start[:, 0], np.float64), np.array(start[:, 1], np.float64)
+        tx, ty = target[:, 0], target[:, 1]
+        tol = tol_px / max(self.K[0, 0], self.K[1, 1])  # px -> normalised
+        n = len(x)
+        active: np.ndarray | None = None  # None: all points (no indexing)
+        done = np.zeros(n, bool)
+        jac = [np.empty(n) for _ in range(4)]
+        with np.errstate(all="ignore"):
+            for _ in range(iters):
+                sub = slice(None) if active is None else active
+                xa, ya = x[sub], y[sub]
+                xd, yd, j11, j12, j21, j22 = distort_jac(xa, ya, self._lens)
+                f0, f1 = xd - tx[sub], yd - ty[sub]
+                det = j11 * j22 - j12 * j21
+                dx = (j22 * f0 - j12 * f1) / det
+                dy = (-j21 * f0 + j11 * f1) / det
+                x[sub], y[sub] = xa - dx, ya - dy
+                for out, j in zip(jac, (j11, j12, j21, j22)):
+                    out[sub] = j
+                small = np.maximum(np.abs(dx), np.abs(dy)) < tol
+                idx = np.arange(n) if active is None else active
+                done[idx[small]] = True
+                active = idx[~small]
+                if active.size == 0:
+                    break
+        xy = np.column_stack([x, y])
+        redo = ~done | ~np.all(np.isfinite(xy), axis=1)
+        if np.any(redo):
+            xy[redo] = self._undistort_normalized(uv[redo])
+            for out, j in zip(jac, self.distortion_jacobian(xy[redo])):
+                out[redo] = j
+        return xy, tuple(jac)
+
     def _newton_undistort(self, xy: np.ndarray, target: np.ndarray, iters: int = 20) -> np.ndarray:
         """Solve distort(xy) = target by Newton's method, starting from ``xy``."""
         for _ in range(iters):

@@ -342,12 +342,21 @@ class _LensFrame:
         """Pixel centres (n, K) -> their rectified coordinates (n, K) each, and the area element
         ``|det ∂(rectified)/∂(pixel)|`` (n, K) by which a pixel sum becomes the integral there."""
         n, k = px.shape
-        x = self.camera.undistort_points(np.column_stack([px.ravel(), py.ravel()]), normalized=True)
+        J0 = self.J0
+        # Newton's start: the lens linearised about the corner (within the window's bend of the root)
+        Ji = np.linalg.inv(J0)
+        du, dv = px - self.q0[:, :1], py - self.q0[:, 1:]
+        start = np.stack([self.x0[:, None, 0] + Ji[:, None, 0, 0] * du + Ji[:, None, 0, 1] * dv,
+                          self.x0[:, None, 1] + Ji[:, None, 1, 0] * du + Ji[:, None, 1, 1] * dv], axis=-1)
+        x, (j11, j12, j21, j22) = self.camera._undistort_near(np.column_stack([px.ravel(), py.ravel()]),
+                                                               start.reshape(-1, 2))
         d = x.reshape(n, k, 2) - self.x0[:, None, :]
-        X = self.q0[:, :1] + self.J0[:, None, 0, 0] * d[..., 0] + self.J0[:, None, 0, 1] * d[..., 1]
-        Y = self.q0[:, 1:] + self.J0[:, None, 1, 0] * d[..., 0] + self.J0[:, None, 1, 1] * d[..., 1]
-        Jp = self.camera.pixel_jacobian(x).reshape(n, k, 2, 2)
-        area = np.abs(np.linalg.det(self.J0))[:, None] / np.abs(np.linalg.det(Jp))
+        X = self.q0[:, :1] + J0[:, None, 0, 0] * d[..., 0] + J0[:, None, 0, 1] * d[..., 1]
+        Y = self.q0[:, 1:] + J0[:, None, 1, 0] * d[..., 0] + J0[:, None, 1, 1] * d[..., 1]
+        # |det ∂(u, v)/∂(x, y)| = fx fy |det ∂(x_d, y_d)/∂(x, y)| (K upper triangular)
+        det_p = (self.camera.K[0, 0] * self.camera.K[1, 1]) * (j11 * j22 - j12 * j21).reshape(n, k)
+        det0 = J0[:, 0, 0] * J0[:, 1, 1] - J0[:, 0, 1] * J0[:, 1, 0]
+        area = np.abs(det0)[:, None] / np.abs(det_p)
         return X, Y, area
 
     def back(self, q: np.ndarray) -> np.ndarray:
@@ -357,11 +366,13 @@ class _LensFrame:
 
 
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
-                 tol_px: float, camera: Camera | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 tol_px: float, camera: Camera | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg–Marquardt fit of :func:`_saddle_model` to ``g`` for corners with starting
     parameters ``P`` (n, 11) and window radii ``radius`` (n,) px: the fitted parameters
     and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
-    the :class:`_LensFrame` about the starting corners (the corners returned in distorted px)."""
+    the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
+    ``warm``: ``P`` is a whole fitted parameter set (else only the corner, edge angles and blur:
+    the linear parameters are solved for first)."""
     h, w = g.shape
     q0 = P[:, :2].copy()
     r = int(np.ceil(radius.max())) + 1
@@ -388,15 +399,15 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
 
     n = len(P)
     P = P.copy()
-    # the linear parameters (a, b, g, h) for the starting geometry
-    ux, uy, W = weight(q0)
-    _, J = _saddle_model(P, ux, uy, True)
-    lin = [5, 6, 7, 8, 9, 10]
-    Jl = J[:, lin]
-    A = (Jl * W[:, None]) @ Jl.transpose(0, 2, 1)
-    rhs = ((Jl * W[:, None]) @ img[..., None])[..., 0]
-    sol = _solve_each(A + 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6), rhs)
-    P[:, lin] = np.where(np.isfinite(sol), sol, 0.0)
+    if not warm:  # the linear parameters (a, b, g, h) for the starting geometry
+        ux, uy, W = weight(q0)
+        _, J = _saddle_model(P, ux, uy, True)
+        lin = [5, 6, 7, 8, 9, 10]
+        Jl = J[:, lin]
+        A = (Jl * W[:, None]) @ Jl.transpose(0, 2, 1)
+        rhs = ((Jl * W[:, None]) @ img[..., None])[..., 0]
+        sol = _solve_each(A + 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6), rhs)
+        P[:, lin] = np.where(np.isfinite(sol), sol, 0.0)
 
     eye = np.eye(11)
     lam = np.full(n, 1e-3)
@@ -503,10 +514,16 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
 def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
                  max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12, tol_px: float = 1e-4,
                  min_blur_px: float = 0.4, chunk_size: int = 24, camera: Camera | None = None,
-                 min_bend_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px and which corners were fitted (N,) bool.
+                 min_bend_px: float = 0.0, start: np.ndarray | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px, which corners were fitted (N,) bool
+    and the fitted parameters (N, 11) (:func:`_saddle_model`; NaN rows where not fitted).
     With ``camera`` only the corners whose window the lens bends by more than ``min_bend_px``
-    (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted)."""
+    (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted).
+    ``start``: (N, 11) parameters of an earlier fit about ``corners_uv`` to start from (its corners
+    ``corners_uv``; NaN rows: the corners it did not fit, which start afresh), e.g. the fit without
+    ``camera`` for the refit in the lens frame (which, to first order, changes nothing about the
+    corner): the Levenberg–Marquardt then converges in one or two steps instead of three or four."""
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
@@ -534,13 +551,22 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     P[:, 2] = np.arctan2(e_row[:, 0], -e_row[:, 1])  # normal of the edge along the row
     P[:, 3] = np.arctan2(e_col[:, 0], -e_col[:, 1])
     P[:, 4] = 1.0
+    warm = np.zeros(n, bool)
+    if start is not None:
+        start = np.asarray(start, np.float64)
+        if start.shape != (n, 11):
+            raise LightplaneError(f"fit_corners: start must have shape ({n}, 11), got {start.shape}")
+        warm = np.all(np.isfinite(start), axis=1) & np.all(start[:, :2] == q0, axis=1)
+        P[warm] = start[warm]
     cost = np.full(n, np.inf)
-    # corners in chunks of similar radius: bounded memory, few padded pixels
-    order = np.flatnonzero(sel)[np.argsort(radius[sel])]
-    for chunk in np.array_split(order, max(1, int(np.ceil(order.size / chunk_size)))):
-        if chunk.size == 0:
-            continue
-        P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px, camera)
+    for group, is_warm in ((sel & ~warm, False), (sel & warm, True)):
+        # corners in chunks of similar radius: bounded memory, few padded pixels
+        order = np.flatnonzero(group)[np.argsort(radius[group])]
+        for chunk in np.array_split(order, max(1, int(np.ceil(order.size / chunk_size)))):
+            if chunk.size == 0:
+                continue
+            P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px, camera,
+                                                 warm=is_warm)
     q = P[:, :2].copy()
 
     def turned(phi, e):  # angle between the fitted edge and the grid direction
@@ -554,7 +580,8 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
            | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
     q[bad] = q0[bad]
     blur[~sel] = np.nan
-    return q, blur, ~bad
+    P[bad] = np.nan
+    return q, blur, ~bad, P
 
 
 def lens_bend(camera: Camera, corners_uv: np.ndarray, radius_px: np.ndarray | float) -> np.ndarray:
@@ -595,7 +622,7 @@ def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True
     whole board when its edges are sharper than ``MIN_BOARD_BLUR_PX`` (median fitted blur).
     """
     method = _refine_method(refine)
-    c, saddle, blur = _detect_board(image, board, subpix, method)
+    c, saddle, blur, _ = _detect_board(image, board, subpix, method)
     if saddle is not None and blur.size and np.median(blur) >= MIN_BOARD_BLUR_PX:
         return saddle
     return c
@@ -610,15 +637,16 @@ def _refine_method(refine) -> str | None:
 
 
 def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
-                  method: str | None) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+                  method: str | None) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray | None]:
     """:func:`find_board`'s steps: the corners up to Förstner's refinement (or None when
     the board is not found), the saddle fit's corners (None unless ``method`` is
-    ``"saddle"``; unfitted corners keep Förstner's) and the blur (px) of the fitted ones."""
+    ``"saddle"``; unfitted corners keep Förstner's), the blur (px) of the fitted ones and the
+    fit's parameters (N, 11), NaN rows where not fitted (None without the fit)."""
     import cv2
 
     from .io import to_gray_float
 
-    none = (None, None, np.zeros(0))
+    none = (None, None, np.zeros(0), None)
     gray = image if image.ndim == 2 else to_gray_float(image)
     gray_in = gray
     if gray.dtype != np.uint8:
@@ -631,7 +659,7 @@ def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
         return none
     c32 = corners.reshape(-1, 2).astype(np.float32)
     if not subpix:
-        return c32.astype(np.float64), None, np.zeros(0)
+        return c32.astype(np.float64), None, np.zeros(0), None
     cols, rows = board
     grid = c32.reshape(rows, cols, 2)
     spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
@@ -641,12 +669,12 @@ def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
     c = cv2.cornerSubPix(gray, c32.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
     c = c.astype(np.float64)
     if method is None or spacing < 8:
-        return c, None, np.zeros(0)
+        return c, None, np.zeros(0), None
     c = refine_corners(gray, c, float(spacing))
     if method != "saddle":
-        return c, None, np.zeros(0)
-    q, blur, ok = _fit_corners(gray_in, c, (cols, rows))  # corners it cannot fit keep Förstner's position
-    return c, q, blur[ok]
+        return c, None, np.zeros(0), None
+    q, blur, ok, params = _fit_corners(gray_in, c, (cols, rows))  # corners it cannot fit keep Förstner's position
+    return c, q, blur[ok], params
 
 
 @dataclass(frozen=True)
@@ -813,6 +841,7 @@ def calibrate_camera(
     views: list[BoardView] = []
     sources: list = []  # the image (array or path) of each view, for the refit in the lens frame
     saddles: list[np.ndarray | None] = []
+    fits: list[np.ndarray | None] = []  # the saddle fit's parameters of each view (the refit's start)
     blurs: list[np.ndarray] = []
     dots: list[float] = []
     skipped: dict[str, str] = {}
@@ -836,10 +865,11 @@ def calibrate_camera(
             if size != (w, h):
                 skipped[name] = f"size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px"
             elif target.kind == "chessboard":
-                c, saddle, blur = _detect_board(img, (target.cols, target.rows), True, method)
+                c, saddle, blur, fit = _detect_board(img, (target.cols, target.rows), True, method)
                 views.append(BoardView(name, c, (w, h)))
                 sources.append(im)
                 saddles.append(saddle)
+                fits.append(fit)
                 blurs.append(blur)
             else:
                 det = target.detect(img)
@@ -847,6 +877,7 @@ def calibrate_camera(
                                        None if det is None else det.ids))
                 sources.append(im)
                 saddles.append(None)
+                fits.append(None)
                 if det is not None and target.kind in ("circles", "acircles"):
                     dots.append(dot_diameter_mm(img, det, target))
         if progress:
@@ -860,6 +891,7 @@ def calibrate_camera(
             method = "forstner"
     found = [v for v in views if v.corners_uv is not None]
     found_src = [src for v, src in zip(views, sources) if v.corners_uv is not None]
+    found_fits = [f for v, f in zip(views, fits) if v.corners_uv is not None]
     found_uv: list[np.ndarray] = [v.corners_uv for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     for n in not_found:
@@ -903,7 +935,8 @@ def calibrate_camera(
         # the saddle model's edges are straight: refit, in the lens frame of this first calibration, the
         # corners whose windows its lens bends (LENS_REFIT_BEND_PX), then solve again
         cam1 = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
-        found_uv, n_refit = _refit_in_lens_frame(cam1, found_uv, found_src, (target.cols, target.rows), rotate_deg)
+        found_uv, n_refit = _refit_in_lens_frame(cam1, found_uv, found_src, (target.cols, target.rows), rotate_deg,
+                                                 found_fits)
         if n_refit:
             found = [BoardView(v.name, u, v.image_size, v.ids) for v, u in zip(found, found_uv)]
             imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
@@ -982,20 +1015,22 @@ LENS_REFIT_BEND_PX = 0.005
 
 
 def _refit_in_lens_frame(camera: Camera, corners: list[np.ndarray], sources: list, board: tuple[int, int],
-                         rotate_deg: int) -> tuple[list[np.ndarray], int]:
+                         rotate_deg: int, starts: Sequence[np.ndarray | None] | None = None,
+                         ) -> tuple[list[np.ndarray], int]:
     """Every view's saddle corners fitted again in ``camera``'s lens frame where it bends their
     windows by more than :data:`LENS_REFIT_BEND_PX` (:func:`_fit_corners`): the corners, and how many
-    were refitted.  ``sources``: each view's image (array or path, read again)."""
+    were refitted.  ``sources``: each view's image (array or path, read again); ``starts``: each
+    view's first fit (:func:`_fit_corners`' parameters, or None), where the refit starts."""
     from .io import to_gray_float, try_read_image
 
     out, n = [], 0
-    for uv, src in zip(corners, sources):
+    for uv, src, start in zip(corners, sources, starts if starts is not None else [None] * len(corners)):
         img = try_read_image(src, rotate_deg=rotate_deg)[0] if isinstance(src, (str, Path)) else np.asarray(src)
         if img is None:  # read once already: only a file changed in between
             out.append(uv)
             continue
         gray = img if img.ndim == 2 else to_gray_float(img)
-        q, _, ok = _fit_corners(gray, uv, board, camera=camera, min_bend_px=LENS_REFIT_BEND_PX)
+        q, _, ok, _ = _fit_corners(gray, uv, board, camera=camera, min_bend_px=LENS_REFIT_BEND_PX, start=start)
         out.append(q)
         n += int(ok.sum())
     return out, n
