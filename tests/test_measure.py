@@ -53,6 +53,51 @@ def test_lookup_matches_exact_undistortion(measurer):
     assert np.all(np.isnan(got[1]))
 
 
+def _hermite_reference(m: ProfileMeasurer, uv: np.ndarray) -> np.ndarray:
+    """The lookup as numpy expressions (what the kernel replaced), from ``m``'s tables (the blocks the
+    points need built)."""
+    li, si = (0, 1) if m.axis == "columns" else (1, 0)
+    x, y = m.roi[:2]
+    line = uv[:, li] - (x if m.axis == "columns" else y)
+    t = uv[:, si] - (y if m.axis == "columns" else x)
+    L, S = m._xy.shape[:2]
+    ok = np.isfinite(line) & np.isfinite(t)
+    lidx = np.where(ok, np.rint(line), 0).astype(np.intp)
+    on = ok & (np.abs(line - lidx) < 1e-9) & (lidx >= 0) & (lidx < L)
+    i0 = np.clip(np.floor(np.where(on, t, 0.0)), 0, S - 2).astype(np.intp)
+    f = (np.where(on, t, 0.0) - i0)[:, None]
+    li_ = np.where(on, lidx, 0)
+    p0, p1 = m._xy[li_, i0], m._xy[li_, i0 + 1]
+    m0, m1 = m._dxy[li_, i0].astype(np.float64), m._dxy[li_, i0 + 1].astype(np.float64)
+    f2, f3 = f * f, f * f * f
+    val = (2 * f3 - 3 * f2 + 1) * p0 + (f3 - 2 * f2 + f) * m0 + (-2 * f3 + 3 * f2) * p1 + (f3 - f2) * m1
+    out = np.full(uv.shape, np.nan)
+    out[on] = val[on]
+    out[ok & ~on] = m.camera.undistort_points(uv[ok & ~on], normalized=True)
+    return out
+
+
+@pytest.mark.parametrize("axis, roi", [("rows", None), ("columns", (40, 30, 500, 400))])
+def test_lookup_kernel_equals_the_numpy_expressions(axis, roi):
+    """The numba lookup (tables filled lazily, block by block) gives the numpy expressions' numbers bit for
+    bit: on and off the grid lines, outside the roi, NaN, the last sample."""
+    rng = np.random.default_rng(5)
+    lazy = ProfileMeasurer(CAM, PLANE, axis=axis, roi=roi)
+    x0, y0, w, h = lazy.roi
+    nl, ns = (w, h) if axis == "columns" else (h, w)
+    for k in range(3):
+        lines = rng.integers(-2, nl + 2 if k else 40, 2000) + (x0 if axis == "columns" else y0)
+        samples = rng.uniform(-2, ns + 1, 2000) + (y0 if axis == "columns" else x0)
+        uv = np.column_stack([lines, samples] if axis == "columns" else [samples, lines]).astype(float)
+        uv[::17] = np.nan
+        uv[3::19, 0 if axis == "columns" else 1] += 0.25  # off the grid lines
+        uv[0] = (x0 + w - 1, y0 + h - 1)
+        got = lazy.normalized(uv)
+        assert np.array_equal(got, _hermite_reference(lazy, uv), equal_nan=True)
+        if k == 0:  # the first 40 lines: only the blocks they need are built
+            assert 0 < lazy.blocks_built < lazy._built.size
+
+
 def test_profile_axis_follows_the_plane():
     assert profile_axis(PLANE) == "rows"  # plane contains the camera's y axis: vertical stripe
     assert profile_axis(LightPlane([0.0, np.cos(0.4), -np.sin(0.4)], 190.0)) == "columns"

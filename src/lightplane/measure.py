@@ -390,31 +390,32 @@ class ProfileMeasurer:
         uv = as_points(uv, 2, "uv")
         if not self._lookup:
             return self.camera.undistort_points(uv, normalized=True)
-        tab_xy, tab_dxy, _ = self._alloc_tables()
-        lines, samples = self._line_grid()
-        line0, sample0 = int(lines[0]), int(samples[0])
+        from ._measure_kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup
+
+        tab_xy, tab_dxy, built = self._alloc_tables()
+        x, y = self.roi[:2]
+        line0, sample0 = (x, y) if self.axis == "columns" else (y, x)
         li, si = (0, 1) if self.axis == "columns" else (1, 0)
-        L, S = tab_xy.shape[:2]
         line = uv[:, li] - line0
         t = uv[:, si] - sample0
-        ok = np.isfinite(line) & np.isfinite(t)
-        lidx = np.where(ok, np.rint(line), 0).astype(np.intp)
-        on_grid = ok & (np.abs(line - lidx) < 1e-9) & (lidx >= 0) & (lidx < L)
-        out = np.full(uv.shape, np.nan)
-        if not np.all(on_grid == ok):
-            off = ok & ~on_grid
+        out = np.empty(uv.shape)
+        status = np.empty(len(uv), np.int8)
+        hermite_lookup(tab_xy, tab_dxy, built, self.BLOCK_LINES, self.BLOCK_SAMPLES, line, t, out, status)
+        todo = np.flatnonzero(status == NOT_BUILT)
+        if todo.size:  # blocks first needed now: build them, then look these points up
+            S = tab_xy.shape[1]
+            lb = np.rint(line[todo]).astype(np.intp) // self.BLOCK_LINES
+            i0 = np.clip(np.floor(t[todo]), 0, S - 2).astype(np.intp)
+            self._ensure_blocks(np.concatenate([lb, lb]), np.concatenate([i0, i0 + 1]) // self.BLOCK_SAMPLES)
+            sub_out, sub_status = np.empty((todo.size, 2)), np.empty(todo.size, np.int8)
+            hermite_lookup(tab_xy, tab_dxy, built, self.BLOCK_LINES, self.BLOCK_SAMPLES, line[todo], t[todo],
+                           sub_out, sub_status)
+            assert np.all(sub_status == DONE)
+            out[todo] = sub_out
+            status[todo] = sub_status
+        off = status == OFF_GRID
+        if off.any():
             out[off] = self.camera.undistort_points(uv[off], normalized=True)
-        i0 = np.clip(np.floor(np.where(on_grid, t, 0.0)), 0, S - 2).astype(np.intp)
-        f = (np.where(on_grid, t, 0.0) - i0)[:, None]
-        l = np.where(on_grid, lidx, 0)
-        lb = l[on_grid] // self.BLOCK_LINES
-        self._ensure_blocks(np.concatenate([lb, lb]), np.concatenate([i0[on_grid], i0[on_grid] + 1]) // self.BLOCK_SAMPLES)
-        p0, p1 = tab_xy[l, i0], tab_xy[l, i0 + 1]
-        m0, m1 = tab_dxy[l, i0].astype(np.float64), tab_dxy[l, i0 + 1].astype(np.float64)
-        f2, f3 = f * f, f * f * f
-        h00, h10, h01, h11 = 2 * f3 - 3 * f2 + 1, f3 - 2 * f2 + f, -2 * f3 + 3 * f2, f3 - f2
-        val = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1
-        out[on_grid] = val[on_grid]
         return out
 
     # --------------------------------------------------------------------- measure
