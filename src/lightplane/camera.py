@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .errors import LightplaneError
-from .lens import MODELS, ROS_MODELS, distort_jac, lens_params, model_for, undistort_guess
+from .lens import MODELS, ROS_MODELS, distort_jac, lens_params, model_for
 
 __all__ = ["Camera", "as_points"]
 
@@ -241,12 +241,14 @@ class Camera:
         OpenCV's iterative undistortion (tight criteria) followed by Newton."""
         import cv2
 
+        from ._lens_kernels import newton_undistort
+
         target = self.pixels_to_normalized_linear(uv)
         good = np.all(np.isfinite(uv), axis=1)
-        with np.errstate(all="ignore"):
-            xy = self._newton_undistort(np.column_stack(undistort_guess(target[:, 0], target[:, 1], self._lens)),
-                                        target, iters=12)
-            err = np.linalg.norm(self.normalized_to_pixels(xy) - uv, axis=1)
+        xy, err = np.empty((len(uv), 2)), np.empty(len(uv))
+        # per point (lightplane._lens_kernels): Newton to a step of 1e-16, the reprojection error (px)
+        newton_undistort(np.ascontiguousarray(target[:, 0]), np.ascontiguousarray(target[:, 1]), self._lens, self.K,
+                         np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), 12, xy, err)
         redo = good & ~(err < 1e-9)
         xy[~good] = np.nan
         if np.any(redo):

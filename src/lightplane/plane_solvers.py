@@ -381,12 +381,16 @@ def _msd(points: np.ndarray, n: np.ndarray, d: float) -> float:
     return float(np.mean(r * r))
 
 
+#: the upper triangle of a 3x3 matrix, row by row (the order of the moments' second-order entries)
+_IU3 = np.triu_indices(3)
+
+
 def _moments(points: np.ndarray, w: float, ref: np.ndarray) -> np.ndarray:
     """(10,) weighted moments ``[Σw, Σw p (3), Σw p pᵀ (xx, xy, xz, yy, yz, zz)]`` about ``ref``."""
     q = points - ref
     s1 = w * q.sum(axis=0)
     S2 = w * (q.T @ q)
-    return np.concatenate([[w * len(q)], s1, S2[np.triu_indices(3)]])
+    return np.concatenate([[w * len(q)], s1, S2[_IU3]])
 
 
 def _cost_from_moments(M: np.ndarray) -> np.ndarray:
@@ -473,7 +477,7 @@ class _ChordMoments:
         M = self.total(bits)
         c = M[1:4] / M[0]
         S = np.zeros((3, 3))
-        S[np.triu_indices(3)] = M[4:]
+        S[_IU3] = M[4:]
         S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
         n = np.linalg.eigh(S)[1][:, 0]
         return n, -float(n @ (c + self.ref))
@@ -481,7 +485,7 @@ class _ChordMoments:
     def chord_costs(self, n: np.ndarray, d: float) -> np.ndarray:
         """(n, 2) normalised cost ``msd/tau²`` of every candidate chord w.r.t. the plane ``(n, d)``."""
         dr = d + float(n @ self.ref)  # the plane in reference coordinates
-        iu = np.triu_indices(3)
+        iu = _IU3
         nn = np.outer(n, n)
         nn = (2.0 * nn - np.diag(np.diag(nn)))[iu]  # coefficients of the upper-triangle entries
         m = self.mom
@@ -573,7 +577,7 @@ def _sample_assignment(cm: _ChordMoments, rng, n_samples: int) -> tuple[np.ndarr
                 M = cm.mom[a, ka] + cm.mom[b, kb]
                 c = M[1:4] / M[0]
                 S = np.zeros((3, 3))
-                S[np.triu_indices(3)] = M[4:]
+                S[_IU3] = M[4:]
                 S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
                 nrm = np.linalg.eigh(S)[1][:, 0]
                 d = -float(nrm @ (c + cm.ref))

@@ -1,0 +1,45 @@
+"""Numba kernel behind :meth:`lightplane.camera.Camera.undistort_points`: Newton's undistortion
+of each point on the exact lens model (:func:`lightplane.lens.distort_jac`, compiled on scalars as
+the renderer does), a point at a time.  The numpy version iterated all points until the slowest
+converged, ~40 array operations per step: 6000 points took ~2 ms, this ~0.2 ms.  The values are
+the same to an ulp or two (a point stops at its own convergence instead of the slowest one's).
+"""
+
+from __future__ import annotations
+
+import math
+
+from . import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
+from numba import njit  # noqa: E402
+
+from .lens import distort_jac, undistort_guess  # noqa: E402
+
+_distort_jac = njit(cache=True, nogil=True, inline="always", error_model="numpy")(distort_jac)
+_undistort_guess = njit(cache=True, nogil=True, inline="always", error_model="numpy")(undistort_guess)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover - compiled
+    """For each point ``k``: the normalised undistorted ``xy[k]`` whose distortion is the normalised
+    distorted ``(tx[k], ty[k])`` (K⁻¹ of the pixel ``(u[k], v[k])``), by Newton from
+    :func:`undistort_guess` until the step is at most 1e-16 (``iters`` steps at most), and ``err[k]``
+    the distance (px) between its projection and the pixel (NaN / inf where it failed)."""
+    for k in range(tx.shape[0]):
+        x, y = _undistort_guess(tx[k], ty[k], lens)
+        for _ in range(iters):
+            xd, yd, j11, j12, j21, j22 = _distort_jac(x, y, lens)
+            f0 = xd - tx[k]
+            f1 = yd - ty[k]
+            det = j11 * j22 - j12 * j21
+            dx = (j22 * f0 - j12 * f1) / det
+            dy = (-j21 * f0 + j11 * f1) / det
+            x = x - dx
+            y = y - dy
+            if not max(abs(dx), abs(dy)) > 1e-16:
+                break
+        xy[k, 0] = x
+        xy[k, 1] = y
+        xd, yd, _, _, _, _ = _distort_jac(x, y, lens)
+        du = K[0, 0] * xd + K[0, 1] * yd + K[0, 2] - u[k]
+        dv = K[1, 1] * yd + K[1, 2] - v[k]
+        err[k] = math.sqrt(du * du + dv * dv)
