@@ -7,6 +7,8 @@ paper's progressive solver, the global disambiguation and the joint ML refinemen
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 
 from .camera import as_points
@@ -259,6 +261,12 @@ class PlacementCandidates:
     tau_unit_mm: tuple
     usable: bool
     reason: str
+
+    @cached_property
+    def chord_ends(self) -> tuple:
+        """Per candidate chord, its two ends and their midpoint (3, 3) (:func:`_chord_ends`), computed once
+        (the paper method's tests ask for them again and again)."""
+        return tuple(_chord_ends(ch) for ch in self.chords)
 
 
 def _tau_unit(pose, f_px: float, n_rim: int, n_stripe: int) -> float:
@@ -627,7 +635,7 @@ def _plane_offset_var(cands, support, n, points: np.ndarray, sigma_px) -> float:
     e1 = np.cross(n, np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0]))
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
-    ends = [(_chord_ends(cands[i].chords[k])[[0, 2]], 1.0 / (2.0 * _tau(cands[i], k, sigma_px) ** 2))
+    ends = [(cands[i].chord_ends[k][[0, 2]], 1.0 / (2.0 * _tau(cands[i], k, sigma_px) ** 2))
             for i, k in support]
     P = np.concatenate([e for e, _ in ends])
     w = np.repeat([wt for _, wt in ends], 2)
@@ -646,7 +654,7 @@ def _lies_on(cands, i, k, n, d, support, sigma_px) -> bool:
     """Chord k of placement i lies on the plane ``(n, d)`` fitted to ``support``:
     ``msd <= κ² (tau_i² + var_plane)``, ``var_plane`` from :func:`_plane_offset_var`."""
     ch = cands[i].chords[k]
-    var_plane = _plane_offset_var(cands, support, n, _chord_ends(ch), sigma_px)
+    var_plane = _plane_offset_var(cands, support, n, cands[i].chord_ends[k], sigma_px)
     return _msd(ch, n, d) <= _KAPPA**2 * (_tau(cands[i], k, sigma_px) ** 2 + var_plane)
 
 
