@@ -80,9 +80,12 @@ def _hermite_reference(m: ProfileMeasurer, uv: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("axis, roi", [("rows", None), ("columns", (40, 30, 500, 400))])
 def test_lookup_kernel_equals_the_numpy_expressions(axis, roi):
     """The numba lookup (tables filled lazily, block by block) gives the numpy expressions' numbers bit for
-    bit: on and off the grid lines, outside the roi, NaN, the last sample."""
+    bit: on and off the grid lines, outside the roi, NaN, the last sample; and from tables built all at
+    once the same numbers (a block's values do not depend on which blocks were built with it)."""
     rng = np.random.default_rng(5)
     lazy = ProfileMeasurer(CAM, PLANE, axis=axis, roi=roi)
+    full = ProfileMeasurer(CAM, PLANE, axis=axis, roi=roi)
+    full.build_lookup()
     x0, y0, w, h = lazy.roi
     nl, ns = (w, h) if axis == "columns" else (h, w)
     for k in range(3):
@@ -94,6 +97,7 @@ def test_lookup_kernel_equals_the_numpy_expressions(axis, roi):
         uv[0] = (x0 + w - 1, y0 + h - 1)
         got = lazy.normalized(uv)
         assert np.array_equal(got, _hermite_reference(lazy, uv), equal_nan=True)
+        assert np.array_equal(got, _hermite_reference(full, uv), equal_nan=True)
         if k == 0:  # the first 40 lines: only the blocks they need are built
             assert 0 < lazy.blocks_built < lazy._built.size
 
