@@ -64,6 +64,8 @@ def main() -> None:
     ap.add_argument("--summary", action="store_true", help="only summarise the sets already in out/")
     ap.add_argument("--fresh", action="store_true", help="forget the sets already in out/")
     ap.add_argument("--no-joint", action="store_true", help="without the joint refinement's columns")
+    ap.add_argument("--joint-white", action="store_true",
+                    help="also the joint with the corners weighted by the residuals' sigma alone")
     ap.add_argument("--name", default="bench_camera_uncertainty", help="name of the result files in out/")
     args = ap.parse_args()
     if args.render_only:
@@ -191,7 +193,56 @@ def _corner_truth_error(res, k: int) -> dict:
             "detector_mahalanobis2": float(dK @ S @ dK / sig**2)}
 
 
-def one_set(cache: Path, k: int, joint: bool = True) -> dict:
+def _with_white_camera(cam, plane, dispersion: float):
+    """The camera and plane with the intrinsics' covariance of independent corner errors (``noise="white"``:
+    the default's divided by the views' dispersion; the plane's recorded Jacobian is the same)."""
+    from dataclasses import replace
+
+    from lightplane.plane import LightPlane
+
+    C = np.asarray(cam.covariance) / dispersion
+    cam_w = replace(cam, covariance=C)
+    rec = dict(plane.meta["camera_jacobian"])
+    J = np.asarray(rec["matrix"])
+    rec["covariance_camera"] = (J @ C @ J.T).tolist()
+    meta = dict(plane.meta)
+    meta["camera_jacobian"] = rec
+    return cam_w, LightPlane(plane.normal, plane.d, plane.covariance, meta=meta)
+
+
+def _shape_parts(est, est_true_cam, points) -> dict:
+    """First-order split of the shape error (the rigid motion over the volume projected out) into the
+    exact camera's part (the plane's own errors), the camera's part (the rest) and their cross term
+    (mm²; 2 × the mean inner product): the shape² is their sum."""
+    from lightplane.uncertainty import rigid_motion_basis
+
+    ok = np.all(np.isfinite(est), axis=1) & np.all(np.isfinite(est_true_cam), axis=1)
+    Q = rigid_motion_basis(points[ok])
+    def proj(d):
+        f = d.ravel()
+        return (f - Q @ (Q.T @ f)).reshape(-1, 3)
+    a = proj(est_true_cam[ok] - points[ok])
+    b = proj(est[ok] - est_true_cam[ok])
+    n = len(a)
+    return {"lin_shape_own_mm": float(np.sqrt(np.sum(a**2) / n)), "lin_shape_camera_mm": float(np.sqrt(np.sum(b**2) / n)),
+            "lin_shape_cross_mm2": float(2 * np.sum(a * b) / n)}
+
+
+def _hausman(cam, cam_joint) -> dict:
+    """Is the joint's shift of the intrinsics what the circles' extra information explains?  Under
+    the model the shift's covariance is Cov(two-step) − Cov(joint) (the joint efficient): its
+    Mahalanobis² under that (pseudo-inverse), ~chi² with its rank's dof; no truth used."""
+    d = np.r_[cam_joint.fx - cam.fx, cam_joint.fy - cam.fy, cam_joint.cx - cam.cx, cam_joint.cy - cam.cy,
+              np.asarray(cam_joint.dist) - np.asarray(cam.dist)]
+    D = np.asarray(cam.covariance) - np.asarray(cam_joint.covariance)
+    w, V = np.linalg.eigh(0.5 * (D + D.T))
+    keep = w > 1e-9 * w.max()
+    z = V[:, keep].T @ d
+    return {"joint_shift_mahalanobis2": float(np.sum(z**2 / w[keep])), "joint_shift_rank": int(keep.sum()),
+            "joint_shift_mahalanobis2_two_step_cov": float(d @ np.linalg.pinv(np.asarray(cam.covariance)) @ d)}
+
+
+def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) -> dict:
     """Calibrate camera and plane from set ``k``; errors against the truth and predicted sigmas,
     two-step and (``joint``) with the joint refinement; and the plane solved with the true camera
     (the plane calibration's own share)."""
@@ -208,20 +259,40 @@ def one_set(cache: Path, k: int, joint: bool = True) -> dict:
     obs = observe_images(_circles(cache, k), cam, 50.0, workers=2)
     cal = solve_observations(obs, cam, 50.0, "ml")
     vol = working_volume_grid(cam_true, plane_true, distance_mm=(380.0, 520.0))
+    disp = float(res.options.get("covariance_dispersion") or 1.0)
     row = {"set": k, "views": len(res.used), "images_used": cal.n_used,
-           "corner_sigma_px": res.options["covariance_sigma_px"]}
+           "corner_sigma_px": res.options["covariance_sigma_px"], "view_dispersion": disp,
+           "covariance_noise": res.options.get("covariance_noise")}
     row.update(_corner_truth_error(res, k))
     row.update(_errors(cam, cal.plane, cam_true, plane_true, vol))
+    if res.options.get("covariance_noise") == "views":
+        # the same, the intrinsics' covariance of independent corner errors (noise="white")
+        row.update(_errors(*_with_white_camera(cam, cal.plane, disp), cam_true, plane_true, vol, "white_"))
     t1 = time.perf_counter()
     row["seconds"] = t1 - t0
     # the plane calibration's own share: the same observations solved with the exact camera
     cal_t = solve_observations(obs, cam_true, 50.0, "ml")
     row.update(_errors(cam_true, cal_t.plane, cam_true, plane_true, vol, "truecam_"))
+    from lightplane.measure import triangulate
+    est_t = triangulate(cam_true, cal_t.plane, vol.uv)
+    row.update(_shape_parts(triangulate(cam, cal.plane, vol.uv), est_t, vol.points))
     if joint:
         t2 = time.perf_counter()
         jc = refine_joint(res, cal)
         row.update(_errors(jc.camera, jc.plane_cal.plane, cam_true, plane_true, vol, "joint_"))
+        row.update({"joint_" + a: b for a, b in
+                    _shape_parts(triangulate(jc.camera, jc.plane_cal.plane, vol.uv), est_t, vol.points).items()})
         row["joint_seconds"] = time.perf_counter() - t2
+        row.update(_hausman(cam, jc.camera))
+        if joint_white and res.options.get("covariance_noise") == "views":
+            # the joint with the corners weighted by the residuals' sigma alone (before the views' dispersion)
+            from dataclasses import replace
+
+            res_w = replace(res, options={**res.options, "covariance_noise": "white"})
+            cam_w, _ = _with_white_camera(cam, cal.plane, disp)
+            cal_w = replace(cal, camera=cam_w) if hasattr(cal, "camera") else cal
+            jw = refine_joint(replace(res_w, camera=cam_w), cal_w)
+            row.update(_errors(jw.camera, jw.plane_cal.plane, cam_true, plane_true, vol, "jointw_"))
         row["joint_cost_drop"] = jc.result.cost_start - jc.result.cost
     return row
 
@@ -232,11 +303,12 @@ QUANTITIES = (("camera frame", "frame_mm", "pred_frame_mm"), ("shape", "shape_mm
               ("offset at the axis", "offset_mm", "pred_offset_mm"),
               ("offset, plane-only sigma", "offset_mm", "pred_offset_plane_only_mm"))
 #: Column sets: two-step, joint refinement, plane solved with the exact camera (the plane's own share).
-VARIANTS = (("two-step", ""), ("joint", "joint_"), ("true camera", "truecam_"))
+VARIANTS = (("two-step", ""), ("two-step, white corner noise", "white_"), ("joint", "joint_"),
+            ("joint, white corner noise", "jointw_"), ("true camera", "truecam_"))
 
 
 def summarise(rows: list[dict]) -> dict:
-    keys = [k for k in rows[0] if k != "set" and all(k in r for r in rows)]
+    keys = [k for k in rows[0] if k != "set" and all(k in r and isinstance(r[k], (int, float)) for r in rows)]
     a = {k: np.array([r[k] for r in rows], float) for k in keys}
     rms = {k: float(np.sqrt(np.mean(v**2))) for k, v in a.items()}
     out: dict = {"sets": len(rows)}
@@ -257,11 +329,15 @@ def summarise(rows: list[dict]) -> dict:
         out[label] = block
     if "joint_frame_mm" in a:
         # per set: joint / two-step error (never worse: every ratio <= 1 within the sets' noise)
-        for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
-            r = np.abs(a["joint_" + q]) / np.abs(a[q])
-            out[f"joint_over_two_step_{q}"] = {"median": float(np.median(r)), "max": float(np.max(r)),
-                                               "sets_worse": int(np.sum(r > 1.0)),
-                                               "rms_ratio": rms["joint_" + q] / rms[q]}
+        for pre in ("joint_", "jointw_"):
+            for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
+                if pre + q not in a:
+                    continue
+                r = np.abs(a[pre + q]) / np.abs(a[q])
+                out[f"{pre}over_two_step_{q}"] = {"median": float(np.median(r)), "max": float(np.max(r)),
+                                                  "sets_worse": int(np.sum(r > 1.0)),
+                                                  "worse_by_max_mm": float(np.max(np.abs(a[pre + q]) - np.abs(a[q]))),
+                                                  "rms_ratio": rms[pre + q] / rms[q]}
         out["median_joint_seconds"] = float(np.median(a["joint_seconds"]))
     # sampling tolerance of an RMS over n sets of a ~1-dof error: relative sd ~ 1/sqrt(2n)
     out["rms_relative_sd"] = float(1 / np.sqrt(2 * len(rows)))
@@ -278,6 +354,16 @@ def summarise(rows: list[dict]) -> dict:
             out["camera_part_actual_" + q] = float(np.sqrt(max(rms[q] ** 2 - rms["truecam_" + q] ** 2, 0.0)))
             out["camera_part_predicted_" + q] = float(np.sqrt(max(rms["pred_" + q] ** 2
                                                                   - rms["truecam_pred_" + q] ** 2, 0.0)))
+    for pre in ("", "joint_"):
+        if pre + "lin_shape_cross_mm2" in a:
+            c = a[pre + "lin_shape_cross_mm2"]
+            out[pre + "shape_parts"] = {"own_mm": rms[pre + "lin_shape_own_mm"],
+                                        "camera_mm": rms[pre + "lin_shape_camera_mm"],
+                                        "mean_cross_mm2": float(np.mean(c)),
+                                        "cross_sd_of_mean_mm2": float(np.std(c, ddof=1) / np.sqrt(len(c))),
+                                        "sets_cross_positive": int(np.sum(c > 0))}
+    if "view_dispersion" in a:
+        out["mean_view_dispersion"] = float(np.mean(a["view_dispersion"]))
     out["mean_corner_truth_neighbour_corr"] = float(np.mean(a["corner_truth_neighbour_corr"]))
     out["mean_detector_mahalanobis2"] = float(np.mean(a["detector_mahalanobis2"]))
     out["median_seconds_per_set"] = float(np.median(a["seconds"]))
@@ -294,7 +380,7 @@ def run(args) -> None:
         for k in range(args.first, args.first + args.sets):
             if k in done:
                 continue
-            r = one_set(args.cache, k, joint=not args.no_joint)
+            r = one_set(args.cache, k, joint=not args.no_joint, joint_white=args.joint_white)
             rows.append(r)
             with log.open("a") as f:
                 f.write(json.dumps(r) + "\n")
@@ -323,12 +409,14 @@ def run(args) -> None:
             print(f"principal point error RMS cx {b['cx_err_rms_px']:.3f} px, cy {b['cy_err_rms_px']:.3f} px "
                   f"(sigma RMS {b['cx_sigma_rms_px']:.3f}, {b['cy_sigma_rms_px']:.3f} px); mean Mahalanobis² of "
                   f"the intrinsics' error {b['mean_intrinsics_mahalanobis2']:.1f} ({b['n_free']} expected)")
-    for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
-        key = f"joint_over_two_step_{q}"
-        if key in s:
-            v = s[key]
-            print(f"joint / two-step |error| per set, {q}: median {v['median']:.2f}, max {v['max']:.2f}, "
-                  f"{v['sets_worse']} of {s['sets']} sets worse; ratio of the RMS {v['rms_ratio']:.2f}")
+    for pre in ("joint_", "jointw_"):
+        for q in ("frame_mm", "shape_mm", "angle_deg", "offset_mm"):
+            key = f"{pre}over_two_step_{q}"
+            if key in s:
+                v = s[key]
+                print(f"{pre[:-1]} / two-step |error| per set, {q}: median {v['median']:.2f}, max {v['max']:.2f}, "
+                      f"{v['sets_worse']} of {s['sets']} sets worse (by up to {v['worse_by_max_mm']:.4f} "
+                      f"{q.split('_')[-1]}); ratio of the RMS {v['rms_ratio']:.2f}")
     print(f"corners against the exact ones: RMS {s['corner_truth_rms_px']:.4f} px per coordinate; residual-based "
           f"sigma {s['corner_sigma_rms_px']:.4f} px (residual RMS {s['corner_residual_rms_px']:.4f} px); neighbour "
           f"correlation {s['mean_corner_truth_neighbour_corr']:.2f}; mean Mahalanobis² of the intrinsics' change "
@@ -338,6 +426,16 @@ def run(args) -> None:
               f"{s['camera_part_actual_frame_mm']:.4f} mm, predicted {s['camera_part_predicted_frame_mm']:.4f} mm; "
               f"shape actual {s['camera_part_actual_shape_mm']:.4f} mm, predicted "
               f"{s['camera_part_predicted_shape_mm']:.4f} mm")
+    for pre, label in (("", "two-step"), ("joint_", "joint")):
+        if pre + "shape_parts" in s:
+            v = s[pre + "shape_parts"]
+            print(f"{label} shape error, first order over the volume: the plane's own (exact camera) {v['own_mm']:.4f} mm, "
+                  f"the camera's part {v['camera_mm']:.4f} mm RMS, cross term {v['mean_cross_mm2'] * 1e6:+.1f} "
+                  f"± {v['cross_sd_of_mean_mm2'] * 1e6:.1f} µm² per set (mean ± its sd; positive in "
+                  f"{v['sets_cross_positive']} of {s['sets']} sets)")
+    if "mean_view_dispersion" in s:
+        print(f"views' dispersion of the corner noise along the intrinsics (mean over the sets): "
+              f"{s['mean_view_dispersion']:.2f}")
     if "from_dK" in s:
         v = s["from_dK"]
         print(f"errors the intrinsics' actual error causes through the propagation: camera frame {v['frame_mm']:.4f} mm, "

@@ -34,37 +34,61 @@ def _scene(seed=0, n=16):
     return cam, obj, [cam.project(obj @ R.T + t) for R, t in poses]
 
 
-def _calibrate(obj, truth, rng, flags=0):
-    ip = [(u + SIGMA_PX * rng.standard_normal(u.shape)).astype(np.float32) for u in truth]
+def _calibrate(obj, truth, rng, flags=0, noise="views", view_excess=0.0):
+    """Calibrate from ``truth`` with white corner noise of SIGMA_PX plus, with ``view_excess``,
+    each view's own extra white noise of ``view_excess * SIGMA_PX`` projected onto the directions
+    in which its corners move with the intrinsics (its pose's projected out): errors correlated
+    within a view, of variance ``(1 + view_excess²) SIGMA_PX²`` along the intrinsics."""
+    cam = default_camera()
+    ip = []
+    for u in truth:
+        e = SIGMA_PX * rng.standard_normal(u.shape)
+        if view_excess:
+            R, t = cam.solve_pnp(obj, u)
+            _, jac = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, cam.K, cam.dist)
+            Je, Ji = jac[:, :6], jac[:, 6:15]
+            Jt = Ji - Je @ np.linalg.lstsq(Je, Ji, rcond=None)[0]
+            Q, _ = np.linalg.qr(Jt)
+            e = e + (view_excess * SIGMA_PX * Q @ rng.standard_normal(Q.shape[1])).reshape(e.shape)
+        ip.append((u + e).astype(np.float32))
     ob = [obj.astype(np.float32)] * len(ip)
     rms, K, d, rv, tv, std_int, _, _ = cv2.calibrateCameraExtended(ob, ip, (1280, 960), None, None, flags=flags,
                                                                    criteria=CRIT)
     d = d.ravel()[:5]
-    return np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], d], intrinsics_covariance(ob, ip, rv, tv, K, d, flags), std_int
+    return (np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], d], intrinsics_covariance(ob, ip, rv, tv, K, d, flags, noise=noise),
+            std_int)
 
 
 @pytest.mark.parametrize("flags, n_free", [(0, 9), (cv2.CALIB_FIX_K3, 8)])
 def test_covariance_matches_monte_carlo(flags, n_free):
-    """Over repeated calibrations with fresh noise the error's Mahalanobis distance² under the
-    predicted covariance averages the number of free parameters (chi²: mean n, sd sqrt(2n/T))."""
+    """Over repeated calibrations with fresh white noise the error's Mahalanobis distance² under the
+    white-noise covariance averages the number of free parameters (chi²: mean n, sd sqrt(2n/T));
+    the views' dispersion averages 1, and the default covariance (scaled by it) stays right."""
     cam, obj, truth = _scene()
     p_true = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
     rng = np.random.default_rng(1)
     trials = 60
-    d2, sig = [], []
+    d2, d2v, sig, disp = [], [], [], []
     for _ in range(trials):
-        p, c, std_cv = _calibrate(obj, truth, rng, flags)
+        p, c, std_cv = _calibrate(obj, truth, rng, flags, noise="white")
         free = c.free
         assert free.sum() == n_free
         assert np.all(c.covariance[~free] == 0) and np.all(c.covariance[:, ~free] == 0)
         e = (p - p_true)[free]
         d2.append(e @ np.linalg.solve(c.covariance[np.ix_(free, free)], e))
+        # the default: the same covariance times the dispersion
+        d2v.append(d2[-1] / c.dispersion)
         sig.append(c.sigma_px)
+        disp.append(c.dispersion)
     mean = np.mean(d2)
     tol = 3.5 * np.sqrt(2 * n_free / trials)
     assert abs(mean - n_free) < tol, (mean, n_free, tol)
     # the noise estimated from the residuals (with its dof) is unbiased
     assert abs(np.mean(sig) / SIGMA_PX - 1) < 0.02
+    # the dispersion is 1 for white noise, within its sampling (its sd from the trials)
+    assert abs(np.mean(disp) - 1) < 3.5 * np.std(disp) / np.sqrt(trials), (np.mean(disp), np.std(disp))
+    # with it the Mahalanobis² grows only by its own noise (E[1/dispersion] ~ 1 + its relative variance)
+    assert abs(np.mean(d2v) - n_free) < tol + n_free * 2 * np.var(disp), (np.mean(d2v), np.var(disp))
     # the diagonal is OpenCV's own standard deviation (same model, its own dof count)
     std_ours = np.sqrt(np.diag(c.covariance))[free]
     std_cv = np.asarray(std_cv).ravel()[:9][free]
@@ -72,6 +96,32 @@ def test_covariance_matches_monte_carlo(flags, n_free):
     # and the parameters are strongly correlated: the diagonal alone is not the covariance
     corr = c.covariance[:4, :4] / np.outer(std_ours[:4], std_ours[:4])
     assert abs(corr[0, 1]) > 0.5
+
+
+def test_view_correlated_corner_errors():
+    """Corner errors correlated within a view (each view's own extra noise along the directions that
+    move the intrinsics, twice the white variance there in all): the residuals' sigma does not see
+    it and the white-noise covariance is too small by that factor; the views' dispersion finds it
+    and the default covariance's Mahalanobis² averages the number of parameters again."""
+    cam, obj, truth = _scene(seed=6)
+    p_true = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
+    rng = np.random.default_rng(7)
+    trials, n = 40, 9
+    d2, d2w, disp, sig = [], [], [], []
+    for _ in range(trials):
+        p, c, _ = _calibrate(obj, truth, rng, view_excess=1.0)
+        e = p - p_true
+        d2.append(e @ np.linalg.solve(c.covariance, e))
+        d2w.append(d2[-1] * c.dispersion)  # under the white-noise covariance
+        disp.append(c.dispersion)
+        sig.append(c.sigma_px)
+    # sigma from the residuals: the extra noise lies mostly in what each view's own fit absorbs
+    assert np.mean(sig) / SIGMA_PX < 1.1
+    # the white-noise covariance is too small by the factor 2 (chi² mean 2n), the default is right
+    tol = 3.5 * np.sqrt(2 * n / trials)
+    assert np.mean(d2w) > 1.5 * n, np.mean(d2w)
+    assert abs(np.mean(disp) - 2) < 3.5 * np.std(disp) / np.sqrt(trials) + 0.1, np.mean(disp)
+    assert abs(np.mean(d2) - n) < tol + n * 2 * np.var(np.asarray(disp) / np.mean(disp)), np.mean(d2)
 
 
 def test_ray_sigma_matches_monte_carlo():

@@ -21,7 +21,8 @@ from .targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 
 __all__ = ["BoardView", "IntrinsicsCalibration", "find_board", "refine_corners", "fit_corners", "MIN_BOARD_BLUR_PX",
            "board_points", "lens_bend", "LENS_REFIT_BEND_PX", "opencv_std_ratio", "rays_up_to_rotation",
-           "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance"]
+           "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance",
+           "view_dispersion"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
@@ -46,6 +47,10 @@ class IntrinsicsCovariance:
     (the normal matrix singular to machine precision, e.g. the rational model's numerator
     and denominator sharing a factor); ``covariance`` leaves those directions out (they do
     not move the corners seen), and :meth:`std` gives them ``inf``.
+    ``dispersion``: the corner errors' variance along the directions that move the
+    intrinsics over the residuals' σ² (:func:`view_dispersion`); ``noise`` ``"views"``
+    (default): ``covariance`` is ``dispersion · σ² S⁻¹``; ``"white"``: ``σ² S⁻¹``, the
+    corner errors taken as independent (``dispersion`` reported, not applied).
     """
 
     covariance: np.ndarray
@@ -54,6 +59,8 @@ class IntrinsicsCovariance:
     sigma_px: float
     dof: int
     undetermined: tuple[str, ...] = ()
+    dispersion: float = 1.0
+    noise: str = "views"
 
     def std(self) -> dict[str, float]:
         return {n: float("inf") if n in self.undetermined else float(np.sqrt(max(c, 0.0)))
@@ -83,7 +90,8 @@ def _free_parameters(n_dist: int, flags: int) -> np.ndarray:
 
 def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Sequence[np.ndarray],
                           rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray], K: np.ndarray,
-                          dist: np.ndarray, flags: int = 0, *, model: str | None = None) -> IntrinsicsCovariance:
+                          dist: np.ndarray, flags: int = 0, *, model: str | None = None,
+                          noise: str = "views") -> IntrinsicsCovariance:
     """Covariance of a Zhang calibration's intrinsics, the board poses marginalised out.
 
     At the solution, ``cv2.projectPoints`` gives the Jacobian of every corner's projection
@@ -99,11 +107,19 @@ def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Seq
     ``CALIB_FIX_ASPECT_RATIO`` and ``CALIB_USE_LU``-style options that tie parameters
     together are not supported (LightplaneError).  ``model="fisheye"``: the Jacobian of
     ``cv2.fisheye.projectPoints`` (fx, fy, cx, cy, k1..k4 free, skew fixed; ``flags`` ignored).
+
+    ``noise="views"`` (default) scales ``σ² S⁻¹`` by :func:`view_dispersion`, the corner
+    errors' excess along the directions that move the intrinsics (errors correlated
+    within a view: a detector's systematic error that varies from view to view, which σ²
+    of the residuals cannot show); ``"white"`` keeps ``σ² S⁻¹`` (the corner errors taken as
+    independent).
     """
     import cv2
 
+    if noise not in ("views", "white"):
+        raise LightplaneError(f"intrinsics_covariance: noise must be 'views' or 'white', got {noise!r}")
     if model == "fisheye":
-        return _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist)
+        return _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist, noise)
 
     if flags & (cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_SAME_FOCAL_LENGTH):
         raise LightplaneError("intrinsics_covariance: CALIB_FIX_ASPECT_RATIO / SAME_FOCAL_LENGTH are not supported")
@@ -118,10 +134,10 @@ def intrinsics_covariance(object_points: Sequence[np.ndarray], image_points: Seq
         proj, jac = cv2.projectPoints(obj, rv, tv, K, dist)
         return proj.reshape(-1, 2), jac[:, :6], jac[:, 6:6 + 4 + dist.size]
 
-    return _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view)
+    return _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view, noise)
 
 
-def _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist) -> IntrinsicsCovariance:
+def _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist, noise: str) -> IntrinsicsCovariance:
     import cv2
 
     K = np.asarray(K, np.float64)
@@ -132,15 +148,17 @@ def _fisheye_covariance(object_points, image_points, rvecs, tvecs, K, dist) -> I
         return proj.reshape(-1, 2), jac[:, 8:14], jac[:, :8]
 
     return _schur_covariance(object_points, image_points, rvecs, tvecs, ("fx", "fy", "cx", "cy") +
-                             coeff_names("fisheye"), np.ones(8, bool), view)
+                             coeff_names("fisheye"), np.ones(8, bool), view, noise)
 
 
-def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view) -> IntrinsicsCovariance:
+def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, view,
+                      noise: str = "views") -> IntrinsicsCovariance:
     """The covariance of :func:`intrinsics_covariance`: ``view(obj, rvec, tvec)`` gives a view's projection
     ``(N, 2)``, its Jacobian in the pose ``(2N, 6)`` and in the intrinsics ``(2N, len(names))``."""
     idx = np.flatnonzero(free)
     p = idx.size
     S = np.zeros((p, p))
+    A, g = [], []  # per view: its share of S and its score (the pull of its residuals on the intrinsics)
     ssr, n_obs = 0.0, 0
     for obj, uv, rv, tv in zip(object_points, image_points, rvecs, tvecs):
         obj = np.asarray(obj, np.float64).reshape(-1, 3)
@@ -150,9 +168,10 @@ def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, vi
         ssr += float(r @ r)
         n_obs += r.size
         Ji = Ji[:, idx]
-        B = Je.T @ Je
-        C = Ji.T @ Je
-        S += Ji.T @ Ji - C @ np.linalg.solve(B, C.T)
+        Jt = Ji - Je @ np.linalg.solve(Je.T @ Je, Je.T @ Ji)  # the intrinsics' columns, the view's pose projected out
+        A.append(Jt.T @ Jt)
+        g.append(Jt.T @ r)
+        S += A[-1]
     dof = n_obs - p - 6 * len(rvecs)
     if dof <= 0:
         raise LightplaneError(f"intrinsics_covariance: {n_obs // 2} corners in {len(rvecs)} views leave no "
@@ -167,9 +186,40 @@ def _schur_covariance(object_points, image_points, rvecs, tvecs, names, free, vi
                               "(singular normal matrix)")
     w, V = np.linalg.eigh(S / np.outer(dg, dg))
     keep = w > UNDETERMINED_EIGENVALUE * w.max()
-    cov[np.ix_(idx, idx)] = sigma2 * ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(dg, dg)
+    Si = ((V[:, keep] / w[keep]) @ V[:, keep].T) / np.outer(dg, dg)  # S⁻¹ within the determined directions
+    disp = view_dispersion(Si, A, g, sigma2)
+    cov[np.ix_(idx, idx)] = (disp if noise == "views" else 1.0) * sigma2 * Si
     undetermined = tuple(names[idx[i]] for i in range(p) if np.linalg.norm(V[i, ~keep]) > 1e-3)
-    return IntrinsicsCovariance(0.5 * (cov + cov.T), names, free, float(np.sqrt(sigma2)), int(dof), undetermined)
+    return IntrinsicsCovariance(0.5 * (cov + cov.T), names, free, float(np.sqrt(sigma2)), int(dof), undetermined,
+                                dispersion=disp, noise=noise)
+
+
+def view_dispersion(S_inv: np.ndarray, shares: Sequence[np.ndarray], scores: Sequence[np.ndarray],
+                    sigma2: float) -> float:
+    """The corner errors' variance along the directions that move the intrinsics, over ``sigma2``
+    (the residuals' variance): 1 for independent corner errors, more when they are correlated
+    within a view (docs/method.md §Camera calibration).
+
+    Per view ``v``: ``A_v`` (``shares``) its part of the pose-marginalised normal matrix
+    ``S = Σ A_v`` (``S_inv`` its inverse), ``g_v = J̃_vᵀ r_v`` (``scores``) the pull of its
+    residuals on the intrinsics (``J̃_v``: the view's intrinsics columns with its pose's
+    projected out).  The statistic ``T = Σ_v g_vᵀ S⁻¹ g_v`` has expectation
+    ``σ² (tr I − Σ_v tr (S⁻¹A_v)²)`` under independent corner noise of variance ``σ²``
+    (the fit absorbs the part of each view's errors that all views share); the dispersion
+    is ``T`` over that.  A systematic error that differs from view to view (illumination,
+    blur, the detector's response to each view's perspective) pulls each view's estimate
+    more than its residuals' size says, and shows here while ``σ²`` does not.  Its
+    sampling sd is about ``sqrt(2 / (p (M − 1)))`` (p intrinsics, M views).  1.0 with
+    fewer than two views or no determined direction.
+    """
+    if len(shares) < 2 or not sigma2 > 0:
+        return 1.0
+    T = sum(float(gv @ S_inv @ gv) for gv in scores)
+    B = [S_inv @ a for a in shares]
+    expected = sigma2 * (float(np.trace(sum(B))) - sum(float(np.sum(b * b.T)) for b in B))
+    if not (expected > 0 and np.isfinite(T)):
+        return 1.0
+    return float(T / expected)
 
 
 #: Relative eigenvalue (of the normal matrix scaled to unit diagonal) below which a direction of the
@@ -737,7 +787,9 @@ class IntrinsicsCalibration:
         target = self.target or as_target(self.board, self.square_mm)
         return {
             "std": {n: (v if np.isfinite(v) else None) for n, v in self.std.items()},  # None: not determined
-            "std_covers": ("the corner noise (estimated from the residuals), board poses marginalised; "
+            "std_covers": ("the corner noise (estimated from the residuals"
+                           + (", times the views' dispersion" if self.options.get("covariance_noise") == "views"
+                              else "") + "), board poses marginalised; "
                            + ("OpenCV's stdDeviationsIntrinsics" if self.camera.model == "plumb_bob"
                               else "from the full covariance (intrinsics_covariance)")),
             "std_opencv": self.std_opencv,
@@ -753,6 +805,8 @@ class IntrinsicsCalibration:
             "warnings": list(self.warnings),
             "covariance": {"sigma_px": self.options.get("covariance_sigma_px"),
                            "dof": self.options.get("covariance_dof"),
+                           "view_dispersion": self.options.get("covariance_dispersion"),
+                           "noise": self.options.get("covariance_noise"),
                            "board_poses": "marginalised (Schur complement of the normal matrix)"},
             "corners": {"refine": self.options.get("refine"),
                         "median_blur_px": (float(self.options["median_blur_px"])
@@ -775,6 +829,7 @@ def calibrate_camera(
     rotate_deg: int = 0,
     min_views: int = 3,
     refine: bool | str = True,
+    covariance_noise: str = "views",
     progress: Callable[[int, int], None] | None = None,
 ) -> IntrinsicsCalibration:
     """Zhang calibration from images of a planar target (docs/method.md §Camera calibration).
@@ -810,6 +865,9 @@ def calibrate_camera(
         windows its lens bends by more than :data:`LENS_REFIT_BEND_PX` are fitted again in
         its lens frame (:func:`fit_corners` with ``camera``) and the calibration is solved
         again (``options["lens_frame_refit_corners"]``: how many)
+    covariance_noise : the corner noise of the intrinsics' covariance (:func:`intrinsics_covariance`):
+        ``"views"`` (default) the residuals' σ² times the views' dispersion (:func:`view_dispersion`,
+        ``options["covariance_dispersion"]``), ``"white"`` the residuals' σ² alone
 
     Circle grids: the dots' centroids are moved to the projected circle centres
     (:func:`lightplane.targets.correct_circle_centres`) with the poses of a first
@@ -957,7 +1015,8 @@ def calibrate_camera(
         found_uv = fixed
     dist = _model_dist(dist, model)
     try:
-        icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist, flags, model=model)
+        icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist, flags, model=model,
+                                     noise=covariance_noise)
     except LightplaneError:  # options the covariance does not model: the camera carries none
         icov = None
     camera = Camera(K, dist, size[0], size[1], rms_px=float(rms), model=model,
@@ -972,7 +1031,12 @@ def calibrate_camera(
     # the plumb bob: OpenCV's (equal to the covariance's within 2 %); the other models: the covariance's
     # (fisheye: OpenCV gives none; tilted: OpenCV's are ~100x too small where tau trades against the
     # principal point, benchmarks/bench_lens_models.py)
-    std = std_cv if (model == "plumb_bob" or icov is None) else icov.std()
+    # (OpenCV's scaled by the views' dispersion where the covariance applies it)
+    if icov is not None and icov.noise == "views":
+        std_cv_scaled = {n: v * float(np.sqrt(icov.dispersion)) for n, v in std_cv.items()}
+    else:
+        std_cv_scaled = std_cv
+    std = std_cv_scaled if (model == "plumb_bob" or icov is None) else icov.std()
     residuals, corners = [], []
     for uv, o, rv, tv in zip(found_uv, objs, rvecs, tvecs):
         proj = camera.project(o.astype(np.float64) @ cv2.Rodrigues(np.ravel(rv))[0].T + np.ravel(tv))
@@ -997,7 +1061,9 @@ def calibrate_camera(
                  "dot_mm": dot_mm, "circle_centre_correction_px": shift,
                  "median_board_distance_mm": float(np.median([np.linalg.norm(c) for c in centres])),
                  "covariance_sigma_px": None if icov is None else icov.sigma_px,
-                 "covariance_dof": None if icov is None else icov.dof},
+                 "covariance_dof": None if icov is None else icov.dof,
+                 "covariance_dispersion": None if icov is None else icov.dispersion,
+                 "covariance_noise": None if icov is None else icov.noise},
         target=target,
         ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
         skipped=skipped,
@@ -1047,7 +1113,10 @@ def opencv_std_ratio(cal: "IntrinsicsCalibration") -> tuple[str, float] | None:
     cv, sd = cal.std_opencv, cal.std
     if not cv or sd is cv:
         return None
-    ratios = {n: sd[n] / cv[n] for n in sd
+    # the same corner noise on both sides: OpenCV's is the residuals' alone
+    f = float(np.sqrt(cal.options.get("covariance_dispersion") or 1.0)) if cal.options.get("covariance_noise") == "views" \
+        else 1.0
+    ratios = {n: sd[n] / (f * cv[n]) for n in sd
               if 0 < sd[n] < np.inf and cv.get(n, 0) > 0 and np.isfinite(cv[n])}
     if not ratios:
         return None

@@ -14,7 +14,9 @@ over the intrinsics ``K`` (the free ones of the camera calibration), every board
 of :func:`lightplane.refine.refine_ml` (Sampson distances in distorted pixels), with that
 solve's weights held fixed: ``w_g = huber / (tau_g sigma_g²)`` per point type (rim,
 stripe; ``tau_g`` the residuals' autocorrelation time), ``σ_c`` the corner noise the camera
-calibration estimated from its residuals.
+calibration estimated from its residuals, times the square root of the views' dispersion
+when its covariance applies it (:func:`lightplane.intrinsics.view_dispersion`: the corners'
+noise along the intrinsics' directions).
 
 Solved by ``scipy.optimize.least_squares`` from the two-step solution; the Jacobian is
 block-sparse (a corner row depends on the intrinsics and its board's pose, a rim row on the
@@ -275,6 +277,10 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
     sigma_c = intrinsics.options.get("covariance_sigma_px")
     if sigma_c is None:
         raise LightplaneError("the joint refinement needs the camera calibration's covariance (corner noise)")
+    if intrinsics.options.get("covariance_noise") == "views":
+        # the corners weighted by their noise along the intrinsics' directions (the views' dispersion), as
+        # in the camera's covariance: the joint's covariance stays the two-step's where the circles add nothing
+        sigma_c = float(sigma_c) * float(np.sqrt(intrinsics.options.get("covariance_dispersion") or 1.0))
     used = [o for o in plane_cal.images if o.used and o.placement is not None and o.placement.pose is not None]
     if len(used) < 2:
         raise LightplaneError(f"the joint refinement needs at least 2 used target images, got {len(used)}")

@@ -222,7 +222,8 @@ def image_grid(camera: Camera, step_px: float = 32.0) -> np.ndarray:
 
 #: What the camera's share covers (one sentence, printed and stored with every figure that includes it).
 CAMERA_SHARE_COVERS = ("the intrinsics' and distortion's covariance from the camera calibration (corner noise "
-                       "estimated from its residuals, board poses marginalised)")
+                       "estimated from its residuals and, in its default, their correlation within a view; board "
+                       "poses marginalised)")
 #: Said wherever a figure lacks the camera's share.
 CAMERA_SHARE_MISSING = "the camera's share is not included (the camera file has no covariance)"
 

@@ -103,7 +103,11 @@ def calibrate_camera_cmd(
     console.print("± std: " + ("from the Jacobian of the reprojection (cv2.fisheye gives none), board poses "
                                "marginalised" if cam.model == "fisheye" else "OpenCV's (calibrateCameraExtended)"
                                if cam.model == "plumb_bob" else "from the full covariance, board poses marginalised")
-                  + ", corner noise estimated from the residuals; covers the corner noise only")
+                  + ", corner noise estimated from the residuals"
+                  + (" times the views' dispersion" if result.options.get("covariance_noise") == "views" else "")
+                  + ("; OpenCV's scaled by it" if cam.model == "plumb_bob"
+                     and result.options.get("covariance_noise") == "views" else "")
+                  + "; covers the corner noise only")
     ratio = opencv_std_ratio(result)
     if cam.model != "plumb_bob" and ratio is not None and ratio[1] > 2.0:
         console.print(f"note: OpenCV's own stdDeviationsIntrinsics are up to {ratio[1]:.3g}x smaller ({ratio[0]}): "
@@ -143,8 +147,11 @@ def calibrate_camera_cmd(
     work_mm = float(distance if distance is not None else result.options["median_board_distance_mm"])
     cu = camera_uncertainty_summary(cam, work_mm)
     if cu["included"]:
+        o = result.options
+        disp = (f", times the views' dispersion {o['covariance_dispersion']:.2f} (corner errors correlated within "
+                f"a view)" if o.get("covariance_noise") == "views" else "")
         console.print(f"Camera uncertainty (full covariance of {', '.join(cam.covariance_params or ())}; corner noise "
-                      f"{result.options['covariance_sigma_px']:.3f} px from the residuals, board poses marginalised): "
+                      f"{o['covariance_sigma_px']:.3f} px from the residuals{disp}, board poses marginalised): "
                       f"a ray's direction σ {cu['ray_sigma_deg_rms']:.4f} deg RMS over the image "
                       f"(max {cu['ray_sigma_deg_max']:.4f} deg), i.e. {cu['ray_sigma_mm_rms']:.4f} mm "
                       f"(max {cu['ray_sigma_mm_max']:.4f} mm) across the ray at {work_mm:.0f} mm"
