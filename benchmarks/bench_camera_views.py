@@ -48,7 +48,7 @@ def one(board, n_views, corner_px, seed):
     _, K, d, rv, tv = cv2.calibrateCamera([obj] * len(ip), ip, (1280, 960), None, None,
                                           criteria=(3, 100, 1e-12))
     d = d.ravel()[:5]
-    c = intrinsics_covariance([obj] * len(ip), ip, rv, tv, K, d)
+    c = intrinsics_covariance([obj] * len(ip), ip, rv, tv, K, d, noise="white")  # white noise injected
     cam = Camera(K, d, 1280, 960, covariance=c.covariance, covariance_params=c.params)
     plane_true = default_plane()
     obs = [synthetic_observations(true, plane_true, p, n_rim=120, n_stripe=80, sigma_px=0.05, rng=rng)

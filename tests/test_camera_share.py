@@ -44,7 +44,7 @@ def _camera(rng, n_views=10):
     _, K, d, rv, tv = cv2.calibrateCamera([obj] * len(ip), ip, (1280, 960), None, None, flags=FLAGS,
                                           criteria=(3, 100, 1e-12))
     d = d.ravel()[:5]
-    c = intrinsics_covariance([obj] * len(ip), ip, rv, tv, K, d, FLAGS)
+    c = intrinsics_covariance([obj] * len(ip), ip, rv, tv, K, d, FLAGS, noise="white")  # white noise injected
     return Camera(K, d, 1280, 960, covariance=c.covariance, covariance_params=c.params)
 
 

@@ -92,7 +92,7 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
         _, K, d, rv, tv = cv2.calibrateCamera(o32, i32, (1280, 960), None, None, flags=FLAGS,
                                               criteria=(3, 100, 1e-12))
         d = d.ravel()[:5]
-        two = intrinsics_covariance(o32, i32, rv, tv, K, d, FLAGS)
+        two = intrinsics_covariance(o32, i32, rv, tv, K, d, FLAGS, noise="white")  # white noise injected
         cam0 = camera_with_params(true, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], d])
         res = _solve(true, plane, poses, obj, uv, placements, obs, sigma, cam0, plane,
                      [_Pose(p.center, p.normal) for p in placements],
