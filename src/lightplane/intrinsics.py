@@ -209,7 +209,8 @@ def view_dispersion(S_inv: np.ndarray, shares: Sequence[np.ndarray], scores: Seq
     is ``T`` over that.  A systematic error that differs from view to view (illumination,
     blur, the detector's response to each view's perspective) pulls each view's estimate
     more than its residuals' size says, and shows here while ``σ²`` does not.  Its
-    sampling sd is about ``sqrt(2 / (p (M − 1)))`` (p intrinsics, M views).  1.0 with
+    sampling sd is at least ``sqrt(2 / (p (M − 1)))`` (p intrinsics, M views; 0.18 over 60
+    synthetic calibrations of 16 views of 63 corners, where that gives 0.12).  1.0 with
     fewer than two views or no determined direction.
     """
     if len(shares) < 2 or not sigma2 > 0:
