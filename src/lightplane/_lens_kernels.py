@@ -20,6 +20,19 @@ _distort_jac = njit(cache=True, nogil=True, inline="always", error_model="numpy"
 _undistort_guess = njit(cache=True, nogil=True, inline="always", error_model="numpy")(undistort_guess)
 
 
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _newton_step(x, y, tx, ty, lens):  # pragma: no cover - compiled
+    """One Newton step towards the undistorted point whose distortion is ``(tx, ty)``, from ``(x, y)``:
+    the new point, the step taken ``(dx, dy)`` and the distortion's Jacobian at ``(x, y)``."""
+    xd, yd, j11, j12, j21, j22 = _distort_jac(x, y, lens)
+    f0 = xd - tx
+    f1 = yd - ty
+    det = j11 * j22 - j12 * j21
+    dx = (j22 * f0 - j12 * f1) / det
+    dy = (-j21 * f0 + j11 * f1) / det
+    return x - dx, y - dy, dx, dy, j11, j12, j21, j22
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover - compiled
     """For each point ``k``: the normalised undistorted ``xy[k]`` whose distortion is the normalised
@@ -29,14 +42,7 @@ def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover
     for k in range(tx.shape[0]):
         x, y = _undistort_guess(tx[k], ty[k], lens)
         for _ in range(iters):
-            xd, yd, j11, j12, j21, j22 = _distort_jac(x, y, lens)
-            f0 = xd - tx[k]
-            f1 = yd - ty[k]
-            det = j11 * j22 - j12 * j21
-            dx = (j22 * f0 - j12 * f1) / det
-            dy = (-j21 * f0 + j11 * f1) / det
-            x = x - dx
-            y = y - dy
+            x, y, dx, dy, _, _, _, _ = _newton_step(x, y, tx[k], ty[k], lens)
             if not max(abs(dx), abs(dy)) > 1e-16:
                 break
         xy[k, 0] = x
@@ -57,14 +63,7 @@ def newton_undistort_from(tx, ty, sx, sy, lens, tol, iters, xy, jac, done):  # p
         x, y = sx[k], sy[k]
         ok = False
         for _ in range(iters):
-            xd, yd, j11, j12, j21, j22 = _distort_jac(x, y, lens)
-            f0 = xd - tx[k]
-            f1 = yd - ty[k]
-            det = j11 * j22 - j12 * j21
-            dx = (j22 * f0 - j12 * f1) / det
-            dy = (-j21 * f0 + j11 * f1) / det
-            x = x - dx
-            y = y - dy
+            x, y, dx, dy, j11, j12, j21, j22 = _newton_step(x, y, tx[k], ty[k], lens)
             jac[0, k] = j11
             jac[1, k] = j12
             jac[2, k] = j21

@@ -600,9 +600,37 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
 
 
 @njit(cache=True, inline="always")
+def _line_close(A, l, p, c, st, cc, ns, fw, flat, xw, re, qpeak, half, max_width, tmp, centre, normal, width, status):
+    """The end of a profile line once its ridge test gave status ``st`` and centre ``cc``: the
+    flat-top fallback where the test failed on a clipped top, then the width check."""
+    if st != OK:
+        if not flat:
+            status[l] = st
+            return
+        # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
+        # Centre = midpoint of the half-level crossings of the flanks, smoothed across
+        # the lines (along the stripe)
+        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[3:4].T)
+        if not (cc == cc):
+            status[l] = TOO_WIDE
+            return
+        if st == NOT_RIDGE or st == ALONG_LINE:
+            normal[l, 0] = 0.0
+            normal[l, 1] = 1.0
+            ns = 1.0
+    # width across the stripe
+    width[l] = fw * ns
+    if not (fw == fw) or fw * ns > max_width:
+        status[l] = TOO_WIDE
+        return
+    centre[l] = cc
+    status[l] = OK
+
+
+@njit(cache=True, inline="always")
 def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status):
-    """The rest of a profile line from its along-line sums ``sm`` (:func:`_along_sums`):
+    """The rest of a profile line from its derivative sums ``sm`` (:func:`_line_sums`):
     the ridge's normal, the zero crossing of the derivative across the stripe, the width."""
     intensity[l] = sm[13]
     lam, nl, ns = _ridge_normal(sm[12], sm[10], sm[4])
@@ -642,28 +670,7 @@ def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_pe
                 cc = c + _hermite_root(g1, d1, g2, d2)
             else:
                 st = NO_CROSSING
-    if st != OK:
-        if not flat:
-            status[l] = st
-            return
-        # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
-        # Centre = midpoint of the half-level crossings of the flanks, smoothed across
-        # the lines (along the stripe)
-        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[3:4].T)
-        if not (cc == cc):
-            status[l] = TOO_WIDE
-            return
-        if st == NOT_RIDGE or st == ALONG_LINE:
-            normal[l, 0] = 0.0
-            normal[l, 1] = 1.0
-            ns = 1.0
-    # width across the stripe
-    width[l] = fw * ns
-    if not (fw == fw) or fw * ns > max_width:
-        status[l] = TOO_WIDE
-        return
-    centre[l] = cc
-    status[l] = OK
+    _line_close(A, l, p, c, st, cc, ns, fw, flat, xw, re, qpeak, half, max_width, tmp, centre, normal, width, status)
 
 
 @njit(cache=True, inline="always")
@@ -687,7 +694,7 @@ _V_ROWS = 10
 def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half, min_peak,
                  max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width, status):
     """:func:`_line_finish` of the band's lines whose middle ``c`` is in ``lo .. hi``, from
-    the along-line sums ``D`` (:func:`_band_along`), vectorised over the lines: the
+    the derivative sums ``D`` (:func:`_band_sums`), vectorised over the lines: the
     ridge's normal, the derivative across the stripe at c-1, c, c+1, and the zero
     crossing (:func:`_hermite_root`'s safeguarded Newton steps, all lanes at once, each
     lane stopping where the scalar root stops).  The same numbers as :func:`_line_finish`,
@@ -830,24 +837,8 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
                     cc = c + t
                 else:
                     st = NO_CROSSING
-        if st != OK:
-            if not flats[j]:
-                status[q] = st
-                continue
-            cc = _flat_centre(A, q, pos[q], c, xw, RX, qpeak, half, tmp[3:4].T)
-            if not (cc == cc):
-                status[q] = TOO_WIDE
-                continue
-            if st == NOT_RIDGE or st == ALONG_LINE:
-                normal[q, 0] = 0.0
-                normal[q, 1] = 1.0
-                ns = 1.0
-        width[q] = fw * ns
-        if not (fw == fw) or fw * ns > max_width:
-            status[q] = TOO_WIDE
-            continue
-        centre[q] = cc
-        status[q] = OK
+        _line_close(A, q, pos[q], c, st, cc, ns, fw, flats[j], xw, RX, qpeak, half, max_width, tmp, centre, normal,
+                    width, status)
 
 
 @njit(cache=True, error_model="numpy")
