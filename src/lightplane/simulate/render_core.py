@@ -39,7 +39,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ..lens import distort_jac, lens_params, undistort_guess
+from .._lens_kernels import _newton_step
+from ..lens import lens_params, undistort_guess
 
 PATCH_COLS = 26
 SPHERE_COLS = 5
@@ -204,7 +205,6 @@ def _value_noise(x, y, z, seed):
     return acc
 
 
-_distort_jac = nb.njit(**_jit)(distort_jac)
 _undistort_guess = nb.njit(**_jit)(undistort_guess)
 
 
@@ -213,14 +213,7 @@ def _undistort(xd, yd, x, y, lens, max_iter):
     """Newton's method for distort(x, y) = (xd, yd), started at (x, y); ``lens`` the packed model of
     :func:`lightplane.lens.lens_params` (the one implementation of every lens model)."""
     for _ in range(max_iter):
-        ex, ey, j11, j12, j21, j22 = _distort_jac(x, y, lens)
-        fx = ex - xd
-        fy = ey - yd
-        det = j11 * j22 - j12 * j21
-        dx = (j22 * fx - j12 * fy) / det
-        dy = (-j21 * fx + j11 * fy) / det
-        x -= dx
-        y -= dy
+        x, y, dx, dy, _, _, _, _ = _newton_step(x, y, xd, yd, lens)
         if abs(dx) + abs(dy) < 1e-16:
             break
     return x, y
