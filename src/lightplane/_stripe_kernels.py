@@ -292,42 +292,6 @@ def _clamp(i, n):
 
 
 @njit(cache=True, inline="always")
-def _fwhm_inside(A, l, c, half, min_peak):
-    """:func:`_fwhm_line` of a window inside ``A`` (the same steps, no clamping)."""
-    # centre index: the highest of c-1, c, c+1
-    k0 = c
-    best = np.float64(A[c, l])
-    for k in (c - 1, c + 1):
-        x = np.float64(A[k, l])
-        if x > best:
-            best = x
-            k0 = k
-    bg = best
-    for k in range(c - half, c + half + 1):
-        bg = min(bg, np.float64(A[k, l]))
-    if best - bg < min_peak:
-        return np.nan, np.nan, np.nan, best, bg
-    level = bg + 0.5 * (best - bg)
-    right = np.nan
-    prev = best
-    for k in range(k0 + 1, k0 + half + 1):
-        x = np.float64(A[k, l])
-        if x < level:
-            right = (k - 1) + (prev - level) / (prev - x)
-            break
-        prev = x
-    left = np.nan
-    prev = best
-    for k in range(k0 - 1, k0 - half - 1, -1):
-        x = np.float64(A[k, l])
-        if x < level:
-            left = (k + 1) - (prev - level) / (prev - x)
-            break
-        prev = x
-    return right - left, left, right, best, bg
-
-
-@njit(cache=True, inline="always")
 def _fwhm_line(A, l, c, half, min_peak):
     """Raw full width at half level along line ``l`` around sample ``c``.
 
@@ -336,26 +300,25 @@ def _fwhm_line(A, l, c, half, min_peak):
     below ``min_peak``.
     """
     S = A.shape[0]
-    if c - half - 1 >= 0 and c + half + 1 <= S - 1:   # no sample to clamp (the usual case)
-        return _fwhm_inside(A, l, c, half, min_peak)
+    inside = c - half - 1 >= 0 and c + half + 1 <= S - 1   # no sample to clamp (the usual case)
     # centre index: the highest of c-1, c, c+1
     k0 = c
-    best = np.float64(A[_clamp(c, S), l])
+    best = np.float64(A[c if inside else _clamp(c, S), l])
     for k in (c - 1, c + 1):
-        x = np.float64(A[_clamp(k, S), l])
+        x = np.float64(A[k if inside else _clamp(k, S), l])
         if x > best:
             best = x
             k0 = k
     bg = best
     for k in range(c - half, c + half + 1):
-        bg = min(bg, np.float64(A[_clamp(k, S), l]))
+        bg = min(bg, np.float64(A[k if inside else _clamp(k, S), l]))
     if best - bg < min_peak:
         return np.nan, np.nan, np.nan, best, bg
     level = bg + 0.5 * (best - bg)
     right = np.nan
     prev = best
     for k in range(k0 + 1, k0 + half + 1):
-        x = np.float64(A[_clamp(k, S), l])
+        x = np.float64(A[k if inside else _clamp(k, S), l])
         if x < level:
             right = (k - 1) + (prev - level) / (prev - x)
             break
@@ -363,7 +326,7 @@ def _fwhm_line(A, l, c, half, min_peak):
     left = np.nan
     prev = best
     for k in range(k0 - 1, k0 - half - 1, -1):
-        x = np.float64(A[_clamp(k, S), l])
+        x = np.float64(A[k if inside else _clamp(k, S), l])
         if x < level:
             left = (k + 1) - (prev - level) / (prev - x)
             break
@@ -600,34 +563,6 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
 
 
 @njit(cache=True, inline="always")
-def _line_close(A, l, p, c, st, cc, ns, fw, flat, xw, re, qpeak, half, max_width, tmp, centre, normal, width, status):
-    """The end of a profile line once its ridge test gave status ``st`` and centre ``cc``: the
-    flat-top fallback where the test failed on a clipped top, then the width check."""
-    if st != OK:
-        if not flat:
-            status[l] = st
-            return
-        # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
-        # Centre = midpoint of the half-level crossings of the flanks, smoothed across
-        # the lines (along the stripe)
-        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[3:4].T)
-        if not (cc == cc):
-            status[l] = TOO_WIDE
-            return
-        if st == NOT_RIDGE or st == ALONG_LINE:
-            normal[l, 0] = 0.0
-            normal[l, 1] = 1.0
-            ns = 1.0
-    # width across the stripe
-    width[l] = fw * ns
-    if not (fw == fw) or fw * ns > max_width:
-        status[l] = TOO_WIDE
-        return
-    centre[l] = cc
-    status[l] = OK
-
-
-@njit(cache=True, inline="always")
 def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status):
     """The rest of a profile line from its derivative sums ``sm`` (:func:`_line_sums`):
@@ -670,7 +605,28 @@ def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_pe
                 cc = c + _hermite_root(g1, d1, g2, d2)
             else:
                 st = NO_CROSSING
-    _line_close(A, l, p, c, st, cc, ns, fw, flat, xw, re, qpeak, half, max_width, tmp, centre, normal, width, status)
+    if st != OK:
+        if not flat:
+            status[l] = st
+            return
+        # clipped (flat) top too wide for the scale: the Hessian is ~0 on the plateau.
+        # Centre = midpoint of the half-level crossings of the flanks, smoothed across
+        # the lines (along the stripe)
+        cc = _flat_centre(A, l, p, c, xw, re, qpeak, half, tmp[3:4].T)
+        if not (cc == cc):
+            status[l] = TOO_WIDE
+            return
+        if st == NOT_RIDGE or st == ALONG_LINE:
+            normal[l, 0] = 0.0
+            normal[l, 1] = 1.0
+            ns = 1.0
+    # width across the stripe
+    width[l] = fw * ns
+    if not (fw == fw) or fw * ns > max_width:
+        status[l] = TOO_WIDE
+        return
+    centre[l] = cc
+    status[l] = OK
 
 
 @njit(cache=True, inline="always")
@@ -782,12 +738,10 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
             mid = 0.5 * (lo_ + hi_)
             tn = (t - h / dh) if dh != 0.0 else mid
             tn = tn if lo_ <= tn <= hi_ else mid
-            on = act[j]
-            done = abs(tn - t) <= HERMITE_TOL
-            T[j] = tn if on else t
-            LO[j] = lo_ if on else LO[j]
-            HI[j] = hi_ if on else HI[j]
-            still = on and not done
+            T[j] = tn
+            LO[j] = lo_
+            HI[j] = hi_
+            still = not (abs(tn - t) <= HERMITE_TOL)
             act[j] = still
             nact += still
         it += 1
@@ -837,8 +791,26 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
                     cc = c + t
                 else:
                     st = NO_CROSSING
-        _line_close(A, q, pos[q], c, st, cc, ns, fw, flats[j], xw, RX, qpeak, half, max_width, tmp, centre, normal,
-                    width, status)
+        # the end of _line_finish, written out again: sharing it through an inlined helper made
+        # the serial ROI kernel ~20 % slower (same-process A/B, thread time)
+        if st != OK:
+            if not flats[j]:
+                status[q] = st
+                continue
+            cc = _flat_centre(A, q, pos[q], c, xw, RX, qpeak, half, tmp[3:4].T)
+            if not (cc == cc):
+                status[q] = TOO_WIDE
+                continue
+            if st == NOT_RIDGE or st == ALONG_LINE:
+                normal[q, 0] = 0.0
+                normal[q, 1] = 1.0
+                ns = 1.0
+        width[q] = fw * ns
+        if not (fw == fw) or fw * ns > max_width:
+            status[q] = TOO_WIDE
+            continue
+        centre[q] = cc
+        status[q] = OK
 
 
 @njit(cache=True, error_model="numpy")
