@@ -275,9 +275,9 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def forstner(gx, gy, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no cover - compiled
+def forstner(gx, gy, unit, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no cover - compiled
     """:func:`lightplane.intrinsics.refine_corners`' iteration: each corner of ``q0`` (n, 2) moved to the
-    point its gradients (``gx, gy``, the Scharr images) are orthogonal to, over the pixels within
+    point its gradients (``unit`` times ``gx, gy``, the Scharr images) are orthogonal to, over the pixels within
     ``radius`` of the integer pixel nearest to it weighted by ``exp(-d² / two_sigma2)`` (d from the
     corner); all corners step together until the largest step is below ``tol`` (``max_iter`` steps at
     most).  The result in ``q`` (n, 2); a corner whose system is singular keeps its place."""
@@ -307,8 +307,8 @@ def forstner(gx, gy, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no co
                     if not d2 <= r2:
                         continue
                     wt = math.exp(-d2 / two_sigma2)
-                    a = gx[py, px]
-                    b = gy[py, px]
+                    a = gx[py, px] * unit
+                    b = gy[py, px] * unit
                     axx += wt * a * a
                     axy += wt * a * b
                     ayy += wt * b * b

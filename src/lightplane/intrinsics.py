@@ -262,18 +262,21 @@ def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, 
 
     from ._corner_kernels import forstner
 
-    g = np.asarray(gray, dtype=np.float64)
+    g = np.asarray(gray)
     if g.ndim != 2:
         raise LightplaneError(f"refine_corners: gray must be a 2-D image, got shape {g.shape}")
     q0 = np.asarray(corners_uv, dtype=np.float64).reshape(-1, 2)
     if not spacing_px > 0:
         raise LightplaneError(f"refine_corners: spacing_px must be positive, got {spacing_px}")
-    gx = cv2.Scharr(g, cv2.CV_64F, 1, 0) / 32.0
-    gy = cv2.Scharr(g, cv2.CV_64F, 0, 1) / 32.0
+    if g.dtype == np.uint8:  # Scharr's sums are integers (|.| <= 4080): exact in int16, scaled in the kernel
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_16S, 1, 0), cv2.Scharr(g, cv2.CV_16S, 0, 1), 1.0 / 32.0
+    else:
+        g = g.astype(np.float64, copy=False)
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_64F, 1, 0, scale=1 / 32), cv2.Scharr(g, cv2.CV_64F, 0, 1, scale=1 / 32), 1.0
     radius = max(2.0, min(radius_frac * spacing_px, max_radius_px))
     sigma = sigma_frac * spacing_px * radius / (radius_frac * spacing_px)
     q = np.empty_like(q0)
-    forstner(np.ascontiguousarray(gx), np.ascontiguousarray(gy), np.ascontiguousarray(q0), float(radius),
+    forstner(np.ascontiguousarray(gx), np.ascontiguousarray(gy), float(unit), np.ascontiguousarray(q0), float(radius),
              float(2.0 * sigma**2), int(max_iter), float(tol_px), q)
     bad = ~np.all(np.isfinite(q), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * spacing_px)
     q[bad] = q0[bad]
