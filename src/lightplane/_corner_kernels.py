@@ -58,22 +58,36 @@ def _solve(A, b, x):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 def _normal_equations(J, res, m, A, g):  # pragma: no cover - compiled
-    """``A = J Jᵀ``, ``g = J res`` over the first ``m`` columns of ``J`` (11, K) (the sums
-    reassociated so that they vectorise)."""
+    """``A = J Jᵀ``, ``g = J res`` over the first ``m`` columns of ``J`` (n, K) (the sums reassociated
+    so that they vectorise; four products per load of a row of ``J``)."""
     n = J.shape[0]
     for a in range(n):
         ja = J[a]
-        s = 0.0
+        s0 = 0.0
         for k in range(m):
-            s += ja[k] * res[k]
-        g[a] = s
-        for b in range(a, n):
-            jb = J[b]
-            s = 0.0
+            s0 += ja[k] * res[k]
+        g[a] = s0
+        b = a
+        while b + 4 <= n:
+            j0, j1, j2, j3 = J[b], J[b + 1], J[b + 2], J[b + 3]
+            s0 = s1 = s2 = s3 = 0.0
             for k in range(m):
-                s += ja[k] * jb[k]
-            A[a, b] = s
-            A[b, a] = s
+                x = ja[k]
+                s0 += x * j0[k]
+                s1 += x * j1[k]
+                s2 += x * j2[k]
+                s3 += x * j3[k]
+            A[a, b], A[a, b + 1], A[a, b + 2], A[a, b + 3] = s0, s1, s2, s3
+            b += 4
+        while b < n:
+            jb = J[b]
+            s0 = 0.0
+            for k in range(m):
+                s0 += ja[k] * jb[k]
+            A[a, b] = s0
+            b += 1
+        for b in range(a, n):
+            A[b, a] = A[a, b]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -123,20 +137,84 @@ def _erf(x):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _model(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - compiled
-    """The saddle model with parameters ``p`` (11,) at the ``m`` offsets: ``erf`` factors ``e1``,
-    ``e2`` and residuals ``res`` (image - model) written."""
+def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
+    """The saddle model's ``erf`` factors ``e1``, ``e2`` for parameters ``p`` (11,) at the ``m`` offsets."""
     c1, s1 = math.cos(p[2]), math.sin(p[2])
     c2, s2 = math.cos(p[3]), math.sin(p[3])
     den = _SQRT2 * p[4]
     for k in range(m):
         x, y = ux[k], uy[k]
-        a = _erf((c1 * x + s1 * y) / den)
-        b = _erf((c2 * x + s2 * y) / den)
-        e1[k] = a
-        e2[k] = b
+        e1[k] = _erf((c1 * x + s1 * y) / den)
+        e2[k] = _erf((c2 * x + s2 * y) / den)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _residual(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - compiled
+    """The residuals ``res`` (image - model) of the saddle model with parameters ``p`` and ``erf``
+    factors ``e1``, ``e2`` at the ``m`` offsets."""
+    for k in range(m):
+        x, y = ux[k], uy[k]
         amp = p[6] + p[9] * x + p[10] * y
-        res[k] = img[i, idx[k]] - (p[5] + p[7] * x + p[8] * y + amp * (a * b))
+        res[k] = img[i, idx[k]] - (p[5] + p[7] * x + p[8] * y + amp * (e1[k] * e2[k]))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma: no cover - compiled
+    """The linear parameters (a, b, g, h) of ``p`` solved for its geometry (corner, edges, blur; the
+    ``erf`` factors ``e1``, ``e2``), weights ``W``: written into ``p[5:11]`` (0 where not finite)."""
+    for k in range(m):
+        sw = math.sqrt(W[k])
+        ee = e1[k] * e2[k]
+        J[0, k] = sw
+        J[1, k] = sw * ee
+        J[2, k] = sw * ux[k]
+        J[3, k] = sw * uy[k]
+        J[4, k] = sw * (ux[k] * ee)
+        J[5, k] = sw * (uy[k] * ee)
+        res[k] = sw * img[i, idx[k]]
+    _normal_equations(J[:6], res, m, A6, g6)
+    tr = 0.0
+    for a in range(6):
+        tr += A6[a, a]
+    for a in range(6):
+        A6[a, a] += 1e-9 * tr
+    _solve(A6, g6, x6)
+    for a in range(6):
+        p[5 + a] = x6[a] if math.isfinite(x6[a]) else 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
+    """The saddle model's Jacobian in its 11 parameters (:func:`lightplane.intrinsics._saddle_model`)
+    at the ``m`` offsets, times the square root of the weight, into ``J`` (11, K); the residuals
+    ``res`` scaled alike."""
+    c1, s1 = math.cos(p[2]), math.sin(p[2])
+    c2, s2 = math.cos(p[3]), math.sin(p[3])
+    s = p[4]
+    kk = _SQRT_2_PI / s
+    for k in range(m):
+        xk, yk = ux[k], uy[k]
+        d1 = c1 * xk + s1 * yk
+        d2 = c2 * xk + s2 * yk
+        ee = e1[k] * e2[k]
+        amp = p[6] + p[9] * xk + p[10] * yk
+        t1 = d1 / s
+        t2 = d2 / s
+        b1 = amp * (kk * math.exp(-0.5 * (t1 * t1))) * e2[k]
+        b2 = amp * e1[k] * (kk * math.exp(-0.5 * (t2 * t2)))
+        sw = math.sqrt(W[k])
+        J[0, k] = sw * (-p[7] - p[9] * ee - b1 * c1 - b2 * c2)
+        J[1, k] = sw * (-p[8] - p[10] * ee - b1 * s1 - b2 * s2)
+        J[2, k] = sw * (b1 * (c1 * yk - s1 * xk))
+        J[3, k] = sw * (b2 * (c2 * yk - s2 * xk))
+        J[4, k] = sw * (-(b1 * d1 + b2 * d2) / s)
+        J[5, k] = sw
+        J[6, k] = sw * ee
+        J[7, k] = sw * xk
+        J[8, k] = sw * yk
+        J[9, k] = sw * (xk * ee)
+        J[10, k] = sw * (yk * ee)
+        res[k] = sw * res[k]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -175,47 +253,25 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
     A = np.empty((11, 11))
     g = np.empty(11)
     step = np.empty(11)
-    if not warm:  # the linear parameters (a, b, g, h) for the starting geometry
-        A6 = np.empty((6, 6))
-        g6 = np.empty(6)
-        x6 = np.empty(6)
-        for i in range(n):
-            m = _window(px, py, w0, i, P[i, 0], P[i, 1], radius[i], taper, ux, uy, W, idx)
-            c1, s1 = math.cos(P[i, 2]), math.sin(P[i, 2])
-            c2, s2 = math.cos(P[i, 3]), math.sin(P[i, 3])
-            den = _SQRT2 * P[i, 4]
-            for k in range(m):
-                sw = math.sqrt(W[k])
-                ee = _erf((c1 * ux[k] + s1 * uy[k]) / den) * _erf((c2 * ux[k] + s2 * uy[k]) / den)
-                J[0, k] = sw
-                J[1, k] = sw * ee
-                J[2, k] = sw * ux[k]
-                J[3, k] = sw * uy[k]
-                J[4, k] = sw * (ux[k] * ee)
-                J[5, k] = sw * (uy[k] * ee)
-                res[k] = sw * img[i, idx[k]]
-            _normal_equations(J[:6], res, m, A6, g6)
-            tr = 0.0
-            for a in range(6):
-                tr += A6[a, a]
-            for a in range(6):
-                A6[a, a] += 1e-9 * tr
-            _solve(A6, g6, x6)
-            for a in range(6):
-                P[i, 5 + a] = x6[a] if math.isfinite(x6[a]) else 0.0
-
+    A6 = np.empty((6, 6))
+    g6 = np.empty(6)
+    x6 = np.empty(6)
     lam = np.full(n, 1e-3)
     best_cost[:] = np.inf
     best_P[:] = P
     A_best = np.zeros((n, 11, 11))
     g_best = np.zeros((n, 11))
-    for _ in range(max_iter + 1):
+    for it in range(max_iter + 1):
         all_better = True
         big_step = 0.0
         for i in range(n):
             p = P[i]
             m = _window(px, py, w0, i, p[0], p[1], radius[i], taper, ux, uy, W, idx)
-            _model(p, img, i, ux, uy, idx, m, e1, e2, res)
+            _erfs(p, ux, uy, m, e1, e2)
+            if it == 0 and not warm:  # the linear parameters for the starting geometry (the same erf)
+                _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6)
+                best_P[i] = p
+            _residual(p, img, i, ux, uy, idx, m, e1, e2, res)
             num = 0.0
             den = 0.0
             for k in range(m):
@@ -224,31 +280,7 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
             cost = num / max(den, 1e-300)
             better = math.isfinite(cost) and cost <= best_cost[i]
             if better:
-                c1, s1 = math.cos(p[2]), math.sin(p[2])
-                c2, s2 = math.cos(p[3]), math.sin(p[3])
-                s = p[4]
-                kk = _SQRT_2_PI / s
-                for k in range(m):
-                    xk, yk = ux[k], uy[k]
-                    d1 = c1 * xk + s1 * yk
-                    d2 = c2 * xk + s2 * yk
-                    ee = e1[k] * e2[k]
-                    amp = p[6] + p[9] * xk + p[10] * yk
-                    b1 = amp * (kk * math.exp(-0.5 * (d1 / s) ** 2)) * e2[k]
-                    b2 = amp * e1[k] * (kk * math.exp(-0.5 * (d2 / s) ** 2))
-                    sw = math.sqrt(W[k])
-                    J[0, k] = sw * (-p[7] - p[9] * ee - b1 * c1 - b2 * c2)
-                    J[1, k] = sw * (-p[8] - p[10] * ee - b1 * s1 - b2 * s2)
-                    J[2, k] = sw * (b1 * (c1 * yk - s1 * xk))
-                    J[3, k] = sw * (b2 * (c2 * yk - s2 * xk))
-                    J[4, k] = sw * (-(b1 * d1 + b2 * d2) / s)
-                    J[5, k] = sw
-                    J[6, k] = sw * ee
-                    J[7, k] = sw * xk
-                    J[8, k] = sw * yk
-                    J[9, k] = sw * (xk * ee)
-                    J[10, k] = sw * (yk * ee)
-                    res[k] = sw * res[k]
+                _jacobian(p, ux, uy, W, m, e1, e2, J, res)
                 _normal_equations(J, res, m, A_best[i], g_best[i])
                 best_P[i] = p
                 best_cost[i] = cost
