@@ -5,9 +5,13 @@
 the same model (:func:`lightplane.intrinsics._saddle_model`), weights, damping and stopping rule
 (the corners of a chunk step together until all of them are done, as the batched numpy loop did),
 with the model's ``erf`` and the normal equations evaluated only where the weight is not zero and
-the Jacobian only at accepted steps.  :func:`forstner` is :func:`refine_corners`' iteration (all
-corners together until the largest step is below the tolerance).  Both give the numpy versions'
-values to rounding (sums in another order, ``math.erf`` instead of scipy's).
+the Jacobian only at accepted steps; the cold start's ``erf`` serve the first iteration too.  On the
+30-view calibration capture (165 corners a view, windows of ~3300 pixels, three iterations) a pixel
+and iteration costs ~5 ns window, 12 ns ``erf``, 2 ns residual, 11 ns Jacobian and 10 ns normal
+equations.  :func:`forstner` is :func:`refine_corners`' iteration (all corners together until the
+largest step is below the tolerance).  Both give the numpy versions' values to rounding (sums in
+another order, ``math.erf`` instead of scipy's; corners within 1.1e-13 px on the capture,
+``tests/test_corner_kernels.py`` holds the numpy loops).
 """
 
 from __future__ import annotations

@@ -404,7 +404,7 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     n, k = len(q0), ox.size
     px, py, img, w0 = np.empty((n, k)), np.empty((n, k)), np.empty((n, k)), np.empty((n, k))
     # (n, K) pixel centres about the rounded corners (fixed), the image there, 1 inside the image else 0
-    window_pixels(np.ascontiguousarray(g, dtype=np.float64), np.round(q0), ox, oy, px, py, img, w0)
+    window_pixels(g, np.round(q0), ox, oy, px, py, img, w0)
     frame = None if camera is None or not camera.has_distortion else _LensFrame(camera, q0)
     if frame is not None:
         px, py, area = frame.forward(px, py)
@@ -509,7 +509,7 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
-    g = g.astype(np.float64, copy=False)
+    g = np.ascontiguousarray(g, dtype=np.float64)  # the kernels' layout, once for all chunks
     q0 = np.asarray(corners_uv, dtype=np.float64)
     cols, rows = (int(v) for v in board)
     if cols < 2 or rows < 2:
