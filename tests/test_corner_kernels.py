@@ -5,7 +5,8 @@ run them a corner at a time with the same model, weights, damping and stopping r
 numpy loops (kept below as references) run on the very inputs the kernels get inside
 :func:`fit_corners` (cold and warm starts, with and without a lens frame) and
 :func:`refine_corners`, on the noisy affine board of ``test_intrinsics_corners``: the corners agree
-to rounding (measured <= 1e-12 px; the bar 1e-9 px is far below the fit's noise, 0.012 px).
+to rounding (measured 6e-14 px for the saddle fit, 3e-13 px for Förstner's; the bar 1e-9 px is far
+below the fit's noise, 0.012 px).
 """
 
 from __future__ import annotations
@@ -150,9 +151,9 @@ def test_saddle_fit_is_the_numpy_loop(monkeypatch, noisy_board):
         assert np.abs(best_P[:, :2] - ref_P[:, :2]).max() < SAME_PX
         assert np.allclose(best_P, ref_P, rtol=1e-9, atol=1e-9)
         assert np.allclose(best_cost, ref_cost, rtol=1e-9)
-    # and the fit is the fit: the corners within the noise's reach of the truth (0.012 px RMS measured)
-    assert np.sqrt(np.mean(np.sum((q1 - t) ** 2, axis=1))) < 0.03
-    assert np.abs(q2 - q1).max() > 1e-3  # the lens frame changed them: the warm path did run
+    # and the fit is the fit: 0.0117 px RMS from the truth here; the bar is test_noise_8bit's (1.5x its 0.012 px)
+    assert np.sqrt(np.mean(np.sum((q1 - t) ** 2, axis=1))) < 0.018
+    assert np.abs(q2 - q1).max() > 1e-3  # the lens frame moved them (0.025 px): the warm path did run
 
 
 def test_forstner_is_the_numpy_loop(noisy_board):
