@@ -26,7 +26,8 @@ error (~0.1 mm at 450 mm per px of cx or cy).  The corners come from
 renders): with 30 views OpenCV's std of cx, cy is 0.09, 0.06 px and the camera-frame
 triangulation error 0.008–0.011 mm; with Förstner's corners (0.019 px) it was 0.28,
 0.19 px and 0.041 mm, over the 0.03 mm bar.  The calibration's time (corner detection
-and fit included, ~0.45 s per 1280x960 view) is printed with the camera row.
+and fit included) is printed with the camera row; ``bench_intrinsics_speed.py`` times it in CPU
+time, against another version's in the same run.
 
     .venv/bin/python benchmarks/bench_calibrate.py [--repeats 3] [--no-speed] [--boards-seed 1]
 """

@@ -254,45 +254,30 @@ def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, 
     board (foreshortened).  On rendered 13x9 boards tilted 30–60° (realistic noise) the
     error against the exact corners drops from 0.029 px RMS (cornerSubPix) to 0.019 px;
     noise-free from 0.020 to 0.011 px.  Corners whose solve is singular, or that move
-    by more than a quarter of the spacing, keep their input position.
+    by more than a quarter of the spacing, keep their input position.  The iteration is
+    compiled (:func:`lightplane._corner_kernels.forstner`; all corners step until the largest
+    step is below ``tol_px``).
     """
     import cv2
 
-    g = np.asarray(gray, dtype=np.float64)
+    from ._corner_kernels import forstner
+
+    g = np.asarray(gray)
     if g.ndim != 2:
         raise LightplaneError(f"refine_corners: gray must be a 2-D image, got shape {g.shape}")
     q0 = np.asarray(corners_uv, dtype=np.float64).reshape(-1, 2)
     if not spacing_px > 0:
         raise LightplaneError(f"refine_corners: spacing_px must be positive, got {spacing_px}")
-    gx = cv2.Scharr(g, cv2.CV_64F, 1, 0) / 32.0
-    gy = cv2.Scharr(g, cv2.CV_64F, 0, 1) / 32.0
-    h, w = g.shape
+    if g.dtype == np.uint8:  # Scharr's sums are integers (|.| <= 4080): exact in int16, scaled in the kernel
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_16S, 1, 0), cv2.Scharr(g, cv2.CV_16S, 0, 1), 1.0 / 32.0
+    else:
+        g = g.astype(np.float64, copy=False)
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_64F, 1, 0, scale=1 / 32), cv2.Scharr(g, cv2.CV_64F, 0, 1, scale=1 / 32), 1.0
     radius = max(2.0, min(radius_frac * spacing_px, max_radius_px))
     sigma = sigma_frac * spacing_px * radius / (radius_frac * spacing_px)
-    r = int(np.ceil(radius))
-    oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
-    ox, oy = ox.ravel(), oy.ravel()
-    q = q0.copy()
-    for _ in range(max_iter):
-        base = np.round(q).astype(int)
-        px = np.clip(base[:, :1] + ox, 0, w - 1)
-        py = np.clip(base[:, 1:] + oy, 0, h - 1)
-        dx, dy = px - q[:, :1], py - q[:, 1:]
-        d2 = dx**2 + dy**2
-        wt = np.exp(-d2 / (2.0 * sigma**2)) * (d2 <= radius**2)
-        a, b = gx[py, px], gy[py, px]
-        axx, axy, ayy = (wt * a * a).sum(1), (wt * a * b).sum(1), (wt * b * b).sum(1)
-        bx = (wt * (a * a * px + a * b * py)).sum(1)
-        by = (wt * (a * b * px + b * b * py)).sum(1)
-        det = axx * ayy - axy**2
-        ok = det > 1e-12 * np.maximum(axx * ayy, 1e-300)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            qn = np.column_stack([(ayy * bx - axy * by) / det, (axx * by - axy * bx) / det])
-        qn[~ok] = q[~ok]
-        step = np.abs(qn - q).max() if len(q) else 0.0
-        q = qn
-        if step < tol_px:
-            break
+    q = np.empty_like(q0)
+    forstner(np.ascontiguousarray(gx), np.ascontiguousarray(gy), float(unit), np.ascontiguousarray(q0), float(radius),
+             float(2.0 * sigma**2), int(max_iter), float(tol_px), q)
     bad = ~np.all(np.isfinite(q), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * spacing_px)
     q[bad] = q0[bad]
     return q
@@ -359,22 +344,6 @@ def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool)
     return model, J
 
 
-def _solve_each(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solutions of the stacked systems ``A[i] x = b[i]`` (n, m, m), (n, m); NaN rows where
-    ``A[i]`` is singular."""
-    try:
-        with np.errstate(all="ignore"):
-            return np.linalg.solve(A, b[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        x = np.full(b.shape, np.nan)
-        for i in range(len(A)):
-            try:
-                x[i] = np.linalg.solve(A[i], b[i])
-            except np.linalg.LinAlgError:
-                pass
-        return x
-
-
 class _LensFrame:
     """Locally rectified coordinates about corners ``q0`` (n, 2) distorted px of ``camera``.
 
@@ -423,69 +392,31 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
     the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
     ``warm``: ``P`` is a whole fitted parameter set (else only the corner, edge angles and blur:
-    the linear parameters are solved for first)."""
-    h, w = g.shape
+    the linear parameters are solved for first).  The iteration is :func:`_corner_kernels.fit_saddles`
+    (the pixel centres, image values and lens frame prepared here)."""
+    from ._corner_kernels import fit_saddles, window_pixels
+
     q0 = P[:, :2].copy()
     r = int(np.ceil(radius.max())) + 1
     oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
     keep = ox**2 + oy**2 <= r**2
     ox, oy = ox[keep].astype(np.float64), oy[keep].astype(np.float64)
-    base = np.round(q0)
-    px, py = base[:, :1] + ox, base[:, 1:] + oy  # (n, K) pixel centres, fixed
-    inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
-    img = g[np.clip(py, 0, h - 1).astype(np.intp), np.clip(px, 0, w - 1).astype(np.intp)]
+    n, k = len(q0), ox.size
+    px, py, img, w0 = np.empty((n, k)), np.empty((n, k)), np.empty((n, k)), np.empty((n, k))
+    # (n, K) pixel centres about the rounded corners (fixed), the image there, 1 inside the image else 0
+    window_pixels(g, np.round(q0), ox, oy, px, py, img, w0)
     frame = None if camera is None or not camera.has_distortion else _LensFrame(camera, q0)
     if frame is not None:
         px, py, area = frame.forward(px, py)
         ok = np.isfinite(px) & np.isfinite(py) & np.isfinite(area)
-        inside &= ok
         px, py, area = np.where(ok, px, 0.0), np.where(ok, py, 0.0), np.where(ok, area, 0.0)
-    else:
-        area = np.ones_like(px)
-
-    def weight(q):
-        ux, uy = px - q[:, :1], py - q[:, 1:]
-        t = np.clip((radius[:, None] - np.hypot(ux, uy)) / taper_px, 0.0, 1.0)
-        return ux, uy, inside * area * np.sin(0.5 * np.pi * t) ** 2
-
-    n = len(P)
-    P = P.copy()
-    if not warm:  # the linear parameters (a, b, g, h) for the starting geometry
-        ux, uy, W = weight(q0)
-        _, J = _saddle_model(P, ux, uy, True)
-        lin = [5, 6, 7, 8, 9, 10]
-        Jl = J[:, lin]
-        A = (Jl * W[:, None]) @ Jl.transpose(0, 2, 1)
-        rhs = ((Jl * W[:, None]) @ img[..., None])[..., 0]
-        sol = _solve_each(A + 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6), rhs)
-        P[:, lin] = np.where(np.isfinite(sol), sol, 0.0)
-
-    eye = np.eye(11)
-    lam = np.full(n, 1e-3)
-    best_cost = np.full(n, np.inf)
-    best_P = P.copy()
-    A_best = np.zeros((n, 11, 11))
-    g_best = np.zeros((n, 11))
-    for _ in range(max_iter + 1):
-        ux, uy, W = weight(P[:, :2])
-        M, J = _saddle_model(P, ux, uy, True)
-        res = img - M
-        cost = np.einsum("nk,nk->n", W, res * res) / np.maximum(W.sum(1), 1e-300)
-        better = np.isfinite(cost) & (cost <= best_cost)
-        if np.any(better):
-            sw = np.sqrt(W)
-            J *= sw[:, None]  # √W·J: the normal equations as one batched product
-            A_all = J @ J.transpose(0, 2, 1)
-            g_all = (J @ (sw * res)[..., None])[..., 0]
-            A_best[better], g_best[better] = A_all[better], g_all[better]
-            best_P[better], best_cost[better] = P[better], cost[better]
-        lam = np.clip(np.where(better, 0.3 * lam, 10.0 * lam), 1e-9, 1e9)
-        diag = np.einsum("nii->ni", A_best)
-        step = _solve_each(A_best + (lam[:, None] * diag)[:, :, None] * eye, g_best)
-        step[~np.all(np.isfinite(step), axis=1)] = 0.0
-        P = best_P + step
-        if np.all(better) and np.abs(step[:, :2]).max(initial=0.0) < tol_px:
-            break
+        w0 = w0 * area
+    P = np.array(P, dtype=np.float64, order="C")
+    best_P = np.empty_like(P)
+    best_cost = np.empty(len(P))
+    fit_saddles(np.ascontiguousarray(px, dtype=np.float64), np.ascontiguousarray(py, dtype=np.float64), img,
+                np.ascontiguousarray(w0, dtype=np.float64), np.ascontiguousarray(radius, dtype=np.float64),
+                float(taper_px), P, bool(warm), int(max_iter), float(tol_px), best_P, best_cost)
     if frame is not None:
         best_P[:, :2] = frame.back(best_P[:, :2])
     return best_P, best_cost
@@ -507,8 +438,8 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     ``s² = σ_psf² + 1/12``), ``a, b`` the mean and half-contrast, ``g, h`` their
     gradients (vignetting and shading; the multiplicative ``h`` term matters because,
     being odd about ``q``, it would otherwise pull the corner).  All 11 parameters are
-    fitted per corner by Levenberg–Marquardt, all corners at once (vectorised), over the
-    pixel centres within a disc about the *current* ``q`` (radius ``radius_frac`` × the
+    fitted per corner by Levenberg–Marquardt (compiled, :mod:`lightplane._corner_kernels`;
+    the corners of a chunk step together until all are done), over the pixel centres within a disc about the *current* ``q`` (radius ``radius_frac`` × the
     distance to the nearest parallel grid line, at most ``max_radius_px``; the weight
     falls smoothly to 0 over its last ``taper_px``; near the image border the radius
     shrinks so that the disc stays inside the image).
@@ -527,7 +458,7 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     (realistic imaging, 30 views of 15x11 corners) the error against the exact corners
     is 0.006 px RMS (noise-free renders: 0.004 px, 8-bit quantisation and the renderer's
     sampling), against 0.019 px for :func:`refine_corners` and 0.031 px for
-    ``cornerSubPix``; ~0.3 s per view of 165 corners.
+    ``cornerSubPix``; ~0.1 s of CPU per view of 165 corners (0.4 s as the numpy loop it was).
 
     Lens distortion bends the board edges across the disc, which breaks the symmetry: the
     straight-edge model then pulls the corners towards the image centre (a rendered wide
@@ -578,7 +509,7 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
-    g = g.astype(np.float64, copy=False)
+    g = np.ascontiguousarray(g, dtype=np.float64)  # the kernels' layout, once for all chunks
     q0 = np.asarray(corners_uv, dtype=np.float64)
     cols, rows = (int(v) for v in board)
     if cols < 2 or rows < 2:
@@ -861,7 +792,7 @@ def calibrate_camera(
         imaging, 16 mm lens, k3 fixed) corner errors of 0.031 / 0.019 / 0.006 px RMS
         (cornerSubPix / Förstner / saddle) give OpenCV std of (cx, cy) of (0.47, 0.31) /
         (0.28, 0.19) / (0.09, 0.06) px with 30 views, and the principal-point error
-        drops to <= 0.06 px; the saddle fit costs ~0.3 s per 1280x960 view of 165 corners.
+        drops to <= 0.06 px; the saddle fit costs ~0.1 s per 1280x960 view of 165 corners.
         The saddle model's edges are straight: after a first calibration the corners whose
         windows its lens bends by more than :data:`LENS_REFIT_BEND_PX` are fitted again in
         its lens frame (:func:`fit_corners` with ``camera``) and the calibration is solved
