@@ -291,3 +291,40 @@ def test_width_filter_needs_enough_lines_and_valid_ratios():
     for lo, hi in ((-0.1, 2.0), (1.0, 2.0), (0.5, 1.0), (0.5, np.nan)):
         with pytest.raises(LightplaneError, match="width_ratio"):
             ProfileMeasurer(CAM, PLANE, min_width_ratio=lo, max_width_ratio=hi)
+
+
+def test_profile_kernels_match_numpy():
+    """The measurer's one-pass triangulation and width median give numpy's numbers bit for bit
+    (triangulate_normalized with its validity; np.median of the valid finite widths), with
+    grazing rays, rays behind the camera, NaN rays and even and odd counts."""
+    from lightplane._measure_kernels import median_where, triangulate_rays
+    from lightplane.measure import triangulate_normalized
+
+    rng = np.random.default_rng(5)
+    n = 2000
+    xy = rng.uniform(-0.8, 0.8, (n, 2))
+    xy[::17] = np.nan
+    for plane in (PLANE, LightPlane([0.3, -0.2, 0.93], -40.0), LightPlane([1.0, 0.0, 0.0], -1.0)):
+        a, b, c = plane.normal
+        # rays along the plane: grazing (den exactly 0 for the first few)
+        xy[1:40:3] = np.column_stack([rng.uniform(-0.5, 0.5, 13), np.zeros(13)])
+        if abs(b) > 0:
+            xy[1:40:3, 1] = -(a * xy[1:40:3, 0] + c) / b
+        valid = rng.random(n) > 0.1
+        pts, ok = np.empty((n, 3)), np.empty(n, bool)
+        triangulate_rays(xy, float(a), float(b), float(c), float(plane.d), 1e-3, valid, pts, ok)
+        tri = triangulate_normalized(plane, xy, min_cos=1e-3)
+        ref_ok = valid & tri.valid
+        ref = tri.points
+        ref[~ref_ok] = np.nan
+        assert ok.any() and (~ok & valid).any()
+        np.testing.assert_array_equal(ok, ref_ok)
+        assert np.array_equal(pts, ref, equal_nan=True)
+    for m in (0, 1, 2, 7, 20, 501, 1000):
+        w = rng.normal(5.0, 1.0, m)
+        w[::5] = np.nan
+        mask = rng.random(m) > 0.2
+        med, cnt = median_where(w, mask)
+        sel = w[mask & np.isfinite(w)]
+        assert cnt == sel.size
+        assert (np.isnan(med) and cnt == 0) or med == np.median(sel)

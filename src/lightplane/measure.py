@@ -472,13 +472,17 @@ class ProfileMeasurer:
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
                     width_px: np.ndarray | None = None) -> Profile:
         """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""
+        from ._measure_kernels import triangulate_rays
+
         uv = as_points(uv, 2, "uv")
         valid = np.asarray(valid, bool) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
         xy = self.normalized(np.where(valid[:, None], uv, np.nan))
-        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos)
-        ok = valid & tri.valid
-        pts = tri.points
-        pts[~ok] = np.nan
+        # triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos) and its validity, one pass
+        pts = np.empty((len(uv), 3))
+        ok = np.empty(len(uv), bool)
+        a, b, c = self.plane.normal
+        triangulate_rays(xy, float(a), float(b), float(c), float(self.plane.d), float(self.min_ray_cos), valid, pts,
+                         ok)
         if self.camera_share_missing is None and self.plane.covariance is not None and np.any(ok):
             from .uncertainty import point_error_basis
 
@@ -502,12 +506,15 @@ def width_filter(prof: Profile, min_ratio: float = MIN_WIDTH_RATIO, max_ratio: f
     :class:`Profile` (``valid`` False, ``points``/``sigma_mm`` NaN and
     ``width_rejected`` True for the dropped points).  See :class:`ProfileMeasurer`.
     """
+    from ._measure_kernels import median_where
+
     w = np.asarray(prof.width_px, float)
-    ok = prof.valid & np.isfinite(w)
+    valid = np.asarray(prof.valid, bool)
     rej = np.zeros(len(prof), bool)
-    if np.count_nonzero(ok) >= WIDTH_FILTER_MIN_LINES and (min_ratio > 0 or np.isfinite(max_ratio)):
-        med = float(np.median(w[ok]))
-        rej = ok & ((w < min_ratio * med) | (w > max_ratio * med))
+    if min_ratio > 0 or np.isfinite(max_ratio):
+        med, n = median_where(w, valid)   # np.median over the valid finite widths, one pass
+        if n >= WIDTH_FILTER_MIN_LINES:   # (NaN widths compare False: never rejected)
+            rej = valid & ((w < min_ratio * med) | (w > max_ratio * med))
     if not rej.any():
         return replace(prof, width_rejected=rej)
     pts, sig = prof.points.copy(), prof.sigma_mm.copy()

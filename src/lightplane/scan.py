@@ -392,7 +392,7 @@ def kernels_release_gil() -> bool:
     (then threads can share one process: one copy of the tables, no frame copies)."""
     from . import _stripe_kernels as K
 
-    names = ("profile_frame", "profiles_batch_serial", "lines_argmax", "estimate_fwhm_lines", "frames_points_serial")
+    names = ("profile_frame", "profiles_batch_serial", "fwhm_median", "frames_points_serial")
     return all(bool(getattr(getattr(K, n, None), "targetoptions", {}).get("nogil")) for n in names)
 
 

@@ -267,19 +267,11 @@ def _check_width(width_px, name="width_px") -> float | None:
 
 
 def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4) -> tuple[float, int]:
-    """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line.
-
-    Serial kernels: a few hundred lines are too little work to split over threads."""
-    S, L = A.shape
-    lines = np.arange(0, L, every, dtype=np.int64)
-    p1 = np.full(L, -1, np.int64)
-    K.lines_argmax(A, lines, p1)   # one pass over the rows: the peaks the candidates kernel finds
-    out = np.empty(lines.size, np.float64)
-    K.estimate_fwhm_lines(A, p1, lines, 40, float(min_peak), out)
-    ok = np.isfinite(out)
-    if not ok.any():
-        return float("nan"), 0
-    return float(np.median(out[ok])), int(ok.sum())
+    """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line
+    of ``A[s, l]`` (row-major, or the transposed view of a row-major image), and the number
+    of lines it is taken over (:func:`_stripe_kernels.fwhm_median`: one serial kernel call)."""
+    w, n = K.fwhm_median(A, int(every), 40, float(min_peak))
+    return float(w), int(n)
 
 
 def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str | None = None,
@@ -291,15 +283,13 @@ def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str |
     an angle ``theta`` the result is then at most ``sqrt(2)`` times too large).
     NaN when no line has a peak above ``min_peak``.
     """
-    import cv2
-
     img, fs = _channel_image(image, channel)
     mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     res = []
     if axis in (None, "columns"):
         res.append(_fwhm_median(img, mp))
     if axis in (None, "rows"):
-        res.append(_fwhm_median(cv2.transpose(img) if img.dtype != np.float64 else np.ascontiguousarray(img.T), mp))
+        res.append(_fwhm_median(img.T, mp))   # the rows as lines, read in place (no transpose)
     if axis not in (None, "columns", "rows"):
         raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
     vals = [w for w, n in res if n >= 3]
@@ -473,7 +463,9 @@ def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, 
     mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     w = _check_width(width_px)
     if w is None:
-        w, n = _fwhm_median(A, mp, every=max(1, L // 160))
+        # lines="rows": the image's own rows, read along memory (the same values as A's columns)
+        E = img[line0:line0 + L, sample0:sample0 + S].T if prepared is None and axis == "rows" else A
+        w, n = _fwhm_median(E, mp, every=max(1, L // 160))
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
     sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
