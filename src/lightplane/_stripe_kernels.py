@@ -181,7 +181,7 @@ def _ridge_normal(ruu, ruv, rvv):
 # ----------------------------------------------------------------------------------------
 # profile kernels (A[s, l], lines = columns of A)
 
-BLOCK = 16      # samples per block of the candidate search
+BLOCK = 16      # samples per block of the candidate search (at most 256: a block's argmax is kept as uint8)
 # Lines per parallel task.  1280 lines in chunks of 256 made 5 tasks for 2 threads (one
 # thread did 3): 128 gives 10 and balances them; the 1280x128 profile went from 0.36
 # to 0.31 ms, the 1280x960 one from 0.47 to 0.39 ms (benchmarks/bench_stripe.py).
@@ -1005,7 +1005,8 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     """The profile of lines ``la .. lb - 1`` (see :func:`profile_centres`).
 
     Interior lines go in bands of :data:`BAND_LINES`: first each line's middle ``c``
-    (:func:`_line_start`), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
+    (:func:`_band_start`, vectorised over the lines; :func:`_line_start` for the lines it
+    leaves), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
     of the band's median the derivative sums at the rows c-1 .. c+1 of every such c
     (:func:`_band_sums`) and the lines' ends (:func:`_band_finish`), both vectorised
     over the lines.  The other lines are computed alone (:func:`_line_alone`).  The
