@@ -158,6 +158,24 @@ def test_profile_numba_and_numpy_agree(name, width_px):
     assert set(np.unique(a.status)) <= set(PROFILE_STATUS)
 
 
+@pytest.mark.parametrize("theta", [0.46, 0.5])
+def test_profile_band_of_steep_narrow_stripe(theta):
+    """A narrow (2.5 px) steep stripe: within a band of the kernel's lines the peaks span more than
+    the FWHM window (no sample in every line's window: the background is found per line);
+    the numba kernel's numbers equal the numpy twin's (a band once got another line's minimum)."""
+    rng = np.random.default_rng(31)
+    img = render((90, 160), straight(theta, (80.3, 45.2)), 2.5, rng=rng, ss=2)
+    half = int(np.ceil(1.5 * 2.5)) + 3
+    p = np.argmax(img, axis=0)
+    assert max(np.ptp(p[l:l + 32]) for l in range(5, 120, 32)) > 2 * half   # the case is exercised
+    a = extract_profile(img, width_px=2.5)
+    b = extract_profile(img, width_px=2.5, backend="numpy")
+    np.testing.assert_array_equal(a.status, b.status)
+    assert a.valid.mean() > 0.9
+    np.testing.assert_allclose(a.uv, b.uv, rtol=1e-7, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(a.width, b.width, rtol=1e-7, atol=1e-6, equal_nan=True)
+
+
 def test_profile_degenerate_frames():
     zoo = _profile_zoo()
     for name in ("noise_only", "all_white", "all_black"):

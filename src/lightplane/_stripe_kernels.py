@@ -181,7 +181,7 @@ def _ridge_normal(ruu, ruv, rvv):
 # ----------------------------------------------------------------------------------------
 # profile kernels (A[s, l], lines = columns of A)
 
-BLOCK = 16      # samples per block of the candidate search
+BLOCK = 16      # samples per block of the candidate search (at most 256: a block's argmax is kept as uint8)
 # Lines per parallel task.  1280 lines in chunks of 256 made 5 tasks for 2 threads (one
 # thread did 3): 128 gives 10 and balances them; the 1280x128 profile went from 0.36
 # to 0.31 ms, the 1280x960 one from 0.47 to 0.39 ms (benchmarks/bench_stripe.py).
@@ -197,7 +197,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
     nb = (S + B - 1) // B
     n = l1 - l0
     bm = np.empty((nb, n), dtype=A.dtype)
-    ba = np.empty((nb, n), dtype=np.int32)
+    ba = np.empty((nb, n), dtype=np.uint8)   # the sample within its block: as wide as 8-bit data (vectorised)
     for b in range(nb):
         s0 = b * B
         s1 = min(S, s0 + B)
@@ -206,14 +206,15 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
         r0 = A[s0, l0:l1]
         for l in range(n):
             acc[l] = r0[l]
-            arg[l] = s0
+            arg[l] = 0
         for s in range(s0 + 1, s1):
             r = A[s, l0:l1]
+            k = np.uint8(s - s0)
             for l in range(n):
                 x = r[l]
                 up = x > acc[l]
                 acc[l] = x if up else acc[l]
-                arg[l] = s if up else arg[l]
+                arg[l] = k if up else arg[l]
     for l in range(n):
         lg = l0 + l
         bb = 0
@@ -222,7 +223,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
             if bm[b, l] > best:
                 best = bm[b, l]
                 bb = b
-        q1 = ba[bb, l]
+        q1 = bb * B + np.int64(ba[bb, l])
         p1[lg] = q1
         v1[lg] = float(best)
         b2 = -1
@@ -238,7 +239,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
             p2[lg] = -1
             v2[lg] = -np.inf
             continue
-        p2[lg] = ba[b2, l]
+        p2[lg] = b2 * B + np.int64(ba[b2, l])
         v2[lg] = float(best2)
 
 
@@ -631,6 +632,181 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
 
 
 @njit(cache=True, inline="always")
+def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+                cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec):
+    """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``: the same numbers, bit for bit,
+    with the window scans of :func:`_fwhm_line` vectorised over the lines.
+
+    The lines whose window ``p - half - 1 .. p + half + 1`` is inside ``A`` and whose ``p`` is
+    within :data:`BAND_DRIFT` of the band's median ``p`` (all of them when the ``p`` span at
+    most ``2 BAND_DRIFT``) share one sweep over the rows their windows cover (converted to
+    float64 once, in ``F``): the background (the window's minimum, as a select per lane)
+    and then the half-level crossings (the first sample below the level after the highest
+    one, the last before it: a min / max of the row index per lane); the crossings' sub-pixel
+    positions, the middle and the flat-top test per line from them.  The other lines go
+    through :func:`_line_start`.
+    """
+    S = A.shape[0]
+    k = 0
+    pmin = S
+    pmax = -1
+    for j in range(n):
+        p = pos[l0 + j]
+        ok = p - half - 1 >= 0 and p + half + 1 <= S - 1
+        vec[j] = ok
+        if ok:
+            srt[k] = p
+            k += 1
+            pmin = min(pmin, p)
+            pmax = max(pmax, p)
+    if pmax - pmin > 2 * BAND_DRIFT:
+        srt[:k].sort()
+        med = srt[k // 2]
+        pmin = med
+        pmax = med
+        for j in range(n):
+            p = pos[l0 + j]
+            ok = vec[j] and abs(p - med) <= BAND_DRIFT
+            vec[j] = ok
+            if ok:
+                pmin = min(pmin, p)
+                pmax = max(pmax, p)
+    nv = 0
+    for j in range(n):
+        q = l0 + j
+        if not vec[j]:
+            P[j] = -S - 2 * half - 8   # no row of the sweeps falls in its window
+            K0[j] = P[j]
+            c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength, intensity,
+                                                width, status)
+            cs[j] = c
+            fws[j] = fw
+            bests[j] = best
+            bgs[j] = bg
+            flats[j] = flat
+            continue
+        nv += 1
+        centre[q] = np.nan
+        normal[q, 0] = np.nan
+        normal[q, 1] = np.nan
+        strength[q] = np.nan
+        intensity[q] = np.nan
+        width[q] = np.nan
+        p = pos[q]
+        P[j] = p
+        # the highest of p-1, p, p+1 (as _fwhm_line: p first)
+        k0 = p
+        best = np.float64(A[p, q])
+        x = np.float64(A[p - 1, q])
+        if x > best:
+            best = x
+            k0 = p - 1
+        x = np.float64(A[p + 1, q])
+        if x > best:
+            best = x
+            k0 = p + 1
+        K0[j] = k0
+        bests[j] = best
+        BG[j] = best
+    if nv == 0:
+        return
+    # the background: min over p - half .. p + half; the rows in every window first, in A's type
+    # (exact: the minimum is one of the samples), then the others masked per line
+    ca = pmax - half
+    cb = pmin + half
+    if ca <= cb:
+        row = A[ca, l0:l0 + n]
+        for j in range(n):
+            M[j] = row[j]
+        for s in range(ca + 1, cb + 1):
+            row = A[s, l0:l0 + n]
+            for j in range(n):
+                x = row[j]
+                m = M[j]
+                M[j] = x if x < m else m
+        for j in range(n):
+            x = np.float64(M[j])
+            b = BG[j]
+            BG[j] = x if x < b else b
+    for s in range(pmin - half, pmax + half + 1):
+        if ca <= s <= cb:
+            continue
+        row = A[s, l0:l0 + n]
+        for j in range(n):
+            d = s - P[j]
+            x = np.float64(row[j])
+            b = BG[j]
+            BG[j] = x if (x < b) & (d >= -half) & (d <= half) else b
+    big = S + 1
+    for j in range(n):
+        b = BG[j]
+        LV[j] = b + 0.5 * (bests[j] - b)
+        KR[j] = big if vec[j] else -big
+        KL[j] = -big if vec[j] else big
+    # the crossings: the first sample below the level in k0 + 1 .. k0 + half (rows upwards until
+    # every line has its own), the last one in k0 - half .. k0 - 1 (rows downwards)
+    kmin = pmin - 1
+    kmax = pmax + 1
+    for s in range(kmin + 1, kmax + half + 1):
+        row = A[s, l0:l0 + n]
+        pend = 0
+        for j in range(n):
+            d = s - K0[j]
+            kr = KR[j]
+            hit = (np.float64(row[j]) < LV[j]) & (d >= 1) & (d <= half) & (kr == big)
+            KR[j] = s if hit else kr
+            pend += (KR[j] == big) & (d < half)
+        if pend == 0:
+            break
+    for s in range(kmax - 1, kmin - half - 1, -1):
+        row = A[s, l0:l0 + n]
+        pend = 0
+        for j in range(n):
+            d = K0[j] - s
+            kl = KL[j]
+            hit = (np.float64(row[j]) < LV[j]) & (d >= 1) & (d <= half) & (kl == -big)
+            KL[j] = s if hit else kl
+            pend += (KL[j] == -big) & (d < half)
+        if pend == 0:
+            break
+    for j in range(n):
+        if not vec[j]:
+            continue
+        q = l0 + j
+        p = P[j]
+        level = LV[j]
+        right = np.nan
+        kk = KR[j]
+        if kk < big:
+            prev = np.float64(A[kk - 1, q])
+            x = np.float64(A[kk, q])
+            right = (kk - 1) + (prev - level) / (prev - x)
+        left = np.nan
+        kk = KL[j]
+        if kk > -big:
+            prev = np.float64(A[kk + 1, q])
+            x = np.float64(A[kk, q])
+            left = (kk + 1) - (prev - level) / (prev - x)
+        fw = right - left
+        best = bests[j]
+        bg = BG[j]
+        bgs[j] = bg
+        fws[j] = fw
+        c = p
+        if fw == fw:
+            cm = np.int64(math.floor(0.5 * (left + right) + 0.5))
+            if abs(cm - p) <= qpeak:
+                c = cm
+        if c - 1 - R < 0 or c + 1 + R > S - 1:
+            status[q] = EDGE
+            cs[j] = -1
+            flats[j] = False
+            continue
+        cs[j] = c
+        flats[j] = _is_flat(A, q, p, fw, best, bg, half)
+
+
+@njit(cache=True, inline="always")
 def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status):
     """The rest of a profile line from its derivative sums ``sm`` (:func:`_line_sums`):
@@ -715,7 +891,7 @@ _V_ROWS = 10
 
 
 @njit(cache=True, inline="always")
-def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half, min_peak,
+def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act, xw, RX, qpeak, half, min_peak,
                  max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width, status):
     """:func:`_line_finish` of the band's lines whose middle ``c`` is in ``lo .. hi``, from
     the derivative sums ``D`` (:func:`_band_sums`), vectorised over the lines: the
@@ -734,14 +910,22 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
     T = V[_V_T]
     LO = V[_V_LO]
     HI = V[_V_HI]
-    nact = 0
+    # each line's sums at its c-1, c, c+1, side by side (E[k, o, j] = D[k, c - lo + o, j]), so
+    # that the next loop reads every lane alike (vectorised)
     for j in range(n):
         c = cs[j]
         inb = lo <= c <= hi
         r = (c - lo) if inb else 0
-        ruu = D[4, r + 1, j]
-        ruv = D[3, r + 1, j]
-        rvv = D[1, r + 1, j]
+        act[j] = inb
+        for k in range(5):
+            for o in range(3):
+                E[k, o, j] = D[k, r + o, j]
+    nact = 0
+    for j in range(n):
+        inb = act[j]
+        ruu = E[4, 1, j]
+        ruv = E[3, 1, j]
+        rvv = E[1, 1, j]
         # _ridge_normal, branch-free
         half_tr = 0.5 * (ruu + rvv)
         half_df = 0.5 * (ruu - rvv)
@@ -754,31 +938,32 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
         zero = nrm == 0.0
         nu = 1.0 if zero else nu / nrm
         nvv = 0.0 if zero else nvv / nrm
-        flip = nvv < 0.0 or (nvv == 0.0 and nu < 0.0)
+        flip = (nvv < 0.0) | ((nvv == 0.0) & (nu < 0.0))
         nu = -nu if flip else nu
         nvv = -nvv if flip else nvv
         lam[j] = lm
         nlv[j] = nu
         nsv[j] = nvv
-        g0 = nu * D[2, r, j] + nvv * D[0, r, j]
-        g1 = nu * D[2, r + 1, j] + nvv * D[0, r + 1, j]
-        g2 = nu * D[2, r + 2, j] + nvv * D[0, r + 2, j]
-        d0 = nu * D[3, r, j] + nvv * D[1, r, j]
-        d1 = nu * D[3, r + 1, j] + nvv * D[1, r + 1, j]
-        d2 = nu * D[3, r + 2, j] + nvv * D[1, r + 2, j]
-        lo_ok = (g0 > 0.0) != (g1 > 0.0) or g0 == 0.0
-        hi_ok = (g1 > 0.0) != (g2 > 0.0) or g2 == 0.0
+        g0 = nu * E[2, 0, j] + nvv * E[0, 0, j]
+        g1 = nu * E[2, 1, j] + nvv * E[0, 1, j]
+        g2 = nu * E[2, 2, j] + nvv * E[0, 2, j]
+        d0 = nu * E[3, 0, j] + nvv * E[1, 0, j]
+        d1 = nu * E[3, 1, j] + nvv * E[1, 1, j]
+        d2 = nu * E[3, 2, j] + nvv * E[1, 2, j]
+        lo_ok = ((g0 > 0.0) != (g1 > 0.0)) | (g0 == 0.0)
+        hi_ok = ((g1 > 0.0) != (g2 > 0.0)) | (g2 == 0.0)
         # the one bracket's cubic (the lower one's values when both or neither), in the
         # order of the pair as _hermite_root is called: (g0, d0, g1, d1) or (g1, d1, g2, d2)
-        a = g1 if hi_ok and not lo_ok else g0
-        b = g2 if hi_ok and not lo_ok else g1
-        da = d1 if hi_ok and not lo_ok else d0
-        db = d2 if hi_ok and not lo_ok else d1
+        up = hi_ok & (not lo_ok)
+        a = g1 if up else g0
+        b = g2 if up else g1
+        da = d1 if up else d0
+        db = d2 if up else d1
         G0[j] = a
         G1[j] = b
         D0v[j] = da
         D1v[j] = db
-        go = inb and lm < 0.0 and abs(nvv) >= min_cos and g1 != 0.0 and (lo_ok != hi_ok) and a != 0.0 and b != 0.0
+        go = inb & (lm < 0.0) & (abs(nvv) >= min_cos) & (g1 != 0.0) & (lo_ok != hi_ok) & (a != 0.0) & (b != 0.0)
         act[j] = go
         nact += go
         T[j] = a / (a - b) if go else 0.0
@@ -787,9 +972,8 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
     it = 0
     while nact > 0 and it < HERMITE_ITER:
         nact = 0
-        for j in range(n):
-            if not act[j]:
-                continue
+        for j in range(n):   # every lane, branch-free (vectorised); the inactive ones keep their values
+            on = act[j]
             g0 = G0[j]
             g1 = G1[j]
             d0 = D0v[j]
@@ -801,15 +985,17 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, x
                 + (t3 - t2) * d1
             dh = (6.0 * t2 - 6.0 * t) * (g0 - g1) + (3.0 * t2 - 4.0 * t + 1.0) * d0 + (3.0 * t2 - 2.0 * t) * d1
             same = (h > 0.0) == (g0 > 0.0)
-            lo_ = t if same else LO[j]
-            hi_ = HI[j] if same else t
+            lo0 = LO[j]
+            hi0 = HI[j]
+            lo_ = t if same else lo0
+            hi_ = hi0 if same else t
             mid = 0.5 * (lo_ + hi_)
             tn = (t - h / dh) if dh != 0.0 else mid
-            tn = tn if lo_ <= tn <= hi_ else mid
-            T[j] = tn
-            LO[j] = lo_
-            HI[j] = hi_
-            still = not (abs(tn - t) <= HERMITE_TOL)
+            tn = tn if (lo_ <= tn) & (tn <= hi_) else mid
+            T[j] = tn if on else t
+            LO[j] = lo_ if on else lo0
+            HI[j] = hi_ if on else hi0
+            still = on & (not (abs(tn - t) <= HERMITE_TOL))
             act[j] = still
             nact += still
         it += 1
@@ -887,7 +1073,8 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     """The profile of lines ``la .. lb - 1`` (see :func:`profile_centres`).
 
     Interior lines go in bands of :data:`BAND_LINES`: first each line's middle ``c``
-    (:func:`_line_start`), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
+    (:func:`_band_start`, vectorised over the lines; :func:`_line_start` for the lines it
+    leaves), then for the lines whose ``c`` is within :data:`BAND_DRIFT`
     of the band's median the derivative sums at the rows c-1 .. c+1 of every such c
     (:func:`_band_sums`) and the lines' ends (:func:`_band_finish`), both vectorised
     over the lines.  The other lines are computed alone (:func:`_line_alone`).  The
@@ -903,6 +1090,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     Fb = np.empty((ndmax + 2 * R, BAND_LINES + 2 * RX))
     C = np.empty((3, ndmax, BAND_LINES + 2 * RX))
     D = np.empty((N_SUMS, ndmax, BAND_LINES))
+    E = np.empty((5, 3, BAND_LINES))
     T = np.empty((3, 3, 2 * RX + 1))
     cs = np.empty(BAND_LINES, np.int64)
     fws = np.empty(BAND_LINES)
@@ -912,28 +1100,33 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
     srt = np.empty(BAND_LINES, np.int64)
     V = np.empty((_V_ROWS, BAND_LINES))
     act = np.empty(BAND_LINES, np.bool_)
+    P = np.empty(BAND_LINES, np.int64)      # _band_start's scratch
+    K0 = np.empty(BAND_LINES, np.int64)
+    KR = np.empty(BAND_LINES, np.int64)
+    KL = np.empty(BAND_LINES, np.int64)
+    BG = np.empty(BAND_LINES)
+    LV = np.empty(BAND_LINES)
+    M = np.empty(BAND_LINES, A.dtype)
+    vec = np.empty(BAND_LINES, np.bool_)
     l = la
     while l < lb:
         l0 = max(l, RX)
         l1 = min(l0 + BAND_LINES, lb, L - RX)
         if l == l0 and l1 - l0 >= 8:
             n = l1 - l0
+            _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+                        cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec)
             k = 0
+            lo = S
+            hi = -1
             for j in range(n):
-                q = l0 + j
-                c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength,
-                                                    intensity, width, status)
-                cs[j] = c
-                fws[j] = fw
-                bests[j] = best
-                bgs[j] = bg
-                flats[j] = flat
+                c = cs[j]
                 if c >= 0:
                     srt[k] = c
                     k += 1
-            lo = 0
-            hi = -1
-            if k > 0:
+                    lo = min(lo, c)
+                    hi = max(hi, c)
+            if k > 0 and hi - lo > BAND_DRIFT:   # else every c is within BAND_DRIFT of the median
                 srt[:k].sort()
                 med = srt[k // 2]
                 lo = med
@@ -942,9 +1135,10 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                     if abs(srt[j] - med) <= BAND_DRIFT:
                         lo = min(lo, srt[j])
                         hi = max(hi, srt[j])
+            if k > 0:
                 # the rows c-1 .. c+1 of every c in lo..hi (their windows inside A: _line_start checked)
                 _band_sums(A, lo - 1, hi - lo + 3, l0, n, RX, w0, w1, w2, xw[RX, 0], xw[RX, 1], xw[RX, 2], Fb, C, D)
-                _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, V, act, xw, RX, qpeak, half,
+                _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act, xw, RX, qpeak, half,
                              min_peak, max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width,
                              status)
             for j in range(n):
