@@ -947,7 +947,8 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     (``normal_sigma_deg``, ``d_sigma_mm``: the plane's image noise only).  Empty without a
     covariance (:mod:`lightplane.uncertainty`).
     """
-    from .uncertainty import WHICH_SIGMA, camera_share_status, point_sigma_mm, volume_sigma, working_volume_grid
+    from .uncertainty import (WHICH_SIGMA, camera_share_status, plane_noise_covers, point_sigma_mm, volume_sigma,
+                              working_volume_grid)
 
     C = cal.covariance
     if C is None:
@@ -993,7 +994,7 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
                 "point_sigma_rms_mm": f"camera frame (absolute positions), RMS over the targets' range; {vs.covers}",
                 "shape_sigma_rms_mm": f"after the best rigid motion over that volume (distances, heights, "
                                       f"flatness); {vs.covers}",
-                "plane_only_sigma_rms_mm": "camera frame; the plane calibration's image noise only (the camera "
+                "plane_only_sigma_rms_mm": f"camera frame; {plane_noise_covers(plane)} only (the camera "
                                            "taken as exact)",
                 "which": WHICH_SIGMA}
         except LightplaneError:
