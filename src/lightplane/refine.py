@@ -877,8 +877,8 @@ def image_dispersion(prob: "_Problem", Jb, r_w: np.ndarray, meat_factor: np.ndar
     An error shared by the points of one image (blur, the edge's response to the disc's tilt, a
     stripe's speckle over its whole length) moves the plane more than the points' scatter says
     and shows here.  Its sampling sd is at least ``sqrt(2 / (3 (n − 1)))`` (3 plane parameters,
-    n images: 0.25 for 12; 0.37 measured over 30 synthetic 12-placement calibrations with white
-    noise, mean 0.99).  An error that is the same in every image is not seen.
+    n images: 0.25 for 12; 0.34 measured over 60 synthetic 12-placement calibrations with white
+    noise, mean 0.94; 0.49 over 12 rendered sets, benchmarks/bench_image_errors.py).  An error that is the same in every image is not seen.
     """
     J_rim, J_sp, J_spose = Jb
     n = prob.n
