@@ -1011,7 +1011,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
                         max_iter=opts.ml.max_iter, noise=opts.ml.noise, rounds=opts.ml.rounds,
                         huber_c=opts.ml.huber_c, correlated=opts.ml.correlated, dispersion=opts.ml.dispersion)
         noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
-                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion")
+                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion",
+                        "image_dispersion_expected")
                        if hasattr(res, k)}
         if hasattr(res, "n_outliers"):
             noise_model["n_outliers"] = int(res.n_outliers)

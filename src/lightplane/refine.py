@@ -149,6 +149,8 @@ class MLResult:
     image_dispersion : float
         The rim and stripe errors' variance along the plane's directions, image by image, over
         what their sigmas and autocorrelation times say (:func:`image_dispersion`; 1: no excess).
+    image_dispersion_expected : float
+        Its statistic's expectation under the noise model (the statistic is the product).
     dispersion_applied : bool
         Whether ``covariance`` (and ``pose_covariances``) include it (``dispersion=True``).
     """
@@ -172,6 +174,7 @@ class MLResult:
     n_outliers: int = 0
     image_dispersion: float = 1.0
     dispersion_applied: bool = False
+    image_dispersion_expected: float = float("nan")
 
 
 # ----------------------------------------------------------------- helpers
@@ -794,7 +797,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     M = (tau[0] / tau_w[0]) * ne_rim.dense() + (tau[1] / tau_w[1]) * ne_st.dense()
     cov = Hinv @ M @ Hinv
     cov = 0.5 * (cov + cov.T)
-    disp, _ = image_dispersion(prob, Jb, r_w, tau / tau_w)
+    disp, disp_expected = image_dispersion(prob, Jb, r_w, tau / tau_w)
     if dispersion:
         cov = disp * cov
     # what a white-noise model with these sigmas would claim: (Σ_g J_gᵀJ_g / sigma_g²)⁻¹
@@ -819,7 +822,8 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig_type[0]),
                  "sigma_stripe_px": float(sig_type[1]),
                  "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise,
-                 "image_dispersion": disp, "image_dispersion_applied": bool(dispersion)})
+                 "image_dispersion": disp, "image_dispersion_applied": bool(dispersion),
+                 "image_dispersion_expected": disp_expected})
     plane = LightPlane(nvec, d, cov4, meta=meta)
     assert plane.covariance is not None  # cov4, as the plane keeps it
     # orient each normal towards the camera (docs/conventions.md §Target pose)
@@ -833,6 +837,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
                     sigma_rim_px=float(sig_type[0]), sigma_stripe_px=float(sig_type[1]), tau_rim=float(tau[0]),
                     tau_stripe=float(tau[1]), covariance_white=cov4_white,
                     n_outliers=int(np.sum(hub < 1.0)), image_dispersion=disp,
+                    image_dispersion_expected=disp_expected,
                     dispersion_applied=bool(dispersion))
 
 
