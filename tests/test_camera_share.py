@@ -136,6 +136,11 @@ def test_outputs_with_and_without_the_camera_share(one):
     assert vs.camera_included and not vp.camera_included and "not included" in vp.covers
     assert vs.camera_frame_mm > vs.plane_only_mm and vs.shape_mm < vs.camera_frame_mm
     assert vp.camera_frame_mm == pytest.approx(vs.plane_only_mm)
+    # a plane file without the images' dispersion (earlier versions): read as before, and said
+    assert "errors shared within an image not included" in vs.covers
+    nm = {"image_dispersion": 1.3, "image_dispersion_applied": True}
+    with_disp = LightPlane(plane.normal, plane.d, plane.covariance, meta={**plane.meta, "noise_model": nm})
+    assert "the images' dispersion x1.30" in volume_sigma(cam, with_disp, vol).covers
     # point_sigma_mm and the profile's per-point sigma carry the same figure
     uv = vol.uv[::7]
     s = point_sigma_mm(cam, plane, uv)
