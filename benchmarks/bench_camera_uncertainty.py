@@ -16,7 +16,12 @@ dispersion, :func:`lightplane.intrinsics.view_dispersion`) and with ``noise="whi
 residuals' alone; same estimates, other predictions); the joint refinement (``--joint-white``:
 also with the corners weighted by the residuals' sigma alone); the plane solved with the exact
 camera; the shape error split to first order into the plane's own part, the camera's part and
-their cross term.
+their cross term.  The plane's own covariance includes the images' dispersion
+(:func:`lightplane.refine.image_dispersion`, measured beside the camera's share); the columns
+"without the images' dispersion" divide it out (same estimates, other predictions), and the
+exact camera's plane error is also given as its Mahalanobis² under its own covariance.  Per
+set the joint is compared with the two-step estimate, with the fraction of sets in which an
+efficient estimator that much better on average is still the worse (``_fraction_worse``).
 
 Renders are cached as compressed .npz under ``--cache`` (default /tmp/lightplane_bench_camera_unc).
 
@@ -199,6 +204,30 @@ def _corner_truth_error(res, k: int) -> dict:
             "detector_mahalanobis2": float(dK @ S @ dK / sig**2)}
 
 
+def _image_dispersion(plane) -> float:
+    """The images' dispersion the plane's covariance includes (1.0 when it does not apply it)."""
+    nm = plane.meta.get("noise_model") or {}
+    return float(nm.get("image_dispersion") or 1.0) if nm.get("image_dispersion_applied") else 1.0
+
+
+def _scaled_plane(plane, phi: float):
+    """The plane with its own covariance (not the camera's share) times ``phi`` (the images' dispersion)."""
+    from lightplane.plane import LightPlane
+
+    return LightPlane(plane.normal, plane.d, phi * np.asarray(plane.covariance), meta=dict(plane.meta))
+
+
+def _plane_error_whitened(plane, plane_true) -> list:
+    """The plane's error (a, b, c, d) whitened by its own covariance (rank 3: the normal's norm fixed):
+    its squared length is the Mahalanobis² (chi² with 3 dof when the covariance is right)."""
+    C = np.asarray(plane.covariance)
+    sgn = 1.0 if plane.normal @ plane_true.normal > 0 else -1.0
+    e = np.r_[plane.normal - sgn * plane_true.normal, plane.d - sgn * plane_true.d]
+    w, V = np.linalg.eigh(C)
+    keep = w > 1e-12 * w.max()
+    return (V[:, keep].T @ e / np.sqrt(w[keep])).tolist()
+
+
 def _with_white_camera(cam, plane, dispersion: float):
     """The camera and plane with the intrinsics' covariance of independent corner errors (``noise="white"``:
     the default's divided by the views' dispersion; the plane's recorded Jacobian is the same)."""
@@ -274,11 +303,20 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     if res.options.get("covariance_noise") == "views":
         # the same, the intrinsics' covariance of independent corner errors (noise="white")
         row.update(_errors(*_with_white_camera(cam, cal.plane, disp), cam_true, plane_true, vol, "white_"))
+    phi = _image_dispersion(cal.plane)
+    row["image_dispersion"] = phi
+    # the same without the images' dispersion (the plane's own covariance as the noise model says)
+    row.update(_errors(cam, _scaled_plane(cal.plane, 1 / phi), cam_true, plane_true, vol, "noimgdisp_"))
     t1 = time.perf_counter()
     row["seconds"] = t1 - t0
     # the plane calibration's own share: the same observations solved with the exact camera
     cal_t = solve_observations(obs, cam_true, 50.0, "ml")
     row.update(_errors(cam_true, cal_t.plane, cam_true, plane_true, vol, "truecam_"))
+    phi_t = _image_dispersion(cal_t.plane)
+    row["truecam_image_dispersion"] = phi_t
+    row.update(_errors(cam_true, _scaled_plane(cal_t.plane, 1 / phi_t), cam_true, plane_true, vol,
+                       "truecam_noimgdisp_"))
+    row["truecam_dx"] = _plane_error_whitened(cal_t.plane, plane_true)
     from lightplane.measure import triangulate
     est_t = triangulate(cam_true, cal_t.plane, vol.uv)
     row.update(_shape_parts(triangulate(cam, cal.plane, vol.uv), est_t, vol.points))
@@ -309,8 +347,20 @@ QUANTITIES = (("camera frame", "frame_mm", "pred_frame_mm"), ("shape", "shape_mm
               ("offset at the axis", "offset_mm", "pred_offset_mm"),
               ("offset, plane-only sigma", "offset_mm", "pred_offset_plane_only_mm"))
 #: Column sets: two-step, joint refinement, plane solved with the exact camera (the plane's own share).
-VARIANTS = (("two-step", ""), ("two-step, white corner noise", "white_"), ("joint", "joint_"),
-            ("joint, white corner noise", "jointw_"), ("true camera", "truecam_"))
+VARIANTS = (("two-step", ""), ("two-step, white corner noise", "white_"),
+            ("two-step, without the images' dispersion", "noimgdisp_"), ("joint", "joint_"),
+            ("joint, white corner noise", "jointw_"), ("true camera", "truecam_"),
+            ("true camera, without the images' dispersion", "truecam_noimgdisp_"))
+
+
+def _fraction_worse(q: float) -> float:
+    """How often an estimator whose RMS error is ``q`` times another's is nevertheless the worse of the
+    two in one data set, when it is the efficient one (its error uncorrelated with the difference,
+    Hausman's lemma) and the errors are one-dimensional Gaussians: ``e₂ = e_J + δ``, ``Var δ = (1/q² − 1)
+    Var e_J``; worse when ``δ (2 e_J + δ) < 0``: ``1/2 − arcsin(ρ)/π`` with ``ρ = r / sqrt(4 + r²)``,
+    ``r² = 1/q² − 1``.  1/2 for q = 1, 0 only for q = 0."""
+    r2 = max(1.0 / max(q, 1e-12) ** 2 - 1.0, 0.0)
+    return float(0.5 - np.arcsin(np.sqrt(r2 / (4.0 + r2))) / np.pi)
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -343,7 +393,8 @@ def summarise(rows: list[dict]) -> dict:
                 out[f"{pre}over_two_step_{q}"] = {"median": float(np.median(r)), "max": float(np.max(r)),
                                                   "sets_worse": int(np.sum(r > 1.0)),
                                                   "worse_by_max_mm": float(np.max(np.abs(a[pre + q]) - np.abs(a[q]))),
-                                                  "rms_ratio": rms[pre + q] / rms[q]}
+                                                  "rms_ratio": rms[pre + q] / rms[q],
+                                                  "expected_fraction_worse": _fraction_worse(rms[pre + q] / rms[q])}
         out["median_joint_seconds"] = float(np.median(a["joint_seconds"]))
     # sampling tolerance of an RMS over n sets of a ~1-dof error: relative sd ~ 1/sqrt(2n)
     out["rms_relative_sd"] = float(1 / np.sqrt(2 * len(rows)))
@@ -370,6 +421,19 @@ def summarise(rows: list[dict]) -> dict:
                                         "sets_cross_positive": int(np.sum(c > 0))}
     if "view_dispersion" in a:
         out["mean_view_dispersion"] = float(np.mean(a["view_dispersion"]))
+    for pre in ("", "truecam_"):
+        if pre + "image_dispersion" in a:
+            v = a[pre + "image_dispersion"]
+            out[pre + "image_dispersion"] = {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)),
+                                             "min": float(np.min(v)), "max": float(np.max(v))}
+    if all("truecam_dx" in r for r in rows):
+        # the exact camera's plane error, Mahalanobis² under its own covariance (chi², 3 dof, if right)
+        m2 = np.array([np.sum(np.square(r["truecam_dx"])) for r in rows])
+        phi = a.get("truecam_image_dispersion", np.ones(len(rows)))
+        out["truecam_mahalanobis2"] = {"mean": float(np.mean(m2)), "median": float(np.median(m2)),
+                                       "mean_without_dispersion": float(np.mean(m2 * phi)),
+                                       "median_without_dispersion": float(np.median(m2 * phi)),
+                                       "largest": float(np.max(m2)), "set_of_largest": int(rows[int(np.argmax(m2))]["set"])}
     out["mean_corner_truth_neighbour_corr"] = float(np.mean(a["corner_truth_neighbour_corr"]))
     out["mean_detector_mahalanobis2"] = float(np.mean(a["detector_mahalanobis2"]))
     out["median_seconds_per_set"] = float(np.median(a["seconds"]))
@@ -422,7 +486,9 @@ def run(args) -> None:
                 v = s[key]
                 print(f"{pre[:-1]} / two-step |error| per set, {q}: median {v['median']:.2f}, max {v['max']:.2f}, "
                       f"{v['sets_worse']} of {s['sets']} sets worse (by up to {v['worse_by_max_mm']:.4f} "
-                      f"{q.split('_')[-1]}); ratio of the RMS {v['rms_ratio']:.2f}")
+                      f"{q.split('_')[-1]}); ratio of the RMS {v['rms_ratio']:.2f} (an efficient estimator that "
+                      f"much better on average is still worse in {100 * v['expected_fraction_worse']:.0f} % "
+                      f"of the sets: {v['expected_fraction_worse'] * s['sets']:.1f} of {s['sets']})")
     print(f"corners against the exact ones: RMS {s['corner_truth_rms_px']:.4f} px per coordinate; residual-based "
           f"sigma {s['corner_sigma_rms_px']:.4f} px (residual RMS {s['corner_residual_rms_px']:.4f} px); neighbour "
           f"correlation {s['mean_corner_truth_neighbour_corr']:.2f}; mean Mahalanobis² of the intrinsics' change "
@@ -442,6 +508,17 @@ def run(args) -> None:
     if "mean_view_dispersion" in s:
         print(f"views' dispersion of the corner noise along the intrinsics (mean over the sets): "
               f"{s['mean_view_dispersion']:.2f}")
+    for pre, label in (("", "two-step"), ("truecam_", "exact camera")):
+        if pre + "image_dispersion" in s:
+            v = s[pre + "image_dispersion"]
+            print(f"images' dispersion of the plane ({label}): mean {v['mean']:.2f}, sd {v['sd']:.2f} "
+                  f"(range {v['min']:.2f}-{v['max']:.2f}) over the sets")
+    if "truecam_mahalanobis2" in s:
+        v = s["truecam_mahalanobis2"]
+        print(f"exact camera, the plane's error in its own covariance: Mahalanobis² mean {v['mean']:.2f} (median "
+              f"{v['median']:.2f}; chi² with 3 dof: mean 3, median 2.37); without the images' dispersion mean "
+              f"{v['mean_without_dispersion']:.2f} (median {v['median_without_dispersion']:.2f}); largest "
+              f"{v['largest']:.1f} (set {v['set_of_largest']})")
     if "from_dK" in s:
         v = s["from_dK"]
         print(f"errors the intrinsics' actual error causes through the propagation: camera frame {v['frame_mm']:.4f} mm, "

@@ -895,12 +895,40 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
         meta[CAMERA_JACOBIAN_KEY] = propagate_camera(
             lambda cam: calibrate_plane_from_points(cam, diameter, rims, stripes, method=method, options=solver,
                                                     min_placements=min_placements).plane, camera, cal.plane)
-    plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cal.plane.covariance, meta=meta)
-    return ImagePlaneCalibration(plane=plane, covariance=cal.covariance, sigma_px=cal.sigma_px,
+    cov = cal.covariance
+    if cov is not None and meta.get(CAMERA_JACOBIAN_KEY) and meta.get("noise_model"):
+        meta["noise_model"], f = _dispersion_beside_camera(meta["noise_model"], meta[CAMERA_JACOBIAN_KEY])
+        cov = f * np.asarray(cov)
+    plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)
+    return ImagePlaneCalibration(plane=plane, covariance=plane.covariance, sigma_px=cal.sigma_px,
                                  placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,
                                  warnings=tuple(warnings), iterations=cal.iterations, images=tuple(final),
                                  camera=camera, diameter_mm=diameter,
                                  seconds=seconds + time.perf_counter() - t_start)
+
+
+def _dispersion_beside_camera(nm: dict, rec: dict) -> tuple[dict, float]:
+    """The images' dispersion against the noise model *and* the intrinsics' covariance: ``(noise model, factor)``.
+
+    With a calibrated camera each image's pull on the plane also carries the intrinsics' error
+    (it moves each image's pose and chord differently), which the camera's share already
+    covers; measured against the noise model alone the dispersion would count it twice.  Its
+    statistic ``T`` is quadratic in the intrinsics, so the re-solves of :func:`propagate_camera`
+    give its expected part due to Cov(K): ``E_K = Σ_k (T(K + s_k) + T(K − s_k) − 2 T(K)) / 2``.
+    The dispersion becomes ``T / (E + E_K)`` (``E``: the noise model's part): 1 when both the noise
+    model and the intrinsics' covariance hold; an excess of the image noise shows diluted by
+    ``E / (E + E_K)`` rather than counted twice.  ``factor``: the plane covariance's rescaling
+    (new over old dispersion where the covariance applies it, else 1).
+    """
+    T0, E, EK = rec.get("image_dispersion_statistic"), nm.get("image_dispersion_expected"), rec.get(
+        "image_dispersion_camera_expected")
+    if T0 is None or E is None or EK is None or not (np.isfinite(E) and E > 0 and np.isfinite(EK)):
+        return nm, 1.0
+    old = float(nm.get("image_dispersion") or 1.0)
+    new = float(T0) / (float(E) + max(float(EK), 0.0))
+    out = dict(nm, image_dispersion=new, image_dispersion_noise_only=old,
+               image_dispersion_camera_expected=max(float(EK), 0.0))
+    return out, (new / old if nm.get("image_dispersion_applied") and old > 0 else 1.0)
 
 
 def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plane: LightPlane) -> dict:
@@ -916,19 +944,36 @@ def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plan
     """
     from .uncertainty import camera_param_names, camera_params, camera_steps, camera_with_params
 
+    def statistic(pl: LightPlane) -> float | None:  # the images' dispersion statistic of an ml solve
+        nm = pl.meta.get("noise_model") or {}
+        d, e = nm.get("image_dispersion"), nm.get("image_dispersion_expected")
+        return None if d is None or e is None else float(d) * float(e)
+
     steps = camera_steps(camera)
     p0 = camera_params(camera)
     G = []
+    T0 = statistic(plane)
+    curv: list[float] | None = [] if T0 is not None and np.isfinite(T0) else None
     for s in steps:
-        th = [solve(camera_with_params(camera, p0 + sign * s)).coefficients for sign in (1.0, -1.0)]
+        pl = [solve(camera_with_params(camera, p0 + sign * s)) for sign in (1.0, -1.0)]
+        th = [q.coefficients for q in pl]
         if np.dot(th[0][:3], plane.normal) < 0 or np.dot(th[1][:3], plane.normal) < 0:
             raise LightplaneError("the plane's dependence on the intrinsics: a re-solve flipped the plane")
         G.append(0.5 * (th[0] - th[1]))
+        if curv is not None and T0 is not None:
+            tp, tm = statistic(pl[0]), statistic(pl[1])
+            curv = None if tp is None or tm is None else curv + [0.5 * (tp + tm - 2 * T0)]
     J = np.array(G).T @ np.linalg.pinv(steps.T) if len(G) else np.zeros((4, len(p0)))
     C = J @ np.asarray(camera.covariance) @ J.T
-    return {"params": list(camera_param_names(camera)), "matrix": J.tolist(), "covariance_camera": C.tolist(),
-            "method": "central differences of the whole plane solve at ±1 sigma along the principal axes of "
-                      "the intrinsics' covariance"}
+    rec = {"params": list(camera_param_names(camera)), "matrix": J.tolist(), "covariance_camera": C.tolist(),
+           "method": "central differences of the whole plane solve at ±1 sigma along the principal axes of "
+                     "the intrinsics' covariance"}
+    if curv is not None:
+        # the images' dispersion statistic's expected part due to the intrinsics' covariance (its second
+        # differences along the same steps; see _dispersion_beside_camera)
+        rec["image_dispersion_statistic"] = T0
+        rec["image_dispersion_camera_expected"] = float(np.sum(curv))
+    return rec
 
 
 def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
@@ -947,7 +992,8 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     (``normal_sigma_deg``, ``d_sigma_mm``: the plane's image noise only).  Empty without a
     covariance (:mod:`lightplane.uncertainty`).
     """
-    from .uncertainty import WHICH_SIGMA, camera_share_status, point_sigma_mm, volume_sigma, working_volume_grid
+    from .uncertainty import (WHICH_SIGMA, camera_share_status, plane_noise_covers, point_sigma_mm, volume_sigma,
+                              working_volume_grid)
 
     C = cal.covariance
     if C is None:
@@ -993,7 +1039,7 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
                 "point_sigma_rms_mm": f"camera frame (absolute positions), RMS over the targets' range; {vs.covers}",
                 "shape_sigma_rms_mm": f"after the best rigid motion over that volume (distances, heights, "
                                       f"flatness); {vs.covers}",
-                "plane_only_sigma_rms_mm": "camera frame; the plane calibration's image noise only (the camera "
+                "plane_only_sigma_rms_mm": f"camera frame; {plane_noise_covers(plane)} only (the camera "
                                            "taken as exact)",
                 "which": WHICH_SIGMA}
         except LightplaneError:

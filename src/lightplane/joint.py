@@ -13,7 +13,8 @@ over the intrinsics ``K`` (the free ones of the camera calibration), every board
 (rvec, tvec), every target pose (centre, normal) and the plane.  ``r_g`` are the residuals
 of :func:`lightplane.refine.refine_ml` (Sampson distances in distorted pixels), with that
 solve's weights held fixed: ``w_g = huber / (tau_g sigma_g²)`` per point type (rim,
-stripe; ``tau_g`` the residuals' autocorrelation time), ``σ_c`` the corner noise the camera
+stripe; ``tau_g`` the residuals' autocorrelation time, times the images' dispersion where the
+plane's covariance applies it: :func:`lightplane.refine.image_dispersion`), ``σ_c`` the corner noise the camera
 calibration estimated from its residuals, times the square root of the views' dispersion
 when its covariance applies it (:func:`lightplane.intrinsics.view_dispersion`: the corners'
 noise along the intrinsics' directions).
@@ -294,11 +295,14 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
         raise LightplaneError("the joint refinement needs the plane calibration's noise model (--method ml)")
     objs = [intrinsics.target.object_points(ids).astype(np.float64) for ids in intrinsics.ids]
     free = _free_parameters(len(cam.dist), intrinsics.flags)
+    # the rim and stripe points weighted by their long-run noise, times the images' dispersion where the
+    # plane's covariance applies it (as the corners by the views' dispersion)
+    phi = float(nm.get("image_dispersion") or 1.0) if nm.get("image_dispersion_applied") else 1.0
     res = refine_joint_points(cam, free, objs, list(intrinsics.corners_uv), list(intrinsics.rvecs),
                               list(intrinsics.tvecs), float(sigma_c), plane_cal.diameter_mm / 2,
                               [o.rim_uv for o in used], stripes, plane_cal.plane, [o.placement.pose for o in used],
-                              float(s_rim), float(s_st), tau_rim=float(nm.get("tau_rim") or 1.0),
-                              tau_stripe=float(nm.get("tau_stripe") or 1.0), huber_c=huber_c)
+                              float(s_rim), float(s_st), tau_rim=phi * float(nm.get("tau_rim") or 1.0),
+                              tau_stripe=phi * float(nm.get("tau_stripe") or 1.0), huber_c=huber_c)
     by_index = {o.index: q for o, q in zip(used, res.poses)}
     images = tuple(replace(o, placement=replace(o.placement, pose=by_index[o.index])) if o.index in by_index else o
                    for o in plane_cal.images)

@@ -876,9 +876,9 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
           ``(a, b, c, d)`` (the paper's 0.1 %).
         - ``ml`` (:class:`~lightplane.refine.MLOptions`): ``ml``: options of
           :func:`lightplane.refine.refine_ml` (``noise``, ``correlated``, ``huber_c``,
-          ``rounds``, ``max_iter``).  The noise model it found (rim and stripe sigmas in
-          px, their correlation factors along the curves, outliers) is kept in
-          ``plane.meta["noise_model"]``.
+          ``rounds``, ``max_iter``, ``dispersion``).  The noise model it found (rim and stripe
+          sigmas in px, their correlation factors along the curves, outliers, the images'
+          dispersion and whether the covariance includes it) is kept in ``plane.meta["noise_model"]``.
     min_placements : int
         Fewest usable placements accepted (default 3; >= 2).  Two are what the paper's
         §3 study uses: then only the coplanarity of the true pair of chords resolves
@@ -1009,11 +1009,15 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
                                                              for i in used], g_plane, [poses_final[i] for i in used],
                         max_iter=opts.ml.max_iter, noise=opts.ml.noise, rounds=opts.ml.rounds,
-                        huber_c=opts.ml.huber_c, correlated=opts.ml.correlated)
+                        huber_c=opts.ml.huber_c, correlated=opts.ml.correlated, dispersion=opts.ml.dispersion)
         noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
-                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe") if hasattr(res, k)}
+                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion",
+                        "image_dispersion_expected")
+                       if hasattr(res, k)}
         if hasattr(res, "n_outliers"):
             noise_model["n_outliers"] = int(res.n_outliers)
+        if hasattr(res, "dispersion_applied"):
+            noise_model["image_dispersion_applied"] = bool(res.dispersion_applied)
         if not getattr(res, "converged", True):
             warnings.append(f"the maximum-likelihood refinement stopped after {res.iterations} iterations "
                             "without converging")

@@ -100,6 +100,7 @@ class MLOptions:
     rounds: int = 3
     huber_c: float | None = 3.0
     correlated: bool = True
+    dispersion: bool = True
 
     def __post_init__(self):
         if self.noise not in ("per_type", "per_placement", "shared"):
@@ -141,9 +142,17 @@ class MLResult:
         Integrated autocorrelation times of the residuals along each rim / stripe (1:
         white); the covariance inflation of each group (:func:`integrated_autocorr_time`).
     covariance_white : (4, 4) float64 or None
-        The plane covariance without that inflation (as if the noise were white).
+        The plane covariance without that inflation (as if the noise were white) and without
+        the images' dispersion.
     n_outliers : int
         Points down-weighted by the Huber reweighting.
+    image_dispersion : float
+        The rim and stripe errors' variance along the plane's directions, image by image, over
+        what their sigmas and autocorrelation times say (:func:`image_dispersion`; 1: no excess).
+    image_dispersion_expected : float
+        Its statistic's expectation under the noise model (the statistic is the product).
+    dispersion_applied : bool
+        Whether ``covariance`` (and ``pose_covariances``) include it (``dispersion=True``).
     """
 
     plane: LightPlane
@@ -163,6 +172,9 @@ class MLResult:
     tau_stripe: float = 1.0
     covariance_white: np.ndarray | None = None
     n_outliers: int = 0
+    image_dispersion: float = 1.0
+    dispersion_applied: bool = False
+    image_dispersion_expected: float = float("nan")
 
 
 # ----------------------------------------------------------------- helpers
@@ -623,7 +635,8 @@ def _huber_weights(u: np.ndarray, c: float) -> np.ndarray:
 
 def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], stripes_uv: Sequence[np.ndarray],
               plane0: LightPlane, poses0: Sequence[Any], *, max_iter: int = 100, noise: str = "per_type",
-              rounds: int = 3, huber_c: float | None = 3.0, correlated: bool = True) -> MLResult:
+              rounds: int = 3, huber_c: float | None = 3.0, correlated: bool = True,
+              dispersion: bool = True) -> MLResult:
     """Joint maximum-likelihood refinement of the light plane and all target poses.
 
     Parameters
@@ -660,6 +673,11 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         True (default): each group's weight and covariance contribution account for the
         integrated autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
         stripe points ordered along the chord, rim points by angle).  False: white noise.
+    dispersion : bool
+        True (default): the covariance is multiplied by the images' dispersion
+        (:func:`image_dispersion`: how much more each image's points pull the plane than their
+        sigmas and autocorrelation times say); False: it is reported (``image_dispersion``), not
+        applied.
 
     Weights and covariance (what it covers, and what not)
     ------------------------------------------------------
@@ -681,7 +699,10 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     ``(JᵀJ)⁻¹ sigma²`` (the Cramér–Rao bound at the estimate) for white noise of one sigma.
 
     It covers the image noise of the rim and stripe points, white or correlated along
-    the curve (laser speckle), to first order.  It does NOT cover: errors of the camera
+    the curve (laser speckle), to first order; with ``dispersion`` also errors shared by the
+    points of one image in the directions that move the plane (the images' dispersion, a
+    scalar factor estimated from the residuals; an error that is the same in every image, or
+    that the image's own pose absorbs entirely, it cannot see).  It does NOT cover: errors of the camera
     intrinsics and distortion, systematic edge or stripe-centre biases (e.g. a blur- or
     curvature-dependent edge shift, a stripe centre pulled by an asymmetric profile or
     by the rim's intensity step), a wrong target diameter, model errors (a non-flat
@@ -776,6 +797,9 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     M = (tau[0] / tau_w[0]) * ne_rim.dense() + (tau[1] / tau_w[1]) * ne_st.dense()
     cov = Hinv @ M @ Hinv
     cov = 0.5 * (cov + cov.T)
+    disp, disp_expected = image_dispersion(prob, Jb, r_w, tau / tau_w)
+    if dispersion:
+        cov = disp * cov
     # what a white-noise model with these sigmas would claim: (Σ_g J_gᵀJ_g / sigma_g²)⁻¹
     cov_white = _add_normals(ne_rim_w, ne_st_w).inverse()
     nvec, dn, d, C, N, dN = prob.unpack(x)
@@ -797,7 +821,9 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     meta = dict(plane0.meta)
     meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig_type[0]),
                  "sigma_stripe_px": float(sig_type[1]),
-                 "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise})
+                 "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise,
+                 "image_dispersion": disp, "image_dispersion_applied": bool(dispersion),
+                 "image_dispersion_expected": disp_expected})
     plane = LightPlane(nvec, d, cov4, meta=meta)
     assert plane.covariance is not None  # cov4, as the plane keeps it
     # orient each normal towards the camera (docs/conventions.md §Target pose)
@@ -810,7 +836,9 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
                     n_residuals=prob.m, n_params=prob.p, converged=converged,
                     sigma_rim_px=float(sig_type[0]), sigma_stripe_px=float(sig_type[1]), tau_rim=float(tau[0]),
                     tau_stripe=float(tau[1]), covariance_white=cov4_white,
-                    n_outliers=int(np.sum(hub < 1.0)))
+                    n_outliers=int(np.sum(hub < 1.0)), image_dispersion=disp,
+                    image_dispersion_expected=disp_expected,
+                    dispersion_applied=bool(dispersion))
 
 
 def _residual_tau(prob: "_Problem", u: np.ndarray, huber_c: float | None) -> np.ndarray:
@@ -836,6 +864,57 @@ def _residual_tau(prob: "_Problem", u: np.ndarray, huber_c: float | None) -> np.
         seq_s.append(u_st[a:b][o])
         bas_s.append(np.column_stack([np.ones(len(o)), np.linspace(-1.0, 1.0, len(o))]))
     return np.array([integrated_autocorr_time(seq_r, bas_r)[0], integrated_autocorr_time(seq_s, bas_s)[0]])
+
+
+def image_dispersion(prob: "_Problem", Jb, r_w: np.ndarray, meat_factor: np.ndarray) -> tuple[float, float]:
+    """The plane's noise along its own directions, image by image, over what the noise model says:
+    ``(dispersion, expected)``; 1 when the rim and stripe errors of one image are no more
+    coherent than their sigmas and autocorrelation times say (docs/method.md §ML refinement).
+
+    Per image ``i`` (a cluster: its pose is its own, the plane shared by all): ``J̃_i`` the plane's
+    Jacobian columns of its rows (weighted) with its pose's columns projected out, ``S_i = J̃_iᵀJ̃_i``
+    (``S = Σ S_i`` is the Schur complement, the plane's information), ``g_i = J̃_iᵀ r_i`` the pull of
+    its residuals on the plane and ``M_i = Σ_g c_g J̃_{i,g}ᵀJ̃_{i,g}`` the model's variance of that
+    pull (``c_g``, ``meat_factor``: the group's long-run variance over its weight, ``tau_g / tau_w``).
+    ``T = Σ_i g_iᵀ S⁻¹ g_i`` has, under the model, expectation
+    ``E = Σ_i tr(S⁻¹M_i) − 2 tr(S⁻¹S_iS⁻¹M_i) + tr(S⁻¹S_iS⁻¹S_iS⁻¹M)`` (``M = Σ M_i``; the fit
+    absorbs the part of each image's pull that all images share); the dispersion is ``T / E``.
+    An error shared by the points of one image (blur, the edge's response to the disc's tilt, a
+    stripe's speckle over its whole length) moves the plane more than the points' scatter says
+    and shows here.  Its sampling sd is at least ``sqrt(2 / (3 (n − 1)))`` (3 plane parameters,
+    n images: 0.25 for 12; 0.34 measured over 60 synthetic 12-placement calibrations with white
+    noise, mean 0.94; 0.49 over 12 rendered sets, benchmarks/bench_image_errors.py).  An error that is the same in every image is not seen.
+    """
+    J_rim, J_sp, J_spose = Jb
+    n = prob.n
+    m_rim = prob.m_rim
+    ne = prob.normal_equations(r_w, Jb)
+    # per image: the pose's projection of the plane columns, F_i = D_i⁻¹ B_iᵀ (5, 3)
+    F = np.linalg.solve(ne.D, np.swapaxes(ne.B, 1, 2))
+    # marginalised plane rows: rim rows −J_pose F, stripe rows J_sp − J_spose F
+    Jr = -np.einsum("ij,ijk->ik", J_rim, F[prob.rim_idx])
+    Js = J_sp - np.einsum("ij,ijk->ik", J_spose, F[prob.st_idx])
+    r_rim, r_st = r_w[:m_rim], r_w[m_rim:]
+    # sums over each image's rows (contiguous, every image has rim and stripe rows)
+    Sr = np.add.reduceat(np.einsum("ij,ik->ijk", Jr, Jr), prob.rim_starts)
+    Ss = np.add.reduceat(np.einsum("ij,ik->ijk", Js, Js), prob.st_starts)
+    g = np.add.reduceat(Jr * r_rim[:, None], prob.rim_starts) + np.add.reduceat(Js * r_st[:, None], prob.st_starts)
+    S_i = Sr + Ss
+    M_i = meat_factor[0] * Sr + meat_factor[1] * Ss
+    S = S_i.sum(axis=0)
+    M = M_i.sum(axis=0)
+    d = np.sqrt(np.diag(S))
+    if not (np.all(np.isfinite(S)) and np.all(d > 0)) or n < 2:
+        return 1.0, float("nan")
+    Si = np.linalg.inv(S / np.outer(d, d)) / np.outer(d, d)
+    T = float(np.einsum("ij,jk,ik->", g, Si, g))
+    B = np.einsum("jk,ikl->ijl", Si, S_i)  # S⁻¹S_i
+    C = np.einsum("jk,ikl->ijl", Si, M_i)  # S⁻¹M_i
+    E = float(np.sum(np.einsum("ijj->i", C)) - 2 * np.einsum("ijk,ikj->", B, C)
+              + sum(np.trace(b @ b @ Si @ M) for b in B))
+    if not (E > 0 and np.isfinite(T)):
+        return 1.0, float("nan")
+    return T / E, E
 
 
 def _scale_normals(a: "_Normal", f: float) -> "_Normal":

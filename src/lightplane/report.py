@@ -105,7 +105,10 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
     nm = cal.plane.meta.get("noise_model") or {}
     if nm.get("sigma_rim_px") is not None and nm.get("sigma_stripe_px") is not None:
         rows.append(("noise model (ML)", f"rim {nm['sigma_rim_px']:.3f} px, stripe {nm['sigma_stripe_px']:.3f} px; "
-                                         f"correlation factors {nm.get('tau_rim', 1):.1f} / {nm.get('tau_stripe', 1):.1f}"))
+                                         f"correlation factors {nm.get('tau_rim', 1):.1f} / {nm.get('tau_stripe', 1):.1f}"
+                                         + (f"; images' dispersion {nm['image_dispersion']:.2f}"
+                                            + ("" if nm.get("image_dispersion_applied") else " (not applied)")
+                                            if nm.get("image_dispersion") is not None else "")))
     if unc:
         rows += [("normal σ (two principal directions)",
                   f"{unc['normal_sigma_deg'][0]:.4f} deg, {unc['normal_sigma_deg'][1]:.4f} deg"),
@@ -181,7 +184,8 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
             parts += ["<h2>Uncertainty of measured points</h2>",
                       "<p class=small>σ (µm) of a point triangulated at each pixel, from the plane's covariance "
                       "only: it covers the image noise of the calibration images (rim and stripe, white or "
-                      "correlated along the curves); it does not include the noise of the measured stripe centre "
+                      "correlated along the curves, and errors shared within an image where the plane file applies "
+                      "the images' dispersion); it does not include the noise of the measured stripe centre "
                       "itself, errors of the camera intrinsics, systematic edge or stripe biases, a wrong "
                       "diameter or a non-flat target.</p>",
                       _img_tag(u, "Point σ map (µm) over the image (px)")]

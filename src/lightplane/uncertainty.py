@@ -45,7 +45,8 @@ from .plane import LightPlane
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
            "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
-           "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian"]
+           "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian",
+           "plane_noise_covers"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -224,6 +225,17 @@ def image_grid(camera: Camera, step_px: float = 32.0) -> np.ndarray:
 CAMERA_SHARE_COVERS = ("the intrinsics' and distortion's covariance from the camera calibration (corner noise "
                        "estimated from its residuals and, in its default, their correlation within a view; board "
                        "poses marginalised)")
+def plane_noise_covers(plane: LightPlane) -> str:
+    """What the plane's own covariance covers (one phrase, from its noise model in ``plane.meta``)."""
+    nm = plane.meta.get("noise_model") or {}
+    if nm.get("image_dispersion_applied"):
+        return ("the plane calibration's image noise (rim and stripe points: their sigmas, their correlation "
+                f"along the curves, and errors shared within an image: the images' dispersion "
+                f"x{float(nm.get('image_dispersion') or 1.0):.2f} in variance)")
+    return ("the plane calibration's image noise (rim and stripe points: their sigmas and their correlation "
+            "along the curves; errors shared within an image not included)")
+
+
 #: Said wherever a figure lacks the camera's share.
 CAMERA_SHARE_MISSING = "the camera's share is not included (the camera file has no covariance)"
 
@@ -365,8 +377,9 @@ def volume_sigma(camera: Camera, plane: LightPlane, volume: WorkingVolume, *,
     frame = float(np.sqrt(np.sum(E**2) / len(E)))
     shape = float(np.sqrt(np.sum(shape_error_basis(E, volume.points[ok]) ** 2) / len(E)))
     plane_only = float(np.sqrt(np.sum(E[:, :, :4] ** 2) / len(E)))
-    covers = ("the plane calibration's image noise and " + CAMERA_SHARE_COVERS if inc else
-              "the plane calibration's image noise only; " + (camera_share_status(camera, plane) or ""))
+    own = plane_noise_covers(plane)
+    covers = (own + " and " + CAMERA_SHARE_COVERS if inc else
+              own + " only; " + (camera_share_status(camera, plane) or ""))
     return VolumeSigma(frame, shape, plane_only, inc, covers)
 
 

@@ -230,6 +230,10 @@ def _print_calibration(cal, cam) -> dict:
         console.print(f"  image noise σ: rim {nm['sigma_rim_px']:.3f} px, stripe {nm['sigma_stripe_px']:.3f} px "
                       f"(correlation along the curves ×{nm.get('tau_rim', 1):.1f} / ×{nm.get('tau_stripe', 1):.1f}, "
                       f"counted in σ above)")
+        if nm.get("image_dispersion") is not None:
+            console.print(f"  images' dispersion ×{nm['image_dispersion']:.2f} in variance (errors shared within an "
+                          f"image, from the residuals; "
+                          f"{'in' if nm.get('image_dispersion_applied') else 'not in'} the covariance)")
     console.print(f"  image noise σ {cal.sigma_px:.3f} px (pooled); {cal.n_used} of {len(cal.images)} images used; "
                   f"{cal.seconds:.2f} s")
     t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe centres, "
