@@ -1513,7 +1513,8 @@ def profiles_batch_serial(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qp
 def _frame_points(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
     """A frame's profile in image coordinates (as ``stripe._profile_finish`` makes them):
     ``uv`` (NaN off the valid lines), ``nrm`` (u, v), ``valid``; the curvature correction
-    when ``curv``."""
+    when ``curv``.  ``nrm`` may be ``normal`` itself (each line's two values are read
+    before either is written)."""
     L = centre.shape[0]
     iu = 0 if columns else 1
     for i in range(L):
@@ -1521,8 +1522,10 @@ def _frame_points(centre, normal, status, lines, sample0, columns, curv, c2, m, 
         valid[i] = ok
         uv[i, iu] = np.float64(lines[i]) if ok else np.nan
         uv[i, 1 - iu] = centre[i] + sample0
-        nrm[i, iu] = normal[i, 0]
-        nrm[i, 1 - iu] = normal[i, 1]
+        n0 = normal[i, 0]
+        n1 = normal[i, 1]
+        nrm[i, iu] = n0
+        nrm[i, 1 - iu] = n1
     if curv:
         profile_curvature(uv, nrm, valid, c2, m, 1 - iu)
 

@@ -629,7 +629,7 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     lines = np.arange(L, dtype=np.int64) + line0
     lines.setflags(write=False)   # shared by the frames' profiles
     uv = np.empty((N, L, 2))
-    nrm = np.empty((N, L, 2))
+    nrm = normal   # (u, v) in place of the kernel's (along, across) normals: one array less to fault in
     valid = np.empty((N, L), np.bool_)
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
     m = max(5, int(math.ceil(4.0 * sigma_al)))
