@@ -275,10 +275,15 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
             continue
         m = (np.ones(len(p)) @ p) / len(p)  # the centroid (a strided mean(axis=0) is slower)
         q = p - m
-        q2 = q * q
-        s = math.sqrt(q2.sum() / len(q))  # RMS radius
+        (sxx, sxy), (_, syy) = (q.T @ q).tolist()  # the scatter
+        s = math.sqrt((sxx + syy) / len(q))  # RMS radius
         if not s > 0:
             problems[k] = "all points coincide"
+            continue
+        # the scatter's eigenvalues, ascending, in closed form (the ratio does not depend on the scale)
+        half_gap = math.hypot(0.5 * (sxx - syy), sxy)
+        if 0.5 * (sxx + syy) - half_gap < 1e-6 * (0.5 * (sxx + syy) + half_gap):
+            problems[k] = "the points are (nearly) collinear, not an ellipse"
             continue
         q = q / s
         x, y = q[:, 0], q[:, 1]
@@ -288,12 +293,6 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
         np.multiply(y, y, out=D[:, 2])
         D[:, 3:5] = q
         D[:, 5] = 1.0
-        # the scatter q^T q is D's column sums (x², xy, y²): its eigenvalues, ascending, in closed form
-        sxx, sxy, syy = D[:, :3].sum(axis=0).tolist()
-        half_gap = math.hypot(0.5 * (sxx - syy), sxy)
-        if 0.5 * (sxx + syy) - half_gap < 1e-6 * (0.5 * (sxx + syy) + half_gap):
-            problems[k] = "the points are (nearly) collinear, not an ellipse"
-            continue
         if weights is None or weights[k] is None:
             S_all[k] = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
         else:
@@ -332,12 +331,11 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     Cn = np.concatenate([a1, a2], axis=1)[:, _CONIC_FROM_COEFFS] * _CONIC_COEFF_SCALE
     with np.errstate(divide="ignore", invalid="ignore"):
         Cn = Cn / np.sqrt(np.add.reduce(Cn * Cn, axis=(1, 2)))[:, None, None]  # Frobenius norm
-    fin = np.isfinite(Cn).all(axis=(1, 2))
-    Cn_safe = Cn if fin.all() else np.where(fin[:, None, None], Cn, np.eye(3))
-    shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
-    Cm = Tn.transpose(0, 2, 1) @ Cn @ Tn
-    Cm = 0.5 * (Cm + Cm.transpose(0, 2, 1))
-    with np.errstate(divide="ignore", invalid="ignore"):
+        fin = np.isfinite(Cn).all(axis=(1, 2))
+        Cn_safe = Cn if fin.all() else np.where(fin[:, None, None], Cn, np.eye(3))
+        shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
+        Cm = Tn.transpose(0, 2, 1) @ Cn @ Tn
+        Cm = 0.5 * (Cm + Cm.transpose(0, 2, 1))
         Cm = Cm / np.sqrt(np.add.reduce(Cm * Cm, axis=(1, 2)))[:, None, None]
     neg = Cm[:, 0, 0] + Cm[:, 1, 1] < 0
     if neg.any():
