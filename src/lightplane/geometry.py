@@ -312,7 +312,7 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     g = len(good_idx)
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
-    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).max(axis=(1, 2)) ** 3
+    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).reshape(g, 9).max(axis=1) ** 3
     if not ok3.all():
         S3 = np.where(ok3[:, None, None], S3, np.eye(3))
     T = -np.linalg.solve(S3, S2.transpose(0, 2, 1))
@@ -321,8 +321,12 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     w, v = np.linalg.eig(M)
     v = np.real(v)
     cond = 4.0 * v[:, 0] * v[:, 2] - v[:, 1] ** 2
-    valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
-    score = np.where(valid, np.abs(np.real(w)), np.inf)
+    if np.iscomplexobj(w):
+        valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
+        w = np.real(w)
+    else:  # all eigenvalues real (eig raises on non-finite input)
+        valid = cond > 0
+    score = np.where(valid, np.abs(w), np.inf)
     pick = np.argmin(score, axis=1)
     rows = np.arange(g)
     a1 = v[rows, :, pick]
@@ -337,9 +341,7 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
         Cm = Tn.transpose(0, 2, 1) @ Cn @ Tn
         Cm = 0.5 * (Cm + Cm.transpose(0, 2, 1))
         Cm = Cm / np.sqrt(np.add.reduce(Cm * Cm, axis=(1, 2)))[:, None, None]
-    neg = Cm[:, 0, 0] + Cm[:, 1, 1] < 0
-    if neg.any():
-        Cm[neg] = -Cm[neg]
+    np.negative(Cm, out=Cm, where=(Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None])  # positive trace of the block
     picked = score[rows, pick]
     for j, k in enumerate(good_idx):
         if not ok3[j]:
