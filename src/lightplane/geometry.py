@@ -185,7 +185,7 @@ def _sampson_distance(C: np.ndarray, uv: np.ndarray, signed: bool = True) -> np.
     float64 array (internal hot loops that built them)."""
     X = np.column_stack([uv, np.ones(len(uv))])
     CX = X @ C
-    alg = np.sum(CX * X, axis=1)
+    alg = CX[:, 0] * uv[:, 0] + CX[:, 1] * uv[:, 1] + CX[:, 2]  # xᵀ C x, summed in np.sum's order
     g = 2 * np.hypot(CX[:, 0], CX[:, 1])
     d = alg / np.maximum(g, 1e-300)
     return d if signed else np.abs(d)
