@@ -23,6 +23,7 @@ are arrays have no truth value, so test ``isinstance(r, Failure)`` there.  Bad s
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -176,9 +177,15 @@ def sampson_distance(C: np.ndarray, uv: np.ndarray, *, signed: bool = True) -> n
     uv = _points(uv, 2, "uv")
     if np.shape(C) != (3, 3):
         raise ValueError(f"the conic must be a (3, 3) array, got shape {np.shape(C)}")
+    return _sampson_distance(C, uv, signed)
+
+
+def _sampson_distance(C: np.ndarray, uv: np.ndarray, signed: bool = True) -> np.ndarray:
+    """:func:`sampson_distance` without the input checks: ``C`` a (3, 3) and ``uv`` an (N, 2)
+    float64 array (internal hot loops that built them)."""
     X = np.column_stack([uv, np.ones(len(uv))])
     CX = X @ C
-    alg = np.sum(CX * X, axis=1)
+    alg = CX[:, 0] * uv[:, 0] + CX[:, 1] * uv[:, 1] + CX[:, 2]  # xᵀ C x, summed in np.sum's order
     g = 2 * np.hypot(CX[:, 0], CX[:, 1])
     d = alg / np.maximum(g, 1e-300)
     return d if signed else np.abs(d)
@@ -199,6 +206,10 @@ def _ellipse_problems(E: np.ndarray) -> list[str | None]:
     det2 = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
     det3 = np.linalg.det(E)
     tr = A[:, 0, 0] + A[:, 1, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bad = ~(det2 > 1e-12 * np.add.reduce(A * A, axis=(1, 2))) | ~(np.abs(det3) >= 1e-13) | ((det3 / det2) * tr >= 0)
+    if not bad.any():
+        return [None] * len(E)
     out: list[str | None] = []
     for k in range(len(E)):
         if not det2[k] > 1e-12 * float(np.sum(A[k] * A[k])):
@@ -236,6 +247,13 @@ def fit_conic(uv: np.ndarray, weights: np.ndarray | None = None) -> "np.ndarray 
     return Failure(problems[0]) if problems[0] is not None else conics[0]
 
 
+# C1⁻¹ M of Halir & Flusser as a row gather and scale; the conic matrix from its six coefficients
+_C1_INV_ROWS = np.array([2, 1, 0])
+_C1_INV_SCALE = np.array([0.5, -1.0, 0.5])[:, None]
+_CONIC_FROM_COEFFS = np.array([[0, 1, 3], [1, 2, 4], [3, 4, 5]])
+_CONIC_COEFF_SCALE = np.array([[1.0, 0.5, 0.5], [0.5, 1.0, 0.5], [0.5, 0.5, 1.0]])
+
+
 def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     """:func:`fit_conic` for several point sets at once (the eigen-steps vectorised).
 
@@ -247,70 +265,88 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     problems: list = [None] * n
     S_all = np.zeros((n, 6, 6))
     Tn_all = np.zeros((n, 3, 3))
+    Tn_all[:, 2, 2] = 1.0
     for k, p in enumerate(point_sets):
         if p.shape[0] < 5:
             problems[k] = f"need at least 5 points to fit an ellipse, got {p.shape[0]}"
             continue
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             problems[k] = "contains NaN or infinite coordinates"
             continue
-        m = p.mean(axis=0)
+        m = (np.ones(len(p)) @ p) / len(p)  # the centroid (a strided mean(axis=0) is slower)
         q = p - m
-        s = np.sqrt(np.mean(np.sum(q * q, axis=1)))
+        (sxx, sxy), (_, syy) = (q.T @ q).tolist()  # the scatter
+        s = math.sqrt((sxx + syy) / len(q))  # RMS radius
         if not s > 0:
             problems[k] = "all points coincide"
             continue
-        q = q / s
-        ev = np.linalg.eigvalsh(q.T @ q)  # squared singular values, ascending
-        if ev[0] < 1e-6 * ev[1]:
+        # the scatter's eigenvalues, ascending, in closed form (the ratio does not depend on the scale)
+        half_gap = math.hypot(0.5 * (sxx - syy), sxy)
+        if 0.5 * (sxx + syy) - half_gap < 1e-6 * (0.5 * (sxx + syy) + half_gap):
             problems[k] = "the points are (nearly) collinear, not an ellipse"
             continue
+        q = q / s
         x, y = q[:, 0], q[:, 1]
-        D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+        D = np.empty((len(q), 6))
+        np.multiply(x, x, out=D[:, 0])
+        np.multiply(x, y, out=D[:, 1])
+        np.multiply(y, y, out=D[:, 2])
+        D[:, 3:5] = q
+        D[:, 5] = 1.0
         if weights is None or weights[k] is None:
             S_all[k] = D.T @ D  # one product gives S1, S2, S3 of Halir & Flusser
         else:
             S_all[k] = (D * np.asarray(weights[k], dtype=np.float64)[:, None]).T @ D
-        Tn_all[k] = [[1 / s, 0, -m[0] / s], [0, 1 / s, -m[1] / s], [0, 0, 1.0]]
-    good = np.array([pr is None for pr in problems], dtype=bool)
+        m0, m1 = m.tolist()
+        Tn_all[k, 0, 0] = Tn_all[k, 1, 1] = 1 / s
+        Tn_all[k, 0, 2] = -m0 / s
+        Tn_all[k, 1, 2] = -m1 / s
+    good_idx = [k for k in range(n) if problems[k] is None]
     conics = np.full((n, 3, 3), np.nan)
-    if not np.any(good):
+    if not good_idx:
         return conics, problems
-    S = S_all[good]
+    if len(good_idx) == n:
+        S, Tn = S_all, Tn_all
+    else:
+        S, Tn = S_all[good_idx], Tn_all[good_idx]
+    g = len(good_idx)
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
-    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).max(axis=(1, 2)) ** 3
-    S3 = np.where(ok3[:, None, None], S3, np.eye(3))
-    T = -np.linalg.solve(S3, np.swapaxes(S2, 1, 2))
+    ok3 = np.abs(det3) > 1e-12 * np.abs(S3).reshape(g, 9).max(axis=1) ** 3
+    if not ok3.all():
+        S3 = np.where(ok3[:, None, None], S3, np.eye(3))
+    T = -np.linalg.solve(S3, S2.transpose(0, 2, 1))
     M = S1 + S2 @ T
-    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)  # C1⁻¹ M, C1 = [[0,0,2],[0,-1,0],[2,0,0]]
+    M = M[:, _C1_INV_ROWS] * _C1_INV_SCALE  # C1⁻¹ M, C1 = [[0,0,2],[0,-1,0],[2,0,0]]
     w, v = np.linalg.eig(M)
     v = np.real(v)
     cond = 4.0 * v[:, 0] * v[:, 2] - v[:, 1] ** 2
-    valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
-    score = np.where(valid, np.abs(np.real(w)), np.inf)
+    if np.iscomplexobj(w):
+        valid = (cond > 0) & (np.abs(np.imag(w)) < 1e-9 * (1 + np.abs(np.real(w))))
+        w = np.real(w)
+    else:  # all eigenvalues real (eig raises on non-finite input)
+        valid = cond > 0
+    score = np.where(valid, np.abs(w), np.inf)
     pick = np.argmin(score, axis=1)
-    a1 = np.take_along_axis(v, pick[:, None, None], axis=2)[:, :, 0]
+    rows = np.arange(g)
+    a1 = v[rows, :, pick]
     a2 = np.einsum("nij,nj->ni", T, a1)
-    A, B, C = a1[:, 0], a1[:, 1], a1[:, 2]
-    Dd, E_, F = a2[:, 0], a2[:, 1], a2[:, 2]
-    Cn = np.stack([np.stack([A, B / 2, Dd / 2], -1), np.stack([B / 2, C, E_ / 2], -1),
-                   np.stack([Dd / 2, E_ / 2, F], -1)], axis=1)
+    # [[A, B/2, D/2], [B/2, C, E/2], [D/2, E/2, F]] from a1 = (A, B, C), a2 = (D, E, F)
+    Cn = np.concatenate([a1, a2], axis=1)[:, _CONIC_FROM_COEFFS] * _CONIC_COEFF_SCALE
     with np.errstate(divide="ignore", invalid="ignore"):
-        Cn = Cn / np.linalg.norm(Cn, axis=(1, 2))[:, None, None]
-    fin = np.all(np.isfinite(Cn), axis=(1, 2))
-    Cn_safe = np.where(fin[:, None, None], Cn, np.eye(3))
-    shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
-    Tn = Tn_all[good]
-    Cm = np.swapaxes(Tn, 1, 2) @ Cn @ Tn
-    Cm = 0.5 * (Cm + np.swapaxes(Cm, 1, 2))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        Cm = Cm / np.linalg.norm(Cm, axis=(1, 2))[:, None, None]
-    Cm = np.where((Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None], -Cm, Cm)
-    for j, k in enumerate(np.flatnonzero(good).tolist()):
+        Cn = Cn / np.sqrt(np.add.reduce(Cn * Cn, axis=(1, 2)))[:, None, None]  # Frobenius norm
+        fin = np.isfinite(Cn).all(axis=(1, 2))
+        Cn_safe = Cn if fin.all() else np.where(fin[:, None, None], Cn, np.eye(3))
+        shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
+        Cm = Tn.transpose(0, 2, 1) @ Cn @ Tn
+        Cm = 0.5 * (Cm + Cm.transpose(0, 2, 1))
+        Cm = Cm / np.sqrt(np.add.reduce(Cm * Cm, axis=(1, 2)))[:, None, None]
+    np.negative(Cm, out=Cm, where=(Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None])  # positive trace of the block
+    picked = score[rows, pick]
+    for j, k in enumerate(good_idx):
         if not ok3[j]:
             problems[k] = "degenerate point set (collinear?)"
-        elif not (np.isfinite(score[j, pick[j]]) and fin[j]) or shape_problems[j] is not None:
+        elif not (np.isfinite(picked[j]) and fin[j]) or shape_problems[j] is not None:
             problems[k] = "the points do not lie on an ellipse"
         else:
             conics[k] = Cm[j]

@@ -723,7 +723,9 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     f = max(int(downscale), 1) if downscale is not None else auto_downscale((h, w), min_axis_px)
     if min(h, w) // f < 16:
         f = 1
-    gray8 = to_uint8(gray)
+    # from the input itself: the same 8-bit image as from ``gray`` (to_gray8 converts it the same way;
+    # 8-bit input is kept as it is) without re-checking and re-scanning the float copy
+    gray8 = to_uint8(image)
     if int(gray8.max()) - int(gray8.min()) < 8:
         return []
     if f > 1:

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LightplaneError
-from ..geometry import robust_sigma
+from ..geometry import _sampson_distance, robust_sigma
 from .edges import gradients, normal_edge_samples, prepare_gray
 from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
 
@@ -161,10 +161,11 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     if C is None:
         return None
     for _ in range(iterations):
-        r = sampson_distance(C, uv)
+        r = _sampson_distance(C, uv)
         r[~np.isfinite(r)] = np.inf
-        med = np.median(r[keep])
-        sig = max(robust_sigma(r[keep]), min_sigma_px)
+        rk = r[keep]
+        med = np.median(rk)
+        sig = max(robust_sigma(rk - med, center=False), min_sigma_px)  # robust_sigma(rk), its median not recomputed
         keep = np.abs(r - med) <= mad_k * sig
         if keep.sum() < 6:
             return None
@@ -173,15 +174,15 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
             return None
         C = C2
     if not geometric:
-        return C, keep, sampson_distance(C, uv[keep])
+        return C, keep, _sampson_distance(C, uv[keep])
     g = fit_ellipse_geometric(uv[keep], C)
     if g is None:
         return None
     C, res = g
     # a last rejection on the geometric residuals, then the final geometric fit
     med = np.median(res)
-    sig = max(robust_sigma(res), min_sigma_px)
-    r_all = sampson_distance(C, uv)
+    sig = max(robust_sigma(res - med, center=False), min_sigma_px)
+    r_all = _sampson_distance(C, uv)
     keep2 = keep & (np.abs(r_all - med) <= mad_k * sig)
     if keep2.sum() >= 6 and keep2.sum() < keep.sum():
         g2 = fit_ellipse_geometric(uv[keep2], C)
