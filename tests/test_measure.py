@@ -294,10 +294,11 @@ def test_width_filter_needs_enough_lines_and_valid_ratios():
 
 
 def test_profile_kernels_match_numpy():
-    """The measurer's one-pass triangulation and width median give numpy's numbers bit for bit
-    (triangulate_normalized with its validity; np.median of the valid finite widths), with
+    """The compiled triangulation and width median give numpy's numbers bit for bit
+    (triangulate_normalized against the intersection in numpy array operations, its grazing and
+    behind flags; np.median of the valid finite widths), with
     grazing rays, rays behind the camera, NaN rays and even and odd counts."""
-    from lightplane._measure_kernels import median_where, triangulate_rays
+    from lightplane._measure_kernels import median_where
     from lightplane.measure import triangulate_normalized
 
     rng = np.random.default_rng(5)
@@ -310,16 +311,19 @@ def test_profile_kernels_match_numpy():
         xy[1:40:3] = np.column_stack([rng.uniform(-0.5, 0.5, 13), np.zeros(13)])
         if abs(b) > 0:
             xy[1:40:3, 1] = -(a * xy[1:40:3, 0] + c) / b
-        valid = rng.random(n) > 0.1
-        pts, ok = np.empty((n, 3)), np.empty(n, bool)
-        triangulate_rays(xy, float(a), float(b), float(c), float(plane.d), 1e-3, valid, pts, ok)
+        # the ray-plane intersection written out with numpy's array operations
+        den = a * xy[:, 0] + b * xy[:, 1] + c
+        grazing = ~(np.abs(den) >= 1e-3 * np.sqrt(xy[:, 0] ** 2 + xy[:, 1] ** 2 + 1.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -plane.d / den
+        behind = ~grazing & ~(s > 0)
+        s[grazing | behind] = np.nan
+        ref = np.column_stack([xy[:, 0] * s, xy[:, 1] * s, s])
         tri = triangulate_normalized(plane, xy, min_cos=1e-3)
-        ref_ok = valid & tri.valid
-        ref = tri.points
-        ref[~ref_ok] = np.nan
-        assert ok.any() and (~ok & valid).any()
-        np.testing.assert_array_equal(ok, ref_ok)
-        assert np.array_equal(pts, ref, equal_nan=True)
+        assert tri.grazing.any() and tri.valid.any() and (plane.d != -1.0 or tri.behind.any())
+        np.testing.assert_array_equal(tri.grazing, grazing)
+        np.testing.assert_array_equal(tri.behind, behind)
+        assert np.array_equal(tri.points, ref, equal_nan=True)
     for m in (0, 1, 2, 7, 20, 501, 1000):
         w = rng.normal(5.0, 1.0, m)
         w[::5] = np.nan

@@ -65,34 +65,27 @@ def hermite_lookup(tab_xy, tab_dxy, built, block_lines, block_samples, line, t, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def triangulate_rays(xy, a, b, c, d, min_cos, valid, pts, ok):  # pragma: no cover
-    """:func:`lightplane.measure.triangulate_normalized` of the rays ``xy`` (N, 2) on the plane
-    ``(a, b, c, d)`` in one pass, for the points where ``valid``: ``ok[k]`` whether point ``k`` is
-    valid and its ray meets the plane (not grazing, not behind, finite), ``pts[k]`` the point, NaN
-    where not ``ok``.  The same operations in the same order as the numpy function (its numbers,
-    bit for bit: ``tests/test_measure.py``) without its ~15 array passes."""
+def triangulate_rays(xy, a, b, c, d, min_cos, pts, grazing, behind):  # pragma: no cover
+    """The rays ``(x, y, 1)`` of ``xy`` (N, 2) on the plane ``(a, b, c, d)`` in one pass
+    (:func:`lightplane.measure.triangulate_normalized`): ``grazing[k]`` where the ray's cosine with
+    the normal is below ``min_cos`` (or NaN), ``behind[k]`` where the plane lies behind the camera,
+    ``pts[k]`` the point, NaN for either."""
     nd = -d
     for k in range(xy.shape[0]):
         x = xy[k, 0]
         y = xy[k, 1]
         den = a * x + b * y + c
         rn = math.sqrt(x * x + y * y + 1.0)
-        good = abs(den) >= min_cos * rn
+        g = not (abs(den) >= min_cos * rn)
         s = nd / den
-        if not (good and s > 0):
+        bh = not g and not (s > 0)
+        if g or bh:
             s = np.nan
-        px = x * s
-        py = y * s
-        if valid[k] and good and math.isfinite(px) and math.isfinite(py) and math.isfinite(s):
-            pts[k, 0] = px
-            pts[k, 1] = py
-            pts[k, 2] = s
-            ok[k] = True
-        else:
-            pts[k, 0] = np.nan
-            pts[k, 1] = np.nan
-            pts[k, 2] = np.nan
-            ok[k] = False
+        grazing[k] = g
+        behind[k] = bh
+        pts[k, 0] = x * s
+        pts[k, 1] = y * s
+        pts[k, 2] = s
 
 
 @njit(cache=True, nogil=True)

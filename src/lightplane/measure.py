@@ -49,16 +49,13 @@ class Triangulation:
 
 def triangulate_normalized(plane: LightPlane, xy: np.ndarray, *, min_cos: float = GRAZING_COS) -> Triangulation:
     """Intersect rays ``(x, y, 1)`` (normalised, undistorted, ``(N, 2)``) with the plane."""
+    from ._measure_kernels import triangulate_rays
+
     xy = as_points(xy, 2, "xy")
+    n = len(xy)
+    pts, grazing, behind = np.empty((n, 3)), np.empty(n, bool), np.empty(n, bool)
     a, b, c = plane.normal
-    den = a * xy[:, 0] + b * xy[:, 1] + c
-    ray_norm = np.sqrt(xy[:, 0] ** 2 + xy[:, 1] ** 2 + 1.0)
-    grazing = ~(np.abs(den) >= min_cos * ray_norm)  # |cos(ray, normal)| < min_cos, or NaN input
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -plane.d / den
-    behind = ~grazing & ~(s > 0)
-    s[grazing | behind] = np.nan
-    pts = np.column_stack([xy[:, 0] * s, xy[:, 1] * s, s])
+    triangulate_rays(xy, float(a), float(b), float(c), float(plane.d), float(min_cos), pts, grazing, behind)
     return Triangulation(pts, grazing, behind)
 
 
@@ -472,17 +469,13 @@ class ProfileMeasurer:
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
                     width_px: np.ndarray | None = None) -> Profile:
         """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""
-        from ._measure_kernels import triangulate_rays
-
         uv = as_points(uv, 2, "uv")
         valid = np.asarray(valid, bool) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
         xy = self.normalized(np.where(valid[:, None], uv, np.nan))
-        # triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos) and its validity, one pass
-        pts = np.empty((len(uv), 3))
-        ok = np.empty(len(uv), bool)
-        a, b, c = self.plane.normal
-        triangulate_rays(xy, float(a), float(b), float(c), float(self.plane.d), float(self.min_ray_cos), valid, pts,
-                         ok)
+        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos)
+        ok = valid & tri.valid
+        pts = tri.points
+        pts[~ok] = np.nan
         if self.camera_share_missing is None and self.plane.covariance is not None and np.any(ok):
             from .uncertainty import point_error_basis
 
