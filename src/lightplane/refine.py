@@ -797,7 +797,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     M = (tau[0] / tau_w[0]) * ne_rim.dense() + (tau[1] / tau_w[1]) * ne_st.dense()
     cov = Hinv @ M @ Hinv
     cov = 0.5 * (cov + cov.T)
-    disp, disp_expected = image_dispersion(prob, Jb, r_w, tau / tau_w)
+    disp, disp_expected = image_dispersion(prob, Jb, r_w, tau / tau_w, H)
     if dispersion:
         cov = disp * cov
     # what a white-noise model with these sigmas would claim: (Σ_g J_gᵀJ_g / sigma_g²)⁻¹
@@ -866,7 +866,8 @@ def _residual_tau(prob: "_Problem", u: np.ndarray, huber_c: float | None) -> np.
     return np.array([integrated_autocorr_time(seq_r, bas_r)[0], integrated_autocorr_time(seq_s, bas_s)[0]])
 
 
-def image_dispersion(prob: "_Problem", Jb, r_w: np.ndarray, meat_factor: np.ndarray) -> tuple[float, float]:
+def image_dispersion(prob: "_Problem", Jb, r_w: np.ndarray, meat_factor: np.ndarray,
+                     ne: "_Normal") -> tuple[float, float]:
     """The plane's noise along its own directions, image by image, over what the noise model says:
     ``(dispersion, expected)``; 1 when the rim and stripe errors of one image are no more
     coherent than their sigmas and autocorrelation times say (docs/method.md §ML refinement).
@@ -888,7 +889,7 @@ def image_dispersion(prob: "_Problem", Jb, r_w: np.ndarray, meat_factor: np.ndar
     J_rim, J_sp, J_spose = Jb
     n = prob.n
     m_rim = prob.m_rim
-    ne = prob.normal_equations(r_w, Jb)
+    # ne: the solve's weighted normal equations (their pose blocks D_i and plane-pose blocks B_i)
     # per image: the pose's projection of the plane columns, F_i = D_i⁻¹ B_iᵀ (5, 3)
     F = np.linalg.solve(ne.D, np.swapaxes(ne.B, 1, 2))
     # marginalised plane rows: rim rows −J_pose F, stripe rows J_sp − J_spose F
