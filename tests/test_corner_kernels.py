@@ -2,7 +2,7 @@
 
 The saddle fit's Levenberg–Marquardt and Förstner's iteration were batched numpy loops; the kernels
 run them a corner at a time with the same model, weights, damping and stopping rules.  Here the
-numpy loops (kept below as references) run on the very inputs the kernels get inside
+numpy model and loops (kept below as references) run on the very inputs the kernels get inside
 :func:`fit_corners` (cold and warm starts, with and without a lens frame) and
 :func:`refine_corners`, on the noisy affine board of ``test_intrinsics_corners``: the corners agree
 to rounding (measured 6e-14 px for the saddle fit, 3e-13 px for Förstner's; the bar 1e-9 px is far
@@ -17,10 +17,46 @@ import pytest
 
 import lightplane._corner_kernels as ck
 from lightplane.camera import Camera
-from lightplane.intrinsics import _fit_corners, _saddle_model, refine_corners
+from lightplane.intrinsics import _fit_corners, refine_corners
 from test_intrinsics_corners import BOARD, SHAPE, affine_board, truth_corners
 
 SAME_PX = 1e-9
+
+
+def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool):
+    """The blurred saddle of :func:`lightplane.intrinsics.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
+    corners; ``P`` (N, 11) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy.  Returns the model
+    (N, K) and, if asked, its Jacobian (N, 11, K)."""
+    from scipy.special import erf
+
+    c1, s1 = np.cos(P[:, 2:3]), np.sin(P[:, 2:3])
+    c2, s2 = np.cos(P[:, 3:4]), np.sin(P[:, 3:4])
+    s = P[:, 4:5]
+    d1 = c1 * ux + s1 * uy
+    d2 = c2 * ux + s2 * uy
+    e1 = erf(d1 / (np.sqrt(2.0) * s))
+    e2 = erf(d2 / (np.sqrt(2.0) * s))
+    ee = e1 * e2
+    amp = P[:, 6:7] + P[:, 9:10] * ux + P[:, 10:11] * uy
+    model = P[:, 5:6] + P[:, 7:8] * ux + P[:, 8:9] * uy + amp * ee
+    if not jacobian:
+        return model, None
+    k = np.sqrt(2.0 / np.pi) / s
+    b1 = amp * (k * np.exp(-0.5 * (d1 / s) ** 2)) * e2  # amp · E'(d1) E(d2)
+    b2 = amp * e1 * (k * np.exp(-0.5 * (d2 / s) ** 2))
+    J = np.empty((P.shape[0], 11, ux.shape[1]))
+    J[:, 0] = -P[:, 7:8] - P[:, 9:10] * ee - b1 * c1 - b2 * c2
+    J[:, 1] = -P[:, 8:9] - P[:, 10:11] * ee - b1 * s1 - b2 * s2
+    J[:, 2] = b1 * (c1 * uy - s1 * ux)
+    J[:, 3] = b2 * (c2 * uy - s2 * ux)
+    J[:, 4] = -(b1 * d1 + b2 * d2) / s
+    J[:, 5] = 1.0
+    J[:, 6] = ee
+    J[:, 7] = ux
+    J[:, 8] = uy
+    J[:, 9] = ux * ee
+    J[:, 10] = uy * ee
+    return model, J
 
 
 def _solve_each(A, b):

@@ -2,7 +2,7 @@
 :func:`lightplane.intrinsics.refine_corners` (Förstner's step).
 
 :func:`fit_saddles` is the Levenberg–Marquardt of ``intrinsics._fit_saddles`` a corner at a time:
-the same model (:func:`lightplane.intrinsics._saddle_model`), weights, damping and stopping rule
+the same model (:func:`lightplane.intrinsics.fit_corners`'s blurred saddle), weights, damping and stopping rule
 (the corners of a chunk step together until all of them are done, as the batched numpy loop did),
 with the model's ``erf`` and the normal equations evaluated only where the weight is not zero and
 the Jacobian only at accepted steps; the cold start's ``erf`` serve the first iteration too.  On the
@@ -189,7 +189,7 @@ def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
-    """The saddle model's Jacobian in its 11 parameters (:func:`lightplane.intrinsics._saddle_model`)
+    """The saddle model's Jacobian in its 11 parameters (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy)
     at the ``m`` offsets, times the square root of the weight, into ``J`` (11, K); the residuals
     ``res`` scaled alike."""
     c1, s1 = math.cos(p[2]), math.sin(p[2])

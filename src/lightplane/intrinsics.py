@@ -308,42 +308,6 @@ def _grid_geometry(corners_uv: np.ndarray, board: tuple[int, int]) -> tuple[np.n
     return gap.ravel(), e_row.reshape(-1, 2), e_col.reshape(-1, 2)
 
 
-def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool):
-    """The blurred saddle of :func:`fit_corners` at offsets ``(ux, uy)`` (N, K) from the
-    corners; ``P`` (N, 11) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy.  Returns the model
-    (N, K) and, if asked, its Jacobian (N, 11, K)."""
-    from scipy.special import erf
-
-    c1, s1 = np.cos(P[:, 2:3]), np.sin(P[:, 2:3])
-    c2, s2 = np.cos(P[:, 3:4]), np.sin(P[:, 3:4])
-    s = P[:, 4:5]
-    d1 = c1 * ux + s1 * uy
-    d2 = c2 * ux + s2 * uy
-    e1 = erf(d1 / (np.sqrt(2.0) * s))
-    e2 = erf(d2 / (np.sqrt(2.0) * s))
-    ee = e1 * e2
-    amp = P[:, 6:7] + P[:, 9:10] * ux + P[:, 10:11] * uy
-    model = P[:, 5:6] + P[:, 7:8] * ux + P[:, 8:9] * uy + amp * ee
-    if not jacobian:
-        return model, None
-    k = np.sqrt(2.0 / np.pi) / s
-    b1 = amp * (k * np.exp(-0.5 * (d1 / s) ** 2)) * e2  # amp · E'(d1) E(d2)
-    b2 = amp * e1 * (k * np.exp(-0.5 * (d2 / s) ** 2))
-    J = np.empty((P.shape[0], 11, ux.shape[1]))
-    J[:, 0] = -P[:, 7:8] - P[:, 9:10] * ee - b1 * c1 - b2 * c2
-    J[:, 1] = -P[:, 8:9] - P[:, 10:11] * ee - b1 * s1 - b2 * s2
-    J[:, 2] = b1 * (c1 * uy - s1 * ux)
-    J[:, 3] = b2 * (c2 * uy - s2 * ux)
-    J[:, 4] = -(b1 * d1 + b2 * d2) / s
-    J[:, 5] = 1.0
-    J[:, 6] = ee
-    J[:, 7] = ux
-    J[:, 8] = uy
-    J[:, 9] = ux * ee
-    J[:, 10] = uy * ee
-    return model, J
-
-
 class _LensFrame:
     """Locally rectified coordinates about corners ``q0`` (n, 2) distorted px of ``camera``.
 
@@ -387,7 +351,7 @@ class _LensFrame:
 
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
                  tol_px: float, camera: Camera | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg–Marquardt fit of :func:`_saddle_model` to ``g`` for corners with starting
+    """Levenberg–Marquardt fit of the blurred saddle of :func:`fit_corners` to ``g`` for corners with starting
     parameters ``P`` (n, 11) and window radii ``radius`` (n,) px: the fitted parameters
     and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
     the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
@@ -499,7 +463,8 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
                  min_bend_px: float = 0.0, start: np.ndarray | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px, which corners were fitted (N,) bool
-    and the fitted parameters (N, 11) (:func:`_saddle_model`; NaN rows where not fitted).
+    and the fitted parameters (N, 11) (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy of :func:`fit_corners`'s
+    model; NaN rows where not fitted).
     With ``camera`` only the corners whose window the lens bends by more than ``min_bend_px``
     (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted).
     ``start``: (N, 11) parameters of an earlier fit about ``corners_uv`` to start from (its corners
