@@ -206,17 +206,19 @@ def _ellipse_problems(E: np.ndarray) -> list[str | None]:
     det2 = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
     det3 = np.linalg.det(E)
     tr = A[:, 0, 0] + A[:, 1, 1]
+    not_ellipse = ~(det2 > 1e-12 * np.add.reduce(A * A, axis=(1, 2)))
+    degenerate = ~(np.abs(det3) >= 1e-13)
     with np.errstate(divide="ignore", invalid="ignore"):
-        bad = ~(det2 > 1e-12 * np.add.reduce(A * A, axis=(1, 2))) | ~(np.abs(det3) >= 1e-13) | ((det3 / det2) * tr >= 0)
-    if not bad.any():
+        imaginary = (det3 / det2) * tr >= 0
+    if not (not_ellipse | degenerate | imaginary).any():
         return [None] * len(E)
     out: list[str | None] = []
     for k in range(len(E)):
-        if not det2[k] > 1e-12 * float(np.sum(A[k] * A[k])):
+        if not_ellipse[k]:
             out.append(f"is not an ellipse (a parabola or hyperbola: det of its 2x2 block is {det2[k]:.3g})")
-        elif not abs(det3[k]) >= 1e-13:
+        elif degenerate[k]:
             out.append(f"is a degenerate conic (det {det3[k]:.3g})")
-        elif (det3[k] / det2[k]) * tr[k] >= 0:
+        elif imaginary[k]:
             out.append("is an imaginary ellipse (no real points)")
         else:
             out.append(None)
