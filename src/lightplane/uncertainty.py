@@ -225,6 +225,8 @@ def image_grid(camera: Camera, step_px: float = 32.0) -> np.ndarray:
 CAMERA_SHARE_COVERS = ("the intrinsics' and distortion's covariance from the camera calibration (corner noise "
                        "estimated from its residuals and, in its default, their correlation within a view; board "
                        "poses marginalised)")
+
+
 def plane_noise_covers(plane: LightPlane) -> str:
     """What the plane's own covariance covers (one phrase, from its noise model in ``plane.meta``)."""
     nm = plane.meta.get("noise_model") or {}
