@@ -125,18 +125,33 @@ def distort_jac(x, y, p):
     s1, s2, s3, s4 = p[9], p[10], p[11], p[12]
     num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
-    rad = num / den
-    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r²
-    dpx = s1 + 2.0 * s2 * r2  # d(prism x) / d r²
-    dpy = s3 + 2.0 * s4 * r2
-    a = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + r2 * (s1 + s2 * r2)
-    b = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + r2 * (s3 + s4 * r2)
-    a11 = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x + 2.0 * x * dpx
-    a12 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * y * dpx
-    a21 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * x * dpy
-    a22 = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x + 2.0 * y * dpy
+    # The rational and thin-prism terms are skipped where their coefficients are all zero (every
+    # plumb-bob camera): the values are the same to the bit (a denominator of exactly 1, terms of
+    # exactly 0 added last), and the renderer's sampler, which calls this for every sub-pixel
+    # sample, saves its two divisions.
+    if k4 == 0.0 and k5 == 0.0 and k6 == 0.0:
+        rad = num
+        drad = dnum
+    else:
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        rad = num / den
+        drad = (dnum * den - num * dden) / (den * den)  # d rad / d r²
+    a = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    b = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    a11 = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    a12 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    a21 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    a22 = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+    if s1 != 0.0 or s2 != 0.0 or s3 != 0.0 or s4 != 0.0:
+        dpx = s1 + 2.0 * s2 * r2  # d(prism x) / d r²
+        dpy = s3 + 2.0 * s4 * r2
+        a = a + r2 * (s1 + s2 * r2)
+        b = b + r2 * (s3 + s4 * r2)
+        a11 = a11 + 2.0 * x * dpx
+        a12 = a12 + 2.0 * y * dpx
+        a21 = a21 + 2.0 * x * dpy
+        a22 = a22 + 2.0 * y * dpy
     if p[0] != 3.0:
         return a, b, a11, a12, a21, a22
     m0, m1, m2, m3, m4, m5, m6, m7, m8 = p[13], p[14], p[15], p[16], p[17], p[18], p[19], p[20], p[21]

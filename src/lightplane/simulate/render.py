@@ -34,6 +34,7 @@ endpoints; board poses ``T_cam_board``; scan surfaces and motion).
 from __future__ import annotations
 
 import os
+from functools import lru_cache
 from typing import Sequence
 from dataclasses import dataclass
 from typing import TypedDict
@@ -171,6 +172,20 @@ def _laser_row(plane: LightPlane, imaging: Imaging, power: float, rng: np.random
     )
 
 
+@lru_cache(maxsize=4)
+def _vignetting(width: int, height: int, cx: float, cy: float, strength: float) -> np.ndarray:
+    """The radial falloff ``1 - strength·r²/r²_max`` (r from the principal point, r_max to the
+    farthest image corner) of every pixel, ``(height, width)``; kept for the next image of the
+    same camera (read-only)."""
+    v, u = np.mgrid[0:height, 0:width]
+    r2 = (u - cx) ** 2 + (v - cy) ** 2
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]])
+    r2max = float(np.max((corners[:, 0] - cx) ** 2 + (corners[:, 1] - cy) ** 2))
+    out = 1.0 - strength * r2 / r2max
+    out.flags.writeable = False
+    return out
+
+
 def _finish(radiance: np.ndarray, camera: Camera, imaging: Imaging, rng: np.random.Generator | None,
             noise: bool = True) -> np.ndarray:
     """Vignetting, PSF, shot and read noise, 8-bit quantisation with saturation."""
@@ -178,11 +193,7 @@ def _finish(radiance: np.ndarray, camera: Camera, imaging: Imaging, rng: np.rand
 
     img = radiance
     if imaging.vignetting > 0:
-        v, u = np.mgrid[0:camera.height, 0:camera.width]
-        r2 = (u - camera.cx) ** 2 + (v - camera.cy) ** 2
-        corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1], [camera.width - 1, camera.height - 1]])
-        r2max = float(np.max((corners[:, 0] - camera.cx) ** 2 + (corners[:, 1] - camera.cy) ** 2))
-        img = img * (1.0 - imaging.vignetting * r2 / r2max)
+        img = img * _vignetting(camera.width, camera.height, camera.cx, camera.cy, imaging.vignetting)
     if imaging.psf_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma_px, borderType=cv2.BORDER_REFLECT)
     if noise:
