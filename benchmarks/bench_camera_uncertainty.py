@@ -245,6 +245,21 @@ def _with_white_camera(cam, plane, dispersion: float):
     return cam_w, LightPlane(plane.normal, plane.d, plane.covariance, meta=meta)
 
 
+def _undispersed(cam, plane, psi: float):
+    """The joint camera and plane with the joint dispersion ``psi`` divided out of every covariance
+    (the intrinsics', the plane's own and its camera share): the same estimates, the weights' prediction."""
+    from dataclasses import replace
+
+    from lightplane.plane import LightPlane
+
+    rec = dict(plane.meta["camera_jacobian"])
+    rec["covariance_camera"] = (np.asarray(rec["covariance_camera"]) / psi).tolist()
+    meta = dict(plane.meta)
+    meta["camera_jacobian"] = rec
+    return (replace(cam, covariance=np.asarray(cam.covariance) / psi),
+            LightPlane(plane.normal, plane.d, np.asarray(plane.covariance) / psi, meta=meta))
+
+
 def _shape_parts(est, est_true_cam, points) -> dict:
     """First-order split of the shape error (the rigid motion over the volume projected out) into the
     exact camera's part (the plane's own errors), the camera's part (the rest) and their cross term
@@ -328,6 +343,9 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
                     _shape_parts(triangulate(jc.camera, jc.plane_cal.plane, vol.uv), est_t, vol.points).items()})
         row["joint_seconds"] = time.perf_counter() - t2
         row.update(_hausman(cam, jc.camera))
+        psi = jc.result.dispersion if jc.result.dispersion_applied else 1.0
+        row["joint_dispersion"] = jc.result.dispersion
+        row.update(_errors(*_undispersed(jc.camera, jc.plane_cal.plane, psi), cam_true, plane_true, vol, "jointnd_"))
         if joint_white and res.options.get("covariance_noise") == "views":
             # the joint with the corners weighted by the residuals' sigma alone (before the views' dispersion)
             from dataclasses import replace
@@ -349,7 +367,7 @@ QUANTITIES = (("camera frame", "frame_mm", "pred_frame_mm"), ("shape", "shape_mm
 #: Column sets: two-step, joint refinement, plane solved with the exact camera (the plane's own share).
 VARIANTS = (("two-step", ""), ("two-step, white corner noise", "white_"),
             ("two-step, without the images' dispersion", "noimgdisp_"), ("joint", "joint_"),
-            ("joint, white corner noise", "jointw_"), ("true camera", "truecam_"),
+            ("joint, without the joint dispersion", "jointnd_"), ("joint, white corner noise", "jointw_"), ("true camera", "truecam_"),
             ("true camera, without the images' dispersion", "truecam_noimgdisp_"))
 
 
@@ -421,6 +439,10 @@ def summarise(rows: list[dict]) -> dict:
                                         "sets_cross_positive": int(np.sum(c > 0))}
     if "view_dispersion" in a:
         out["mean_view_dispersion"] = float(np.mean(a["view_dispersion"]))
+    if "joint_dispersion" in a:
+        v = a["joint_dispersion"]
+        out["joint_dispersion"] = {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)),
+                                   "min": float(np.min(v)), "max": float(np.max(v))}
     for pre in ("", "truecam_"):
         if pre + "image_dispersion" in a:
             v = a[pre + "image_dispersion"]
@@ -508,6 +530,10 @@ def run(args) -> None:
     if "mean_view_dispersion" in s:
         print(f"views' dispersion of the corner noise along the intrinsics (mean over the sets): "
               f"{s['mean_view_dispersion']:.2f}")
+    if "joint_dispersion" in s:
+        v = s["joint_dispersion"]
+        print(f"joint dispersion (the views' and images' pulls on the intrinsics and the plane): mean {v['mean']:.2f}, "
+              f"sd {v['sd']:.2f} (range {v['min']:.2f}-{v['max']:.2f}) over the sets")
     for pre, label in (("", "two-step"), ("truecam_", "exact camera")):
         if pre + "image_dispersion" in s:
             v = s[pre + "image_dispersion"]

@@ -83,7 +83,7 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
     alone (the circle images add information); points' errors match the error basis."""
     sigma = 0.05
     n_trials = 10
-    m_k, m_p, m_pt = [], [], []
+    m_k, m_p, m_pt, psi = [], [], [], []
     for seed in range(n_trials):
         rng = np.random.default_rng(100 + seed)
         true, plane, poses, obj, uv, placements, obs = _data(rng, sigma)
@@ -99,15 +99,18 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
                      [(np.ravel(a), np.ravel(b)) for a, b in zip(rv, tv)])
         e = camera_params(res.camera) - camera_params(true)
         Ck = res.camera.covariance
+        assert res.dispersion_applied
+        psi.append(res.dispersion)
         m_k.append(e @ np.linalg.pinv(Ck) @ e)
         dp = np.append(res.plane.normal - plane.normal, res.plane.d - plane.d)
         m_p.append(dp @ np.linalg.pinv(res.plane_covariance_total, rcond=1e-10) @ dp)
         # the circle images can only add information: Cov(two-step) - Cov(joint) is positive semi-definite
+        # (the joint's before its dispersion, which is a measured scale, not information)
         # (the corners' covariance with the same, known noise sigma; the two are linearised at points
         # ~1 sigma apart, hence the tolerance); and in some direction they add much (> 10 % of the variance)
         c_two = two.covariance * (sigma / two.sigma_px) ** 2
         sd = np.sqrt(np.diag(c_two))[:8]
-        w = np.linalg.eigvalsh((c_two - Ck)[:8, :8] / np.outer(sd, sd))
+        w = np.linalg.eigvalsh((c_two - Ck / res.dispersion)[:8, :8] / np.outer(sd, sd))  # the weights' information
         assert w[0] > -0.01 and w[-1] > 0.1, w
         # the points over the working volume: errors against the error basis (camera frame)
         vol = working_volume_grid(true, plane)
@@ -123,6 +126,46 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
     assert abs(np.mean(m_k) - 8) < 3.5 * np.sqrt(16 / n_trials), m_k
     assert abs(np.mean(m_p) - 3) < 3.5 * np.sqrt(6 / n_trials), m_p
     assert abs(np.mean(m_pt)) < 3.5 * np.sqrt(2 * rank / n_trials), (m_pt, rank)
+    # the joint dispersion (in the covariance by default) is 1 for white noise, within its sampling
+    # (its sd over the trials ~0.3 with 8 views and 6 images)
+    assert abs(np.mean(psi) - 1) < 3.5 * np.std(psi) / np.sqrt(n_trials), psi
+
+
+def test_errors_correlated_within_images_are_found_by_the_joint_dispersion():
+    """Each image's stripe turned about its middle by its own random error (0.1 px sd at the ends,
+    on 0.05 px white noise), a coherent pull on the plane and, through the joint solve, on the
+    intrinsics, that the weights (the white noise's sigma) do not see: the weights' covariance of
+    the intrinsics is too small; the joint dispersion finds it and the default covariance's
+    Mahalanobis² averages the 8 free intrinsics again (chi² mean 8; tolerance 3.5 sd of the
+    trials' mean plus the inflation E[1/dispersion] brings, ~ its relative variance)."""
+    sigma, n_trials = 0.05, 10
+    m_k, m_k_model, psi = [], [], []
+    for seed in range(n_trials):
+        rng = np.random.default_rng(300 + seed)
+        true, plane, poses, obj, uv, placements, obs = _data(rng, sigma)
+        tilted = []
+        for o in obs:
+            q = o[1] - o[1].mean(axis=0)
+            _, _, vt = np.linalg.svd(q, full_matrices=False)
+            u = q @ vt[0]
+            tilted.append((o[0], o[1] + rng.normal(0, 0.1) * (u / np.abs(u).max())[:, None] * vt[1]))
+        o32 = [obj.astype(np.float32)] * len(uv)
+        _, K, d, rv, tv = cv2.calibrateCamera(o32, [u.astype(np.float32) for u in uv], (1280, 960), None, None,
+                                              flags=FLAGS, criteria=(3, 100, 1e-12))
+        cam0 = camera_with_params(true, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], d.ravel()[:5]])
+        res = _solve(true, plane, poses, obj, uv, placements, tilted, sigma, cam0, plane,
+                     [_Pose(p.center, p.normal) for p in placements],
+                     [(np.ravel(a), np.ravel(b)) for a, b in zip(rv, tv)])
+        e = camera_params(res.camera) - camera_params(true)
+        m_k.append(e @ np.linalg.pinv(res.camera.covariance) @ e)
+        m_k_model.append(m_k[-1] * res.dispersion)  # under the weights' covariance alone
+        psi.append(res.dispersion)
+    m_k, m_k_model, psi = np.array(m_k), np.array(m_k_model), np.array(psi)
+    # measured: dispersion 6.7 (1.1-12.6), the weights' Mahalanobis² 46, the default's 11 (6 trials)
+    assert np.mean(psi) > 2.0, psi
+    assert np.mean(m_k_model) > 2 * 8, m_k_model
+    tol = 3.5 * np.std(m_k) / np.sqrt(n_trials) + 8 * np.var(psi / np.mean(psi))
+    assert abs(np.mean(m_k) - 8) < tol, (np.mean(m_k), tol, psi)
 
 
 @pytest.mark.parametrize("case", ["lengths", "placements", "sigma", "free"])

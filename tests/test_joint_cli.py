@@ -45,6 +45,13 @@ def test_joint_run_writes_camera_and_plane_within_their_covariance(boards, tmp_p
     assert "camera's share is not included" not in json.dumps(d["uncertainty"])
     c = json.loads(cam_out.read_text())
     assert "joint_refinement" in c["calibration"] and c["provenance"]["options"]["board"]
+    # the joint dispersion: printed, recorded with the camera and the plane, and named by what the sigmas cover
+    jr = c["calibration"]["joint_refinement"]
+    psi = jr["joint_dispersion"]
+    assert jr["joint_dispersion_applied"] and psi > 0 and f"x{psi:.2f}" in jr["covariance_covers"]
+    assert f"joint dispersion ×{psi:.2f}" in r.stdout
+    assert plane.meta["joint_dispersion"] == psi and plane.meta["joint_dispersion_applied"]
+    assert f"joint problem's dispersion x{psi:.2f}" in d["uncertainty"]["covers"]["shape_sigma_rms_mm"]
     # the plane's offset at the axis against its total sigma (plane's own + the intrinsics' share)
     C = np.asarray(plane.covariance) + np.asarray(plane.meta["camera_jacobian"]["covariance_camera"])
     h = np.append(plane_true.point_on_axis(), 1.0)

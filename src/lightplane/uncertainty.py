@@ -46,7 +46,7 @@ __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volum
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
            "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
            "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian",
-           "plane_noise_covers"]
+           "plane_noise_covers", "joint_dispersion_covers"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -238,6 +238,15 @@ def plane_noise_covers(plane: LightPlane) -> str:
             "along the curves; errors shared within an image not included)")
 
 
+def joint_dispersion_covers(plane: LightPlane) -> str:
+    """After a joint refinement of camera and plane: the phrase that says both shares include its
+    dispersion (:func:`lightplane.joint.joint_dispersion`); empty otherwise."""
+    if not plane.meta.get("joint_dispersion_applied"):
+        return ""
+    return (f"; both refined jointly, times the joint problem's dispersion x{float(plane.meta['joint_dispersion']):.2f} "
+            "in variance (each view's and image's pull on the intrinsics and the plane)")
+
+
 #: Said wherever a figure lacks the camera's share.
 CAMERA_SHARE_MISSING = "the camera's share is not included (the camera file has no covariance)"
 
@@ -380,7 +389,7 @@ def volume_sigma(camera: Camera, plane: LightPlane, volume: WorkingVolume, *,
     shape = float(np.sqrt(np.sum(shape_error_basis(E, volume.points[ok]) ** 2) / len(E)))
     plane_only = float(np.sqrt(np.sum(E[:, :, :4] ** 2) / len(E)))
     own = plane_noise_covers(plane)
-    covers = (own + " and " + CAMERA_SHARE_COVERS if inc else
+    covers = (own + " and " + CAMERA_SHARE_COVERS + joint_dispersion_covers(plane) if inc else
               own + " only; " + (camera_share_status(camera, plane) or ""))
     return VolumeSigma(frame, shape, plane_only, inc, covers)
 

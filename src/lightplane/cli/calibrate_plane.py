@@ -152,7 +152,11 @@ def calibrate_plane_cmd(
             "calibration": {**intr.to_dict(), "joint_refinement": {
                 "covariance_covers": "the corner noise (from the camera calibration's residuals) and the rim and "
                                      "stripe noise of the circle images (the plane calibration's noise model), board "
-                                     "and target poses and the plane marginalised",
+                                     "and target poses and the plane marginalised"
+                                     + (f", times the joint problem's dispersion x{r.dispersion:.2f} in variance (each "
+                                        "view's and image's pull on the intrinsics and the plane)"
+                                        if r.dispersion_applied else ""),
+                "joint_dispersion": r.dispersion, "joint_dispersion_applied": r.dispersion_applied,
                 "target_images_used": [o.source for o in jc.plane_cal.images if o.used],
                 "corner_rms_px": r.corner_rms_px, "rim_rms_px": r.rim_rms_px, "stripe_rms_px": r.stripe_rms_px,
                 "cost_start": r.cost_start, "cost": r.cost, "evaluations": r.nfev, "converged": r.converged}},
@@ -304,6 +308,10 @@ def _print_joint(cam0, jc) -> None:
     parts = [f"{n} {x:.4g} → {y:.4g} (σ {s0:.2g} → {s1:.2g}{' ' + unit[n] if n in unit else ''})"
              for n, x, y, s0, s1 in zip(names, a, b, sa, sb) if s1 > 0]
     console.print("  " + "; ".join(parts))
+    r = jc.result
+    console.print(f"  joint dispersion ×{r.dispersion:.2f} in variance (each view's and image's pull on the intrinsics "
+                  f"and the plane against their noise model; {'in' if r.dispersion_applied else 'not in'} both "
+                  "covariances)")
     dist = jc.plane_cal.plane.point_on_axis()[2]
     if np.isfinite(dist) and dist > 0 and cam0.covariance is not None:
         u0, u1 = camera_uncertainty_summary(cam0, dist), camera_uncertainty_summary(cam, dist)
