@@ -328,12 +328,8 @@ def _dot_ink(row, u, v):
 
 @nb.njit(**_jit)
 def _ink(row, tex, u, v):
-    """Is the point (u, v) of a textured patch ``row`` in its ink (the second albedo)?"""
-    if row[18] == 1.0:  # chessboard
-        sq = row[19]
-        iu = int(np.floor((u + sq) / sq))
-        iv = int(np.floor((v + sq) / sq))
-        return iu >= 0 and iv >= 0 and iu < int(row[20]) and iv < int(row[21]) and (iu + iv) % 2 == 0
+    """Is the point (u, v) of a bitmap- or dot-textured patch ``row`` in its ink (the second albedo)?
+    (Off :func:`_shade`'s hot path, which tests the chessboard itself.)"""
     if row[18] == 2.0:
         return _bitmap_ink(row, tex, u, v)
     if row[18] == 3.0:
@@ -341,7 +337,7 @@ def _ink(row, tex, u, v):
     return False
 
 
-@nb.njit(**_jit)
+@nb.njit(inline="always", **_jit)  # inlined where it is called: 0.7-0.75x the corner probe's time, the compile ~6 s longer once
 def _shade(patches, spheres, laser, ambient, x, y, tex):
     """Radiance and material id seen along the ray (x, y, 1)."""
     dx, dy, dz = x, y, 1.0
@@ -384,7 +380,15 @@ def _shade(patches, spheres, laser, ambient, x, y, tex):
         nx, ny, nz = row[9], row[10], row[11]
         albedo = row[17]
         mat = 2 * best_k
-        if row[18] != 0.0 and _ink(row, tex, best_u, best_v):
+        kind = row[18]
+        if kind == 1.0:  # chessboard, the common texture, inline
+            sq = row[19]
+            iu = int(np.floor((best_u + sq) / sq))
+            iv = int(np.floor((best_v + sq) / sq))
+            if iu >= 0 and iv >= 0 and iu < int(row[20]) and iv < int(row[21]) and (iu + iv) % 2 == 0:
+                albedo = row[22]
+                mat += 1
+        elif kind != 0.0 and _ink(row, tex, best_u, best_v):
             albedo = row[22]
             mat += 1
     # face the camera
