@@ -191,7 +191,9 @@ _CHUNK = 128
 @njit(cache=True)
 def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
     # numba's parfor lowering slows this body ~5x when it is inlined in prange:
-    # keep it a separate serial function
+    # keep it a separate serial function.  Every loop runs over the lines (contiguous: vectorised);
+    # each of them costs a fixed overhead per row or block, so the serial frame kernel passes
+    # the whole width at once
     S = A.shape[0]
     B = BLOCK
     nb = (S + B - 1) // B
@@ -215,32 +217,43 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
                 up = x > acc[l]
                 acc[l] = x if up else acc[l]
                 arg[l] = k if up else arg[l]
+    # p1: the first block holding the line's maximum (blocks in order, strictly higher replaces)
+    q1 = p1[l0:l1]
+    m1 = v1[l0:l1]
+    acc = bm[0]
+    arg = ba[0]
     for l in range(n):
-        lg = l0 + l
-        bb = 0
-        best = bm[0, l]
-        for b in range(1, nb):
-            if bm[b, l] > best:
-                best = bm[b, l]
-                bb = b
-        q1 = bb * B + np.int64(ba[bb, l])
-        p1[lg] = q1
-        v1[lg] = float(best)
-        b2 = -1
-        best2 = best
-        for b in range(nb):
-            s0 = b * B
-            s1 = min(S, s0 + B)
-            if s1 - 1 < q1 - sep or s0 > q1 + sep:
-                if b2 < 0 or bm[b, l] > best2:
-                    best2 = bm[b, l]
-                    b2 = b
-        if b2 < 0:
-            p2[lg] = -1
-            v2[lg] = -np.inf
-            continue
-        p2[lg] = b2 * B + np.int64(ba[b2, l])
-        v2[lg] = float(best2)
+        m1[l] = np.float64(acc[l])
+        q1[l] = np.int64(arg[l])
+    for b in range(1, nb):
+        acc = bm[b]
+        arg = ba[b]
+        s0 = b * B
+        for l in range(n):
+            x = np.float64(acc[l])
+            m = m1[l]
+            up = x > m
+            m1[l] = x if up else m
+            q1[l] = (s0 + np.int64(arg[l])) if up else q1[l]
+    # p2: the same over the blocks entirely farther than sep from p1 (-1, -inf: none)
+    q2 = p2[l0:l1]
+    m2 = v2[l0:l1]
+    for l in range(n):
+        q2[l] = -1
+        m2[l] = -np.inf
+    for b in range(nb):
+        acc = bm[b]
+        arg = ba[b]
+        s0 = b * B
+        s1 = min(S, s0 + B)
+        for l in range(n):
+            q = q1[l]
+            x = np.float64(acc[l])
+            m = m2[l]
+            p = q2[l]
+            take = ((s1 - 1 < q - sep) | (s0 > q + sep)) & ((p < 0) | (x > m))
+            m2[l] = x if take else m
+            q2[l] = (s0 + np.int64(arg[l])) if take else p
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -1458,9 +1471,7 @@ def profile_curvature(uv, nrm, valid, c2, m, k):
 
 @njit(cache=True, nogil=True)
 def _candidates_frame(A, sep, p1, v1, p2, v2):
-    L = A.shape[1]
-    for l0 in range(0, L, _CHUNK):
-        _candidates_chunk(A, sep, p1, v1, p2, v2, l0, min(L, l0 + _CHUNK))
+    _candidates_chunk(A, sep, p1, v1, p2, v2, 0, A.shape[1])
 
 
 @njit(cache=True, nogil=True)
