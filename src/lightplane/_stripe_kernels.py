@@ -496,8 +496,9 @@ N_SUMS = 6          # derivative sums per row: r_s, r_ss, r_l, r_ls, r_ll, r (se
 
 @njit(cache=True, inline="always")
 def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
-    """The six derivative sums at the rows ``d0 .. d0 + nd - 1`` of the lines ``l0 .. l0 + n - 1``:
-    ``D[k, r, j]`` for row ``d0 + r`` of line ``l0 + j``, k = r_s, r_ss, r_l, r_ls, r_ll, r.
+    """The derivative sums at the rows ``d0 .. d0 + nd - 1`` of the lines ``l0 .. l0 + n - 1``:
+    ``D[k, r, j]`` for row ``d0 + r`` of line ``l0 + j``, k = r_s, r_ss, r_l, r_ls, r_ll, r;
+    r_ll and r (needed at a line's middle c only) at the rows 1 .. nd - 2 (the middles).
 
     Along the lines first: ``C[k, r, m]`` = sum_i w_k[i] A[d0 + r - R + i, l0 - RX + m] for
     the band's columns and their RX neighbours on each side (rows converted to float64 once,
@@ -537,29 +538,36 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
         Dss = D[1, r]
         Dl = D[2, r]
         Dls = D[3, r]
-        Dll = D[4, r]
-        D0 = D[5, r]
         for j in range(n):
             Ds[j] = 0.0
             Dss[j] = 0.0
             Dl[j] = 0.0
             Dls[j] = 0.0
-            Dll[j] = 0.0
-            D0[j] = 0.0
         for jj in range(2 * RX + 1):
             u = k0[jj]
             v = k1[jj]
-            q = k2[jj]
             X0 = C[0, r, jj:jj + n]
             X1 = C[1, r, jj:jj + n]
             X2 = C[2, r, jj:jj + n]
             for j in range(n):
-                x0 = X0[j]
                 x1 = X1[j]
                 Ds[j] += u * x1
                 Dss[j] += u * X2[j]
-                Dl[j] += v * x0
+                Dl[j] += v * X0[j]
                 Dls[j] += v * x1
+    # r_ll and r at the middles only (rows 1 .. nd - 2: the first and last row are c -+ 1 only)
+    for r in range(1, nd - 1):
+        Dll = D[4, r]
+        D0 = D[5, r]
+        for j in range(n):
+            Dll[j] = 0.0
+            D0[j] = 0.0
+        for jj in range(2 * RX + 1):
+            u = k0[jj]
+            q = k2[jj]
+            X0 = C[0, r, jj:jj + n]
+            for j in range(n):
+                x0 = X0[j]
                 Dll[j] += q * x0
                 D0[j] += u * x0
 
@@ -930,9 +938,10 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act
         inb = lo <= c <= hi
         r = (c - lo) if inb else 0
         act[j] = inb
-        for k in range(5):
+        for k in range(4):
             for o in range(3):
                 E[k, o, j] = D[k, r + o, j]
+        E[4, 1, j] = D[4, r + 1, j]
     nact = 0
     for j in range(n):
         inb = act[j]
