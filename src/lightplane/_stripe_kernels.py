@@ -531,7 +531,24 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
             c0[j] = 0.0
             c1[j] = 0.0
             c2[j] = 0.0
-        for i in range(2 * R + 1):
+        i = 0
+        while i + 1 < 2 * R + 1:   # two taps a pass: half the accumulators' loads and stores, the same sums
+            a = w0[i]
+            b = w1[i]
+            g = w2[i]
+            a2 = w0[i + 1]
+            b2 = w1[i + 1]
+            g2 = w2[i + 1]
+            x = Fb[r + i]
+            y = Fb[r + i + 1]
+            for j in range(m):
+                xj = x[j]
+                yj = y[j]
+                c0[j] = (c0[j] + a * xj) + a2 * yj
+                c1[j] = (c1[j] + b * xj) + b2 * yj
+                c2[j] = (c2[j] + g * xj) + g2 * yj
+            i += 2
+        if i < 2 * R + 1:
             a = w0[i]
             b = w1[i]
             g = w2[i]
@@ -550,7 +567,27 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
             Dss[j] = 0.0
             Dl[j] = 0.0
             Dls[j] = 0.0
-        for jj in range(2 * RX + 1):
+        jj = 0
+        while jj + 1 < 2 * RX + 1:   # two taps a pass (as above)
+            u = k0[jj]
+            v = k1[jj]
+            u2 = k0[jj + 1]
+            v2 = k1[jj + 1]
+            X0 = C[0, r, jj:jj + n]
+            X1 = C[1, r, jj:jj + n]
+            X2 = C[2, r, jj:jj + n]
+            Y0 = C[0, r, jj + 1:jj + 1 + n]
+            Y1 = C[1, r, jj + 1:jj + 1 + n]
+            Y2 = C[2, r, jj + 1:jj + 1 + n]
+            for j in range(n):
+                x1 = X1[j]
+                y1 = Y1[j]
+                Ds[j] = (Ds[j] + u * x1) + u2 * y1
+                Dss[j] = (Dss[j] + u * X2[j]) + u2 * Y2[j]
+                Dl[j] = (Dl[j] + v * X0[j]) + v2 * Y0[j]
+                Dls[j] = (Dls[j] + v * x1) + v2 * y1
+            jj += 2
+        if jj < 2 * RX + 1:
             u = k0[jj]
             v = k1[jj]
             X0 = C[0, r, jj:jj + n]
