@@ -868,7 +868,16 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
             flats[j] = False
             continue
         cs[j] = c
-        flats[j] = _is_flat(A, q, p, fw, best, bg, half)
+        # a flat top's run of >= 3 samples holds p and two of p-2 .. p+2 (inside A: half >= 2); the
+        # test without a branch first: a Gaussian top fails it (a branch on the neighbours is
+        # mispredicted on about every other line)
+        thr = best - FLAT_TOL * (best - bg)
+        a1 = np.float64(A[p + 1, q]) >= thr
+        a2 = np.float64(A[p + 2, q]) >= thr
+        b1 = np.float64(A[p - 1, q]) >= thr
+        b2 = np.float64(A[p - 2, q]) >= thr
+        run3 = (a1 & a2) | (b1 & b2) | (a1 & b1)
+        flats[j] = _is_flat(A, q, p, fw, best, bg, half) if run3 else False
 
 
 @njit(cache=True, inline="always")
