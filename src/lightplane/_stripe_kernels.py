@@ -751,12 +751,6 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
             flats[j] = flat
             continue
         nv += 1
-        centre[q] = np.nan
-        normal[q, 0] = np.nan
-        normal[q, 1] = np.nan
-        strength[q] = np.nan
-        intensity[q] = np.nan
-        width[q] = np.nan
         p = pos[q]
         P[j] = p
         # the highest of p-1, p, p+1 (as _fwhm_line: p first)
@@ -864,6 +858,12 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
                 c = cm
         if c - 1 - R < 0 or c + 1 + R > S - 1:
             status[q] = EDGE
+            centre[q] = np.nan
+            normal[q, 0] = np.nan
+            normal[q, 1] = np.nan
+            strength[q] = np.nan
+            intensity[q] = np.nan
+            width[q] = np.nan
             cs[j] = -1
             flats[j] = False
             continue
@@ -1089,6 +1089,8 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act
         fw = fws[j]
         if bests[j] - bgs[j] < min_peak:
             status[q] = NO_PEAK
+            width[q] = np.nan
+            centre[q] = np.nan
             continue
         st = OK
         cc = np.nan
@@ -1125,10 +1127,14 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act
         if st != OK:
             if not flats[j]:
                 status[q] = st
+                width[q] = np.nan
+                centre[q] = np.nan
                 continue
             cc = _flat_centre(A, q, pos[q], c, xw, RX, qpeak, half, tmp[3:4].T)
             if not (cc == cc):
                 status[q] = TOO_WIDE
+                width[q] = np.nan
+                centre[q] = np.nan
                 continue
             if st == NOT_RIDGE or st == ALONG_LINE:
                 normal[q, 0] = 0.0
@@ -1137,6 +1143,7 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act
         width[q] = fw * ns
         if not (fw == fw) or fw * ns > max_width:
             status[q] = TOO_WIDE
+            centre[q] = np.nan
             continue
         centre[q] = cc
         status[q] = OK
@@ -1229,6 +1236,8 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                 q = l0 + j
                 c = cs[j]
                 if c >= 0 and not (lo <= c <= hi):
+                    centre[q] = np.nan   # (_band_start leaves its lines' outputs to the end of each line)
+                    width[q] = np.nan
                     _line_alone(A, q, pos[q], c, fws[j], bests[j], bgs[j], flats[j], w0, w1, w2, xw, qpeak, half,
                                 min_peak, max_width, min_cos, tmp, T, sm, centre, normal, strength, intensity, width,
                                 status)
