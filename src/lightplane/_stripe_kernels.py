@@ -667,18 +667,24 @@ def _line_sums(A, l, c, re, RX, w0, w1, w2, xw, T, sm):
 
 
 @njit(cache=True, inline="always")
-def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
-    """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
-
-    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set).
-    """
-    S = A.shape[0]
+def _nan_outputs(l, centre, normal, strength, intensity, width):
+    """Line ``l``'s centre, normal, strength, intensity and width set to NaN (a line that ends early)."""
     centre[l] = np.nan
     normal[l, 0] = np.nan
     normal[l, 1] = np.nan
     strength[l] = np.nan
     intensity[l] = np.nan
     width[l] = np.nan
+
+
+@njit(cache=True, inline="always")
+def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
+    """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
+
+    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set).
+    """
+    S = A.shape[0]
+    _nan_outputs(l, centre, normal, strength, intensity, width)
     if p < 0:
         status[l] = NO_PEAK
         return -1, np.nan, 0.0, 0.0, False
@@ -858,12 +864,7 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
                 c = cm
         if c - 1 - R < 0 or c + 1 + R > S - 1:
             status[q] = EDGE
-            centre[q] = np.nan
-            normal[q, 0] = np.nan
-            normal[q, 1] = np.nan
-            strength[q] = np.nan
-            intensity[q] = np.nan
-            width[q] = np.nan
+            _nan_outputs(q, centre, normal, strength, intensity, width)
             cs[j] = -1
             flats[j] = False
             continue
