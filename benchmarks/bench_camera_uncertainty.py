@@ -248,16 +248,8 @@ def _with_white_camera(cam, plane, dispersion: float):
 def _undispersed(cam, plane, psi: float):
     """The joint camera and plane with the joint dispersion ``psi`` divided out of every covariance
     (the intrinsics', the plane's own and its camera share): the same estimates, the weights' prediction."""
-    from dataclasses import replace
-
-    from lightplane.plane import LightPlane
-
-    rec = dict(plane.meta["camera_jacobian"])
-    rec["covariance_camera"] = (np.asarray(rec["covariance_camera"]) / psi).tolist()
-    meta = dict(plane.meta)
-    meta["camera_jacobian"] = rec
-    return (replace(cam, covariance=np.asarray(cam.covariance) / psi),
-            LightPlane(plane.normal, plane.d, np.asarray(plane.covariance) / psi, meta=meta))
+    cam_w, plane_w = _with_white_camera(cam, plane, psi)
+    return cam_w, _scaled_plane(plane_w, 1 / psi)
 
 
 def _shape_parts(est, est_true_cam, points) -> dict:

@@ -222,13 +222,12 @@ def refine_joint_points(camera: Camera, free: np.ndarray, board_points: Sequence
     cov = np.linalg.inv(Hs) / np.outer(d, d)
     cov = 0.5 * (cov + cov.T)
     # the images' and views' pulls on the shared parameters (intrinsics, plane) against the weights'
-    rf = fun(x)
-    prob_x = problem(cam_at(x[:nf]))
+    # (res.fun: the weighted residuals at x; the rows' images are the same in every _Problem of these points)
     glob = np.r_[np.arange(nf), nf + nbp + np.arange(3)]
     clusters = [(np.arange(rows_c[i], rows_c[i + 1]), nf + 6 * i + np.arange(6)) for i in range(nb)]
-    clusters += [(mc + np.r_[np.flatnonzero(prob_x.rim_idx == i), prob_x.m_rim + np.flatnonzero(prob_x.st_idx == i)],
-                  nf + nbp + 3 + 5 * i + np.arange(5)) for i in range(prob_x.n)]
-    psi = joint_dispersion(J, rf, glob, clusters)
+    clusters += [(mc + np.r_[np.flatnonzero(prob0.rim_idx == i), m_rim + np.flatnonzero(prob0.st_idx == i)],
+                  nf + nbp + 3 + 5 * i + np.arange(5)) for i in range(prob0.n)]
+    psi = joint_dispersion(J, res.fun, glob, clusters)
     if dispersion:
         cov = psi * cov
     # the solution's parts

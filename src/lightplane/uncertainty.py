@@ -46,7 +46,7 @@ __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volum
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
            "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
            "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian",
-           "plane_noise_covers", "joint_dispersion_covers"]
+           "plane_noise_covers", "joint_dispersion_covers", "joint_dispersion_phrase"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -238,13 +238,18 @@ def plane_noise_covers(plane: LightPlane) -> str:
             "along the curves; errors shared within an image not included)")
 
 
+def joint_dispersion_phrase(dispersion: float) -> str:
+    """What a covariance scaled by the joint problem's dispersion includes (one phrase)."""
+    return (f"times the joint problem's dispersion x{float(dispersion):.2f} in variance (each view's and image's "
+            "pull on the intrinsics and the plane)")
+
+
 def joint_dispersion_covers(plane: LightPlane) -> str:
     """After a joint refinement of camera and plane: the phrase that says both shares include its
     dispersion (:func:`lightplane.joint.joint_dispersion`); empty otherwise."""
     if not plane.meta.get("joint_dispersion_applied"):
         return ""
-    return (f"; both refined jointly, times the joint problem's dispersion x{float(plane.meta['joint_dispersion']):.2f} "
-            "in variance (each view's and image's pull on the intrinsics and the plane)")
+    return "; both refined jointly, " + joint_dispersion_phrase(plane.meta["joint_dispersion"])
 
 
 #: Said wherever a figure lacks the camera's share.

@@ -146,6 +146,8 @@ def calibrate_plane_cmd(
         inputs += [str(f) for f in joint[0]]
     prov = provenance(inputs, options)
     if jc is not None and intr is not None:
+        from ..uncertainty import joint_dispersion_phrase
+
         assert camera_out is not None  # checked by _joint_inputs
         r = jc.result
         jc.camera.save_json(camera_out, force=force, extra={
@@ -153,9 +155,7 @@ def calibrate_plane_cmd(
                 "covariance_covers": "the corner noise (from the camera calibration's residuals) and the rim and "
                                      "stripe noise of the circle images (the plane calibration's noise model), board "
                                      "and target poses and the plane marginalised"
-                                     + (f", times the joint problem's dispersion x{r.dispersion:.2f} in variance (each "
-                                        "view's and image's pull on the intrinsics and the plane)"
-                                        if r.dispersion_applied else ""),
+                                     + (", " + joint_dispersion_phrase(r.dispersion) if r.dispersion_applied else ""),
                 "joint_dispersion": r.dispersion, "joint_dispersion_applied": r.dispersion_applied,
                 "target_images_used": [o.source for o in jc.plane_cal.images if o.used],
                 "corner_rms_px": r.corner_rms_px, "rim_rms_px": r.rim_rms_px, "stripe_rms_px": r.stripe_rms_px,
