@@ -152,6 +152,26 @@ def test_threading_configuration_is_applied():
     assert "numba threading layer" in threads.describe()
 
 
+def test_blas_pools_limited_unless_the_user_set_them():
+    """numpy's, scipy's and OpenCV's BLAS pools at one thread after ``import lightplane``; a
+    user's ``OPENBLAS_NUM_THREADS`` (here 2) stands.  Fresh interpreters: the limit is set at import."""
+    import subprocess
+
+    code = ("import lightplane, json; from lightplane import threads; "
+            "print(json.dumps([threads.threading_info()['blas_pools'], threads.threading_info()['blas_setting']]))")
+    env = {k: v for k, v in os.environ.items() if k not in threads._BLAS_ENV}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    import json
+
+    pools, note = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(pools) >= 2 and all(n == threads.BLAS_THREADS for _, n in pools), pools   # numpy's and scipy's at least
+    assert "limited" in note
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"}, capture_output=True,
+                         text=True, check=True)
+    pools, note = json.loads(out.stdout.strip().splitlines()[-1])
+    assert "OPENBLAS_NUM_THREADS" in note and any(n == 2 for _, n in pools), (pools, note)
+
+
 def test_scan_worker_threads_run_serial_kernels():
     n_s, d_s = surface()
     frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0] for k in range(6)]

@@ -38,6 +38,8 @@ from .intrinsics import calibrate_camera
 from .baselines.zhou import calibrate_plane_board
 from .evaluate import evaluate_images
 
+threads.limit_blas()   # last: the BLAS libraries numpy and scipy load are all in by now
+
 __all__ = [
     "Camera",
     "CirclePose",

@@ -14,6 +14,17 @@ other processes hold the cores.  The rules, applied by the library itself:
   lines, outside any frame pool, and only while a core is free: :func:`idle_cpus`),
   never nested inside a pool.
 
+BLAS: the OpenBLAS / MKL pools of numpy and scipy are set to **one thread** when
+lightplane is imported (:func:`limit_blas`, through ``threadpoolctl``), unless the user
+has set ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS`` or
+``OMP_NUM_THREADS`` (numpy's, scipy's and the one OpenCV's wheel brings).  Our matrices are small (least-squares Jacobians of a few thousand
+rows, 3x3 and 4x4 transforms), so BLAS threads never paid here; but OpenBLAS's threads
+spin for ~0.1 s after every call it splits, and on two cores they took the cores from
+the frame kernels that came next: a 200-frame ROI batch took 54 ms right after a few
+BLAS calls against 34 ms after a 50 ms pause (same run, medians of 8).  Process-wide,
+as the OpenMP settings are; ``threadpoolctl.threadpool_limits`` undoes it for a block
+of the user's own heavy linear algebra.
+
 Threading layer: OpenMP first (thread-safe for launches from several Python threads,
 unlike ``workqueue``; TBB is rarely installed), with the *passive* wait policy
 (``OMP_WAIT_POLICY=PASSIVE``, ``KMP_BLOCKTIME=0``, and for GNU OpenMP a short spin first,
@@ -32,7 +43,7 @@ import os
 import threading
 import time
 
-__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "profile_parallel", "idle_cpus",
+__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "limit_blas", "BLAS_THREADS", "profile_parallel", "idle_cpus",
            "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
 
 #: which OpenMP runtime was already loaded before lightplane set its wait policy (then it has no effect)
@@ -70,6 +81,42 @@ def _configure() -> None:
 
 
 _configure()
+
+#: BLAS threads lightplane leaves in numpy's and scipy's pools (:func:`limit_blas`)
+BLAS_THREADS = 1
+_BLAS_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "OMP_NUM_THREADS")
+#: what :func:`limit_blas` did (reported by :func:`threading_info`)
+_blas_note = ["not applied yet"]
+
+
+def limit_blas() -> None:
+    """numpy's and scipy's BLAS pools to :data:`BLAS_THREADS` (called once, at the end of
+    ``import lightplane``, when the BLAS libraries it uses are loaded), unless one of
+    ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``,
+    ``OMP_NUM_THREADS`` is set: then the user's setting stands."""
+    given = [v for v in _BLAS_ENV if v in os.environ]
+    if given:
+        _blas_note[0] = f"left as set by {', '.join(given)}"
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency
+        _blas_note[0] = "not limited (threadpoolctl is not installed)"
+        return
+    import cv2  # noqa: F401  (OpenCV's wheel brings its own OpenBLAS: load it, so it is limited too)
+
+    threadpool_limits(limits=BLAS_THREADS, user_api="blas")
+    _blas_note[0] = f"limited to {BLAS_THREADS} by lightplane"
+
+
+def _blas_pools() -> list[tuple[str, int]]:
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:  # pragma: no cover - a dependency
+        return []
+    return [(str(d.get("internal_api")), int(d.get("num_threads", 0))) for d in threadpool_info()
+            if d.get("user_api") == "blas"]
+
 
 #: a single frame is split over numba's threads only from this many pixels (lines x samples) ...
 PARALLEL_MIN_PIXELS = 1 << 17
@@ -254,6 +301,8 @@ def threading_info() -> dict:
         "KMP_BLOCKTIME": os.environ.get("KMP_BLOCKTIME"),
         "GOMP_SPINCOUNT": os.environ.get("GOMP_SPINCOUNT"),
         "omp_runtime_loaded_before": _OMP_PRELOADED,
+        "blas_pools": _blas_pools(),
+        "blas_setting": _blas_note[0],
         "opencv_threads": cv2.getNumThreads(),
         "opencv_parallel_framework": fw,
         "cpus_usable": _usable_cpus(),
@@ -267,5 +316,6 @@ def describe() -> str:
     return (f"numba threading layer {i['numba_threading_layer']} (priority {i['numba_layer_priority']}), "
             f"numba threads {i['numba_threads']}/{i['numba_max_threads']}, OMP_WAIT_POLICY={i['OMP_WAIT_POLICY']}, "
             f"KMP_BLOCKTIME={i['KMP_BLOCKTIME']}, GOMP_SPINCOUNT={i['GOMP_SPINCOUNT']}, OpenMP runtime loaded before lightplane: "
-            f"{i['omp_runtime_loaded_before'] or 'none'}; OpenCV threads {i['opencv_threads']} "
+            f"{i['omp_runtime_loaded_before'] or 'none'}; BLAS threads "
+            f"{', '.join(f'{n} {t}' for n, t in i['blas_pools']) or 'none loaded'} ({i['blas_setting']}); OpenCV threads {i['opencv_threads']} "
             f"({i['opencv_parallel_framework']}); usable CPUs {i['cpus_usable']}, idle CPUs now {i['idle_cpus_now']}")
