@@ -604,20 +604,15 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
                 zj = z[j]
                 c0[j] = c0[j] + a * zj
                 c2[j] = c2[j] + g * zj
-    # across: the pairs of columns (jj, 2RX - jj), one a pass; r_ll and r at the middles only
-    # (rows 1 .. nd - 2: the first and last row are c -+ 1 only)
+    # across: the pairs of columns (jj, 2RX - jj), one a pass, then the middle column (k1's is 0)
     for r in range(nd):
-        mid = 1 <= r <= nd - 2
         Ds = D[0, r]
         Dss = D[1, r]
         Dl = D[2, r]
         Dls = D[3, r]
-        Dll = D[4, r]
-        D0 = D[5, r]
         for jj in range(RX):
             u = k0[jj]
             v = k1[jj]
-            q = k2[jj]
             X0 = C[0, r, jj:jj + n]
             X1 = C[1, r, jj:jj + n]
             X2 = C[2, r, jj:jj + n]
@@ -625,30 +620,11 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
             Z1 = C[1, r, 2 * RX - jj:2 * RX - jj + n]
             Z2 = C[2, r, 2 * RX - jj:2 * RX - jj + n]
             if jj == 0:
-                if mid:
-                    for j in range(n):
-                        s0 = X0[j] + Z0[j]
-                        Ds[j] = u * (X1[j] + Z1[j])
-                        Dss[j] = u * (X2[j] + Z2[j])
-                        Dl[j] = v * (X0[j] - Z0[j])
-                        Dls[j] = v * (X1[j] - Z1[j])
-                        Dll[j] = q * s0
-                        D0[j] = u * s0
-                else:
-                    for j in range(n):
-                        Ds[j] = u * (X1[j] + Z1[j])
-                        Dss[j] = u * (X2[j] + Z2[j])
-                        Dl[j] = v * (X0[j] - Z0[j])
-                        Dls[j] = v * (X1[j] - Z1[j])
-            elif mid:
                 for j in range(n):
-                    s0 = X0[j] + Z0[j]
-                    Ds[j] += u * (X1[j] + Z1[j])
-                    Dss[j] += u * (X2[j] + Z2[j])
-                    Dl[j] += v * (X0[j] - Z0[j])
-                    Dls[j] += v * (X1[j] - Z1[j])
-                    Dll[j] += q * s0
-                    D0[j] += u * s0
+                    Ds[j] = u * (X1[j] + Z1[j])
+                    Dss[j] = u * (X2[j] + Z2[j])
+                    Dl[j] = v * (X0[j] - Z0[j])
+                    Dls[j] = v * (X1[j] - Z1[j])
             else:
                 for j in range(n):
                     Ds[j] += u * (X1[j] + Z1[j])
@@ -656,21 +632,38 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
                     Dl[j] += v * (X0[j] - Z0[j])
                     Dls[j] += v * (X1[j] - Z1[j])
         u = k0[RX]
-        q = k2[RX]
-        X0 = C[0, r, RX:RX + n]
         X1 = C[1, r, RX:RX + n]
         X2 = C[2, r, RX:RX + n]
-        if mid:   # the middle column (k1's is 0)
-            for j in range(n):
-                x0 = X0[j]
-                Ds[j] += u * X1[j]
-                Dss[j] += u * X2[j]
-                Dll[j] += q * x0
-                D0[j] += u * x0
-        else:
-            for j in range(n):
-                Ds[j] += u * X1[j]
-                Dss[j] += u * X2[j]
+        for j in range(n):
+            Ds[j] += u * X1[j]
+            Dss[j] += u * X2[j]
+    # r_ll and r at the middles only (rows 1 .. nd - 2: the first and last row are c -+ 1 only), in
+    # passes of their own: fewer arrays a loop than with the four above (~2 % faster, serial ROI batch)
+    for r in range(1, nd - 1):
+        Dll = D[4, r]
+        D0 = D[5, r]
+        for jj in range(RX):
+            u = k0[jj]
+            q = k2[jj]
+            X0 = C[0, r, jj:jj + n]
+            Z0 = C[0, r, 2 * RX - jj:2 * RX - jj + n]
+            if jj == 0:
+                for j in range(n):
+                    s0 = X0[j] + Z0[j]
+                    Dll[j] = q * s0
+                    D0[j] = u * s0
+            else:
+                for j in range(n):
+                    s0 = X0[j] + Z0[j]
+                    Dll[j] += q * s0
+                    D0[j] += u * s0
+        u = k0[RX]
+        q = k2[RX]
+        X0 = C[0, r, RX:RX + n]
+        for j in range(n):
+            x0 = X0[j]
+            Dll[j] += q * x0
+            D0[j] += u * x0
 
 
 @njit(cache=True, inline="always")
