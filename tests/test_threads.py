@@ -88,6 +88,42 @@ def test_batched_profiles_identical_other_types_roi_and_options():
         assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red", min_chroma=0.3))
 
 
+def test_batch_memory_reused_only_when_nothing_holds_it():
+    """A batch's outputs share one block; the next batch of that size reuses it only once
+    nothing of the last one is alive: profiles held stay intact, a dropped batch's block
+    (and no other) comes back; any view of it (one array of one profile) keeps it."""
+    from lightplane.stripe import release_batch_memory
+
+    stack = roi_stack()
+    other = roi_stack(seed=8)
+
+    def ptr(batch):
+        return batch[0].intensity.__array_interface__["data"][0]
+
+    a = extract_profiles(stack, width_px=5.0)
+    kept = [(p.uv.copy(), p.normals.copy(), p.status.copy()) for p in a]
+    b = extract_profiles(other, width_px=5.0)      # a is alive: new memory
+    assert not np.shares_memory(a[0].uv, b[0].uv)
+    for p, (uv, nrm, st) in zip(a, kept):
+        assert np.array_equal(p.uv, uv, equal_nan=True) and np.array_equal(p.normals, nrm, equal_nan=True)
+        assert np.array_equal(p.status, st)
+    pb = ptr(b)
+    one_view = b[3].width
+    del b
+    c = extract_profiles(other, width_px=5.0)      # a view of b alive: still new memory
+    assert ptr(c) != pb and not np.shares_memory(c[0].uv, one_view)
+    pc = ptr(c)
+    del c
+    d = extract_profiles(stack, width_px=5.0)      # nothing of c alive: its block again, right numbers
+    assert ptr(d) == pc
+    for p, (uv, nrm, st) in zip(d, kept):
+        assert np.array_equal(p.uv, uv, equal_nan=True) and np.array_equal(p.status, st)
+    del d
+    release_batch_memory()
+    e = extract_profiles(stack, width_px=5.0)
+    assert len(e) == len(stack)
+
+
 def test_single_frame_parallel_only_when_large_and_a_core_is_free(monkeypatch):
     monkeypatch.setattr(threads, "idle_cpus", lambda: 1)
     assert threads.profile_parallel(600, 600) == (numba.get_num_threads() > 1)

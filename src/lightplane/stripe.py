@@ -99,6 +99,7 @@ implemented; the closed form above is the exact bar-model shift for known ``w``.
 from __future__ import annotations
 
 import math
+import sys
 import threading
 from dataclasses import dataclass, field
 
@@ -115,6 +116,7 @@ __all__ = [
     "extract_stripe",
     "extract_profile",
     "extract_profiles",
+    "release_batch_memory",
     "estimate_width",
     "sigma_for_width",
     "PROFILE_STATUS",
@@ -580,6 +582,75 @@ def _stack_lines(frames, axis: str, channel, roi):
     return np.stack(arrays), np.asarray(fss, float), offs[0], offs[1]
 
 
+class _BatchBlock:
+    """One block of memory for a batch's outputs, handed out again once nothing holds it.
+
+    :func:`extract_profiles` writes every frame's outputs (centre, normal, strength,
+    intensity, width, image points, status, valid: 66 bytes a line, 84 MB for 1000 x 1280
+    lines) into one block.  Fresh memory that large comes from the operating system page
+    by page, zeroed, and a long-running process's allocator often returns it after each
+    batch, so every batch paid those page faults again: after a `calibrate_plane` in the
+    same process a 1000 x 1280x64 batch took 60-140 ms of system time against 0-20 ms
+    (5,000-7,800 instead of 10,500-11,700 profiles/s, the same kernels; it came and went
+    with the allocator's state).  So the block of the last batch is kept, and the next
+    batch of the same size takes it back when no profile, array or view of the last one
+    is alive any more (the block's reference count: every returned array is a view that
+    holds it); otherwise it gets a new block and the old one stays with whoever holds it.
+    The returned profiles never share memory with anything alive.  One block is kept per
+    process, at most :attr:`MAX_BYTES`; :func:`release_batch_memory` drops it.
+    """
+
+    MAX_BYTES = 512 << 20
+    #: (dtype, trailing shape) of the outputs, in the block's order
+    LAYOUT = ((np.float64, ()), (np.float64, (2,)), (np.float64, ()), (np.float64, ()), (np.float64, ()),
+              (np.float64, (2,)), (np.uint8, ()), (np.bool_, ()))
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._block: np.ndarray | None = None
+
+    @staticmethod
+    def _sizes(N: int, L: int) -> list[int]:
+        return [N * L * int(np.prod(t, dtype=np.int64)) * np.dtype(d).itemsize for d, t in _BatchBlock.LAYOUT]
+
+    def take(self, N: int, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        """A block for N frames of L lines, and its arrays: centre, normal, strength,
+        intensity, width (N, L[, 2]) float64, uv (N, L, 2), status uint8, valid bool."""
+        sizes = self._sizes(N, L)
+        starts = np.concatenate([[0], np.cumsum([(n + 63) // 64 * 64 for n in sizes])]).astype(int)
+        total = int(starts[-1])
+        block = None
+        with self._lock:
+            b = self._block
+            # references: self._block, b and getrefcount's argument -- nothing else holds it
+            if b is not None and b.nbytes == total and sys.getrefcount(b) == 3:
+                block, self._block = b, None
+            del b
+        if block is None:
+            block = np.empty(total, np.uint8)
+        arrays = [block[s0:s0 + n].view(d).reshape((N, L) + t)
+                  for (d, t), s0, n in zip(self.LAYOUT, starts[:-1], sizes)]
+        return block, arrays
+
+    def keep(self, block: np.ndarray) -> None:
+        """Keep ``block`` for the next batch (the one kept before is let go)."""
+        with self._lock:
+            self._block = block if block.nbytes <= self.MAX_BYTES else None
+
+    def release(self) -> None:
+        with self._lock:
+            self._block = None
+
+
+_BATCH = _BatchBlock()
+
+
+def release_batch_memory() -> None:
+    """Let go of the output block :func:`extract_profiles` keeps for its next batch (see
+    :class:`_BatchBlock`): memory held by no profile is returned to the allocator."""
+    _BATCH.release()
+
+
 def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = None, channel: str | None = None,
                      roi=None, min_peak: float | None = None, max_width_px: float | None = None,
                      sigma_px: float | None = None, sigma_along_px: float | None = None,
@@ -596,7 +667,9 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     are paid once per batch: one kernel runs the whole stack, frames across numba's
     threads with each frame serial (``parallel`` None: unless called inside
     :func:`lightplane.threads.serial_kernels`, where the batch runs on the calling
-    thread; ``True`` / ``False`` force either).
+    thread; ``True`` / ``False`` force either).  The outputs of a batch share one block of
+    memory, which the next batch of the same size reuses once nothing of this one is
+    alive (see :class:`_BatchBlock`; :func:`release_batch_memory`).
     """
     if isinstance(frames, np.ndarray) and frames.ndim not in (3, 4):
         raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
@@ -611,34 +684,30 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
                                prepared=(A3[0], float(fs[0]), line0, sample0))
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
     mp = np.array([_default_min_peak(f) for f in fs]) if min_peak is None else np.full(N, float(min_peak))
-    centre = np.empty((N, L))
-    normal = np.empty((N, L, 2))
-    strength = np.empty((N, L))
-    intensity = np.empty((N, L))
-    width = np.empty((N, L))
-    status = np.empty((N, L), np.uint8)
+    block, (centre, normal, strength, intensity, width, uv, status, valid) = _BATCH.take(N, L)
     par = (not in_serial_context() and N > 1) if parallel is None else bool(parallel)
     (K.profiles_batch if par else K.profiles_batch_serial)(
         A3, params["sep"], mp, params["continuity"], params["tol"], w0, w1, w2, params["xw"], params["qpeak"],
         params["half"], params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
-    if min_chroma is not None:   # colour checks need each frame's image: frame by frame
+    if min_chroma is not None:   # colour checks need each frame's image: frame by frame (their own arrays)
         seq = [frames[i] for i in range(N)]
         return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
                                 setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
     # _profile_finish for the whole stack at once, frames across threads as the profiles were
     lines = np.arange(L, dtype=np.int64) + line0
     lines.setflags(write=False)   # shared by the frames' profiles
-    uv = np.empty((N, L, 2))
-    nrm = normal   # (u, v) in place of the kernel's (along, across) normals: one array less to fault in
-    valid = np.empty((N, L), np.bool_)
+    nrm = normal   # (u, v) in place of the kernel's (along, across) normals
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
     m = max(5, int(math.ceil(4.0 * sigma_al)))
     (K.frames_points if par else K.frames_points_serial)(
         centre, normal, status, lines, float(sample0), axis == "columns", bool(correct_curvature),
         sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, uv, nrm, valid)
-    return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
-                          normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
-                          width_px=float(w)) for f in range(N)]
+    out = [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
+                         normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
+                         width_px=float(w)) for f in range(N)]
+    del centre, normal, strength, intensity, width, uv, status, valid, nrm
+    _BATCH.keep(block)
+    return out
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
