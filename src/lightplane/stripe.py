@@ -628,7 +628,7 @@ class _BatchBlock:
             del b
         if block is None:
             block = np.empty(total, np.uint8)
-        arrays = [block[s0:s0 + n].view(d).reshape((N, L) + t)
+        arrays: list[np.ndarray] = [block[s0:s0 + n].view(d).reshape((N, L) + t)
                   for (d, t), s0, n in zip(self.LAYOUT, starts[:-1], sizes)]
         return block, arrays
 
