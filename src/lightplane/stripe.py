@@ -605,7 +605,7 @@ class _BatchBlock:
     LAYOUT = ((np.float64, ()), (np.float64, (2,)), (np.float64, ()), (np.float64, ()), (np.float64, ()),
               (np.float64, (2,)), (np.uint8, ()), (np.bool_, ()))
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._lock = threading.Lock()
         self._block: np.ndarray | None = None
 
