@@ -608,6 +608,7 @@ class _BatchBlock:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._block: np.ndarray | None = None
+        self._probe: object | None = None
 
     @staticmethod
     def _sizes(N: int, L: int) -> list[int]:
@@ -622,9 +623,13 @@ class _BatchBlock:
         block = None
         with self._lock:
             b = self._block
-            # references: self._block, b and getrefcount's argument -- nothing else holds it
-            if b is not None and b.nbytes == total and sys.getrefcount(b) == 3:
-                block, self._block = b, None
+            if b is not None and b.nbytes == total:
+                # nothing else holds it: as many references as a fresh object held the same way
+                # (an attribute and a local), whatever the interpreter counts for the call itself
+                self._probe = probe = object()
+                if sys.getrefcount(b) == sys.getrefcount(probe):
+                    block, self._block = b, None
+                self._probe = probe = None
             del b
         if block is None:
             block = np.empty(total, np.uint8)
