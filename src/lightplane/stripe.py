@@ -707,12 +707,10 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     (K.frames_points if par else K.frames_points_serial)(
         centre, normal, status, lines, float(sample0), axis == "columns", bool(correct_curvature),
         sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, uv, nrm, valid)
-    out = [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
-                         normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
-                         width_px=float(w)) for f in range(N)]
-    del centre, normal, strength, intensity, width, uv, status, valid, nrm
     _BATCH.keep(block)
-    return out
+    return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
+                          normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
+                          width_px=float(w)) for f in range(N)]
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -14,11 +14,11 @@ other processes hold the cores.  The rules, applied by the library itself:
   lines, outside any frame pool, and only while a core is free: :func:`idle_cpus`),
   never nested inside a pool.
 
-BLAS: the OpenBLAS / MKL pools of numpy and scipy are set to **one thread** when
-lightplane is imported (:func:`limit_blas`, through ``threadpoolctl``), unless the user
-has set ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS`` or
-``OMP_NUM_THREADS`` (numpy's, scipy's and the one OpenCV's wheel brings).  Our matrices are small (least-squares Jacobians of a few thousand
-rows, 3x3 and 4x4 transforms), so BLAS threads never paid here; but OpenBLAS's threads
+BLAS: the OpenBLAS / MKL pools (numpy's, scipy's and the one OpenCV's wheel brings) are
+set to **one thread** when lightplane is imported (:func:`limit_blas`, through
+``threadpoolctl``), unless the user has set ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``,
+``BLIS_NUM_THREADS`` or ``OMP_NUM_THREADS``.  Our matrices are small (least-squares
+Jacobians of a few thousand rows, 3x3 and 4x4 transforms), so BLAS threads never paid here; but OpenBLAS's threads
 spin for ~0.1 s after every call it splits, and on two cores they took the cores from
 the frame kernels that came next: a 200-frame ROI batch took 54 ms right after a few
 BLAS calls against 34 ms after a 50 ms pause (same run, medians of 8).  Process-wide,
@@ -43,8 +43,8 @@ import os
 import threading
 import time
 
-__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "limit_blas", "BLAS_THREADS", "profile_parallel", "idle_cpus",
-           "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
+__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "limit_blas", "BLAS_THREADS",
+           "profile_parallel", "idle_cpus", "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
 
 #: which OpenMP runtime was already loaded before lightplane set its wait policy (then it has no effect)
 _OMP_PRELOADED = None
@@ -82,7 +82,7 @@ def _configure() -> None:
 
 _configure()
 
-#: BLAS threads lightplane leaves in numpy's and scipy's pools (:func:`limit_blas`)
+#: BLAS threads lightplane leaves in numpy's, scipy's and OpenCV's pools (:func:`limit_blas`)
 BLAS_THREADS = 1
 _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "OMP_NUM_THREADS")
 #: what :func:`limit_blas` did (reported by :func:`threading_info`)
@@ -90,7 +90,7 @@ _blas_note = ["not applied yet"]
 
 
 def limit_blas() -> None:
-    """numpy's and scipy's BLAS pools to :data:`BLAS_THREADS` (called once, at the end of
+    """numpy's, scipy's and OpenCV's BLAS pools to :data:`BLAS_THREADS` (called once, at the end of
     ``import lightplane``, when the BLAS libraries it uses are loaded), unless one of
     ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``,
     ``OMP_NUM_THREADS`` is set: then the user's setting stands."""
