@@ -6,7 +6,7 @@ The same PNG files on disk (1280x960, 8-bit: ``--distinct`` rendered sphere fram
 repeated as hard links up to ``--frames`` files, so reading and decoding are part of
 the work in every path) are measured by
 
-- ``measure``: :func:`lightplane.scan.measure_scan`, 2 threads in one process (the
+- ``measure``: :func:`lightplane.measure.scan.measure_scan`, 2 threads in one process (the
   command's default on 2 cores), to an NPY file;
 - ``batch`` with 1 and with 2 single-threaded worker processes (a LocalCluster of each
   size started once, outside the timing; a warm-up run first), ``--chunk-frames`` per
@@ -67,8 +67,8 @@ def main(argv: list[str]) -> int:
     from distributed import Client
 
     from lightplane import Camera, LightPlane
-    from lightplane.batch import local_cluster, measure_batch, read_points
-    from lightplane.scan import Motion, measure_scan, open_frames
+    from lightplane.measure.batch import local_cluster, measure_batch, read_points
+    from lightplane.measure.scan import Motion, measure_scan, open_frames
 
     root = Path(os.environ.get("LIGHTPLANE_BENCH_CACHE", tempfile.gettempdir())) / "lightplane_bench_batch"
     root.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,7 @@ corners of 8 mm, tilted 25–55°, over the whole image), then:
 With this 16 mm lens (17° field of view) the principal point is nearly interchangeable
 with a camera rotation plus tangential distortion, so its error scales with the corner
 error (~0.1 mm at 450 mm per px of cx or cy).  The corners come from
-:func:`lightplane.intrinsics.fit_corners` (blurred-saddle fit, 0.006 px RMS on these
+:func:`lightplane.camera.intrinsics.fit_corners` (blurred-saddle fit, 0.006 px RMS on these
 renders): with 30 views OpenCV's std of cx, cy is 0.09, 0.06 px and the camera-frame
 triangulation error 0.008–0.011 mm; with Förstner's corners (0.019 px) it was 0.28,
 0.19 px and 0.041 mm, over the 0.03 mm bar.  The calibration's time (corner detection
@@ -42,11 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.calibrate import calibrate_plane, observe_images, solve_observations
-from lightplane.camera import Camera
-from lightplane.shapes import plane_accuracy
-from lightplane.io import expand_inputs, read_image
-from lightplane.plane import LightPlane
+from lightplane.plane.calibrate import calibrate_plane, observe_images, solve_observations
+from lightplane.camera.model import Camera
+from lightplane.evaluate.shapes import plane_accuracy
+from lightplane.core.io import expand_inputs, read_image
+from lightplane.plane.model import LightPlane
 
 CACHE = Path(__file__).resolve().parent / "out" / "renders"
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
@@ -81,7 +81,7 @@ def _boards(seed: int, n: int = N_BOARDS) -> Path:
 def _calibrated_camera(boards: Path):
     import cv2
 
-    from lightplane.intrinsics import calibrate_camera
+    from lightplane.camera.intrinsics import calibrate_camera
 
     truth = json.loads((boards / "truth.json").read_text())
     imgs = [read_image(boards / v["file"]) for v in truth["views"]]
@@ -159,7 +159,7 @@ def main() -> None:
     folder = sets[0][2]
     cam = Camera.load(folder / "camera.json")
     files = expand_inputs([folder / "*.png"])
-    from lightplane.threads import describe
+    from lightplane.core.threads import describe
 
     print(f"\nSpeed: calibrate_plane(12 images of 1280x960 from PNG files, ml), median of {args.repeats} runs "
           f"(target <= 3 s on 2 cores); {describe()}")

@@ -5,19 +5,19 @@ corners, 8 mm squares, realistic imaging, the calibration capture's poses) to ca
 the camera (``calibrate_camera``, default options: 5 coefficients, saddle-fit corners),
 then its own 12 rendered realistic circle images (50 mm target) to calibrate the plane
 (``ml``) with that camera, the plane's dependence on the intrinsics propagated
-(:func:`lightplane.calibrate.propagate_camera`).  Against the exact truth (the default
+(:func:`lightplane.plane.calibrate.propagate_camera`).  Against the exact truth (the default
 camera and plane of the renderer), over the working volume 380–520 mm
-(``lightplane.shapes.plane_accuracy``): the RMS error of the triangulated points in the
+(``lightplane.evaluate.shapes.plane_accuracy``): the RMS error of the triangulated points in the
 camera frame and after the best rigid alignment (shape), against the predicted RMS sigma
 of each (all sources, and the plane-only figure); also the normal angle and the offset
 at the optical axis, predicted vs actual.  Honest: predicted / actual within 25 %.
 Columns: the intrinsics' covariance by default (the residuals' corner noise times the views'
-dispersion, :func:`lightplane.intrinsics.view_dispersion`) and with ``noise="white"`` (the
+dispersion, :func:`lightplane.camera.intrinsics.view_dispersion`) and with ``noise="white"`` (the
 residuals' alone; same estimates, other predictions); the joint refinement (``--joint-white``:
 also with the corners weighted by the residuals' sigma alone); the plane solved with the exact
 camera; the shape error split to first order into the plane's own part, the camera's part and
 their cross term.  The plane's own covariance includes the images' dispersion
-(:func:`lightplane.refine.image_dispersion`, measured beside the camera's share); the columns
+(:func:`lightplane.plane.ml.image_dispersion`, measured beside the camera's share); the columns
 "without the images' dispersion" divide it out (same estimates, other predictions), and the
 exact camera's plane error is also given as its Mahalanobis² under its own covariance.  Per
 set the joint is compared with the two-step estimate, with the fraction of sets in which an
@@ -98,9 +98,9 @@ def _save(f: Path, images) -> None:
 
 def _errors(cam, plane, cam_true, plane_true, vol, prefix: str = "") -> dict:
     """Actual and predicted errors of (camera, plane) against the truth over ``vol``."""
-    from lightplane.measure import triangulate
-    from lightplane.shapes import rigid_align
-    from lightplane.uncertainty import volume_sigma
+    from lightplane.measure.profile import triangulate
+    from lightplane.evaluate.shapes import rigid_align
+    from lightplane.plane.uncertainty import volume_sigma
 
     est = triangulate(cam, plane, vol.uv)
     e = est - vol.points
@@ -139,7 +139,7 @@ def _shape_from_intrinsics_error(cam, plane, cam_true, vol, dK) -> dict:
     steps), camera frame and shape (RMS, mm): when they match the actual errors' camera part,
     the propagation (ray-plane correlation, rigid-motion projection, volume sampling) is right
     and a low prediction is the intrinsics' error exceeding their covariance."""
-    from lightplane.uncertainty import camera_steps, point_error_basis, shape_error_basis
+    from lightplane.plane.uncertainty import camera_steps, point_error_basis, shape_error_basis
 
     if not plane.meta.get("camera_jacobian"):
         return {}
@@ -166,7 +166,7 @@ def _corner_truth_error(res, k: int) -> dict:
     covariance the calibration states): white corner noise gives the number of free parameters."""
     import cv2
 
-    from lightplane.simulate.geometry import default_camera
+    from lightplane.simulate.scene import default_camera
     from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
     from lightplane.simulate.render import board_corners, sample_board_poses
 
@@ -212,7 +212,7 @@ def _image_dispersion(plane) -> float:
 
 def _scaled_plane(plane, phi: float):
     """The plane with its own covariance (not the camera's share) times ``phi`` (the images' dispersion)."""
-    from lightplane.plane import LightPlane
+    from lightplane.plane.model import LightPlane
 
     return LightPlane(plane.normal, plane.d, phi * np.asarray(plane.covariance), meta=dict(plane.meta))
 
@@ -233,7 +233,7 @@ def _with_white_camera(cam, plane, dispersion: float):
     the default's divided by the views' dispersion; the plane's recorded Jacobian is the same)."""
     from dataclasses import replace
 
-    from lightplane.plane import LightPlane
+    from lightplane.plane.model import LightPlane
 
     C = np.asarray(cam.covariance) / dispersion
     cam_w = replace(cam, covariance=C)
@@ -256,7 +256,7 @@ def _shape_parts(est, est_true_cam, points) -> dict:
     """First-order split of the shape error (the rigid motion over the volume projected out) into the
     exact camera's part (the plane's own errors), the camera's part (the rest) and their cross term
     (mm²; 2 × the mean inner product): the shape² is their sum."""
-    from lightplane.uncertainty import rigid_motion_basis
+    from lightplane.plane.uncertainty import rigid_motion_basis
 
     ok = np.all(np.isfinite(est), axis=1) & np.all(np.isfinite(est_true_cam), axis=1)
     Q = rigid_motion_basis(points[ok])
@@ -288,11 +288,11 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     """Calibrate camera and plane from set ``k``; errors against the truth and predicted sigmas,
     two-step and (``joint``) with the joint refinement; and the plane solved with the true camera
     (the plane calibration's own share)."""
-    from lightplane.calibrate import observe_images, solve_observations
-    from lightplane.intrinsics import calibrate_camera
-    from lightplane.joint import refine_joint
-    from lightplane.simulate.geometry import default_camera, default_plane
-    from lightplane.uncertainty import working_volume_grid
+    from lightplane.plane.calibrate import observe_images, solve_observations
+    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.plane.joint import refine_joint
+    from lightplane.simulate.scene import default_camera, default_plane
+    from lightplane.plane.uncertainty import working_volume_grid
 
     t0 = time.perf_counter()
     cam_true, plane_true = default_camera(), default_plane()
@@ -324,7 +324,7 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     row.update(_errors(cam_true, _scaled_plane(cal_t.plane, 1 / phi_t), cam_true, plane_true, vol,
                        "truecam_noimgdisp_"))
     row["truecam_dx"] = _plane_error_whitened(cal_t.plane, plane_true)
-    from lightplane.measure import triangulate
+    from lightplane.measure.profile import triangulate
     est_t = triangulate(cam_true, cal_t.plane, vol.uv)
     row.update(_shape_parts(triangulate(cam, cal.plane, vol.uv), est_t, vol.points))
     if joint:

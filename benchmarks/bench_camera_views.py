@@ -6,7 +6,7 @@ plane at 25° crossing the axis at 450 mm) and two boards (9x7 and 15x11 inner c
 covering the image): exact corner projections plus white noise of ``--corner-px`` (the
 covariance scales linearly with it: ``calibrate-camera`` prints a calibration's own
 value), calibrated by ``cv2.calibrateCamera`` (5 coefficients) with
-:func:`lightplane.intrinsics.intrinsics_covariance`; the plane from 12 synthetic circle
+:func:`lightplane.camera.intrinsics.intrinsics_covariance`; the plane from 12 synthetic circle
 placements (0.05 px rim and stripe noise) with the camera's share propagated.  Per
 design: the RMS over the image of a ray's direction sigma (deg, and mm across the ray at
 300 / 450 / 600 mm), and over the working volume 380–520 mm the camera-frame and shape
@@ -27,14 +27,14 @@ import cv2
 import numpy as np
 
 from lightplane import Camera
-from lightplane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
-from lightplane.intrinsics import intrinsics_covariance
-from lightplane.plane import LightPlane
-from lightplane.plane_solvers import calibrate_plane_from_points
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
+from lightplane.camera.intrinsics import intrinsics_covariance
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import calibrate_plane_from_points
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
 from lightplane.simulate.render import board_corners, sample_board_poses
-from lightplane.uncertainty import image_grid, ray_sigma_rad, volume_sigma, working_volume_grid
+from lightplane.plane.uncertainty import image_grid, ray_sigma_rad, volume_sigma, working_volume_grid
 
 
 def one(board, n_views, corner_px, seed):

@@ -45,7 +45,7 @@ from lightplane.ellipse import (
     refine_ellipse,
     select_target,
 )
-from lightplane.io import read_image
+from lightplane.core.io import read_image
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "elsdc-calibration-patterns"
 TARGET_MS = 60.0
@@ -263,7 +263,7 @@ def bench_curvature_bias(quick: bool) -> None:
     except ImportError:
         print("curvature bias: lightplane.simulate.render not available, skipped")
         return
-    from lightplane.circle_pose import circle_poses
+    from lightplane.plane.circle_pose import circle_poses
 
     n = 3 if quick else 6
     print(f"curvature bias of the refined rim (realistic renders, {n} images per polarity; target |bias| <= 0.002 px):")

@@ -13,8 +13,8 @@ import time
 import numpy as np
 
 from lightplane import LightPlane
-from lightplane.baselines.zhou import board_views_and_stripes, plane_from_board_stripes
-from lightplane.evaluate import evaluate_views
+from lightplane.plane.zhou import board_views_and_stripes, plane_from_board_stripes
+from lightplane.evaluate.crossratio import evaluate_views
 from lightplane.simulate.render import render_chessboard_dataset
 
 TARGET_IMAGE_MS = 500.0

@@ -37,7 +37,7 @@ def _observations(cache: Path, k: int, cam, observe_images) -> list:
 
     from bench_camera_uncertainty import _circles
 
-    from lightplane.calibrate import ImageObservation
+    from lightplane.plane.calibrate import ImageObservation
     from lightplane.simulate.render import settings_tag
 
     f = cache / f"obs_truecam_s{2000 + k}_{settings_tag()}.pkl"
@@ -49,9 +49,9 @@ def _observations(cache: Path, k: int, cam, observe_images) -> list:
 
 
 def one_set(cache: Path, k: int) -> dict:
-    from lightplane.calibrate import observe_images, solve_observations
-    from lightplane.refine import _add_normals, _huber_weights, _Pose, _Problem
-    from lightplane.simulate.geometry import default_camera, default_plane, sample_placements
+    from lightplane.plane.calibrate import observe_images, solve_observations
+    from lightplane.plane.ml import _add_normals, _huber_weights, _Pose, _Problem
+    from lightplane.simulate.scene import default_camera, default_plane, sample_placements
 
     cam, pl = default_camera(), default_plane()
     obs = _observations(cache, k, cam, observe_images)

@@ -35,9 +35,9 @@ def _worker() -> None:  # runs in the worker process: commands on stdin, one JSO
     import cv2
 
     import lightplane
-    from lightplane.camera import Camera
-    from lightplane.intrinsics import calibrate_camera
-    from lightplane.io import read_image
+    from lightplane.camera.model import Camera
+    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.core.io import read_image
 
     boards = Path(sys.argv[sys.argv.index("--worker") + 1])
     truth = json.loads((boards / "truth.json").read_text())

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.calibrate import calibrate_plane, calibrate_planes
-from lightplane.camera import Camera
+from lightplane.plane.calibrate import calibrate_plane, calibrate_planes
+from lightplane.camera.model import Camera
 from lightplane.cli.calibrate_plane import shared_pose_lines
-from lightplane.io import read_image
-from lightplane.lasers import parse_lasers
-from lightplane.plane import LightPlane
-from lightplane.shapes import plane_accuracy
+from lightplane.core.io import read_image
+from lightplane.stripe.lasers import parse_lasers
+from lightplane.plane.model import LightPlane
+from lightplane.evaluate.shapes import plane_accuracy
 
 CACHE = Path(__file__).resolve().parent / "out" / "renders"
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}

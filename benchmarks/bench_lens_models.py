@@ -1,6 +1,6 @@
 """Lens models end to end on renders (issue 16): a Scheimpflug sensor and a rational-model wide lens.
 
-For each rig (``lightplane.simulate.geometry.lens_camera``: ``tilted`` = the default 16 mm
+For each rig (``lightplane.simulate.scene.lens_camera``: ``tilted`` = the default 16 mm
 lens with its sensor tilted 4.52° so that the default light plane is the plane in focus;
 ``rational`` = a 6 mm lens, 44° x 33°, ~64 px of barrel distortion at the corners, 8
 coefficients), all with the renderer's exact truth:
@@ -49,12 +49,12 @@ import numpy as np
 import cv2
 
 from lightplane import Camera
-from lightplane.calibrate import calibrate_plane
-from lightplane.intrinsics import _free_parameters, board_points, calibrate_camera, rays_up_to_rotation
-from lightplane.lens import coeff_names
-from lightplane.scan import ArrayFrames, Motion, scan_points
-from lightplane.shapes import fit_sphere, plane_accuracy
-from lightplane.simulate.geometry import default_plane, lens_camera, scheimpflug_camera
+from lightplane.plane.calibrate import calibrate_plane
+from lightplane.camera.intrinsics import _free_parameters, board_points, calibrate_camera, rays_up_to_rotation
+from lightplane.camera.lens import coeff_names
+from lightplane.measure.scan import ArrayFrames, Motion, scan_points
+from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
+from lightplane.simulate.scene import default_plane, lens_camera, scheimpflug_camera
 from lightplane.simulate.render import (CALIBRATION_CAPTURE, render_chessboard_dataset, render_circle_dataset,
                                         render_scan_dataset)
 

@@ -7,13 +7,13 @@ times, at each level:
 
 - ``extract_profile(frame)`` on one 1280x960 8-bit frame (the stripe of
   ``bench_stripe.frame``), default arguments: the width estimated, and the width given;
-- ``measure`` (:func:`lightplane.scan.measure_scan`, default workers) on a 1000-frame
+- ``measure`` (:func:`lightplane.measure.scan.measure_scan`, default workers) on a 1000-frame
   scan held in memory: 8 distinct rendered 1280x960 sphere frames
   (``bench_measure.speed_frames``) cycled (``ArrayFrames``), written to a temporary PLY;
   the figure is the time per frame;
-- ``calibrate-plane`` (:func:`lightplane.calibrate.calibrate_plane`, default workers,
+- ``calibrate-plane`` (:func:`lightplane.plane.calibrate.calibrate_plane`, default workers,
   ``ml``) on 12 rendered realistic 1280x960 circle-target images;
-- batched region-of-interest profiles: :func:`lightplane.stripe.extract_profiles` on a
+- batched region-of-interest profiles: :func:`lightplane.stripe.extract.extract_profiles` on a
   stack of 1000 frames of 1280x64 (50 distinct noisy 64-row regions with a stripe near their
   middle, ``bench_stripe.roi_frame``), profiles per second.
 
@@ -113,12 +113,12 @@ def main() -> None:
     from bench_measure import cached, speed_frames
     from bench_stripe import frame, roi_frame
 
-    from lightplane import threads
-    from lightplane.calibrate import calibrate_plane
-    from lightplane.plane import LightPlane
-    from lightplane.scan import ArrayFrames, measure_scan
+    from lightplane.core import threads
+    from lightplane.plane.calibrate import calibrate_plane
+    from lightplane.plane.model import LightPlane
+    from lightplane.measure.scan import ArrayFrames, measure_scan
     from lightplane.simulate.render import render_circle_dataset
-    from lightplane.stripe import estimate_width, extract_profile, extract_profiles
+    from lightplane.stripe.extract import estimate_width, extract_profile, extract_profiles
 
     rng = np.random.default_rng(0)
     img = frame(rng)

@@ -4,7 +4,7 @@ Run: ``.venv/bin/python benchmarks/bench_measure.py [accuracy] [speed] [profile]
 by default).  Prints medians with units and the ratio to each target:
 
 - accuracy (renders, :func:`lightplane.simulate.render.render_scan_dataset`), with a light
-  plane calibrated by :func:`lightplane.calibrate.calibrate_plane` from rendered circle
+  plane calibrated by :func:`lightplane.plane.calibrate.calibrate_plane` from rendered circle
   images (``render_circle_dataset(n=12, difficulty="realistic")``), not the true plane:
   sphere radius within 0.02 mm of 25.4 mm with RMS residual <= 0.02 mm; gauge step
   10.000 ± 0.02 mm; tilted plane flatness RMS <= 0.015 mm.  All targets are checked on
@@ -124,7 +124,7 @@ def xyz(rec) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- accuracy
 def calibrated_plane():
-    from lightplane.calibrate import calibrate_plane
+    from lightplane.plane.calibrate import calibrate_plane
     from lightplane.simulate.render import render_circle_dataset
 
     ds = cached("circles12_realistic", lambda: render_circle_dataset(n=12, seed=0, difficulty="realistic"))
@@ -136,7 +136,7 @@ def calibrated_plane():
 
 
 def scan(kind: str, plane, ds, **options):
-    from lightplane.scan import ArrayFrames, Motion, scan_points
+    from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 
     mo = ds.truth["motion"]
     rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, plane, motion=Motion.linear(mo["step_mm"], mo["direction"]),
@@ -164,7 +164,7 @@ def accuracy() -> None:
 
 
 def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
-    from lightplane.plane import LightPlane
+    from lightplane.plane.model import LightPlane
     from lightplane.simulate.render import render_scan_dataset
 
     planes = dict(planes)
@@ -229,9 +229,9 @@ def speed_frames(n_distinct: int = 8):
 
 
 def speed(n_frames: int = 1200, repeats: int = 3) -> None:
-    from lightplane.plane import LightPlane
-    from lightplane.scan import ArrayFrames, FrameProcessor, Motion, iter_scan
-    from lightplane.stripe import estimate_width
+    from lightplane.plane.model import LightPlane
+    from lightplane.measure.scan import ArrayFrames, FrameProcessor, Motion, iter_scan
+    from lightplane.stripe.extract import estimate_width
 
     print("== speed (1280x960 uint8 frames from memory; profile + triangulation + placement) ==")
     ds = speed_frames()
@@ -263,9 +263,9 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
 def profile_speed(repeats: int = 15) -> None:
     import cv2
 
-    from lightplane.measure import clear_profile_cache, measure_profile, profile_axis
-    from lightplane.plane import LightPlane
-    from lightplane.stripe import estimate_width, extract_profile
+    from lightplane.measure.profile import clear_profile_cache, measure_profile, profile_axis
+    from lightplane.plane.model import LightPlane
+    from lightplane.stripe.extract import estimate_width, extract_profile
 
     ds = speed_frames()
     cam, plane = ds.camera, LightPlane.from_dict(ds.truth["plane"])
@@ -309,8 +309,8 @@ def profile_speed(repeats: int = 15) -> None:
 # ----------------------------------------------------------------------------- memory
 MEMORY_CHILD = r"""
 import os, resource, sys, threading, time, numpy as np, pickle
-from lightplane.plane import LightPlane
-from lightplane.scan import FrameSource, Motion, measure_scan
+from lightplane.plane.model import LightPlane
+from lightplane.measure.scan import FrameSource, Motion, measure_scan
 
 def rss_mb(pid, key="VmRSS:"):
     try:
@@ -365,7 +365,7 @@ print(f"{s.n_frames} {s.n_points} {dt:.1f} {me:.0f} {max(workers, default=0):.0f
 
 
 def memory(n_frames: int = 10_000) -> None:
-    from lightplane.scan import kernels_release_gil
+    from lightplane.measure.scan import kernels_release_gil
 
     how = "2 worker threads in one process" if kernels_release_gil() else "2 worker processes"
     print(f"== memory ({n_frames}-frame scan to binary PLY, {how}, fresh subprocess) ==")
@@ -388,7 +388,7 @@ def memory(n_frames: int = 10_000) -> None:
 
 def main(argv: list[str]) -> None:
     parts = argv or ["accuracy", "speed", "profile", "memory"]
-    from lightplane.threads import describe
+    from lightplane.core.threads import describe
 
     print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (timings on a shared machine are noisy)")
     print(describe())

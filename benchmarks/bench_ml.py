@@ -23,11 +23,11 @@ import time
 
 import numpy as np
 
-from lightplane.errors import LightplaneError
-from lightplane.plane import calibrate_plane_from_points
-from lightplane.refine import crlb, refine_ml
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
-from lightplane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import calibrate_plane_from_points
+from lightplane.plane.ml import crlb, refine_ml
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.plane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
 
 TARGET_MS = 150.0
 

@@ -15,14 +15,14 @@ import time
 
 import numpy as np
 
-from lightplane.plane import (
+from lightplane.plane.model import (
     _solve_global,
     _solve_paper,
     calibrate_plane_from_points,
     estimate_sigma_px,
     prepare_placement,
 )
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 
 TARGET_MS = 10.0
 

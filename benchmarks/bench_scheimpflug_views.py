@@ -37,9 +37,9 @@ import numpy as np
 import cv2
 
 from lightplane import Camera
-from lightplane.intrinsics import (_free_parameters, _polish, board_points, calibration_flags,
+from lightplane.camera.intrinsics import (_free_parameters, _polish, board_points, calibration_flags,
                                    intrinsics_covariance, rays_up_to_rotation)
-from lightplane.simulate.geometry import scheimpflug_camera
+from lightplane.simulate.scene import scheimpflug_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, sample_board_poses
 
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",

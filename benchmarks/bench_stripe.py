@@ -10,7 +10,7 @@ fast this machine is right now).  Targets: ``extract_profile`` <= 1 ms per 1280x
 frame (>= 1000 profiles/s), >= 3000 profiles/s on a 1280x128 region,
 ``extract_stripe`` <= 8 ms per frame; batched 1280x64 regions of interest
 (``extract_profiles``) >= 10,000 profiles/s (0.1 ms a frame; issue 19).  The threading
-layer and thread counts are printed first (``lightplane.threads.describe``).
+layer and thread counts are printed first (``lightplane.core.threads.describe``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import time
 import cv2
 import numpy as np
 
-from lightplane.stripe import extract_profile, extract_profiles, extract_stripe
+from lightplane.stripe.extract import extract_profile, extract_profiles, extract_stripe
 
 
 def frame(rng: np.random.Generator, H: int = 960, W: int = 1280, width_px: float = 5.0) -> np.ndarray:
@@ -63,7 +63,7 @@ def main() -> None:
     band = np.ascontiguousarray(img[416:544])          # 1280x128 region around the stripe
     import numba
 
-    from lightplane.threads import describe
+    from lightplane.core.threads import describe
 
     threads = numba.get_num_threads()
     extract_profile(img, width_px=5.0, parallel=True)   # the first parallel kernel fixes numba's threading layer

@@ -10,7 +10,7 @@ as gross errors and reported, not averaged.
 
 Two settings: the defaults (``extract_stripe``: Steger's minimum scale with its default
 along-stripe smoothing of 2 stripe widths; ``extract_profile``: Steger's minimum scale) and
-the scales recommended for speckled stripes (:mod:`lightplane.stripe`'s docstring): ``sigma_px`` 1.5x Steger's
+the scales recommended for speckled stripes (:mod:`lightplane.stripe.extract`'s docstring): ``sigma_px`` 1.5x Steger's
 minimum for ``extract_stripe``, ``sigma_along_px`` 2x for ``extract_profile``.
 
 Run: ``.venv/bin/python benchmarks/bench_stripe_accuracy.py [--levels clean,realistic,hard]``.
@@ -24,7 +24,7 @@ import numpy as np
 
 from lightplane.simulate.render import render_circle_dataset
 from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
-from lightplane.stripe import extract_profile, extract_stripe, sigma_for_width
+from lightplane.stripe.extract import extract_profile, extract_stripe, sigma_for_width
 
 BAR_REALISTIC_PX = 0.1
 

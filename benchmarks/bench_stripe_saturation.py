@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
-from lightplane.stripe import extract_profile, extract_stripe
+from lightplane.stripe.extract import extract_profile, extract_stripe
 
 
 def errors(img, truth):

@@ -8,8 +8,8 @@ as bench_calibrate.py's), circle grid 11x8 of 11 mm pitch (5.5 mm dots), asymmet
 :data:`CALIBRATION_CAPTURE` (25–55° tilt, 350–650 mm, over the whole image), then calibrates
 the camera (k3 fixed) and compares fx, fy, cx, cy with the renderer's camera.
 
-- ``library``: :func:`lightplane.intrinsics.calibrate_camera` with a
-  :class:`lightplane.targets.Target` (its own detection; circle centres corrected for the
+- ``library``: :func:`lightplane.camera.intrinsics.calibrate_camera` with a
+  :class:`lightplane.camera.targets.Target` (its own detection; circle centres corrected for the
   perspective bias; the printed dot diameter given);
 - ``opencv``: plain OpenCV (``findChessboardCorners`` + ``cornerSubPix``, ``findCirclesGrid``,
   ``aruco.CharucoDetector``) with the object points of the board-frame conventions.
@@ -101,8 +101,8 @@ def _calibrate_opencv(kind: str, spec, images: list[np.ndarray]) -> dict:
 def _calibrate_library(spec, images: list[np.ndarray]) -> dict:
     import cv2
 
-    from lightplane.intrinsics import calibrate_camera
-    from lightplane.targets import Target
+    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.camera.targets import Target
 
     dot = spec.dot_diameter_mm  # the printed dots' diameter, as a user knows it
     target = Target(spec.kind, spec.cols, spec.rows, spec.square_mm, spec.marker_mm, spec.dictionary, dot)
@@ -113,8 +113,8 @@ def _calibrate_library(spec, images: list[np.ndarray]) -> dict:
 
 
 def main() -> int:
-    from lightplane.camera import Camera
-    from lightplane.io import read_image
+    from lightplane.camera.model import Camera
+    from lightplane.core.io import read_image
     from lightplane.simulate.render import TARGET_CAPTURES, target_spec
 
     ap = argparse.ArgumentParser()
@@ -128,10 +128,10 @@ def main() -> int:
     CACHE.mkdir(parents=True, exist_ok=True)
     methods = [m for m in args.methods.split(",") if m]
     try:
-        import lightplane.targets  # noqa: F401
+        import lightplane.camera.targets  # noqa: F401
     except ImportError:
         if "library" in methods:
-            print("lightplane.targets is not there yet: plain OpenCV only")
+            print("lightplane.camera.targets is not there yet: plain OpenCV only")
             methods = [m for m in methods if m != "library"]
     print(f"Camera intrinsics (k3 fixed) from {args.views} rendered realistic views per target (seed {args.seed}); "
           f"error vs the renderer's camera in px and in OpenCV sigmas; bar |error| <= {SIGMA_BAR:g} sigma")

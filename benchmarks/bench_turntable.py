@@ -9,7 +9,7 @@ different table angles).
 
 Per difficulty (renders of :mod:`lightplane.simulate.turntable`, lightplane's default sensor):
 
-- the axis by :func:`lightplane.turntable.calibrate_turntable` from 9 views of a 9x6
+- the axis by :func:`lightplane.motion.turntable.calibrate_turntable` from 9 views of a 9x6
   chessboard (8 mm) standing on the table, turned over 80 deg: angle and distance to the
   true axis, the two estimates' agreement and the jackknife σ;
 - a 36-frame scan per laser (two lasers, 10 deg per frame) of a 20 mm sphere 12 mm off
@@ -27,12 +27,12 @@ import time
 import numpy as np
 
 from lightplane import LightPlane
-from lightplane.motion import Motion, Turntable
-from lightplane.scan import ArrayFrames, scan_points
-from lightplane.shapes import fit_sphere
+from lightplane.motion.model import Motion, Turntable
+from lightplane.measure.scan import ArrayFrames, scan_points
+from lightplane.evaluate.shapes import fit_sphere
 from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
-from lightplane.targets import parse_target
-from lightplane.turntable import calibrate_turntable
+from lightplane.camera.targets import parse_target
+from lightplane.motion.turntable import calibrate_turntable
 
 N_FRAMES = 36
 
@@ -89,9 +89,9 @@ def run(difficulty: str) -> None:
 def fabscan(cloud: str, figure: str) -> None:
     from scipy.spatial import cKDTree
 
-    from lightplane.motion import rotation_about
-    from lightplane.plots import point_cloud
-    from lightplane.pointcloud import read_cloud
+    from lightplane.motion.model import rotation_about
+    from lightplane.report.plots import point_cloud
+    from lightplane.measure.pointcloud import read_cloud
 
     r = read_cloud(cloud)
     p = np.column_stack([r["x"], r["y"], r["z"]]).astype(float)

@@ -11,7 +11,7 @@ camera, 50 mm target), one set of image observations per data set is solved by
 
 Per configuration: RMS over the data sets of the plane angle error (deg), of the
 offset at the optical axis (mm) and of the triangulation error over the working volume
-380–520 mm (mm; ``lightplane.shapes.plane_accuracy``), the RMS predicted point sigma over
+380–520 mm (mm; ``lightplane.evaluate.shapes.plane_accuracy``), the RMS predicted point sigma over
 the same volume, and the ratio predicted / actual (honest: ~1); the offset's and the
 angle's predicted sigma (RMS over the data sets); the median solve time (global + ML).  Since every data set
 has different placements, the offset's mean over the data sets (a systematic error
@@ -33,12 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.calibrate import observe_images, solve_observations
-from lightplane.camera import Camera
-from lightplane.shapes import plane_accuracy
-from lightplane.plane import LightPlane
-from lightplane.plane_solvers import SolverOptions
-from lightplane.refine import MLOptions
+from lightplane.plane.calibrate import observe_images, solve_observations
+from lightplane.camera.model import Camera
+from lightplane.evaluate.shapes import plane_accuracy
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import SolverOptions
+from lightplane.plane.ml import MLOptions
 
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
 CONFIGS = {

@@ -4,16 +4,16 @@
 
 Study (docs/conventions.md §Default sensor: 1280x960, 16 mm lens, light plane 25° oblique crossing the
 optical axis at 450 mm): per trial, random target placements
-(:func:`lightplane.simulate.geometry.sample_placements`), exact rim and stripe pixels
-(:func:`~lightplane.simulate.geometry.synthetic_observations`) with Gaussian noise of
+(:func:`lightplane.simulate.scene.sample_placements`), exact rim and stripe pixels
+(:func:`~lightplane.simulate.scene.synthetic_observations`) with Gaussian noise of
 the size measured on the realistic renders, as white noise carrying the same
 information as the measured correlated noise (``benchmarks/bench_uncertainty.py``,
 2026-11-24: rim sigma 0.053 px with autocorrelation time tau 1.46 over ~1200 rim
 points, i.e. 1000 points at 0.06 px; raw stripe centres 0.126 px with tau 6.1 over
 ~330 centres, or ~65 averages of ~5 centres at 0.102 px with tau 1.55 as
-:func:`lightplane.calibrate.observe_image` gives the solver, i.e. 30 stripe points
+:func:`lightplane.plane.calibrate.observe_image` gives the solver, i.e. 30 stripe points
 at 0.09 px), then
-:func:`lightplane.plane_solvers.calibrate_plane_from_points` (``ml``).  Reported: the RMS over
+:func:`lightplane.plane.solvers.calibrate_plane_from_points` (``ml``).  Reported: the RMS over
 trials of the triangulation error over the working volume 380–520 mm (mm), and the
 share of trials that failed (an error was raised, e.g. an unresolved ambiguity, or
 the normal is off by more than 0.5°).  Factors: number of placements, tilt range,
@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.errors import LightplaneError
-from lightplane.plane import calibrate_plane_from_points
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
-from lightplane.uncertainty import rms_triangulation_error_mm, working_volume_grid
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import calibrate_plane_from_points
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.plane.uncertainty import rms_triangulation_error_mm, working_volume_grid
 
 OUT = Path(__file__).resolve().parent / "figures"
 SIGMA_RIM, SIGMA_STRIPE, N_RIM, N_STRIPE = 0.06, 0.09, 1000, 30
@@ -122,9 +122,9 @@ def render_figures() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lightplane.calibrate import calibrate_plane
-    from lightplane.plane import LightPlane
-    from lightplane.report import figure_residuals, figure_uncertainty
+    from lightplane.plane.calibrate import calibrate_plane
+    from lightplane.plane.model import LightPlane
+    from lightplane.report.html import figure_residuals, figure_uncertainty
     from lightplane.simulate.render import render_circle_dataset
 
     sets = {p: render_circle_dataset(n=6, seed=5, difficulty="realistic", polarity=p) for p in ("light", "dark")}

@@ -19,8 +19,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import write_scan  # noqa: E402
 from test_calibrate_images import cached_circle_render  # noqa: E402
 
-from lightplane.errors import LightplaneError  # noqa: E402
-from lightplane.io import read_image, read_images, summarize_reasons, too_few_images_message, try_read_image  # noqa: E402
+from lightplane.core.errors import LightplaneError  # noqa: E402
+from lightplane.core.io import read_image, read_images, summarize_reasons, too_few_images_message, try_read_image  # noqa: E402
 from _cli import lightplane, one_error_line  # noqa: E402
 
 NATIVE_NOISE = re.compile(r"libpng|libjpeg|libtiff|TIFF|\[ ?WARN|\[ ?ERROR|Premature end|Corrupt JPEG|OpenCV")
@@ -128,7 +128,7 @@ def test_quiet_opencv_keeps_decoder_complaints_off_stderr(tmp_path):
     corrupt_png(tmp_path / "good.png", tmp_path / "bad.png")
     tif = tiny(".tif")
     (tmp_path / "cut.tif").write_bytes(tif[:len(tif) // 2])
-    code = ("import sys; from lightplane.io import quiet_opencv, read_images; quiet_opencv(); "
+    code = ("import sys; from lightplane.core.io import quiet_opencv, read_images; quiet_opencv(); "
             "ok, sk = read_images(sys.argv[1:]); print(len(ok), [r for _, r in sk])")
     r = subprocess.run([sys.executable, "-c", code, tmp_path / "good.png", tmp_path / "bad.png", tmp_path / "cut.tif"],
                        capture_output=True, text=True, timeout=60)
@@ -217,7 +217,7 @@ def test_measure_skips_a_truncated_frame_and_records_it(scan_dir, tmp_path):
     assert "f01_cut.png" in r.stderr and "truncated" in r.stderr  # our warning lines
     header = out.read_bytes().split(b"end_header")[0].decode()
     assert "comment skipped frame 1 (f01_cut.png): not a readable image (truncated)" in header
-    from lightplane.pointcloud import read_cloud
+    from lightplane.measure.pointcloud import read_cloud
 
     assert sorted(np.unique(read_cloud(out)["frame"]).tolist()) == [0, 2, 3]
 

@@ -1,4 +1,4 @@
-"""`lightplane measure-batch` / lightplane.batch on a LocalCluster of 2 worker processes.
+"""`lightplane measure-batch` / lightplane.measure.batch on a LocalCluster of 2 worker processes.
 
 Same points as the single-process `measure` (bitwise), whatever the chunking; a worker
 killed mid-run loses and duplicates nothing; a re-run writes only the missing
@@ -19,9 +19,9 @@ pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
 
 from lightplane import Camera, LightPlane  # noqa: E402
-from lightplane.batch import measure_batch, read_manifest, read_points  # noqa: E402
-from lightplane.errors import LightplaneError  # noqa: E402
-from lightplane.scan import Motion, measure_scan, open_frames  # noqa: E402
+from lightplane.measure.batch import measure_batch, read_manifest, read_points  # noqa: E402
+from lightplane.core.errors import LightplaneError  # noqa: E402
+from lightplane.measure.scan import Motion, measure_scan, open_frames  # noqa: E402
 from lightplane.simulate.render import render_scan_dataset  # noqa: E402
 
 N_FRAMES = 5

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightplane.calibrate import calibrate_plane, observe_image, observe_images, solve_observations
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
-from lightplane.plane import LightPlane, PlaneCalibration
+from lightplane.plane.calibrate import calibrate_plane, observe_image, observe_images, solve_observations
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane, PlaneCalibration
 from _renders import cached_render
 
 
@@ -43,7 +43,7 @@ def observations(render):
 
 
 def _tri_rms(cam, est, true):
-    from lightplane.uncertainty import rms_triangulation_error_mm, working_volume_grid
+    from lightplane.plane.uncertainty import rms_triangulation_error_mm, working_volume_grid
 
     return rms_triangulation_error_mm(cam, est, true, working_volume_grid(cam, true))
 
@@ -103,7 +103,7 @@ def test_parallel_equals_serial(render, observations):
 
 
 def test_stripeless_and_blank_images_rejected_with_reason(render):
-    from lightplane.simulate.geometry import TargetPlacement
+    from lightplane.simulate.scene import TargetPlacement
     from lightplane.simulate.render import render_circle_image
 
     _, cam, true, files, truth = render
@@ -123,7 +123,7 @@ def test_stripeless_and_blank_images_rejected_with_reason(render):
 
 
 def test_colour_and_16_bit_input(render, observations):
-    from lightplane.io import read_image
+    from lightplane.core.io import read_image
 
     _, cam, _, files, _ = render
     img = read_image(files[1])

@@ -132,8 +132,8 @@ def test_camera_share_in_every_output(render, tmp_path):
     assert "camera frame" in r.stdout and "shape" in r.stdout and "with the camera's share" in r.stdout
     assert "RMS shape σ" in (rep / "index.html").read_text()
     # the plane file's sigma is what the library computes for the same files (measure's per-point sigma too)
-    from lightplane.measure import ProfileMeasurer
-    from lightplane.uncertainty import point_sigma_mm
+    from lightplane.measure.profile import ProfileMeasurer
+    from lightplane.plane.uncertainty import point_sigma_mm
 
     plane = LightPlane.load(out)
     cam2 = Camera.load(camfile)

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from lightplane import Camera
-from lightplane.errors import LightplaneError
-from lightplane.intrinsics import intrinsics_covariance
-from lightplane.simulate.geometry import default_camera
+from lightplane.core.errors import LightplaneError
+from lightplane.camera.intrinsics import intrinsics_covariance
+from lightplane.simulate.scene import default_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
 from lightplane.simulate.render import board_corners, sample_board_poses
-from lightplane.uncertainty import camera_steps, camera_uncertainty_summary, ray_sigma_rad
+from lightplane.plane.uncertainty import camera_steps, camera_uncertainty_summary, ray_sigma_rad
 
 BOARD = (9, 7)
 SIGMA_PX = 0.1

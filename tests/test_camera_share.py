@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 
 from lightplane import Camera
-from lightplane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
-from lightplane.intrinsics import intrinsics_covariance
-from lightplane.measure import ProfileMeasurer, triangulate
-from lightplane.plane import LightPlane
-from lightplane.plane_solvers import calibrate_plane_from_points
-from lightplane.shapes import rigid_align
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
+from lightplane.camera.intrinsics import intrinsics_covariance
+from lightplane.measure.profile import ProfileMeasurer, triangulate
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import calibrate_plane_from_points
+from lightplane.evaluate.shapes import rigid_align
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
 from lightplane.simulate.render import board_corners, sample_board_poses
-from lightplane.uncertainty import (camera_params, camera_share_status, camera_steps, camera_with_params,
+from lightplane.plane.uncertainty import (camera_params, camera_share_status, camera_steps, camera_with_params,
                                     point_error_basis, point_sigma_mm, shape_error_basis, volume_sigma,
                                     working_volume_grid)
 
@@ -98,7 +98,7 @@ def test_images_dispersion_part_due_to_the_camera(one):
     from the steps' second differences, is its mean curvature over changes drawn from Cov(K): checked over
     8 fresh random directions (tolerance 3 sd of their mean, from the draws), and the dispersion measured
     against both."""
-    from lightplane.calibrate import _dispersion_beside_camera
+    from lightplane.plane.calibrate import _dispersion_beside_camera
 
     cam, plane, solve = one
     rec = plane.meta[CAMERA_JACOBIAN_KEY]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightplane.circle_pose import circle_poses, conic_residuals_px, fit_conic
-from lightplane.errors import LightplaneError
-from lightplane.simulate.geometry import TargetPlacement, default_camera, sample_placements
+from lightplane.plane.circle_pose import circle_poses, conic_residuals_px, fit_conic
+from lightplane.core.errors import LightplaneError
+from lightplane.simulate.scene import TargetPlacement, default_camera, sample_placements
 
 
 def _random_placements(n, rng):
@@ -141,7 +141,7 @@ def test_fit_conic_bad_points():
 
 
 def test_batched_versions_match_single_and_flag_bad_items():
-    from lightplane.circle_pose import circle_poses_batch, fit_conics
+    from lightplane.plane.circle_pose import circle_poses_batch, fit_conics
 
     rng = np.random.default_rng(14)
     cam = default_camera(distortion=False)

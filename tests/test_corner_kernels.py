@@ -1,4 +1,4 @@
-"""The compiled corner kernels (:mod:`lightplane._corner_kernels`) against the numpy loops they replace.
+"""The compiled corner kernels (:mod:`lightplane.camera._corner_kernels`) against the numpy loops they replace.
 
 The saddle fit's Levenberg–Marquardt and Förstner's iteration were batched numpy loops; the kernels
 run them a corner at a time with the same model, weights, damping and stopping rules.  Here the
@@ -15,16 +15,16 @@ import cv2
 import numpy as np
 import pytest
 
-import lightplane._corner_kernels as ck
-from lightplane.camera import Camera
-from lightplane.intrinsics import _fit_corners, refine_corners
+import lightplane.camera._corner_kernels as ck
+from lightplane.camera.model import Camera
+from lightplane.camera.intrinsics import _fit_corners, refine_corners
 from test_intrinsics_corners import BOARD, SHAPE, affine_board, truth_corners
 
 SAME_PX = 1e-9
 
 
 def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool):
-    """The blurred saddle of :func:`lightplane.intrinsics.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
+    """The blurred saddle of :func:`lightplane.camera.intrinsics.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
     corners; ``P`` (N, 11) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy.  Returns the model
     (N, K) and, if asked, its Jacobian (N, 11, K)."""
     from scipy.special import erf

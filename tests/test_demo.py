@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from lightplane.demo import run_demo
-from lightplane.errors import LightplaneError
-from lightplane.shapes import fit_sphere, plane_accuracy
+from lightplane.report.demo import run_demo
+from lightplane.core.errors import LightplaneError
+from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
 
 SMALL = {"chessboards": 0, "circles": 4, "striped_boards": 0, "scan_frames": 0}
 
@@ -49,8 +49,8 @@ def test_cli_bad_output(tmp_path):
 
 
 def test_plane_accuracy_exact():
-    from lightplane.plane import LightPlane
-    from lightplane.simulate.geometry import default_camera, default_plane
+    from lightplane.plane.model import LightPlane
+    from lightplane.simulate.scene import default_camera, default_plane
 
     cam, pl = default_camera(), default_plane()
     a = plane_accuracy(pl, cam, pl, cam)

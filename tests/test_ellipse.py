@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
 from lightplane.ellipse import (
     Ellipse,
     detect_ellipses,
@@ -274,7 +274,7 @@ def test_detect_ellipse_cut_by_the_image_border():
 
 
 def test_detect_non_finite_images_are_an_error():
-    # one rule for every gray conversion (lightplane.io.to_gray_float): NaN/inf pixels are bad input
+    # one rule for every gray conversion (lightplane.core.io.to_gray_float): NaN/inf pixels are bad input
     for bad in (np.full((50, 50), np.nan), np.where(np.eye(60, dtype=bool), np.inf, 10.0)):
         with pytest.raises(LightplaneError, match="NaN or infinite"):
             detect_ellipses(bad)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lightplane.ellipse import MatchCounts, detect_ellipses, ellipse_iou, match_ellipses, read_ellipse_labels
-from lightplane.io import read_image
+from lightplane.core.io import read_image
 
 DATASET = "elsdc-calibration-patterns"
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightplane.circle_pose import circle_poses
+from lightplane.plane.circle_pose import circle_poses
 from lightplane.ellipse import Ellipse, detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
 
 render = pytest.importorskip("lightplane.simulate.render")

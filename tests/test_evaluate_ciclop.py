@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from lightplane import Camera
-from lightplane.baselines.zhou import board_views_and_stripes
-from lightplane.errors import LightplaneError
-from lightplane.evaluate import cross_ratio_points
-from lightplane.io import read_image
+from lightplane.plane.zhou import board_views_and_stripes
+from lightplane.core.errors import LightplaneError
+from lightplane.evaluate.crossratio import cross_ratio_points
+from lightplane.core.io import read_image
 
 # the published intrinsics of the Ciclop captures (shared/data/ciclop/README.txt), images rotated to 1280x960
 CAM = Camera([[1430.39147, 0, 636.403930], [0, 1429.66307, 478.032706], [0, 0, 1]],

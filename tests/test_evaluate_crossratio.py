@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
-from lightplane.baselines.zhou import pose_from_corners
-from lightplane.errors import LightplaneError
-from lightplane.evaluate import (cross_ratio, cross_ratio_points, evaluate_views, first_point_pairs,
+from lightplane.plane.zhou import pose_from_corners
+from lightplane.core.errors import LightplaneError
+from lightplane.evaluate.crossratio import (cross_ratio, cross_ratio_points, evaluate_views, first_point_pairs,
                                  point_from_cross_ratio)
 
 BOARD = (9, 6)
@@ -88,7 +88,7 @@ def test_ideal_points_exact_rows(corners_used):
 
 def test_ideal_points_exact_with_corners_left_out():
     """Corners the stripe runs over (or any others) can be left out; three per line suffice."""
-    from lightplane.baselines.zhou import corners_clear_of_stripe
+    from lightplane.plane.zhou import corners_clear_of_stripe
 
     corners, stripe, ideal = scene(R1, T1, PLANE1)
     pose = pose_from_corners(CAM, corners, BOARD, SQ)

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightplane.errors import LightplaneError
-from lightplane.evaluate import distance_errors, first_point_pairs
+from lightplane.core.errors import LightplaneError
+from lightplane.evaluate.crossratio import distance_errors, first_point_pairs
 
 DATA = Path(__file__).resolve().parent / "data"
 TOL = 0.001 + 1e-9

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane
-from lightplane.baselines.zhou import board_views_and_stripes, plane_from_board_stripes
-from lightplane.evaluate import evaluate_views
+from lightplane.plane.zhou import board_views_and_stripes, plane_from_board_stripes
+from lightplane.evaluate.crossratio import evaluate_views
 
 BOARD = (9, 6)
 
@@ -98,9 +98,9 @@ def test_zhou_plane_matches_truth(dataset, detected, detected_without_laser_off,
 
 @pytest.fixture(scope="module")
 def circle_plane(dataset):
-    """The light plane calibrated the paper's way (lightplane.calibrate.calibrate_plane) from 8
+    """The light plane calibrated the paper's way (lightplane.plane.calibrate.calibrate_plane) from 8
     rendered images of the circular target, same camera and plane as the chessboard renders."""
-    from lightplane.calibrate import calibrate_plane
+    from lightplane.plane.calibrate import calibrate_plane
     from lightplane.simulate.render import render_circle_dataset
 
     ds, _, _ = dataset

@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightplane.baselines.zhou import calibrate_plane_board
-from lightplane.intrinsics import calibrate_camera
-from lightplane.io import read_image
-from lightplane.plane import LightPlane, tls_line
-from lightplane.stripe import extract_stripe
+from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.core.io import read_image
+from lightplane.plane.model import LightPlane, tls_line
+from lightplane.stripe.extract import extract_stripe
 
 pytestmark = pytest.mark.realdata
 

@@ -18,10 +18,10 @@ import sys
 import numpy as np
 import pytest
 
-from lightplane.io import read_image
-from lightplane.sensor import Sensor, import_fabscan
-from lightplane.targets import parse_target
-from lightplane.turntable import calibrate_turntable
+from lightplane.core.io import read_image
+from lightplane.measure.sensor import Sensor, import_fabscan
+from lightplane.camera.targets import parse_target
+from lightplane.motion.turntable import calibrate_turntable
 
 pytestmark = pytest.mark.realdata
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightplane.errors import LightplaneError
-from lightplane.simulate.geometry import (
+from lightplane.core.errors import LightplaneError
+from lightplane.simulate.scene import (
     PAPER_DISTANCE_MM,
     TargetPlacement,
     default_camera,

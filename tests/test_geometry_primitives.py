@@ -1,8 +1,8 @@
-"""lightplane.geometry: one family per primitive (exact, noisy, degenerate input, bad shapes)."""
+"""lightplane.core.geometry: one family per primitive (exact, noisy, degenerate input, bad shapes)."""
 import numpy as np
 import pytest
 
-from lightplane import geometry as g
+from lightplane.core import geometry as g
 
 
 def _ellipse_conic(cx, cy, a, b, th):
@@ -106,7 +106,7 @@ class TestTlsLine:
             g.tls_line(np.zeros(shape))
 
     def test_plane_reexport(self):
-        from lightplane import plane
+        from lightplane.plane import model as plane
 
         assert plane.tls_line is g.tls_line
 
@@ -158,7 +158,7 @@ class TestRobustLine:
             g.robust_line(np.zeros(shape))
 
     def test_plane_fit_line_2d_uses_it(self):
-        from lightplane.plane import fit_line_2d
+        from lightplane.plane.model import fit_line_2d
 
         rng = np.random.default_rng(9)
         p = np.column_stack([np.arange(40.0), np.zeros(40)]) + rng.normal(0, 0.1, (40, 2))
@@ -207,7 +207,7 @@ class TestFitPlane:
             g.fit_plane_tls(np.zeros(shape))
 
     def test_plane_reexport(self):
-        from lightplane import plane
+        from lightplane.plane import model as plane
 
         assert plane.fit_plane_points is g.fit_plane_tls
 
@@ -258,7 +258,7 @@ class TestRayPlane:
             g.ray_plane(np.zeros((3, 3)), np.array([0.0, 0.0, 1.0]), np.zeros(3))
 
     def test_plane_reexport(self):
-        from lightplane import plane
+        from lightplane.plane import model as plane
 
         assert plane.backproject_to_plane is g.ray_plane
 
@@ -360,9 +360,9 @@ class TestFitConic:
             g.fit_conic(_ellipse_points(*self.E, n=20), np.ones(19))
 
     def test_old_names_use_it(self):
-        from lightplane.circle_pose import fit_conic as cp_fit_conic
+        from lightplane.plane.circle_pose import fit_conic as cp_fit_conic
         from lightplane.ellipse import fit_ellipse_direct
-        from lightplane.errors import LightplaneError
+        from lightplane.core.errors import LightplaneError
 
         p = _ellipse_points(*self.E, n=30)
         np.testing.assert_array_equal(cp_fit_conic(p), g.fit_conic(p))

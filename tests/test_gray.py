@@ -1,10 +1,10 @@
-"""The one gray conversion (lightplane.io.to_gray_float) and the one 8-bit stretch (to_gray8)."""
+"""The one gray conversion (lightplane.core.io.to_gray_float) and the one 8-bit stretch (to_gray8)."""
 
 import numpy as np
 import pytest
 
-from lightplane.errors import LightplaneError
-from lightplane.io import to_gray8, to_gray_float
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import to_gray8, to_gray_float
 
 
 def _bgr(dtype, hi):

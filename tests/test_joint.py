@@ -12,15 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.errors import LightplaneError
-from lightplane.intrinsics import _free_parameters, intrinsics_covariance
-from lightplane.joint import refine_joint_points
-from lightplane.plane import LightPlane
-from lightplane.refine import _Pose
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.core.errors import LightplaneError
+from lightplane.camera.intrinsics import _free_parameters, intrinsics_covariance
+from lightplane.plane.joint import refine_joint_points
+from lightplane.plane.model import LightPlane
+from lightplane.plane.ml import _Pose
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
 from lightplane.simulate.render import board_corners, sample_board_poses
-from lightplane.uncertainty import camera_params, camera_with_params, point_error_basis, working_volume_grid
+from lightplane.plane.uncertainty import camera_params, camera_with_params, point_error_basis, working_volume_grid
 
 BOARD = (9, 7)
 FLAGS = cv2.CALIB_FIX_K3
@@ -116,7 +116,7 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
         vol = working_volume_grid(true, plane)
         E, inc = point_error_basis(res.camera, res.plane, vol.uv[::40])
         assert inc
-        from lightplane.measure import triangulate
+        from lightplane.measure.profile import triangulate
 
         err = triangulate(res.camera, res.plane, vol.uv[::40]) - vol.points[::40]
         Ef = E.reshape(-1, E.shape[2])

@@ -17,10 +17,10 @@ import pytest
 
 from _cli import lightplane as run, one_error_line as _bad
 
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
-from lightplane.lasers import output_paths, parse_laser, parse_lasers
-from lightplane.plane import LightPlane
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.stripe.lasers import output_paths, parse_laser, parse_lasers
+from lightplane.plane.model import LightPlane
 from _renders import cached_render
 
 N_IMAGES = 6
@@ -30,7 +30,7 @@ def mirrored_plane() -> LightPlane:
     """A second laser on the other side of the camera (x -> -x), crossing the optical axis at the
     same 450 mm: nearer than that its stripe is right of the image centre, the first one's left
     (FabScan's two lasers)."""
-    from lightplane.simulate.geometry import default_plane
+    from lightplane.simulate.scene import default_plane
 
     p = default_plane()
     return LightPlane(np.array([-p.normal[0], p.normal[1], p.normal[2]]), p.d)
@@ -63,7 +63,7 @@ def render():
 
 @pytest.fixture(scope="module")
 def two_planes(render):
-    from lightplane.calibrate import calibrate_planes
+    from lightplane.plane.calibrate import calibrate_planes
 
     _, cam, _, files, _ = render
     return calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "b=green"]), workers=1)
@@ -126,8 +126,8 @@ def test_two_planes_from_the_same_placements_match_the_truth(render, two_planes)
     and within 4 sigma of each plane's own predicted uncertainty (the covariance from the
     measured rim and stripe noise).  Measured (6 images, seed 5): angle 0.0035 / 0.0046 deg,
     offset -0.0012 / -0.0002 mm, triangulation 0.0036 / 0.0052 mm."""
-    from lightplane.calibrate import uncertainty_summary
-    from lightplane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
+    from lightplane.plane.calibrate import uncertainty_summary
+    from lightplane.plane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
 
     _, cam, truths, _, _ = render
     for (name, cal), true in zip(two_planes.items(), truths):
@@ -176,8 +176,8 @@ def test_same_ellipse_and_rim_for_both_lasers(render, two_planes):
 def test_image_without_one_lasers_stripe_is_skipped_for_that_laser(render):
     """A colour image whose green channel shows no stripe (replaced by the laser-free blue
     channel) is skipped for laser b with the reason, and still used for laser a."""
-    from lightplane.calibrate import calibrate_planes
-    from lightplane.io import read_image
+    from lightplane.plane.calibrate import calibrate_planes
+    from lightplane.core.io import read_image
 
     _, cam, _, files, _ = render
     imgs = [read_image(f) for f in files[:4]]
@@ -236,7 +236,7 @@ def test_cli_colour_selector_on_gray_images(tmp_path):
 def test_frames_selector_gives_each_laser_its_images(render):
     """``frames:`` parts: each laser gets the images whose names match; images shared by both
     are observed once for both (same rim points), the others for one laser only."""
-    from lightplane.calibrate import calibrate_planes
+    from lightplane.plane.calibrate import calibrate_planes
 
     _, cam, _, files, _ = render
     sels = parse_lasers(["a=red+frames:circle_00[0-3].png", "b=green+frames:circle_00[2-5].png"])
@@ -258,8 +258,8 @@ def test_two_stripes_told_apart_by_region():
     uncertainty.  Measured: left 5/5 used, 0.0011 deg, -0.0025 mm, 0.0062 mm; right 4/5 (its
     chord in circle_000 is 0.42 of the diameter, at the rim: "no stripe crossing the target"),
     0.0057 deg, -0.0003 mm, 0.0090 mm."""
-    from lightplane.calibrate import calibrate_planes, uncertainty_summary
-    from lightplane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
+    from lightplane.plane.calibrate import calibrate_planes, uncertainty_summary
+    from lightplane.plane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
 
     folder = cached_two_laser_render(n=5, seed=4, kind="mirrored")
     truth = json.loads((folder / "truth.json").read_text())

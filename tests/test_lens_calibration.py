@@ -1,5 +1,5 @@
 """Calibrating the lens models from rendered chessboards (small renders: a 640x480 version of each
-camera of lightplane.simulate.geometry.lens_camera), the over-parameterisation warning, and
+camera of lightplane.simulate.scene.lens_camera), the over-parameterisation warning, and
 ``calibrate-camera --model``'s bad input."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import pytest
 
 from _cli import lightplane, one_error_line
 from lightplane import Camera
-from lightplane.intrinsics import calibrate_camera
-from lightplane.lens import coeff_names
-from lightplane.simulate.geometry import lens_camera
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.lens import coeff_names
+from lightplane.simulate.scene import lens_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, render_chessboard_dataset
 
 BOARD, SQUARE = CALIBRATION_CAPTURE["board"], CALIBRATION_CAPTURE["square_mm"]
@@ -109,7 +109,7 @@ def test_saddle_fit_in_the_lens_frame_is_unbiased():
     """The wide rational lens bends the board edges across a corner's window (up to ~0.3 px): the
     straight-edge saddle pulls the corners towards the image centre, the same fit in the lens frame
     (fit_corners(camera=...)) does not.  3 clean full-size renders, the exact corners."""
-    from lightplane.intrinsics import find_board, fit_corners, lens_bend
+    from lightplane.camera.intrinsics import find_board, fit_corners, lens_bend
 
     cam = lens_camera("rational")
     ds = render_chessboard_dataset(3, seed=2, camera=cam, difficulty="clean", distance_mm=(180.0, 330.0))
@@ -213,7 +213,7 @@ def test_tilted_sensor_with_the_tilt_held(tilted_boards):
 def _synthetic_tilted(zero_p: bool, seed: int = 1, sigma_px: float = 0.006):
     """Exact corners of the Scheimpflug camera (p1 = p2 = 0 with ``zero_p``) for 20 poses of the calibration
     capture, plus Gaussian noise of ``sigma_px``: object and image points as calibrateCamera takes them."""
-    from lightplane.simulate.geometry import scheimpflug_camera
+    from lightplane.simulate.scene import scheimpflug_camera
     from lightplane.simulate.render import board_corners, sample_board_poses
 
     cap = CALIBRATION_CAPTURE
@@ -235,7 +235,7 @@ def test_opencv_sigma_of_the_tilted_model(zero_tangent):
     them and the principal point, the weakest direction falls under the cut, and OpenCV's sigma are >10x
     too small; the exact inverse (our covariance) is not.  With p1 = p2 = 0 held (a lens without
     tangential distortion) the tilt is determined and the two agree."""
-    from lightplane.intrinsics import _free_parameters, calibration_flags, intrinsics_covariance
+    from lightplane.camera.intrinsics import _free_parameters, calibration_flags, intrinsics_covariance
 
     cam, objs, ims = _synthetic_tilted(zero_tangent)
     _, flags = calibration_flags("tilted", cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
@@ -286,7 +286,7 @@ def test_scheimpflug_tilt_of_a_narrow_lens_is_a_rotation_to_the_noise():
     no tilt at all, fits the corners to ~0.002 px RMS of the tilted model and its rays are the true ones
     after that rotation; the tilted model's own calibration is the truth up to a small rotation, whatever its
     principal point (OpenCV's sigma: test_opencv_sigma_of_the_tilted_model).  20 views, 0.006 px noise."""
-    from lightplane.intrinsics import (calibration_flags, intrinsics_covariance, overparameterisation_warnings,
+    from lightplane.camera.intrinsics import (calibration_flags, intrinsics_covariance, overparameterisation_warnings,
                                        rays_up_to_rotation)
 
     cam, objs, ims = _synthetic_tilted(False)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightplaneError
-from lightplane.simulate.geometry import (LENS_CAMERAS, default_plane, lens_camera, scheimpflug_camera,
+from lightplane.simulate.scene import (LENS_CAMERAS, default_plane, lens_camera, scheimpflug_camera,
                                           scheimpflug_focal_plane)
 
 
@@ -101,7 +101,7 @@ def test_tilted_pinhole_is_a_rotated_pinhole():
     a tilted sensor projects exactly like an untilted one with K' = K P viewing the frame turned by R:
     the tilt then cannot be told from a rotation of the camera frame plus a principal-point shift at all,
     and only the lens distortion, applied before the tilt, tells them apart (README, Lens models)."""
-    from lightplane.lens import tilt_matrix
+    from lightplane.camera.lens import tilt_matrix
 
     tx, ty = np.deg2rad(1.3), np.deg2rad(4.52)
     cam = scheimpflug_camera(dist=(0.0, 0.0, 0.0, 0.0, 0.0))
@@ -240,7 +240,7 @@ def test_renderer_rays_are_the_cameras(model):
 
 
 def _ml_scene(model, n=8, seed=3):
-    from lightplane.simulate.geometry import sample_placements, synthetic_observations
+    from lightplane.simulate.scene import sample_placements, synthetic_observations
 
     cam, plane = lens_camera(model), default_plane()
     ps = sample_placements(n, np.random.default_rng(seed), camera=cam, plane=plane)
@@ -252,7 +252,7 @@ def _ml_scene(model, n=8, seed=3):
 def test_ml_refinement_exact_with_every_model(model):
     """Noise-free observations through the model: the ML solution is the truth (its residual Jacobian
     uses the model's unsymmetric distortion Jacobian)."""
-    from lightplane.refine import _Pose, _Problem, refine_ml
+    from lightplane.plane.ml import _Pose, _Problem, refine_ml
 
     cam, plane, ps, obs = _ml_scene(model)
     rng = np.random.default_rng(4)
@@ -285,7 +285,7 @@ def test_ml_refinement_exact_with_every_model(model):
 def test_measurement_lookup_tables_with_every_model(model):
     """The lookup tables (undistortion and its unsymmetric Jacobian per grid line, Hermite between)
     equal the exact undistortion to 1e-6 px along rows and along columns."""
-    from lightplane.measure import ProfileMeasurer
+    from lightplane.measure.profile import ProfileMeasurer
 
     cam, plane = lens_camera(model), default_plane()
     rng = np.random.default_rng(7)

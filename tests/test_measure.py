@@ -12,8 +12,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
 from lightplane import LightPlane, LightplaneError  # noqa: E402
-from lightplane.measure import ProfileMeasurer, measure_profile, points_sigma_mm, profile_axis  # noqa: E402
-from lightplane.scan import ArrayFrames, Motion, scan_points  # noqa: E402
+from lightplane.measure.profile import ProfileMeasurer, measure_profile, points_sigma_mm, profile_axis  # noqa: E402
+from lightplane.measure.scan import ArrayFrames, Motion, scan_points  # noqa: E402
 
 # stripe centres of a noise-free Gaussian stripe are good to ~0.01 px (stripe module's spec: 0.015 px);
 # rows within END_ROWS of the stripe's ends are biased by the abrupt end and excluded
@@ -133,7 +133,7 @@ def test_measure_profile_points_on_surface_and_plane(measurer):
 
 
 def test_sigma_from_plane_covariance_matches_uncertainty_module():
-    from lightplane.uncertainty import point_sigma_mm
+    from lightplane.plane.uncertainty import point_sigma_mm
 
     cov = np.diag([2e-7, 1e-7, 3e-7, 4e-3])
     pl = LightPlane(PLANE.normal, PLANE.d, covariance=cov)
@@ -298,8 +298,8 @@ def test_profile_kernels_match_numpy():
     (triangulate_normalized against the intersection in numpy array operations, its grazing and
     behind flags; np.median of the valid finite widths), with
     grazing rays, rays behind the camera, NaN rays and even and odd counts."""
-    from lightplane._measure_kernels import median_where
-    from lightplane.measure import triangulate_normalized
+    from lightplane.measure._kernels import median_where
+    from lightplane.measure.profile import triangulate_normalized
 
     rng = np.random.default_rng(5)
     n = 2000

@@ -12,8 +12,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
 from lightplane import Camera, LightPlane, LightplaneError  # noqa: E402
-from lightplane import measure as M  # noqa: E402
-from lightplane.measure import ProfileMeasurer, clear_profile_cache, measure_profile, profile_cache_info  # noqa: E402
+from lightplane.measure import profile as M  # noqa: E402
+from lightplane.measure.profile import ProfileMeasurer, clear_profile_cache, measure_profile, profile_cache_info  # noqa: E402
 
 
 def same(a, b) -> bool:

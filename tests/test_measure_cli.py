@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, write_scan  # noqa: E402
 
 from lightplane import Camera  # noqa: E402
-from lightplane.pointcloud import read_cloud  # noqa: E402
+from lightplane.measure.pointcloud import read_cloud  # noqa: E402
 from _cli import lightplane, one_error_line  # noqa: E402
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane
-from lightplane.scan import ArrayFrames, Motion, scan_points
+from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 from lightplane.simulate.render import render_scan_dataset
 
 

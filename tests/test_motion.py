@@ -1,4 +1,4 @@
-"""Motion as one rigid transform per frame (lightplane.motion) and the measure command's motion
+"""Motion as one rigid transform per frame (lightplane.motion.model) and the measure command's motion
 forms; bad motion input (pose CSV of the wrong length, non-unit quaternions, a turntable file
 of another camera, a sensor file without the laser named): one line, exit 2, nothing written."""
 
@@ -17,10 +17,10 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
-from lightplane.errors import LightplaneError  # noqa: E402
-from lightplane.motion import Motion, Turntable, load_rigid, rotation_about  # noqa: E402
-from lightplane.pointcloud import read_cloud  # noqa: E402
-from lightplane.scan import ArrayFrames, scan_points  # noqa: E402
+from lightplane.core.errors import LightplaneError  # noqa: E402
+from lightplane.motion.model import Motion, Turntable, load_rigid, rotation_about  # noqa: E402
+from lightplane.measure.pointcloud import read_cloud  # noqa: E402
+from lightplane.measure.scan import ArrayFrames, scan_points  # noqa: E402
 
 RNG = np.random.default_rng(5)
 PTS = RNG.uniform(-50, 50, (20, 3)) + [0, 0, 450]

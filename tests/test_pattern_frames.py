@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from lightplane.cli.calibrate_plane_board import pair_pattern_frames
-from lightplane.errors import LightplaneError
+from lightplane.core.errors import LightplaneError
 
 F = [Path(f"f{i:02d}.png") for i in range(9)]
 

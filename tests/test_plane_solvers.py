@@ -1,5 +1,5 @@
 """Tests of the light-plane solvers (paper §2.2.3, docs/method.md §Light plane): candidates, `paper`, `global`,
-and the public entry `calibrate_plane_from_points`.  Ground truth from lightplane.simulate.geometry."""
+and the public entry `calibrate_plane_from_points`.  Ground truth from lightplane.simulate.scene."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from lightplane.errors import LightplaneError
-from lightplane.plane_solvers import SolverOptions
-from lightplane.plane import (
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.solvers import SolverOptions
+from lightplane.plane.model import (
     _KAPPA,
     _msd,
     _tau,
@@ -19,7 +19,7 @@ from lightplane.plane import (
     fit_line_2d,
     prepare_placement,
 )
-from lightplane.simulate.geometry import (
+from lightplane.simulate.scene import (
     PAPER_DISTANCE_MM,
     TargetPlacement,
     default_camera,
@@ -155,7 +155,7 @@ def test_paper_geometry_works():
 
 # --------------------------------------------------------------- the ml entry
 def test_ml_from_global_noise_free():
-    pytest.importorskip("lightplane.refine")
+    pytest.importorskip("lightplane.plane.ml")
     rng = np.random.default_rng(107)
     cam, plane, ps, rims, stripes = _scene(4, rng, n_rim=60, n_stripe=60)
     res = calibrate_plane_from_points(cam, 50.0, rims, stripes)  # method="ml" by default
@@ -166,7 +166,7 @@ def test_ml_from_global_noise_free():
 
 
 def test_solver_options_reach_the_solvers_and_are_checked():
-    from lightplane.refine import MLOptions
+    from lightplane.plane.ml import MLOptions
 
     cam, plane, ps, rims, stripes = _good()
     # the ML refinement's options arrive: one iteration cannot converge from the global start
@@ -363,7 +363,7 @@ def test_paper_stopping_rule_and_reasons():
 def test_tls_line_recovers_a_line_and_its_normal():
     """Points on u = 3 + 0.5 t, v = -2 + t (t spread over 200 px) with 0.01 px noise across: direction and normal
     of the line to ~1e-4 rad, centroid on the line within the noise, normal orthogonal to the direction."""
-    from lightplane.plane import tls_line
+    from lightplane.plane.model import tls_line
 
     rng = np.random.default_rng(4)
     t = rng.uniform(-100, 100, 400)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lightplane import LightplaneError
-from lightplane import pointcloud as pc
-from lightplane.pointcloud import POINT_DTYPE, PointSpool, make_records, read_cloud, write_cloud
+from lightplane.measure import pointcloud as pc
+from lightplane.measure.pointcloud import POINT_DTYPE, PointSpool, make_records, read_cloud, write_cloud
 
 VARIANTS = [("c.ply", {}), ("c_ascii.ply", {"ascii": True}), ("c.csv", {}), ("c.npy", {})]
 

@@ -1,7 +1,7 @@
-"""Joint ML refinement (lightplane.refine) and point uncertainty (lightplane.uncertainty).
+"""Joint ML refinement (lightplane.plane.ml) and point uncertainty (lightplane.plane.uncertainty).
 
 Ground truth: lightplane's default sensor (docs/conventions.md §Default sensor) and random placements from
-lightplane.simulate.geometry; noise injected in pixels.
+lightplane.simulate.scene; noise injected in pixels.
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane, LightplaneError
-from lightplane.refine import _Pose, _Problem, crlb, refine_ml
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements, synthetic_observations
-from lightplane.uncertainty import (
+from lightplane.plane.ml import _Pose, _Problem, crlb, refine_ml
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.plane.uncertainty import (
     point_covariance,
     point_sigma_mm,
     rms_point_sigma_mm,
@@ -257,7 +257,7 @@ def test_point_sigma_requires_covariance_and_working_volume_checks():
 
 
 def test_plot_point_sigma_map(tmp_path):
-    from lightplane.plots import point_sigma_map as plot_point_sigma_map
+    from lightplane.report.plots import point_sigma_map as plot_point_sigma_map
 
     cam, plane = default_camera(), default_plane()
     pl = LightPlane(plane.normal, plane.d, np.diag([1e-10, 1e-10, 1e-10, 1e-4]))

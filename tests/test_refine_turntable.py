@@ -15,8 +15,8 @@ import sys
 import numpy as np
 import pytest
 
-from lightplane.motion import Turntable, rotation_about
-from lightplane.turntable_refine import TurntableScan, refine_turntable
+from lightplane.motion.model import Turntable, rotation_about
+from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
 
 NOISE_MM = 0.02
 STEP = 9.0
@@ -88,8 +88,8 @@ def _run(*args):
 
 @pytest.fixture()
 def sensor_files(tmp_path):
-    from lightplane.sensor import Sensor
-    from lightplane.simulate.geometry import default_camera, default_plane
+    from lightplane.measure.sensor import Sensor
+    from lightplane.simulate.scene import default_camera, default_plane
 
     cam = default_camera()
     with_tt = Sensor(cam, {"laser0": default_plane(), "laser1": default_plane()},

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements
 from lightplane.simulate.render import render_circle_image
 
 SHEET_SIGMA_MM = 0.35

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.simulate.geometry import default_camera
+from lightplane.simulate.scene import default_camera
 from lightplane.simulate.render import render_chessboard_dataset
 
 BOARD = (9, 6)

@@ -11,8 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 from lightplane.cli import app
-from lightplane.errors import LightplaneError
-from lightplane.simulate.geometry import default_camera, default_plane, sample_placements
+from lightplane.core.errors import LightplaneError
+from lightplane.simulate.scene import default_camera, default_plane, sample_placements
 from lightplane.simulate.render import (
     render_chessboard_dataset,
     render_circle_dataset,
@@ -242,7 +242,7 @@ def test_plane_scan_stripe_on_truth_line():
 
 def test_sphere_scan_stripe_triangulates_onto_the_sphere():
     """Stripe centres of the mid-scan frame, triangulated with the true plane, lie on the sphere."""
-    from lightplane.measure import triangulate
+    from lightplane.measure.profile import triangulate
 
     ds = render_scan_dataset("sphere", n_frames=1, seed=0, difficulty="clean")
     cam, plane = ds.camera, default_plane()

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 import lightplane.simulate.render as R
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
-from lightplane.simulate.geometry import default_camera
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.simulate.scene import default_camera
 
 
 def _small_camera() -> Camera:

@@ -10,12 +10,12 @@ import subprocess
 import numpy as np
 import pytest
 
-from lightplane.calibrate import calibrate_plane
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
-from lightplane.plane import LightPlane
-from lightplane.plots import figure_overlays, figure_residuals
-from lightplane.report import write_report
+from lightplane.plane.calibrate import calibrate_plane
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane
+from lightplane.report.plots import figure_overlays, figure_residuals
+from lightplane.report.html import write_report
 
 from test_calibrate_images import cached_circle_render
 
@@ -100,12 +100,12 @@ def test_renders_in_headless_chromium(report, tmp_path):
 
 
 def test_figures_only_in_plots_module():
-    """Issue 18, item 3: matplotlib only in lightplane.plots; importing the library does not load it."""
+    """matplotlib only in lightplane.report.plots; importing the library does not load it."""
     import pathlib
 
     src = pathlib.Path(__file__).resolve().parents[1] / "src" / "lightplane"
     users = {str(f.relative_to(src)) for f in src.rglob("*.py") if "matplotlib" in f.read_text(encoding="utf-8")}
-    assert users == {"plots.py"}
+    assert users == {"report/plots.py"}
     code = ("import sys, pkgutil, importlib, lightplane\n"
             "for m in pkgutil.walk_packages(lightplane.__path__, 'lightplane.'):\n"
             "    if not m.name.startswith(('lightplane.cli', 'lightplane.__main__')):\n"

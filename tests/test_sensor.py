@@ -1,4 +1,4 @@
-"""Sensor files (lightplane.sensor): round trip, FabScan import from a configuration written
+"""Sensor files (lightplane.measure.sensor): round trip, FabScan import from a configuration written
 here (the real one: test_fabscan_turntable.py), and bad files refused with a clear reason."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
-from lightplane.errors import LightplaneError
-from lightplane.motion import Turntable
-from lightplane.sensor import Sensor, import_fabscan
+from lightplane.core.errors import LightplaneError
+from lightplane.motion.model import Turntable
+from lightplane.measure.sensor import Sensor, import_fabscan
 
 CAM = Camera(K=[[1300.0, 0, 610.0], [0, 1302.0, 820.0], [0, 0, 1]], dist=[0.1, -0.2, 0.0, 0.0, 0.0], width=1232,
              height=1640)

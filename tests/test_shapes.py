@@ -1,4 +1,4 @@
-"""lightplane.shapes: spheres, planes, steps, rigid alignment on exact synthetic points (tolerances from the noise)."""
+"""lightplane.evaluate.shapes: spheres, planes, steps, rigid alignment on exact synthetic points (tolerances from the noise)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lightplane.errors import LightplaneError
-from lightplane.shapes import fit_plane, fit_sphere, plane_accuracy, rigid_align, step_height
+from lightplane.core.errors import LightplaneError
+from lightplane.evaluate.shapes import fit_plane, fit_sphere, plane_accuracy, rigid_align, step_height
 
 
 def _cap(rng, n, center, radius, sigma):
@@ -141,8 +141,8 @@ def test_rigid_align_degenerate():
 
 
 def test_plane_accuracy_exact():
-    from lightplane.plane import LightPlane
-    from lightplane.simulate.geometry import default_camera, default_plane
+    from lightplane.plane.model import LightPlane
+    from lightplane.simulate.scene import default_camera, default_plane
 
     cam, pl = default_camera(), default_plane()
     a = plane_accuracy(pl, cam, pl, cam)

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
-from lightplane.errors import LightplaneError
-from lightplane.stripe import (
+from lightplane.core.errors import LightplaneError
+from lightplane.stripe.extract import (
     PROFILE_STATUS,
     StripePoints,
     StripeProfile,
@@ -369,7 +369,7 @@ def test_width_estimate_peaks_and_layouts():
     a run) whether the lines run across memory (block maxima) or along it (chunks), and the
     estimate is the same bit for bit on a row-major array and on a transposed view (8-bit:
     the layouts the rest of the suite compiles anyway)."""
-    from lightplane import _stripe_kernels as K
+    from lightplane.stripe import kernels as K
 
     rng = np.random.default_rng(31)
     H, W = 300, 173   # neither a multiple of the block (16) nor of the chunk (128)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from numba import njit
 
-from lightplane import _stripe_kernels as K
-from lightplane.stripe import sigma_for_width
+from lightplane.stripe import kernels as K
+from lightplane.stripe.extract import sigma_for_width
 
 
 @pytest.mark.parametrize("sigma", [0.3, 0.7, 1.0, 1.2345, 1.4434, 2.6, 4.0415, 7.777])

@@ -29,9 +29,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.camera import Camera
-from lightplane.io import read_image
-from lightplane.stripe import extract_profile, extract_stripe
+from lightplane.camera.model import Camera
+from lightplane.core.io import read_image
+from lightplane.stripe.extract import extract_profile, extract_stripe
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ciclop" / "laser_segmentation_in_pattern"
 FRAMES = ["laser-0-255-255-8", "laser-0-255-255-8-x"]
@@ -190,14 +190,14 @@ def test_extract_stripe_defaults_on_board(frames, frame, k):
     <= 0.35 px, >= 90 % of its columns covered.
 
     Board: the chessboard found in the laser-off frame (11 x 6 inner corners),
-    :func:`lightplane.baselines.zhou.board_polygon_mask`.  The stripe's points: the
+    :func:`lightplane.plane.zhou.board_polygon_mask`.  The stripe's points: the
     centres on the board within 40 rows of the stripe's row (all of them: no curve
     filter).  Columns covered: of the image columns where the stripe (the fitted
     line, a quadratic in distorted pixels) lies on the board mask, the fraction that
     hold at least one centre (rounded column).
 
     """
-    from lightplane.baselines.zhou import board_polygon_mask, find_board_pose
+    from lightplane.plane.zhou import board_polygon_mask, find_board_pose
 
     off = read_image(DATA / f"{frame.replace('laser-', 'laser-background-', 1)}.png", rotate_deg=90)
     pose = find_board_pose(off, CAMERA, BOARD, SQUARE_MM, channel="red")

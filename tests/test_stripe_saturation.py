@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
-from lightplane.stripe import extract_profile, extract_stripe
+from lightplane.stripe.extract import extract_profile, extract_stripe
 
 BIAS_MAX = 0.05
 RMS_MAX = 0.1

@@ -1,4 +1,4 @@
-"""The paper's §3 simulation study (lightplane.simulate.study) and `lightplane simulate`."""
+"""The paper's §3 simulation study (lightplane.evaluate.study) and `lightplane simulate`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from lightplane import LightplaneError
 from lightplane.cli import app
-from lightplane.simulate.study import FACTORS, METHODS, run_factor
+from lightplane.evaluate.study import FACTORS, METHODS, run_factor
 
 runner = CliRunner()
 

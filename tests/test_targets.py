@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.camera import Camera
-from lightplane.errors import LightplaneError
-from lightplane.targets import Target, as_target, correct_circle_centres, dot_diameter_mm, parse_target
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.camera.targets import Target, as_target, correct_circle_centres, dot_diameter_mm, parse_target
 
 K = np.array([[1400.0, 0, 640.0], [0, 1400.0, 480.0], [0, 0, 1]])
 

@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from lightplane.camera import Camera
-from lightplane.plane import LightPlane
+from lightplane.camera.model import Camera
+from lightplane.plane.model import LightPlane
 from lightplane.simulate.render import render_target_dataset
-from lightplane.targets import Target
+from lightplane.camera.targets import Target
 
 CIRCLES = Target("circles", 9, 6, 8.0, dot_mm=4.0)
 CHARUCO = Target("charuco", 8, 6, 11.0, 8.0, "DICT_4X4_50")
@@ -138,7 +138,7 @@ def test_camera_calibration_circles_cli(tmp_path):
 
 def test_charuco_partial_views_calibrate(tmp_path):
     """A hand over half the board: ChArUco views with part of the corners are used, with their ids."""
-    from lightplane.intrinsics import calibrate_camera
+    from lightplane.camera.intrinsics import calibrate_camera
 
     t = Target("charuco", 11, 8, 12.0, 9.0, "DICT_4X4_50")
     ds = render_target_dataset(t, n=6, seed=11, difficulty="realistic")

@@ -18,11 +18,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
-from lightplane import _stripe_kernels as K  # noqa: E402
-from lightplane import threads  # noqa: E402
-from lightplane.measure import ProfileMeasurer  # noqa: E402
-from lightplane.scan import ArrayFrames, FrameProcessor, iter_scan, scan_points  # noqa: E402
-from lightplane.stripe import extract_profile, extract_profiles  # noqa: E402
+from lightplane.stripe import kernels as K  # noqa: E402
+from lightplane.core import threads  # noqa: E402
+from lightplane.measure.profile import ProfileMeasurer  # noqa: E402
+from lightplane.measure.scan import ArrayFrames, FrameProcessor, iter_scan, scan_points  # noqa: E402
+from lightplane.stripe.extract import extract_profile, extract_profiles  # noqa: E402
 
 FIELDS = ("uv", "valid", "intensity", "strength", "width", "normals", "status", "lines")
 
@@ -92,7 +92,7 @@ def test_batch_memory_reused_only_when_nothing_holds_it():
     """A batch's outputs share one block; the next batch of that size reuses it only once
     nothing of the last one is alive: profiles held stay intact, a dropped batch's block
     (and no other) comes back; any view of it (one array of one profile) keeps it."""
-    from lightplane.stripe import release_batch_memory
+    from lightplane.stripe.extract import release_batch_memory
 
     stack = roi_stack()
     other = roi_stack(seed=8)

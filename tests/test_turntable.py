@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane
-from lightplane.motion import Motion, Turntable
-from lightplane.pointcloud import read_cloud
-from lightplane.scan import ArrayFrames, scan_points
-from lightplane.shapes import fit_sphere
+from lightplane.motion.model import Motion, Turntable
+from lightplane.measure.pointcloud import read_cloud
+from lightplane.measure.scan import ArrayFrames, scan_points
+from lightplane.evaluate.shapes import fit_sphere
 from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
 
 N = 6  # frames per laser
@@ -125,8 +125,8 @@ def test_axis_estimates_exact_on_exact_poses_and_a_reversed_board_is_restored():
     """Noise-free poses of a board turned about a known axis: both estimates are exact, and a
     pose whose points were detected in reverse order (a half turn of a symmetric grid) is
     put back (docs/method.md §Turntable)."""
-    from lightplane.motion import rotation_about
-    from lightplane.turntable import _consistent_order, axis_from_circles, axis_from_rotations
+    from lightplane.motion.model import rotation_about
+    from lightplane.motion.turntable import _consistent_order, axis_from_circles, axis_from_rotations
 
     c, a = np.array([3.0, 20.0, 300.0]), np.array([0.1, -0.97, -0.2]) / np.linalg.norm([0.1, -0.97, -0.2])
     obj = np.array([[i * 7.0, j * 7.0, 0.0] for j in range(8) for i in range(10)])
@@ -143,7 +143,7 @@ def test_axis_estimates_exact_on_exact_poses_and_a_reversed_board_is_restored():
     D = np.diag([-1.0, -1.0, 1.0])
     Rs[3], ts[3] = Rs[3] @ D, ts[3] + 2 * Rs[3] @ centre  # the same board, its points numbered backwards
     assert np.allclose(Rs[3] @ obj[::-1].T + ts[3][:, None], good[0][3] @ obj.T + good[1][3][:, None])
-    from lightplane.targets import parse_target
+    from lightplane.camera.targets import parse_target
 
     assert _consistent_order(Rs, ts, obj, parse_target("chessboard:10x8", 7.0)) == [3]
     assert np.allclose(Rs, good[0]) and np.allclose(ts, good[1])

@@ -16,27 +16,27 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from . import threads  # noqa: F401  (first: numba's threading layer and OpenMP wait policy, before any kernel)
+from lightplane.core import threads  # noqa: F401  (first: numba's threading layer and OpenMP wait policy, before any kernel)
 
-from .camera import Camera
-from .errors import LightplaneError
-from .plane import LightPlane
-from .plane_solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points
-from .refine import MLOptions
-from .measure import triangulate
-from .circle_pose import CirclePose, circle_poses
-from .ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
-from .stripe import StripePoints, StripeProfile, extract_profile, extract_stripe
-from .calibrate import calibrate_plane
-from .evaluate import DistanceErrors, distance_errors
-from .uncertainty import point_sigma_mm
-from .measure import Profile, ProfileMeasurer, measure_profile
-from .pointcloud import read_cloud, write_cloud
-from .scan import Motion, measure_scan
-from .targets import Detection, Target, parse_target
-from .intrinsics import calibrate_camera
-from .baselines.zhou import calibrate_plane_board
-from .evaluate import evaluate_images
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points
+from lightplane.plane.ml import MLOptions
+from lightplane.measure.profile import triangulate
+from lightplane.plane.circle_pose import CirclePose, circle_poses
+from lightplane.ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
+from lightplane.stripe.extract import StripePoints, StripeProfile, extract_profile, extract_stripe
+from lightplane.plane.calibrate import calibrate_plane
+from lightplane.evaluate.crossratio import DistanceErrors, distance_errors
+from lightplane.plane.uncertainty import point_sigma_mm
+from lightplane.measure.profile import Profile, ProfileMeasurer, measure_profile
+from lightplane.measure.pointcloud import read_cloud, write_cloud
+from lightplane.measure.scan import Motion, measure_scan
+from lightplane.camera.targets import Detection, Target, parse_target
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.evaluate.crossratio import evaluate_images
 
 threads.limit_blas()   # last: the BLAS libraries numpy and scipy load are all in by now
 

@@ -1,5 +1,5 @@
 """``python -m lightplane`` runs the command line."""
 
-from .cli import main
+from lightplane.cli import main
 
 main()

@@ -7,10 +7,10 @@ a missing file...) gives one line on stderr and exit status 2.
 
 from __future__ import annotations
 
-from ._common import app
+from lightplane.cli._common import app
 
 # Importing the modules registers their subcommands on ``app``.
-from . import (  # noqa: E402,F401
+from lightplane.cli import (  # noqa: E402,F401
     calibrate_camera,
     calibrate_plane,
     calibrate_plane_board,

@@ -18,7 +18,7 @@ try:  # typer >= 0.20 carries its own copy of click
 except ImportError:  # pragma: no cover
     from click import exceptions as _click_errors  # type: ignore[no-redef]  # the same module, older typer
 
-from ..errors import LightplaneError
+from lightplane.core.errors import LightplaneError
 
 class _OneLineErrors(TyperGroup):
     """The command group, with click's usage errors (a bad choice, a value out of range, a
@@ -100,7 +100,7 @@ def quiet_native_logs() -> None:
     each skipped image is in the summary and the result file.  Once per process."""
     global _QUIETED
     if not _QUIETED:
-        from ..io import quiet_opencv
+        from lightplane.core.io import quiet_opencv
 
         quiet_opencv()
         _QUIETED = True
@@ -166,8 +166,8 @@ target_option = typer.Option(None, "--target", help="Target file (JSON) naming t
 
 
 def target_from_options(board, square, marker=None, dictionary=None, dot=None, target_file=None):
-    """The :class:`lightplane.targets.Target` named on the command line."""
-    from ..targets import parse_target
+    """The :class:`lightplane.camera.targets.Target` named on the command line."""
+    from lightplane.camera.targets import parse_target
 
     return parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot, target_file=target_file)
 
@@ -190,7 +190,7 @@ BOARD_OPTIONS: Any = object()
 def takes_target(fn: F) -> F:
     """Give a command the board options (``--board/--square/--marker/--dictionary/--dot`` or
     ``--target``) in place of its ``target`` parameter, which receives the
-    :class:`~lightplane.targets.Target` they name.  Put it below ``handles_errors``, so
+    :class:`~lightplane.camera.targets.Target` they name.  Put it below ``handles_errors``, so
     that a bad board is one line and exit 2 like any other bad input."""
     sig = inspect.signature(fn)
     names = list(sig.parameters)
@@ -210,7 +210,7 @@ def takes_target(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-# Several lasers, the same option in every plane-calibration command (lightplane.lasers).
+# Several lasers, the same option in every plane-calibration command (lightplane.stripe.lasers).
 LASER_HELP = ("One laser of several, NAME=SELECTOR (repeat per laser; one plane file each): its stripe told apart by "
               "a colour (red, green, blue, gray), a region x0,y0,x1,y1 (px, after --rotate), frames:PATTERN (its "
               "image files) or cycle:K (the K-th laser frame of each pose), parts joined by +. E.g. --laser left=red "

@@ -10,10 +10,10 @@ import typer
 from rich.console import JustifyMethod
 from rich.table import Table
 
-from ..errors import LightplaneError
-from ..io import check_output, expand_inputs, provenance
-from ..targets import Target
-from ._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.camera.targets import Target
+from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
 
 
 #: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
@@ -48,12 +48,12 @@ def calibrate_camera_cmd(
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     import cv2
 
-    from ..intrinsics import calibrate_camera, opencv_std_ratio
-    from ..lens import coeff_names
-    from ..plots import intrinsics_residuals
-    from ..uncertainty import camera_uncertainty_summary
+    from lightplane.camera.intrinsics import calibrate_camera, opencv_std_ratio
+    from lightplane.camera.lens import coeff_names
+    from lightplane.report.plots import intrinsics_residuals
+    from lightplane.plane.uncertainty import camera_uncertainty_summary
 
-    from ..lens import MODELS
+    from lightplane.camera.lens import MODELS
 
     if model not in MODELS:
         raise LightplaneError(f"--model {model!r} is not a lens model (plumb_bob, rational, thin_prism, tilted, fisheye)")

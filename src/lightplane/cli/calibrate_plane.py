@@ -8,9 +8,9 @@ from typing import List, Literal, Optional
 import typer
 from rich.table import Table
 
-from ..errors import LightplaneError
-from ..io import check_output, expand_inputs, provenance
-from ._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.cli._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
 
 
 @app.command("calibrate-plane")
@@ -51,9 +51,9 @@ def calibrate_plane_cmd(
     it, then both are refined jointly (the circle images inform the intrinsics too); the camera
     file gets the refined intrinsics and their covariance, the plane file the refined plane.
     """
-    from ..calibrate import calibrate_plane, calibrate_planes
-    from ..camera import Camera
-    from ..lasers import output_paths, parse_lasers
+    from lightplane.plane.calibrate import calibrate_plane, calibrate_planes
+    from lightplane.camera.model import Camera
+    from lightplane.stripe.lasers import output_paths, parse_lasers
 
     if not (diameter > 0):
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
@@ -91,7 +91,7 @@ def calibrate_plane_cmd(
                 check_output(rep / "index.html", force)
     intr = None
     if joint is not None:
-        from ..intrinsics import calibrate_camera
+        from lightplane.camera.intrinsics import calibrate_camera
 
         board_files, target = joint
         with progress_bar("chessboard images", len(board_files)) as update:
@@ -116,7 +116,7 @@ def calibrate_plane_cmd(
                                     distance_range_mm=(near, far), progress=lambda i, n: update(i))
     jc = None
     if intr is not None:
-        from ..joint import refine_joint
+        from lightplane.plane.joint import refine_joint
 
         console.print("[bold]two-step[/bold] (camera from the chessboards alone, then the plane with it):")
         _print_calibration(cals[None], cam)
@@ -146,7 +146,7 @@ def calibrate_plane_cmd(
         inputs += [str(f) for f in joint[0]]
     prov = provenance(inputs, options)
     if jc is not None and intr is not None:
-        from ..uncertainty import joint_dispersion_phrase
+        from lightplane.plane.uncertainty import joint_dispersion_phrase
 
         assert camera_out is not None  # checked by _joint_inputs
         r = jc.result
@@ -169,7 +169,7 @@ def calibrate_plane_cmd(
         cal.plane.save(outputs[name], force=force, extra=extra)
         console.print(f"wrote {outputs[name]}")
     if report is not None:
-        from ..report import write_report
+        from lightplane.report.html import write_report
 
         for name, cal in cals.items():
             rep = reports[name]
@@ -202,7 +202,7 @@ def shared_pose_lines(cals: dict) -> list[str]:
 
 def _print_calibration(cal, cam) -> dict:
     """The plane, its uncertainty and the per-image table on the console; returns the uncertainty summary."""
-    from ..calibrate import uncertainty_summary
+    from lightplane.plane.calibrate import uncertainty_summary
 
     unc = uncertainty_summary(cal, cam)
     a, b, c = cal.plane.normal
@@ -261,7 +261,7 @@ def _print_calibration(cal, cam) -> dict:
 
 def _joint_inputs(joint_camera, board, square, camera, camera_out, output, method, laser, force):
     """``(board files, target)`` for --joint-camera, checked before any work; None without it."""
-    from ._common import target_from_options
+    from lightplane.cli._common import target_from_options
 
     if joint_camera is None:
         given = [n for n, v in (("--board", board), ("--square", square), ("--camera-out", camera_out)) if v is not None]
@@ -294,7 +294,7 @@ def _print_joint(cam0, jc) -> None:
     """What the joint refinement changed in the intrinsics and their uncertainty."""
     import numpy as np
 
-    from ..uncertainty import camera_param_names, camera_params, camera_uncertainty_summary
+    from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_uncertainty_summary
 
     cam = jc.camera
     names = camera_param_names(cam)

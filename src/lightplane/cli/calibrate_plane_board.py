@@ -10,10 +10,10 @@ import typer
 from rich.console import JustifyMethod
 from rich.table import Table
 
-from ..errors import LightplaneError
-from ..io import check_output, expand_inputs, provenance
-from ..targets import Target
-from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, progress_bar, takes_target)
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.camera.targets import Target
+from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, progress_bar, takes_target)
 
 
 def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
@@ -99,7 +99,7 @@ def select_laser_frames(sels, lasers: list[Path], slots: list[int] | None, cycle
 
 def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
     """Each file read once (``cache``: path -> image or reason); None stands for an unreadable one."""
-    from ..io import try_read_image
+    from lightplane.core.io import try_read_image
 
     out = []
     for f in files:
@@ -176,9 +176,9 @@ def calibrate_plane_board_cmd(
     per turntable position): --cycle P,L,L --laser laser0=cycle:1 --laser laser1=cycle:2; one plane file
     per laser (-o plane.json: plane_laser0.json, plane_laser1.json).
     """
-    from ..baselines.zhou import calibrate_plane_board
-    from ..camera import Camera
-    from ..lasers import LaserSelector, output_paths, parse_lasers
+    from lightplane.plane.zhou import calibrate_plane_board
+    from lightplane.camera.model import Camera
+    from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
     sels = parse_lasers(laser, channel)
     outputs: dict[str | None, Path] = {None: output}

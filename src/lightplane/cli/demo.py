@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._common import app, console, handles_errors
+from lightplane.cli._common import app, console, handles_errors
 
 
 @app.command("demo")
@@ -17,6 +17,6 @@ def demo_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic data set."),
 ) -> None:
     """Render a synthetic data set and run every stage of lightplane on it."""
-    from ..demo import run_demo
+    from lightplane.report.demo import run_demo
 
     run_demo(out, force=force, seed=seed, console=console)

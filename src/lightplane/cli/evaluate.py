@@ -10,11 +10,11 @@ from typing import List, Literal, Optional
 import typer
 from rich.table import Table
 
-from ..errors import LightplaneError
-from ..io import atomic_write, check_output, dumps_json, expand_inputs, provenance
-from ..targets import Target
-from ._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
-from .calibrate_plane_board import read_laser_frames
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import atomic_write, check_output, dumps_json, expand_inputs, provenance
+from lightplane.camera.targets import Target
+from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
+from lightplane.cli.calibrate_plane_board import read_laser_frames
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -41,9 +41,9 @@ def evaluate_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Compare light planes by the cross-ratio on a chessboard: ideal vs measured distances (paper Table 2)."""
-    from ..camera import Camera
-    from ..evaluate import evaluate_images
-    from ..plane import LightPlane
+    from lightplane.camera.model import Camera
+    from lightplane.evaluate.crossratio import evaluate_images
+    from lightplane.plane.model import LightPlane
 
     for out in (json_out, csv_out):
         if out is not None:

@@ -7,9 +7,9 @@ from typing import List, Optional
 
 import typer
 
-from ..errors import LightplaneError
-from ._common import Channel, app, console, handles_errors, progress_bar
-from .measure import parse_laser
+from lightplane.core.errors import LightplaneError
+from lightplane.cli._common import Channel, app, console, handles_errors, progress_bar
+from lightplane.cli.measure import parse_laser
 
 
 @app.command("refine-turntable")
@@ -37,11 +37,11 @@ def refine_turntable_cmd(
     """
     import numpy as np
 
-    from ..io import check_output, provenance
-    from ..motion import Motion
-    from ..scan import open_frames, scan_points
-    from ..sensor import Sensor
-    from ..turntable_refine import TurntableScan, refine_turntable
+    from lightplane.core.io import check_output, provenance
+    from lightplane.motion.model import Motion
+    from lightplane.measure.scan import open_frames, scan_points
+    from lightplane.measure.sensor import Sensor
+    from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
 
     check_output(output, force)
     sens = Sensor.load(sensor)

@@ -10,10 +10,10 @@ import typer
 from rich.console import JustifyMethod
 from rich.table import Table
 
-from ..errors import LightplaneError
-from ..io import check_output, expand_inputs, provenance
-from ..targets import Target
-from ._common import (app, BOARD_OPTIONS, console, err_console, handles_errors, progress_bar, takes_target)
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.camera.targets import Target
+from lightplane.cli._common import (app, BOARD_OPTIONS, console, err_console, handles_errors, progress_bar, takes_target)
 
 
 @app.command("calibrate-turntable")
@@ -39,9 +39,9 @@ def calibrate_turntable_cmd(
     Poses by solvePnP; the axis from the circles the board points turn on, checked against
     the rotations between the poses; uncertainty by a leave-one-image-out jackknife.
     """
-    from ..camera import Camera
-    from ..io import try_read_image
-    from ..turntable import calibrate_turntable
+    from lightplane.camera.model import Camera
+    from lightplane.core.io import try_read_image
+    from lightplane.motion.turntable import calibrate_turntable
 
     check_output(output, force)
     cam = Camera.load(camera)
@@ -107,15 +107,15 @@ def _sensor_rotation(path: Path) -> int:
     """The frame rotation of a sensor file given as the camera (0 for a camera file)."""
     if path.suffix.lower() != ".json":
         return 0
-    from ..io import read_json
+    from lightplane.core.io import read_json
 
     d = read_json(path, "camera file")
     return int((d.get("frames") or {}).get("rotate_deg", 0)) if d.get("kind") == "lightplane sensor" else 0
 
 
 def _camera_record(path: Path):
-    from ..camera import Camera
-    from ..io import read_json
+    from lightplane.camera.model import Camera
+    from lightplane.core.io import read_json
 
     cam = Camera.load(path)
     rec = {"source": str(path)}
@@ -144,10 +144,10 @@ def sensor_cmd(
 
     Example: lightplane sensor -o sensor.json --camera cam.json --plane laser0=p0.json --plane laser1=p1.json --turntable turntable.json
     """
-    from ..io import _rotation_code
-    from ..motion import Turntable, load_rigid
-    from ..plane import LightPlane
-    from ..sensor import Sensor, _check_name, plane_name
+    from lightplane.core.io import _rotation_code
+    from lightplane.motion.model import Turntable, load_rigid
+    from lightplane.plane.model import LightPlane
+    from lightplane.measure.sensor import Sensor, _check_name, plane_name
 
     check_output(output, force)
     _rotation_code(rotate)
@@ -197,7 +197,7 @@ def import_fabscan_cmd(
     FabScan's frame rotation (rotate/hflip/vflip) is recorded, so measure --sensor reads
     the frames as FabScan does; its platform pose becomes the turntable axis.
     """
-    from ..sensor import import_fabscan
+    from lightplane.measure.sensor import import_fabscan
 
     check_output(output, force)
     s = import_fabscan(config)

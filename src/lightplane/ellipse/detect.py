@@ -43,9 +43,9 @@ import math
 
 import numpy as np
 
-from ..errors import LightplaneError
-from .edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
-from .model import Ellipse
+from lightplane.core.errors import LightplaneError
+from lightplane.ellipse.edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
+from lightplane.ellipse.model import Ellipse
 
 __all__ = ["detect_ellipses", "auto_downscale", "arc_support_segments", "arc_groups"]
 

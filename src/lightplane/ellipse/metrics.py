@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import Ellipse
+from lightplane.ellipse.model import Ellipse
 
 __all__ = ["ellipse_iou", "match_ellipses", "MatchCounts", "read_ellipse_labels"]
 

@@ -23,9 +23,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..errors import LightplaneError
-from ..geometry import Failure, fit_conic
-from ..geometry import sampson_distance  # noqa: F401  (re-exported: lightplane.ellipse.sampson_distance)
+from lightplane.core.errors import LightplaneError
+from lightplane.core.geometry import Failure, fit_conic
+from lightplane.core.geometry import sampson_distance  # noqa: F401  (re-exported: lightplane.ellipse.sampson_distance)
 
 __all__ = [
     "Ellipse",
@@ -256,7 +256,7 @@ def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.
 
     ``uv`` (N, 2) px, N >= 5; ``weights`` (N,) >= 0 optional.  Returns the normalised
     conic (3x3) or None if no real ellipse fits (degenerate data, bad shapes).  The fit
-    is :func:`lightplane.geometry.fit_conic` (the package's one Halir–Flusser fit).
+    is :func:`lightplane.core.geometry.fit_conic` (the package's one Halir–Flusser fit).
     """
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim != 2 or uv.shape[1] != 2:

@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import LightplaneError
-from ..geometry import _sampson_distance, robust_sigma
-from .edges import gradients, normal_edge_samples, prepare_gray
-from .model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
+from lightplane.core.errors import LightplaneError
+from lightplane.core.geometry import _sampson_distance, robust_sigma
+from lightplane.ellipse.edges import gradients, normal_edge_samples, prepare_gray
+from lightplane.ellipse.model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
 
 __all__ = ["RefinedEllipse", "refine_ellipse", "fit_conic_robust", "edge_blur_sigma", "curvature_bias_px",
            "ellipse_curvature"]
@@ -213,7 +213,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     ----------
     image : (H, W) or (H, W, 3) array, any dtype (8/16-bit, float).
     ellipse : approximate ellipse (image pixels), e.g. from :func:`detect_ellipses`.
-    camera : optional :class:`lightplane.camera.Camera`; then the edge points are
+    camera : optional :class:`lightplane.camera.model.Camera`; then the edge points are
         undistorted (``camera.undistort_points``) and the returned conic is in
         undistorted pixels.
     band_px : half-width of the search band along the normals for the first pass
@@ -238,7 +238,7 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     """
     if not isinstance(ellipse, Ellipse):
         raise LightplaneError(f"ellipse must be an Ellipse, got {type(ellipse).__name__}")
-    from .detect import _POLARITY
+    from lightplane.ellipse.detect import _POLARITY
 
     if polarity not in _POLARITY:
         raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")

@@ -15,7 +15,7 @@ import math
 import numpy as np
 from scipy.special import ndtr
 
-from .model import Ellipse
+from lightplane.ellipse.model import Ellipse
 
 __all__ = ["render_ellipses"]
 

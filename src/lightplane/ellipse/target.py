@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import LightplaneError
-from ..geometry import robust_sigma, tls_line
-from .edges import prepare_gray
-from .model import Ellipse
+from lightplane.core.errors import LightplaneError
+from lightplane.core.geometry import robust_sigma, tls_line
+from lightplane.ellipse.edges import prepare_gray
+from lightplane.ellipse.model import Ellipse
 
 __all__ = ["TargetSelection", "StripeCrossing", "select_target", "stripe_crossing", "expected_axis_range_px"]
 

@@ -2,4 +2,4 @@
 simulation (paper §3) and image rendering (circle targets, scans, and calibration
 targets: chessboards, circle grids, asymmetric circle grids and ChArUco boards,
 :func:`lightplane.simulate.render.render_target_dataset`).  Import the submodules
-(``lightplane.simulate.geometry``, ``lightplane.simulate.render``, ...)."""
+(``lightplane.simulate.scene``, ``lightplane.simulate.render``, ...)."""

@@ -1,7 +1,7 @@
 """Synthetic images with exact ground truth: circle-target, chessboard and scan scenes.
 
 The scenes use lightplane's default sensor (docs/conventions.md §Default sensor,
-:mod:`lightplane.simulate.geometry`) unless a camera and plane are given.  Images
+:mod:`lightplane.simulate.scene`) unless a camera and plane are given.  Images
 are made by supersampled ray casting through the *distorted* camera
 (:mod:`lightplane.simulate.render_core`: ``4 x 4`` stratified jittered samples per
 pixel, ``16 x 16`` on material edges), then a Gaussian PSF, vignetting, shot noise
@@ -43,11 +43,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..camera import Camera
-from ..errors import LightplaneError
-from ..plane import LightPlane
-from . import render_core as rc
-from .geometry import TargetPlacement, default_camera, default_plane, sample_placements
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane
+from lightplane.simulate import render_core as rc
+from lightplane.simulate.scene import TargetPlacement, default_camera, default_plane, sample_placements
 
 __all__ = [
     "DIFFICULTIES",
@@ -392,7 +392,7 @@ class Dataset:
         """
         import cv2
 
-        from ..io import atomic_write, provenance, write_json
+        from lightplane.core.io import atomic_write, provenance, write_json
 
         out = check_output_dir(out_dir, list(self.names) + ["camera.json", "truth.json"], force)
         try:
@@ -857,7 +857,7 @@ _BOARD_ALBEDO, _INK_ALBEDO, _BACKGROUND_ALBEDO = 0.86, 0.06, 0.25
 
 @dataclass(frozen=True)
 class TargetSpec:
-    """A calibration target as the renderer reads it (the fields of ``lightplane.targets.Target``).
+    """A calibration target as the renderer reads it (the fields of ``lightplane.camera.targets.Target``).
 
     ``kind``: ``chessboard`` (``cols x rows`` inner corners), ``circles`` (OpenCV's symmetric
     grid of ``cols x rows`` dots), ``acircles`` (OpenCV's asymmetric grid, ``cols`` dots per
@@ -890,7 +890,7 @@ _SPEC_FIELDS = ("kind", "cols", "rows", "square_mm", "marker_mm", "dictionary", 
 
 def target_spec(target) -> TargetSpec:
     """Read a target given as an object with the attributes of :class:`TargetSpec` (e.g.
-    ``lightplane.targets.Target``), a dict of them, a tuple ``(kind, cols, rows, square_mm)``
+    ``lightplane.camera.targets.Target``), a dict of them, a tuple ``(kind, cols, rows, square_mm)``
     (+ ``marker_mm, dictionary`` for ChArUco, + ``dot_mm`` for circle grids) or a
     :data:`TARGET_CAPTURES` name; checked."""
     if isinstance(target, TargetSpec):
@@ -1115,7 +1115,7 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     """``n`` views of a calibration target (chessboard, circle grid, asymmetric circle grid or
     ChArUco board) in the calibration-capture style, with exact truth.
 
-    ``target``: see :func:`target_spec` (a ``lightplane.targets.Target``, a dict, a tuple or a
+    ``target``: see :func:`target_spec` (a ``lightplane.camera.targets.Target``, a dict, a tuple or a
     :data:`TARGET_CAPTURES` name).  The board (white, albedo 0.86, ink 0.06, with a margin of
     one square or pitch) is posed as by :func:`sample_board_poses` with
     :data:`CALIBRATION_CAPTURE`'s distances, tilts, centring and spin (override with the

@@ -29,7 +29,7 @@ every pixel, then every pixel whose samples do not all see the same material
 (and its 8 neighbours) is integrated again with ``F x F`` samples, so edges are
 anti-aliased to ~1e-3 px without paying ``F²`` everywhere.  Each sample's pixel
 position is mapped to its camera ray through the *distorted* camera by Newton's
-method on the camera's exact lens model (lightplane.lens, docs/conventions.md §Lens model), started from the pixel centre's
+method on the camera's exact lens model (lightplane.camera.lens, docs/conventions.md §Lens model), started from the pixel centre's
 solution (two or three steps reach 1e-15).  Sample positions come from a
 deterministic integer hash, so the same scene gives the same bytes.
 """
@@ -39,8 +39,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .._lens_kernels import _distort_jac, _newton_step
-from ..lens import lens_params, undistort_guess
+from lightplane.camera.lens_kernels import _distort_jac, _newton_step
+from lightplane.camera.lens import lens_params, undistort_guess
 
 PATCH_COLS = 26
 SPHERE_COLS = 5
@@ -211,7 +211,7 @@ _undistort_guess = nb.njit(**_jit)(undistort_guess)
 @nb.njit(**_jit)
 def _undistort(xd, yd, x, y, lens, max_iter):
     """Newton's method for distort(x, y) = (xd, yd), started at (x, y); ``lens`` the packed model of
-    :func:`lightplane.lens.lens_params` (the one implementation of every lens model)."""
+    :func:`lightplane.camera.lens.lens_params` (the one implementation of every lens model)."""
     for _ in range(max_iter):
         x, y, dx, dy, _, _, _, _ = _newton_step(x, y, xd, yd, lens)
         if abs(dx) + abs(dy) < 1e-16:
@@ -547,7 +547,7 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     """
     import cv2
 
-    from ..errors import LightplaneError
+    from lightplane.core.errors import LightplaneError
 
     if int(samples) < 4:
         raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")

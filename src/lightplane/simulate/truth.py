@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
+from lightplane.camera.model import Camera
 
 __all__ = ["stripe_chord_errors", "profile_axis_and_roi"]
 

@@ -7,21 +7,21 @@ through a point of the first light plane 470 mm away, so both lasers always cut 
 object.  The second laser (:func:`mirrored_plane`) is the first one's mirror image
 about the vertical plane through the axis point, its source on the other side of the
 camera, as on two-laser desktop scanners.  Angles are right-handed about the axis
-direction (up), as in :mod:`lightplane.motion`; the object frame of the truth is the
-turntable frame of :meth:`lightplane.motion.Turntable.basis`.
+direction (up), as in :mod:`lightplane.motion.model`; the object frame of the truth is the
+turntable frame of :meth:`lightplane.motion.model.Turntable.basis`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import LightplaneError
-from ..motion import Turntable, rotation_about
-from ..plane import LightPlane
-from . import render_core as rc
-from .geometry import default_camera, default_plane
-from .render import _IMAGING, DIFFICULTIES, Dataset, _check_choice, _check_n, _finish, _laser_row, laser_source
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.motion.model import Turntable, rotation_about
+from lightplane.plane.model import LightPlane
+from lightplane.simulate import render_core as rc
+from lightplane.simulate.scene import default_camera, default_plane
+from lightplane.simulate.render import _IMAGING, DIFFICULTIES, Dataset, _check_choice, _check_n, _finish, _laser_row, laser_source
 
 __all__ = ["default_turntable", "mirrored_plane", "render_turntable_scan", "render_turntable_board"]
 
@@ -106,7 +106,7 @@ def render_turntable_scan(n_frames: int = 24, step_deg: float | None = None, see
     truth = {
         "scene": "turntable_scan",
         "units": "mm; degrees; pixels (OpenCV convention)",
-        "frame": "camera; the object in the turntable frame (lightplane.motion.Turntable.basis)",
+        "frame": "camera; the object in the turntable frame (lightplane.motion.model.Turntable.basis)",
         "turntable": table.to_dict(),
         "lasers": {f"laser{i}": {"plane": p.to_dict(), "source_mm": laser_source(p),
                                  "files": [f"laser{i}_{k:03d}.png" for k in range(n_frames)]}
@@ -133,7 +133,7 @@ def render_turntable_board(target=None, angles_deg=(-40, -25, -10, 5, 20, 35), s
     axis), its first row of points ``height_mm`` above the table and its plane
     ``radial_mm`` in front of the axis.  Truth per view: ``T_cam_board`` and the angle.
     """
-    from .render import _charuco_layout, _target_patch, target_object_points, target_spec
+    from lightplane.simulate.render import _charuco_layout, _target_patch, target_object_points, target_spec
 
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
     camera = default_camera() if camera is None else camera

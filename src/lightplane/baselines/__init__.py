@@ -1,1 +1,0 @@
-"""Baseline methods lightplane is compared with (Zhou's planar-target method)."""

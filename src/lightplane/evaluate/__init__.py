@@ -1,0 +1,1 @@
+"""Evaluation: cross-ratio distances on chessboards, shape fits, and the paper's simulation study."""

@@ -1,0 +1,740 @@
+"""Batch measurement of many scans on a Dask cluster (``lightplane measure-batch``).
+
+A *manifest* (CSV with a header) names the scans: ``id,input,camera,plane`` and the
+optional ``step,direction,positions`` (direction written ``x;y;z``), with the meaning
+they have in ``lightplane measure``.  Relative paths are taken relative to the
+manifest's folder.  Each scan's frames are listed on the client (a folder listing, no
+image is read there) and cut into *chunks* of consecutive frames; one Dask task per
+chunk reads its own frames (paths on a filesystem the workers share, or fsspec URLs
+such as ``s3://bucket/scan/*.png``, copied to a local temporary file and read as a local
+file is; a video is one chunk, decoded from its start) and measures them
+with the very code ``measure`` runs (:class:`lightplane.measure.scan.FrameProcessor`, one frame
+at a time), so the points are bitwise those of ``measure`` whatever the number of
+workers and the chunking:
+
+- the only quantity ``measure`` takes from more than one frame, the stripe width
+  estimated on the first readable frame (when not given), is estimated once per scan by
+  a small *prepare* task (the same function ``measure`` calls) and handed to every
+  chunk of that scan;
+- the motion places frame ``i`` by its global index ``i``, known from the chunk's start.
+
+Output (``OUT_DIR``)::
+
+    points/scan=<id>/part-<k>.parquet   chunk k of scan <id>: columns x,y,z,frame,
+                                        intensity,sigma_mm,u,v (as measure's CSV)
+    ply/<id>.ply                        optional, one cloud per scan
+    manifest.json                       what was written, failures, provenance
+
+Faults and resume: a partition is (scan, chunk); its name is deterministic and it is
+written to a hidden temporary name then renamed, so a task retried after a worker died
+rewrites the same file and a reader never sees half a partition.  Each partition
+carries in its Parquet metadata the fingerprint of what produced it (frames, calibration,
+options, lightplane version) and the chunk's own summary (unreadable frames...), so a
+re-run skips the partitions that are complete and up to date and measures only the
+rest.  An unreadable frame is skipped and recorded for its scan; a scan whose input,
+camera or plane cannot be used fails alone; the others go on.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import re
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Sequence
+
+import numpy as np
+
+from lightplane.core.errors import LightplaneError
+from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
+from lightplane.measure.scan import FrameSource
+
+if TYPE_CHECKING:
+    from lightplane.camera.model import Camera
+    from lightplane.plane.model import LightPlane
+    from lightplane.motion.model import Motion
+
+__all__ = ["BatchScan", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
+           "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]
+
+DEFAULT_CHUNK_FRAMES = 200
+REQUIRED_COLUMNS = ("id", "input", "camera", "plane")
+OPTIONAL_COLUMNS = ("step", "direction", "positions")
+_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_META_KEY = b"lightplane"
+#: bump when the partition layout or the meaning of its metadata changes
+_LAYOUT = 1
+
+
+# ----------------------------------------------------------------------------- manifest
+@dataclass(frozen=True)
+class BatchScan:
+    """One row of the manifest (paths resolved against the manifest's folder; cells as written)."""
+
+    id: str
+    input: str
+    camera: str
+    plane: str
+    step: str = ""
+    direction: str = ""
+    positions: str = ""
+    row: int = 0
+
+
+def _resolve(cell: str, base: Path) -> str:
+    if not cell or "://" in cell or os.path.isabs(cell):
+        return cell
+    return str(base / cell)
+
+
+def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
+    """The scans of a manifest CSV; raises :class:`LightplaneError` for a malformed manifest
+    (no header, a required column missing, an unknown column, an empty or duplicate id, an
+    id unusable as a folder name).  Values are checked per scan when it runs."""
+    p = Path(path)
+    if not p.is_file():
+        raise LightplaneError(f"{p}: no such manifest file")
+    base = p.resolve().parent
+    with open(p, newline="") as f:
+        rows = [r for r in csv.reader(f) if r and not (len(r) == 1 and not r[0].strip())
+                and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise LightplaneError(f"{p}: manifest is empty (expected a header id,input,camera,plane)")
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise LightplaneError(f"{p}: the header must name the columns id,input,camera,plane "
+                              f"(missing: {','.join(missing)}; got {','.join(header)})")
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if unknown:
+        raise LightplaneError(f"{p}: unknown column(s) {','.join(unknown)} (known: "
+                              f"{','.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)})")
+    scans, seen = [], set()
+    for n, r in enumerate(rows[1:], start=2):
+        if len(r) > len(header):
+            raise LightplaneError(f"{p}: row {n} has {len(r)} cells but the header names {len(header)} "
+                                  "(quote a cell that holds a comma)")
+        cells = {h: (r[i].strip() if i < len(r) else "") for i, h in enumerate(header)}
+        sid = cells["id"]
+        if not sid:
+            raise LightplaneError(f"{p}: row {n} has no id")
+        if not _ID_RE.match(sid):
+            raise LightplaneError(f"{p}: row {n}: id {sid!r} must be letters, digits, '.', '_' or '-' "
+                                  "(it names a folder)")
+        if sid in seen:
+            raise LightplaneError(f"{p}: row {n}: id {sid!r} appears twice")
+        seen.add(sid)
+        for c in ("input", "camera", "plane"):
+            if not cells[c]:
+                raise LightplaneError(f"{p}: row {n} (scan {sid}) has no {c}")
+        scans.append(BatchScan(sid, _resolve(cells["input"], base), _resolve(cells["camera"], base),
+                               _resolve(cells["plane"], base), cells.get("step", ""), cells.get("direction", ""),
+                               _resolve(cells.get("positions", ""), base), n))
+    if not scans:
+        raise LightplaneError(f"{p}: manifest has a header but no scans")
+    return scans
+
+
+def _motion_of(scan: BatchScan):
+    from lightplane.motion.model import Motion
+
+    dvec = None
+    if scan.direction:
+        try:
+            dvec = tuple(float(t) for t in re.split(r"[;,\s]+", scan.direction.strip()) if t)
+        except ValueError:
+            dvec = ()
+        if len(dvec) != 3:
+            raise LightplaneError(f"direction must be x;y;z (three numbers), got {scan.direction!r}")
+    if scan.step and scan.positions:
+        raise LightplaneError("give either step (with direction) or positions, not both")
+    if scan.step:
+        try:
+            step = float(scan.step)
+        except ValueError:
+            raise LightplaneError(f"step must be a number of mm, got {scan.step!r}") from None
+        if dvec is None:
+            raise LightplaneError("step needs a direction x;y;z")
+        return Motion.linear(step, dvec)
+    if scan.positions:
+        return Motion.load_positions(scan.positions, dvec)
+    if dvec is not None:
+        raise LightplaneError("direction needs step or a single-column positions file")
+    return Motion.none()
+
+
+# ----------------------------------------------------------------------------- planning
+@dataclass
+class _Plan:
+    """A scan ready to run: calibration, frames, chunks (filled on the client)."""
+
+    scan: BatchScan
+    camera: Camera | None = None
+    plane: LightPlane | None = None
+    motion: Motion | None = None
+    frames: list = field(default_factory=list)  # frame paths (images) or [video path]
+    video: bool = False
+    chunks: list = field(default_factory=list)  # [(k, start, stop)]; stop None: to the end (video)
+    tokens: dict = field(default_factory=dict)  # k -> fingerprint of the partition
+    scan_token: str = ""
+    stats: list | None = None  # remote frames: (size, modification stamp) from the listing
+    error: str | None = None
+
+
+def plan_chunks(n_frames: int, chunk_frames: int) -> list[tuple[int, int, int]]:
+    """``[(k, start, stop)]``: consecutive chunks of at most ``chunk_frames`` frames."""
+    c = int(chunk_frames)
+    if c < 1:
+        raise LightplaneError(f"chunk_frames must be >= 1, got {chunk_frames}")
+    return [(k, s, min(s + c, n_frames)) for k, s in enumerate(range(0, n_frames, c))]
+
+
+def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
+    from lightplane.camera.model import Camera
+    from lightplane.core.io import expand_inputs
+    from lightplane.plane.model import LightPlane
+    from lightplane.measure.scan import VIDEO_SUFFIXES, ImageFiles
+
+    pl = _Plan(scan)
+    try:
+        pl.motion = _motion_of(scan)
+        pl.camera = Camera.load(scan.camera)
+        pl.plane = LightPlane.load(scan.plane)
+        if _is_url(scan.input):
+            if Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
+                raise LightplaneError(f"{scan.input}: a video must be a local (shared) path, not a URL")
+            pl.frames, pl.stats = _list_url_frames(scan.input)
+            pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
+        elif Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
+            if not Path(scan.input).is_file():
+                raise LightplaneError(f"{scan.input}: no such video file")
+            pl.video, pl.frames, pl.chunks = True, [scan.input], [(0, 0, None)]  # a video is decoded in one task
+        else:
+            paths = expand_inputs([scan.input])
+            if not paths:
+                raise LightplaneError(f"no images found in {scan.input}")
+            ImageFiles(paths)  # every listed file exists (as measure checks)
+            pl.frames = [str(q) for q in paths]
+            pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
+    except LightplaneError as e:
+        pl.error = str(e)
+        return pl
+    except (OSError, ValueError) as e:
+        pl.error = f"{type(e).__name__}: {e}"
+        return pl
+    assert pl.camera is not None and pl.plane is not None and pl.motion is not None  # read above, or returned
+    base = {"layout": _LAYOUT, "camera": pl.camera.to_dict(), "plane": pl.plane.to_dict(),
+            "motion": pl.motion.to_dict(), "options": options, "versions": _code_versions(),
+            # every frame of the scan (name, size, mtime): the stripe width comes from its first readable frame
+            "frames": pl.frames, "stats": pl.stats if pl.stats is not None else [_stat(q) for q in pl.frames]}
+    if pl.motion.positions_mm is not None:
+        base["positions_sha256"] = hashlib.sha256(np.ascontiguousarray(pl.motion.positions_mm).tobytes()).hexdigest()
+    pl.scan_token = hashlib.sha256(json.dumps(base, sort_keys=True, default=str).encode()).hexdigest()
+    for k, a, b in pl.chunks:
+        pl.tokens[k] = hashlib.sha256(f"{pl.scan_token}:{k}:{a}:{b}".encode()).hexdigest()
+    return pl
+
+
+def _is_url(text: str) -> bool:
+    """An fsspec URL (``s3://``, ``gs://``, ``file://``...) rather than a path."""
+    return "://" in str(text)
+
+
+def _natural(text: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", text)]
+
+
+def _list_url_frames(url: str) -> tuple[list[str], list]:
+    """The image files of an fsspec URL (a folder, a glob or one file), in natural order, with their stamps."""
+    try:
+        import fsspec
+    except ImportError:  # pragma: no cover - fsspec comes with dask
+        raise LightplaneError(f"{url}: reading URLs needs fsspec (pip install fsspec)") from None
+    from lightplane.core.io import IMAGE_SUFFIXES
+
+    try:
+        fs, path = fsspec.core.url_to_fs(url)
+        if any(ch in path for ch in "*?["):
+            infos = fs.glob(path, detail=True)
+        elif fs.isdir(path):
+            infos = {i["name"]: i for i in fs.ls(path, detail=True)
+                     if i.get("type") != "directory" and Path(i["name"]).suffix.lower() in IMAGE_SUFFIXES}
+        elif fs.exists(path):
+            infos = {path: fs.info(path)}
+        else:
+            raise LightplaneError(f"{url}: no such file or folder")
+    except LightplaneError:
+        raise
+    except Exception as e:  # the filesystem's own errors (no credentials, no network...)
+        raise LightplaneError(f"{url}: cannot be listed ({type(e).__name__}: {e})") from None
+    names = sorted(infos, key=_natural)
+    if not names:
+        raise LightplaneError(f"no images found in {url}")
+    stamps = [[infos[n].get("size"), str(infos[n].get("mtime") or infos[n].get("LastModified")
+                                          or infos[n].get("ETag") or "")] for n in names]
+    return [fs.unstrip_protocol(n) for n in names], stamps
+
+
+class _RemoteFrames(FrameSource):
+    """Frames named by fsspec URLs: each is copied to a local temporary file and read there
+    exactly as a local file is (:func:`lightplane.core.io.try_read_image`), then removed."""
+
+    def __init__(self, urls: Sequence[str], start: int = 0) -> None:
+        self.urls, self.start = list(urls), int(start)
+        self.n_frames = len(self.urls)
+        self.errors: dict = {}
+
+    def items(self):
+        import tempfile
+
+        import fsspec
+
+        for i, url in enumerate(self.urls):
+            fd, tmp = tempfile.mkstemp(prefix=".lightplane-frame-", suffix=Path(url).suffix)
+            os.close(fd)
+            try:
+                try:
+                    with fsspec.open(url, "rb") as src, open(tmp, "wb") as dst:
+                        while True:
+                            block = src.read(1 << 22)
+                            if not block:
+                                break
+                            dst.write(block)
+                except FileNotFoundError:
+                    os.unlink(tmp)  # read as "no such file"
+                except Exception as e:
+                    self.errors[self.start + i] = f"cannot be read ({type(e).__name__}: {e})"
+                yield self.start + i, url, tmp
+            finally:
+                if os.path.exists(tmp):
+                    os.unlink(tmp)
+
+    def close(self) -> None:
+        pass
+
+
+def _stat(path: str):
+    try:
+        st = os.stat(path)
+        return [st.st_size, st.st_mtime_ns]
+    except OSError:
+        return None
+
+
+def _code_versions() -> dict:
+    from lightplane import __version__
+
+    return {"lightplane": __version__, "numpy": np.__version__}
+
+
+# ----------------------------------------------------------------------------- worker side
+class _ChunkFrames(FrameSource):
+    """Frames ``start..stop`` of a scan's image list, with their global indices."""
+
+    def __init__(self, paths: Sequence[str], start: int) -> None:
+        self.paths, self.start = list(paths), int(start)
+        self.n_frames = len(self.paths)
+
+    def items(self):
+        for i, p in enumerate(self.paths):
+            yield self.start + i, p, p
+
+    def close(self) -> None:
+        pass
+
+
+class _VideoChunk(FrameSource):
+    """All frames of a video (one chunk)."""
+
+    def __init__(self, path: str) -> None:
+        from lightplane.measure.scan import VideoFrames
+
+        self.src = VideoFrames(path)
+        self.n_frames = self.src.n_frames
+
+    def items(self):
+        yield from self.src.items()
+
+    def close(self) -> None:
+        self.src.close()
+
+
+def _prepare_task(frames: list, video: bool, camera, plane, motion, options: dict) -> dict:
+    """Per scan, on a worker: the first readable frame checked against the camera, the
+    profile axis and the stripe width, exactly as ``measure`` prepares a scan."""
+    from lightplane.measure.scan import ImageFiles, VideoFrames, _prepare
+
+    src = None
+    try:  # a worker that does not see the files says so here, for the scan
+        src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else ImageFiles(frames)
+        _, _, axis, width = _prepare(src, camera, plane, motion, options["axis"], options["width_px"],
+                                     options["channel"])
+    except LightplaneError as e:
+        return {"error": str(e)}
+    finally:
+        if src is not None:
+            src.close()
+    return {"axis": axis, "width_px": width}
+
+
+_PROCESSORS: "OrderedDict[str, object]" = OrderedDict()  # per worker process: processors with built tables
+
+
+def _processor(key: str, camera, plane, motion, axis: str, width_px, options: dict):
+    from lightplane.measure.scan import FrameProcessor
+
+    proc = _PROCESSORS.get(key)
+    if proc is None:
+        proc = FrameProcessor(camera, plane, motion, axis=axis, roi=options["roi"], width_px=width_px,
+                              channel=options["channel"], **options["stripe"])
+        _PROCESSORS[key] = proc
+        while len(_PROCESSORS) > 4:  # lookup tables are ~30 MB each
+            _PROCESSORS.popitem(last=False)
+    else:
+        _PROCESSORS.move_to_end(key)
+    return proc
+
+
+def _table(records: np.ndarray, meta: dict):
+    import pyarrow as pa
+
+    cols = {name: pa.array(np.ascontiguousarray(records[name])) for name in POINT_FIELDS}
+    t = pa.table(cols)
+    return t.replace_schema_metadata({_META_KEY: json.dumps(meta).encode()})
+
+
+def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) -> dict:
+    """Measure one chunk and write its partition atomically; returns the chunk's summary."""
+    import pyarrow.parquet as pq
+
+    from lightplane.core.io import atomic_write
+    from lightplane.measure.scan import iter_scan
+
+    k, start, stop = spec["chunk"]
+    if "error" in prep:
+        return {"chunk": k, "error": prep["error"]}
+    key = f"{spec['proc_key']}:{prep['axis']}:{prep['width_px']!r}"
+    proc = _processor(key, camera, plane, motion, prep["axis"], prep["width_px"], options)
+    src: FrameSource
+    if spec["video"]:
+        src = _VideoChunk(spec["frames"][0])
+    elif _is_url(spec["frames"][0]):
+        src = _RemoteFrames(spec["frames"], start)
+    else:
+        src = _ChunkFrames(spec["frames"], start)
+    from lightplane.core.threads import frames_across_threads
+
+    # remote frames that could not be fetched (filled while the frames are read)
+    fetch_errors: dict = src.errors if isinstance(src, _RemoteFrames) else {}
+    parts, skipped, n, empty = [], [], 0, 0
+    try:
+        with frames_across_threads():  # the parallelism is across Dask's workers: serial kernels, one OpenCV thread
+            scan = list(iter_scan(src, proc, workers=1))  # in this process, serial: measure's own path
+        for r in scan:
+            n += 1
+            if r.index in fetch_errors:
+                skipped.append([r.index, r.name, fetch_errors[r.index]])
+            elif r.error is not None:
+                skipped.append([r.index, r.name, r.error])
+            else:
+                assert r.records is not None  # a frame without an error has its records
+                empty += r.records.size == 0
+                parts.append(r.records)
+    except LightplaneError as e:  # a frame of the wrong size, positions too short: the scan's fault
+        return {"chunk": k, "error": str(e)}
+    finally:
+        src.close()
+    recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
+    summary = {"chunk": k, "frames": [start, start + n], "n_frames": n, "n_points": int(recs.size),
+               "skipped": skipped, "frames_without_points": int(empty), "axis": prep["axis"],
+               "width_px": prep["width_px"]}
+    meta = {"token": spec["token"], "scan": spec["scan"], **summary}
+    atomic_write(spec["path"], lambda tmp: pq.write_table(_table(recs, meta), tmp), force=True)
+    return {**summary, "written": True}
+
+
+def _read_partition_meta(path: Path) -> dict | None:
+    import pyarrow.parquet as pq
+
+    try:
+        md = pq.read_schema(path).metadata or {}
+        return json.loads(md[_META_KEY])
+    except Exception:  # unreadable, foreign or truncated file: not complete
+        return None
+
+
+# ----------------------------------------------------------------------------- client
+def require_extra() -> None:
+    """Raise :class:`LightplaneError` naming the optional extra when dask.distributed or pyarrow is missing."""
+    import importlib.util
+
+    missing = [m for m in ("distributed", "pyarrow") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise LightplaneError(f"batch measurement needs {' and '.join(missing)}: "
+                              "pip install 'lightplane[distributed]'")
+
+
+@dataclass
+class BatchResult:
+    """What :func:`measure_batch` did; ``scans``: one dict per manifest row (as in manifest.json)."""
+
+    out_dir: Path
+    scans: list
+    seconds: float
+    dashboard: str | None = None
+
+    @property
+    def failed(self) -> list:
+        return [s for s in self.scans if s["status"] == "failed"]
+
+    @property
+    def n_points(self) -> int:
+        return sum(s.get("n_points", 0) for s in self.scans)
+
+    @property
+    def n_frames(self) -> int:
+        return sum(s.get("n_frames", 0) for s in self.scans)
+
+    @property
+    def partitions_written(self) -> int:
+        return sum(s.get("partitions_written", 0) for s in self.scans)
+
+    @property
+    def partitions_reused(self) -> int:
+        return sum(s.get("partitions_reused", 0) for s in self.scans)
+
+
+def local_cluster(n_workers: int, **kwargs):
+    """A LocalCluster of ``n_workers`` single-threaded worker processes (no dashboard without bokeh)."""
+    from distributed import LocalCluster
+
+    opts = dict(n_workers=int(n_workers), threads_per_worker=1, processes=True, dashboard_address=":0")
+    opts.update(kwargs)
+    return LocalCluster(**opts)
+
+
+def _partition_path(out_dir: Path, sid: str, k: int) -> Path:
+    return out_dir / "points" / f"scan={sid}" / f"part-{k}.parquet"
+
+
+def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: str | os.PathLike, *,
+                  client=None, scheduler: str | None = None, local_workers: int | None = None,
+                  chunk_frames: int = DEFAULT_CHUNK_FRAMES, axis: str = "auto", roi=None,
+                  width_px: float | None = None, channel: str | None = None, ply: bool = False,
+                  retries: int = 2, progress: Callable[[str, int, int], None] | None = None,
+                  on_dashboard: Callable[[str | None], None] | None = None, **stripe_options) -> BatchResult:
+    """Measure every scan of ``manifest`` into a hive-partitioned Parquet dataset under ``out_dir``.
+
+    The cluster: an existing ``client`` (``distributed.Client``), a ``scheduler`` address
+    (``tcp://host:port``), or ``local_workers`` worker processes started here (a
+    LocalCluster, closed at the end).  ``chunk_frames`` frames per task.  ``axis``,
+    ``roi``, ``width_px``, ``channel`` and ``stripe_options`` (``smooth_lines``,
+    ``sigma_along_px``...) apply to every scan, as in ``measure``.  ``progress(scan_id,
+    chunks_done, chunks_total)`` after each chunk.  Partitions already complete and up
+    to date are kept (resume).  Returns a :class:`BatchResult`; ``manifest.json`` is
+    written in ``out_dir`` in any case.  Raises :class:`LightplaneError` only for a bad
+    manifest or output folder; a scan's own failure is recorded in its entry.
+    """
+    t0 = time.perf_counter()
+    require_extra()
+    scans = list(manifest) if not isinstance(manifest, (str, os.PathLike)) else read_manifest(manifest)
+    out = Path(out_dir)
+    if not out.resolve().parent.exists():
+        raise LightplaneError(f"{out.parent}: output folder's parent does not exist")
+    if out.exists() and not out.is_dir():
+        raise LightplaneError(f"{out}: exists and is not a folder")
+    if axis not in ("auto", "columns", "rows"):
+        raise LightplaneError(f"axis must be auto, columns or rows, got {axis!r}")
+    if sum(x is not None for x in (client, scheduler, local_workers)) != 1:
+        raise LightplaneError("give exactly one of a client, a scheduler address or a number of local workers")
+    if local_workers is not None and int(local_workers) < 1:
+        raise LightplaneError(f"local workers must be >= 1, got {local_workers}")
+    plan_chunks(1, chunk_frames)  # checks chunk_frames
+    (out / "points").mkdir(parents=True, exist_ok=True)
+    options = {"axis": axis, "roi": None if roi is None else [int(v) for v in roi],
+               "width_px": None if width_px is None else float(width_px), "channel": channel,
+               "stripe": dict(stripe_options)}
+    plans = [_plan(s, chunk_frames, options) for s in scans]
+
+    own_cluster = own_client = None
+    try:
+        if client is None:
+            from distributed import Client
+
+            if scheduler is not None:
+                client = own_client = Client(scheduler)
+            else:
+                assert local_workers is not None  # exactly one of the three was checked above
+                own_cluster = local_cluster(local_workers)
+                client = own_client = Client(own_cluster)
+        dashboard = getattr(client, "dashboard_link", None)
+        if on_dashboard is not None:
+            on_dashboard(dashboard)
+        entries = _run(client, plans, out, options, retries, progress)
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if own_cluster is not None:
+            own_cluster.close()
+    if ply:
+        for e, pl in zip(entries, plans):
+            if e["status"] != "failed" and e["n_points"]:
+                e["ply"] = str(_write_ply(out, e, pl))
+    result = BatchResult(out, entries, time.perf_counter() - t0, dashboard)
+    _write_manifest(out, result, options, chunk_frames, scans)
+    return result
+
+
+def _run(client, plans: list, out: Path, options: dict, retries: int, progress) -> list:
+    from distributed import as_completed
+
+    import uuid
+
+    # keys unique to this run: a key the scheduler still remembers from an earlier run would
+    # give that run's result without running the task (and without rewriting a deleted partition)
+    run = uuid.uuid4().hex[:8]
+    entries, prep_futs, chunk_meta = [], {}, {}
+    for i, pl in enumerate(plans):
+        s = pl.scan
+        e = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
+             "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
+             "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
+             "partitions_reused": 0}
+        entries.append(e)
+        if pl.error is not None:
+            e["status"], e["error"] = "failed", pl.error
+            continue
+        folder = out / "points" / f"scan={s.id}"
+        folder.mkdir(parents=True, exist_ok=True)
+        wanted = {_partition_path(out, s.id, k).name for k, _, _ in pl.chunks}
+        for q in folder.iterdir():  # partitions of an earlier, differently chunked run; temp files of a dead one
+            if q.is_file() and ((q.name.startswith("part-") and q.name not in wanted) or q.name.startswith(".part-")):
+                q.unlink()
+        todo, done = [], {}
+        for k, a, b in pl.chunks:
+            meta = _read_partition_meta(_partition_path(out, s.id, k)) if _partition_path(out, s.id, k).exists() else None
+            if meta is not None and meta.get("token") == pl.tokens[k]:
+                done[k] = meta
+            else:
+                todo.append((k, a, b))
+        chunk_meta[i] = done
+        e["partitions_reused"] = len(done)
+        if todo:
+            common = (pl.camera, pl.plane, pl.motion)
+            prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
+                                 key=f"prepare-{s.id}-{pl.scan_token[:12]}-{run}")
+            prep_futs[i] = [prep]
+            for k, a, b in todo:
+                spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
+                        "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
+                        "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
+                f = client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
+                                  key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}-{run}")
+                prep_futs[i].append(f)
+        if progress is not None:
+            progress(s.id, len(done), len(pl.chunks))
+
+    owner = {f.key: i for i, fs in prep_futs.items() for f in fs[1:]}
+    all_chunks = [f for fs in prep_futs.values() for f in fs[1:]]
+    errors: dict[int, list] = {}
+    for fut in as_completed(all_chunks):
+        i = owner[fut.key]
+        try:
+            res = fut.result()
+        except Exception as exc:  # retries exhausted (worker deaths, bugs): the scan fails, the others go on
+            res = {"chunk": None, "error": f"task {fut.key} failed: {type(exc).__name__}: {exc}"}
+        if "error" in res:
+            errors.setdefault(i, []).append((res["chunk"] if res["chunk"] is not None else -1, res["error"]))
+        else:
+            chunk_meta[i][res["chunk"]] = res
+            entries[i]["partitions_written"] += 1
+        if progress is not None:
+            progress(plans[i].scan.id, len(chunk_meta[i]), len(plans[i].chunks))
+        fut.release()
+    for fs in prep_futs.values():
+        fs[0].release()
+
+    for i, (pl, e) in enumerate(zip(plans, entries)):
+        if pl.error is not None:
+            continue
+        metas = [chunk_meta[i][k] for k, _, _ in pl.chunks if k in chunk_meta[i]]
+        for m in metas:
+            e["partitions"].append({"path": str(_partition_path(out, pl.scan.id, m["chunk"]).relative_to(out)),
+                                    "chunk": m["chunk"], "frames": m["frames"], "n_points": m["n_points"]})
+            e["n_frames"] += m["n_frames"]
+            e["n_points"] += m["n_points"]
+            e["skipped"].extend(m["skipped"])
+            e["frames_without_points"] += m["frames_without_points"]
+            e["axis"], e["width_px"] = m["axis"], m["width_px"]
+        e["n_frames_used"] = e["n_frames"] - len(e["skipped"])
+        if i in errors:
+            e["status"], e["error"] = "failed", min(errors[i])[1]  # the first failing chunk's reason
+        elif pl.motion.n_frames is not None and pl.motion.n_frames != e["n_frames"]:
+            e["status"], e["error"] = "failed", (f"the positions give {pl.motion.n_frames} frames but the input "
+                                                 f"has {e['n_frames']}")
+        elif e["n_frames"] and e["n_frames"] == len(e["skipped"]):
+            e["status"], e["error"] = "failed", f"none of the {e['n_frames']} frames could be read"
+        elif e["n_points"] == 0:
+            e["status"], e["error"] = "failed", (f"no stripe found in any of the {e['n_frames_used']} readable "
+                                                 "frames (laser off, wrong --channel or --roi?)")
+    return entries
+
+
+def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
+    """A scan's points (:data:`lightplane.measure.pointcloud.POINT_DTYPE`) in frame order, from its partitions."""
+    import pyarrow.parquet as pq
+
+    folder = Path(out_dir) / "points" / f"scan={scan_id}"
+    parts = sorted(folder.glob("part-*.parquet"), key=lambda q: int(q.stem.split("-")[1]))
+    arrays = []
+    for q in parts:
+        t = pq.read_table(q)
+        rec = np.empty(t.num_rows, POINT_DTYPE)
+        for name in POINT_FIELDS:
+            rec[name] = t.column(name).to_numpy()
+        arrays.append(rec)
+    return np.concatenate(arrays) if arrays else np.empty(0, POINT_DTYPE)
+
+
+def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
+    from lightplane.measure.pointcloud import PointSpool, write_cloud
+
+    import pyarrow.parquet as pq
+
+    assert pl.motion is not None  # only planned scans get this far
+    (out / "ply").mkdir(exist_ok=True)
+    dest = out / "ply" / f"{pl.scan.id}.ply"
+    with PointSpool(out / "ply") as spool:
+        for part in e["partitions"]:
+            t = pq.read_table(out / part["path"])
+            rec = np.empty(t.num_rows, POINT_DTYPE)
+            for name in POINT_FIELDS:
+                rec[name] = t.column(name).to_numpy()
+            spool.append(rec)
+        lines = ["lightplane point cloud: x y z in mm (camera frame"
+                 + (", object at frame 0" if pl.motion.kind != "none" else "") + ")",
+                 f"plane: {pl.plane!r}", f"scan: {pl.scan.id} ({pl.scan.input})", f"frames: {e['n_frames']}",
+                 f"skipped: {len(e['skipped'])}"]
+        write_cloud(dest, spool, fmt="ply", force=True, comments=lines)
+    return dest
+
+
+def _write_manifest(out: Path, result: BatchResult, options: dict, chunk_frames: int, scans) -> None:
+    from lightplane.core.io import provenance, write_json
+
+    prov = provenance([s.input for s in scans], {**options, "chunk_frames": int(chunk_frames)})
+    ok = [s for s in result.scans if s["status"] == "ok"]
+    doc = {"format": "lightplane batch", "layout": _LAYOUT, "provenance": prov,
+           "dataset": {"path": "points", "format": "parquet", "partitioning": "hive", "partition_key": "scan",
+                       "columns": list(POINT_FIELDS)},
+           "summary": {"scans": len(result.scans), "ok": len(ok), "failed": len(result.failed),
+                       "frames": result.n_frames, "points": result.n_points,
+                       "partitions_written": result.partitions_written,
+                       "partitions_reused": result.partitions_reused, "seconds": round(result.seconds, 3)},
+           "scans": result.scans}
+    write_json(out / "manifest.json", doc, force=True)

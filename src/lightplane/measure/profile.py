@@ -1,0 +1,637 @@
+"""Measurement: pixels to 3D points on the light plane (docs/method.md §Triangulation, paper Eq. 2 and 4).
+
+pixel → undistorted normalised ``(x, y)`` → ray ``X = s (x, y, 1)`` → on the
+plane ``s = -d / (a x + b y + c)``.  Rays nearly parallel to the plane give NaN
+(flagged), never huge numbers.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from lightplane.camera.model import Camera, as_points
+from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane
+
+__all__ = ["triangulate", "triangulate_normalized", "Triangulation", "GRAZING_COS"]
+
+#: Rays whose direction makes |cos| with the plane normal below this are rejected
+#: (about 0.06°: a 0.01 px error there moves the point by metres).
+GRAZING_COS = 1e-3
+#: defaults of the per-point stripe-width filter (:class:`ProfileMeasurer`): width / frame median
+MIN_WIDTH_RATIO = 0.8
+MAX_WIDTH_RATIO = 2.0
+#: fewer valid lines than this in a frame: no width filter (the median would mean little)
+WIDTH_FILTER_MIN_LINES = 20
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """Triangulated points and which rays were rejected.
+
+    ``points`` (N, 3) mm, NaN where ``grazing`` (ray nearly parallel to the plane)
+    or ``behind`` (the plane is behind the camera along that ray).
+    """
+
+    points: np.ndarray
+    grazing: np.ndarray
+    behind: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        p = self.points  # column by column: 5x faster than np.all(..., axis=1) on (N, 3)
+        return ~(self.grazing | self.behind) & np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(p[:, 2])
+
+
+def triangulate_normalized(plane: LightPlane, xy: np.ndarray, *, min_cos: float = GRAZING_COS) -> Triangulation:
+    """Intersect rays ``(x, y, 1)`` (normalised, undistorted, ``(N, 2)``) with the plane."""
+    from lightplane.measure._kernels import triangulate_rays
+
+    xy = as_points(xy, 2, "xy")
+    n = len(xy)
+    pts, grazing, behind = np.empty((n, 3)), np.empty(n, bool), np.empty(n, bool)
+    a, b, c = plane.normal
+    triangulate_rays(xy, float(a), float(b), float(c), float(plane.d), float(min_cos), pts, grazing, behind)
+    return Triangulation(pts, grazing, behind)
+
+
+def triangulate(camera: Camera, plane: LightPlane, uv: np.ndarray, *, min_cos: float = GRAZING_COS,
+                return_flags: bool = False):
+    """Triangulate distorted pixels ``uv`` ``(N, 2)`` on the light plane → ``(N, 3)`` mm, camera frame.
+
+    Rays nearly parallel to the plane (|cos| between ray and plane normal below
+    ``min_cos``) or meeting it behind the camera give NaN rows.  With
+    ``return_flags=True`` returns a :class:`Triangulation` with the flags.
+
+    >>> import numpy as np
+    >>> cam = Camera(np.array([[1000., 0, 640], [0, 1000, 480], [0, 0, 1]]), np.zeros(5), 1280, 960)
+    >>> pl = LightPlane([0, 0, 1], -500)
+    >>> triangulate(cam, pl, np.array([[640., 480.]]))
+    array([[  0.,   0., 500.]])
+    """
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    if not isinstance(plane, LightPlane):
+        raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+    uv = as_points(uv, 2, "uv")
+    t = triangulate_normalized(plane, camera.undistort_points(uv, normalized=True), min_cos=min_cos)
+    return t if return_flags else t.points
+
+
+# ======================================================================================
+# Profiles: one stripe centre per image column (row) -> 3D points with uncertainty
+
+__all__ += ["Profile", "ProfileMeasurer", "measure_profile", "profile_axis", "points_sigma_mm", "profile_cache_info",
+            "clear_profile_cache"]
+
+AXES = ("columns", "rows")
+
+
+def profile_axis(plane: LightPlane) -> str:
+    """Which profile axis suits the sensor: ``"columns"`` or ``"rows"``.
+
+    On a surface facing the camera (normal along the optical axis) the stripe runs
+    along ``n x z = (b, -a, 0)`` in the image (``(a, b, c)`` the plane's normal):
+    mostly horizontal when ``|b| >= |a|`` → one centre per column, else one per row.
+
+    >>> profile_axis(LightPlane([0.906, 0, -0.423], -190.0))
+    'rows'
+    """
+    a, b, _ = plane.normal
+    return "columns" if abs(b) >= abs(a) else "rows"
+
+
+def points_sigma_mm(plane: LightPlane, xy: np.ndarray, *, covariance: np.ndarray | None = None) -> np.ndarray:
+    """σ (mm) of points triangulated from normalised rays ``xy`` (N, 2), from the plane's covariance.
+
+    Same quantity as :func:`lightplane.plane.uncertainty.point_sigma_mm` (``sqrt(trace Cov X)``,
+    first-order propagation of the 4x4 covariance of ``(a, b, c, d)``), computed from
+    rays instead of pixels.  With ``X = -d x̃ / (n·x̃)`` the Jacobian is rank one,
+    ``∂X/∂(n, d) = x̃ wᵀ``, ``w = (d x̃ / (n·x̃)², -1 / (n·x̃))``, so
+    ``trace Cov X = |x̃|² wᵀ Σ w``.  ``covariance``: a 4x4 of ``(a, b, c, d)`` to use
+    instead of the plane's (e.g. a Cramér–Rao bound).  NaN where there is no covariance
+    or the ray grazes the plane.  (The package's one point-sigma formula:
+    :func:`~lightplane.plane.uncertainty.point_sigma_mm` is this, from pixels.)
+    """
+    xy = as_points(xy, 2, "xy")
+    cov = plane.covariance if covariance is None else covariance
+    if cov is None:
+        return np.full(len(xy), np.nan)
+    xt = np.column_stack([xy, np.ones(len(xy))])
+    den = xt @ plane.normal
+    n2 = np.einsum("ij,ij->i", xt, xt)
+    bad = ~(np.abs(den) >= GRAZING_COS * np.sqrt(n2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.column_stack([plane.d * xt / (den**2)[:, None], -1.0 / den])
+        q = np.einsum("ij,jk,ik->i", w, cov, w)
+        s = np.sqrt(n2 * np.maximum(q, 0.0))
+    s[bad] = np.nan
+    return s
+
+
+@dataclass(frozen=True)
+class Profile:
+    """One measured stripe profile: 3D points of one frame.
+
+    One entry per image column (``axis="columns"``) or row of the roi:
+
+    - ``points`` (N, 3) float64 mm, camera frame; NaN where not ``valid``;
+    - ``sigma_mm`` (N,) σ of each point (camera frame) from the plane's covariance and,
+      when the camera file has a covariance and the plane file its dependence on the
+      intrinsics, the camera's share (:func:`lightplane.plane.uncertainty.point_error_basis`;
+      ``ProfileMeasurer.camera_share_missing`` says why not otherwise); NaN when the
+      plane has no covariance;
+    - ``uv`` (N, 2) float64 distorted source pixels of the stripe centres;
+    - ``valid`` (N,) bool: a stripe centre was found and its ray meets the plane;
+    - ``intensity`` (N,) smoothed image value at the stripe's peak (grey levels);
+    - ``width_px`` (N,) stripe width (FWHM, px) across the stripe;
+    - ``axis`` ``"columns"`` or ``"rows"``;
+    - ``width_rejected`` (N,) bool: a stripe centre was found and triangulated but
+      dropped by the width filter (``min_width_ratio`` / ``max_width_ratio`` of
+      :class:`ProfileMeasurer`); None when the profile did not go through it.
+    """
+
+    points: np.ndarray
+    sigma_mm: np.ndarray
+    uv: np.ndarray
+    valid: np.ndarray
+    intensity: np.ndarray
+    width_px: np.ndarray
+    axis: str
+    width_rejected: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+
+class ProfileMeasurer:
+    """Stripe images → :class:`Profile`, with the per-camera work done once.
+
+    Each frame: :func:`lightplane.stripe.extract.extract_profile` (one sub-pixel centre per
+    column or row), then pixel → undistorted normalised ray → light plane (docs/method.md §Triangulation,
+    paper Eq. 2 and 4), and σ from the plane's covariance.
+
+    With ``lookup=True`` (default) the exact undistortion (``Camera.undistort_points``)
+    of every pixel of the roi is computed once, with its derivative along the profile
+    direction (inverse of the distortion's Jacobian, docs/conventions.md §Lens model).  A centre at sub-pixel
+    position ``t`` along its column (row) then costs a cubic Hermite interpolation
+    between the two bracketing pixels (error O(h⁴): below 1e-9 px for the default
+    sensor's distortion), instead of an iterative undistortion per point.
+    Tables: 24 bytes per roi pixel (30 MB for 1280x960 when complete), filled in blocks of
+    32 lines x 64 samples as the frames' centres first need them (a stripe across a
+    1280x960 frame: ~35 of the 600 blocks, ~20 ms), or all at once by :meth:`build_lookup`;
+    a block's values do not depend on when it is built, so the numbers are the same
+    either way, bit for bit.  Not pickled (each worker process builds its own).
+    ``lookup=False`` undistorts the centres exactly per frame.
+
+    Parameters
+    ----------
+    camera, plane : the calibration.
+    axis : ``"columns"`` (stripe roughly horizontal), ``"rows"`` or ``"auto"``
+        (:func:`profile_axis`).
+    roi : ``(x, y, width, height)`` px or None (whole image).
+    smooth_lines : 0 (default: every line's own centre) or an odd window ``>= 5``: the
+        sub-pixel centres along each run of consecutive valid lines are smoothed by a
+        quadratic Savitzky–Golay filter over that many lines (runs shorter than the
+        window are left alone).  Laser speckle gives each centre 0.1–0.3 px of
+        independent-ish noise (docs/conventions.md §Noise); a quadratic local fit averages it away
+        (noise × ~0.6 for 7 lines) without biasing curves of radius much larger than
+        the window (a quadratic is reproduced exactly).  It also blurs real detail
+        finer than the window (edges, steps): off for edge-sensitive measurement.
+    min_ray_cos : grazing-ray limit (``min_cos`` of :func:`triangulate_normalized`).
+    min_width_ratio, max_width_ratio : per-point quality filter on the stripe's width
+        (FWHM across the stripe, px).  A point whose width is below ``min_width_ratio``
+        or above ``max_width_ratio`` times the frame's typical width (median over its
+        valid lines, at least :data:`WIDTH_FILTER_MIN_LINES` of them) is dropped
+        (``valid`` False, ``width_rejected`` True).  Why: the light sheet has a
+        Gaussian thickness (σ = 0.2 mm in the renders), and its footprint is seen
+        foreshortened by cos(view angle).  A stripe much narrower than the frame's
+        typical one is a surface seen nearly edge-on (near a curved object's
+        silhouette); there the footprint's projection is compressed unevenly across
+        the stripe, so the intensity centre is not the sheet's mid-plane crossing and
+        the point lands inside the surface (clean rendered sphere, R 25.4 mm, true
+        plane, a σ 0.35 mm sheet — the bias grows as σ², ~3x smaller at 0.2 mm:
+        mean residual +0.004 mm for view angles < 60°, -0.015 mm at 60–70°,
+        -0.023 at 70–80°, -0.042 beyond 80°, where widths are 0.9, 0.8 and 0.7 × the
+        frame median).  A stripe much wider than typical is a surface nearly parallel
+        to the sheet, where the thickness is smeared across the surface.  Defaults
+        (0.8, 2.0) chosen on the rendered sphere / step / plane scans
+        (``benchmarks/bench_measure.py accuracy``); ``0`` and ``inf`` switch the
+        filter off.  No correction of the bias from the width is applied: the bias
+        depends on the local curvature and view angle together, which one width does
+        not determine.  Not caught: frames where the sheet meets a curved surface
+        at a low angle everywhere (the sphere's ends along the scan: stripe ~12 px
+        against ~7 px, points ~0.03 mm outside), since the reference is the frame's
+        own median; with them the clean sphere's fitted radius was still ~0.018 mm low
+        with the 0.35 mm sheet (~0.006 mm with 0.2 mm).
+    **stripe_options : passed to :func:`lightplane.stripe.extract.extract_profile`
+        (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ``min_cos`` — the
+        stripe's own limit on how obliquely it may cross a line, ...).
+    """
+
+    def __init__(self, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
+                 lookup: bool = True, smooth_lines: int = 0, min_ray_cos: float = GRAZING_COS,
+                 min_width_ratio: float = MIN_WIDTH_RATIO, max_width_ratio: float = MAX_WIDTH_RATIO,
+                 **stripe_options) -> None:
+        if not isinstance(camera, Camera):
+            raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+        if not isinstance(plane, LightPlane):
+            raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+        if axis == "auto":
+            axis = profile_axis(plane)
+        if axis not in AXES:
+            raise LightplaneError(f"axis must be 'columns', 'rows' or 'auto', got {axis!r}")
+        if "axis" in stripe_options or "roi" in stripe_options:
+            raise LightplaneError("pass axis and roi to ProfileMeasurer itself")
+        self.camera = camera
+        self.plane = plane
+        self.axis = axis
+        from lightplane.stripe.extract import check_roi
+
+        self.roi = check_roi(roi, camera.width, camera.height, min_size=3)
+        self.min_ray_cos = float(min_ray_cos)
+        k = int(smooth_lines)
+        if k != smooth_lines or k < 0 or (k and (k < 5 or k % 2 == 0)):
+            raise LightplaneError(f"smooth_lines must be 0 or an odd integer >= 5, got {smooth_lines!r}")
+        self.smooth_lines = k
+        lo, hi = float(min_width_ratio), float(max_width_ratio)
+        if not (0.0 <= lo < 1.0 < hi) or np.isnan(hi):
+            raise LightplaneError(f"need 0 <= min_width_ratio < 1 < max_width_ratio, got {min_width_ratio!r}, "
+                                  f"{max_width_ratio!r}")
+        self.min_width_ratio, self.max_width_ratio = lo, hi
+        self.stripe_options = dict(stripe_options)
+        from lightplane.plane.uncertainty import camera_share_status
+
+        #: None when the points' sigma includes the camera's share, else why not (one sentence)
+        self.camera_share_missing = camera_share_status(camera, plane)
+        self._lookup = bool(lookup)
+        # lookup tables (xy, d xy / d sample per roi pixel) and which blocks of them are built
+        self._xy: np.ndarray | None = None
+        self._dxy: np.ndarray | None = None
+        self._built: np.ndarray | None = None
+        #: how many table blocks this measurer has built (a diagnostic: repeated frames build none)
+        self.blocks_built = 0
+        self._lock = threading.Lock()
+
+    # ---------------------------------------------------------------- lookup tables
+    #: the tables are built in blocks of this many lines x samples, when a centre first needs one
+    BLOCK_LINES, BLOCK_SAMPLES = 32, 64
+
+    @property
+    def has_lookup(self) -> bool:
+        """Whether the lookup tables are in use (some block built; never with ``lookup=False``)."""
+        return self._built is not None and bool(self._built.any())
+
+    @property
+    def lookup_complete(self) -> bool:
+        """Whether every block of the lookup tables is built (:meth:`build_lookup`)."""
+        return self._built is not None and bool(self._built.all())
+
+    def build_lookup(self) -> None:
+        """Build all the lookup tables now (otherwise block by block as centres need them).  Thread-safe."""
+        if not self._lookup:
+            return
+        _, _, built = self._alloc_tables()
+        nlb, nsb = built.shape
+        for lb in range(nlb):  # one row of blocks at a time: the undistortion's temporaries stay small
+            self._ensure_blocks(np.full(nsb, lb), np.arange(nsb))
+
+    def __getstate__(self) -> dict:
+        # sent to worker processes without the tables (30 MB) or the lock: each builds its own
+        state = self.__dict__.copy()
+        state["_xy"] = state["_dxy"] = state["_built"] = None
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    def _line_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Line indices (image column or row numbers) and sample coordinates of the roi."""
+        x, y, w, h = self.roi
+        if self.axis == "columns":
+            return np.arange(x, x + w), np.arange(y, y + h)
+        return np.arange(y, y + h), np.arange(x, x + w)
+
+    def _alloc_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (uninitialised) table arrays and the map of built blocks; pages are touched only when filled."""
+        if self._built is None:
+            with self._lock:
+                if self._built is None:
+                    lines, samples = self._line_grid()
+                    L, S = lines.size, samples.size
+                    self._xy = np.empty((L, S, 2))
+                    self._dxy = np.empty((L, S, 2), np.float32)
+                    self._built = np.zeros((-(-L // self.BLOCK_LINES), -(-S // self.BLOCK_SAMPLES)), bool)
+        # the map of built blocks is set last: once it exists, so do the tables
+        assert self._xy is not None and self._dxy is not None and self._built is not None
+        return self._xy, self._dxy, self._built
+
+    def _ensure_blocks(self, lb: np.ndarray, sb: np.ndarray) -> None:
+        """Build the blocks ``(lb[i], sb[i])`` not built yet (one undistortion call for all of them)."""
+        _, _, built = self._alloc_tables()
+        need = ~built[lb, sb]
+        if not need.any():
+            return
+        with self._lock:
+            todo = np.unique(np.ravel_multi_index((lb[need], sb[need]), built.shape))
+            todo = todo[~built.ravel()[todo]]  # another thread may have built some meanwhile
+            if todo.size:
+                self._build_blocks(*np.unravel_index(todo, built.shape))
+
+    def _build_blocks(self, lbs: np.ndarray, sbs: np.ndarray) -> None:
+        """Fill the table blocks ``(lbs[i], sbs[i])``; the values do not depend on which blocks go together
+        (the undistortion and the Jacobian are per point), so a lazily filled table equals a full build."""
+        lines, samples = self._line_grid()
+        BL, BS = self.BLOCK_LINES, self.BLOCK_SAMPLES
+        # d(xy)/d(sample): xy_d = K^-1 uv is linear in the pixel, xy = distort^-1(xy_d)
+        K = self.camera.K
+        dxd = np.array([1.0 / K[0, 0], 0.0]) if self.axis == "rows" \
+            else np.array([-K[0, 1] / (K[0, 0] * K[1, 1]), 1.0 / K[1, 1]])
+        li_parts, si_parts = [], []
+        for lb, sb in zip(lbs, sbs):
+            l_idx = np.arange(lb * BL, min((lb + 1) * BL, lines.size))
+            s_idx = np.arange(sb * BS, min((sb + 1) * BS, samples.size))
+            ll, ss = np.meshgrid(l_idx, s_idx, indexing="ij")
+            li_parts.append(ll.ravel())
+            si_parts.append(ss.ravel())
+        li, si = np.concatenate(li_parts), np.concatenate(si_parts)
+        lv, sv = lines[li].astype(float), samples[si].astype(float)
+        uv = np.column_stack([lv, sv]) if self.axis == "columns" else np.column_stack([sv, lv])
+        xy = self.camera.undistort_points(uv, normalized=True)
+        j11, j12, j21, j22 = self.camera.distortion_jacobian(xy)
+        det = j11 * j22 - j12 * j21
+        d = np.column_stack([(j22 * dxd[0] - j12 * dxd[1]) / det, (-j21 * dxd[0] + j11 * dxd[1]) / det])
+        tab_xy, tab_dxy, built = self._alloc_tables()
+        tab_xy[li, si] = xy
+        tab_dxy[li, si] = d
+        built[lbs, sbs] = True  # after the values: a reader that sees the flag sees them
+        self.blocks_built += len(lbs)
+
+    def normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Undistorted normalised ``(x, y)`` (N, 2) of stripe centres ``uv`` (N, 2) px.
+
+        Centres must lie on the grid lines of the measurer's axis (``u`` an integer
+        column for ``"columns"``, ``v`` an integer row for ``"rows"``) inside the roi,
+        as :func:`extract_profile` returns them; NaN rows stay NaN.  Without lookup
+        tables (or for points off the grid lines) the exact undistortion is used.
+        """
+        uv = as_points(uv, 2, "uv")
+        if not self._lookup:
+            return self.camera.undistort_points(uv, normalized=True)
+        from lightplane.measure._kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup
+
+        tab_xy, tab_dxy, built = self._alloc_tables()
+        x, y = self.roi[:2]
+        line0, sample0 = (x, y) if self.axis == "columns" else (y, x)
+        li, si = (0, 1) if self.axis == "columns" else (1, 0)
+        line = uv[:, li] - line0
+        t = uv[:, si] - sample0
+        out = np.empty(uv.shape)
+        status = np.empty(len(uv), np.int8)
+        hermite_lookup(tab_xy, tab_dxy, built, self.BLOCK_LINES, self.BLOCK_SAMPLES, line, t, out, status)
+        todo = np.flatnonzero(status == NOT_BUILT)
+        if todo.size:  # blocks first needed now: build them, then look these points up
+            S = tab_xy.shape[1]
+            lb = np.rint(line[todo]).astype(np.intp) // self.BLOCK_LINES
+            i0 = np.clip(np.floor(t[todo]), 0, S - 2).astype(np.intp)
+            self._ensure_blocks(np.concatenate([lb, lb]), np.concatenate([i0, i0 + 1]) // self.BLOCK_SAMPLES)
+            sub_out, sub_status = np.empty((todo.size, 2)), np.empty(todo.size, np.int8)
+            hermite_lookup(tab_xy, tab_dxy, built, self.BLOCK_LINES, self.BLOCK_SAMPLES, line[todo], t[todo],
+                           sub_out, sub_status)
+            assert np.all(sub_status == DONE)
+            out[todo] = sub_out
+            status[todo] = sub_status
+        off = status == OFF_GRID
+        if off.any():
+            out[off] = self.camera.undistort_points(uv[off], normalized=True)
+        return out
+
+    # --------------------------------------------------------------------- measure
+    def __call__(self, image: np.ndarray) -> Profile:
+        """Measure one frame: ``image`` (H, W) or (H, W, 3), the camera's size."""
+        from lightplane.stripe.extract import extract_profile
+
+        if not isinstance(image, np.ndarray):
+            raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
+        self.camera.check_image(image)
+        x, y, w, h = self.roi
+        roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
+        sp = extract_profile(image, self.axis, roi=roi, **self.stripe_options)
+        uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
+        prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width)
+        return width_filter(prof, self.min_width_ratio, self.max_width_ratio)
+
+    #: regions of interest with at most this many samples per line (rows for ``axis="columns"``) are
+    #: profiled a batch of frames per call (:meth:`measure_many`): there the per-call costs dominate
+    BATCH_MAX_SAMPLES = 128
+
+    @property
+    def batches(self) -> bool:
+        """Whether :meth:`measure_many` profiles its frames in one call (a short roi of a given stripe
+        width, the numba backend); the numbers are those of frame by frame either way."""
+        x, y, w, h = self.roi
+        samples = h if self.axis == "columns" else w
+        opts = self.stripe_options
+        return (samples <= self.BATCH_MAX_SAMPLES and opts.get("width_px") is not None
+                and opts.get("backend", "numba") == "numba" and "parallel" not in opts)
+
+    def measure_many(self, images) -> list[Profile]:
+        """:meth:`__call__` of each image; for a short roi (:attr:`batches`) the stripe profiles of
+        all of them come from one :func:`lightplane.stripe.extract.extract_profiles` call (identical numbers)."""
+        images = list(images)
+        if len(images) < 2 or not self.batches:
+            return [self(im) for im in images]
+        from lightplane.stripe.extract import extract_profiles
+
+        for im in images:
+            if not isinstance(im, np.ndarray):
+                raise LightplaneError(f"image must be a numpy array, got {type(im).__name__}")
+            self.camera.check_image(im)
+        x, y, w, h = self.roi
+        roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
+        out = []
+        for sp in extract_profiles(images, self.axis, roi=roi, **self.stripe_options):
+            uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
+            out.append(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
+                                    self.min_width_ratio, self.max_width_ratio))
+        return out
+
+    def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
+                    width_px: np.ndarray | None = None) -> Profile:
+        """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""
+        uv = as_points(uv, 2, "uv")
+        valid = np.asarray(valid, bool) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
+        xy = self.normalized(np.where(valid[:, None], uv, np.nan))
+        tri = triangulate_normalized(self.plane, xy, min_cos=self.min_ray_cos)
+        ok = valid & tri.valid
+        pts = tri.points
+        pts[~ok] = np.nan
+        if self.camera_share_missing is None and self.plane.covariance is not None and np.any(ok):
+            from lightplane.plane.uncertainty import point_error_basis
+
+            sigma = np.full(len(uv), np.nan)
+            E, _ = point_error_basis(self.camera, self.plane, uv[ok])
+            sigma[ok] = np.sqrt(np.sum(E**2, axis=(1, 2)))
+        else:
+            sigma = points_sigma_mm(self.plane, xy)
+        sigma[~ok] = np.nan
+        n = len(uv)
+        inten = np.full(n, np.nan) if intensity is None else np.asarray(intensity, float)
+        width = np.full(n, np.nan) if width_px is None else np.asarray(width_px, float)
+        return Profile(points=pts, sigma_mm=sigma, uv=uv, valid=ok, intensity=inten, width_px=width, axis=self.axis)
+
+
+def width_filter(prof: Profile, min_ratio: float = MIN_WIDTH_RATIO, max_ratio: float = MAX_WIDTH_RATIO) -> Profile:
+    """Drop points whose stripe width is outside ``[min_ratio, max_ratio]`` × the frame's median width.
+
+    The median is over the valid points with a finite width; with fewer than
+    :data:`WIDTH_FILTER_MIN_LINES` of them nothing is dropped.  Returns a new
+    :class:`Profile` (``valid`` False, ``points``/``sigma_mm`` NaN and
+    ``width_rejected`` True for the dropped points).  See :class:`ProfileMeasurer`.
+    """
+    from lightplane.measure._kernels import median_where
+
+    w = np.asarray(prof.width_px, float)
+    valid = np.asarray(prof.valid, bool)
+    rej = np.zeros(len(prof), bool)
+    if min_ratio > 0 or np.isfinite(max_ratio):
+        med, n = median_where(w, valid)   # np.median over the valid finite widths, one pass
+        if n >= WIDTH_FILTER_MIN_LINES:   # (NaN widths compare False: never rejected)
+            rej = valid & ((w < min_ratio * med) | (w > max_ratio * med))
+    if not rej.any():
+        return replace(prof, width_rejected=rej)
+    pts, sig = prof.points.copy(), prof.sigma_mm.copy()
+    pts[rej], sig[rej] = np.nan, np.nan
+    return replace(prof, points=pts, sigma_mm=sig, valid=prof.valid & ~rej, width_rejected=rej)
+
+
+def smooth_centres(uv: np.ndarray, valid: np.ndarray, axis: str, window: int) -> np.ndarray:
+    """Quadratic Savitzky–Golay smoothing of profile centres along runs of consecutive valid lines.
+
+    ``uv`` (N, 2) one centre per line (as :func:`lightplane.stripe.extract.extract_profile`
+    returns them); only the sub-pixel coordinate along the lines changes.  Runs shorter
+    than ``window`` are returned unchanged.
+    """
+    from scipy.signal import savgol_filter
+
+    out = uv.copy()
+    k = 1 if axis == "columns" else 0
+    v = np.asarray(valid, bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], v.view(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a >= window:
+            out[a:b, k] = savgol_filter(uv[a:b, k], window, 2, mode="interp")
+    return out
+
+
+#: how many measurers :func:`measure_profile` keeps (each holds up to 24 bytes per roi pixel of tables)
+PROFILE_CACHE_SIZE = 4
+_profile_cache: OrderedDict = OrderedDict()
+_profile_cache_lock = threading.Lock()
+_profile_cache_stats = {"hits": 0, "misses": 0}
+
+
+def _array_key(a) -> tuple | None:
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return (a.dtype.str, a.shape, a.tobytes())
+
+
+def _profile_cache_key(image: np.ndarray, camera: Camera, plane: LightPlane, axis, roi, options: dict):
+    """A hashable fingerprint of everything a :class:`ProfileMeasurer` depends on (by value, not identity:
+    an equal camera or plane built anew hits, a changed one never does); None when an option is unhashable."""
+    try:
+        opts = tuple(sorted((k, v if not isinstance(v, np.ndarray) else _array_key(v)) for k, v in options.items()))
+        roi_key = None if roi is None else tuple(float(v) for v in roi)
+        key = (_array_key(camera.K), camera.model, _array_key(camera.dist), camera.width, camera.height,
+               _array_key(plane.normal), float(plane.d), _array_key(plane.covariance),
+               tuple(image.shape), axis, roi_key, opts)
+        hash(key)
+    except (TypeError, ValueError):
+        return None
+    return key
+
+
+def profile_cache_info() -> dict:
+    """:func:`measure_profile`'s cache: ``hits``, ``misses``, ``size`` (measurers held), ``maxsize``."""
+    with _profile_cache_lock:
+        return {**_profile_cache_stats, "size": len(_profile_cache), "maxsize": PROFILE_CACHE_SIZE}
+
+
+def clear_profile_cache() -> None:
+    """Drop :func:`measure_profile`'s cached measurers (and their tables)."""
+    with _profile_cache_lock:
+        _profile_cache.clear()
+        _profile_cache_stats.update(hits=0, misses=0)
+
+
+def _cached_measurer(image, camera, plane, axis, roi, options) -> ProfileMeasurer:
+    key = _profile_cache_key(image, camera, plane, axis, roi, options)
+    if key is None:
+        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)
+    with _profile_cache_lock:
+        m = _profile_cache.get(key)
+        if m is not None:
+            _profile_cache.move_to_end(key)
+            _profile_cache_stats["hits"] += 1
+            return m
+    m = ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)  # raises on bad input: nothing cached
+    with _profile_cache_lock:
+        m = _profile_cache.setdefault(key, m)
+        _profile_cache.move_to_end(key)
+        _profile_cache_stats["misses"] += 1
+        while len(_profile_cache) > PROFILE_CACHE_SIZE:
+            _profile_cache.popitem(last=False)
+    return m
+
+
+def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
+                    cache: bool = True, **stripe_options) -> Profile:
+    """3D profile of one stripe image (docs/method.md §Triangulation, §Stripe centres): points (mm, camera frame), σ, pixels.
+
+    One stripe centre per column (``axis="columns"``) or row (``"rows"``; ``"auto"``
+    picks from the plane, :func:`profile_axis`) within ``roi`` ``(x, y, width, height)``,
+    triangulated on ``plane``; ``stripe_options`` go to
+    :func:`lightplane.stripe.extract.extract_profile` (and the other keyword options of
+    :class:`ProfileMeasurer`).
+
+    Same numbers, bit for bit, as ``ProfileMeasurer(camera, plane, axis=axis, roi=roi,
+    **stripe_options)(image)``: with ``cache=True`` (default) the measurer, and with it
+    its undistortion lookup tables, is kept per (camera, plane, image shape, options),
+    compared by value (:data:`PROFILE_CACHE_SIZE` of them, least recently used dropped;
+    :func:`profile_cache_info`, :func:`clear_profile_cache`), so repeated calls on the
+    frames of one setup do not rebuild anything.  ``cache=False`` keeps nothing and
+    undistorts the centres exactly instead (``lookup=False``; the same points to ~1e-9 px).
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> cam = Camera(np.array([[1000., 0, 64], [0, 1000, 48], [0, 0, 1]]), np.zeros(5), 128, 96)
+    >>> pl = LightPlane([0, 1, -0.5], 100)         # stripe along the columns
+    >>> v = np.arange(96.0)[:, None]
+    >>> img = (200 * np.exp(-0.5 * ((v - 40.25) / 1.5) ** 2) + 0 * np.arange(128.0)).astype(np.uint8)
+    >>> prof = measure_profile(img, cam, pl, width_px=3.5)
+    >>> prof.axis, prof.n_valid > 100, bool(np.allclose(pl.signed_distance(prof.points[prof.valid]), 0, atol=1e-9))
+    ('columns', True, True)
+    """
+    if not isinstance(camera, Camera):
+        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
+    if not isinstance(plane, LightPlane):
+        raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
+    if not isinstance(image, np.ndarray):
+        raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
+    camera.check_image(image)  # before the cache: a wrong-sized frame leaves no entry
+    if not cache:
+        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, lookup=False, **stripe_options)(image)
+    return _cached_measurer(image, camera, plane, axis, roi, stripe_options)(image)

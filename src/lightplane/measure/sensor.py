@@ -1,0 +1,317 @@
+"""One sensor file: what a measurement needs (docs/conventions.md §Sensor file).
+
+A sensor file (JSON) holds the camera, the named light planes (with their
+covariances) and the motion calibration — a turntable's axis
+(:class:`lightplane.motion.model.Turntable`) or a robot's sensor-to-flange transform — each
+with the provenance of the file it came from, and how frames are read (a clockwise
+rotation applied to every image file, e.g. FabScan's).  ``lightplane sensor``
+assembles one from calibration files, ``lightplane import-fabscan`` from a FabScanPi
+``fabscan-config.json``; ``lightplane measure --sensor`` measures with it, one frame
+sequence per laser, into one cloud with a ``laser`` attribute (:func:`measure_lasers`).
+
+Layout::
+
+    {"kind": "lightplane sensor", "version": 1,
+     "camera": {width, height, K, dist, rms_px?, provenance?},
+     "frames": {"rotate_deg": 0},
+     "planes": {"laser0": {normal, d, covariance, units, frame, provenance?...}, ...},
+     "turntable": {point_mm, direction, covariance, camera, counts_per_rev, ...} | null,
+     "flange": {"T_flange_cam": {"R", "t_mm"}, "provenance"?} | null,
+     "provenance": {...}}
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Sequence
+
+import numpy as np
+
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.motion.model import Motion, Turntable, _rigid_from_dict
+from lightplane.plane.model import LightPlane
+from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
+
+__all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
+
+SENSOR_KIND = "lightplane sensor"
+
+if TYPE_CHECKING:
+    from lightplane.measure.scan import FrameSource
+
+#: a merged cloud's records: :data:`lightplane.measure.pointcloud.POINT_DTYPE` and the laser's index
+#: (the names are listed in the file's comments, ``laser 0: NAME``)
+LASER_POINT_DTYPE = np.dtype(POINT_DTYPE.descr + [("laser", "<u1")])
+
+
+def plane_name(plane: LightPlane, fallback: str) -> str:
+    """A plane's laser name: its file's top-level ``laser`` field, else ``fallback``."""
+    name = plane.meta.get("laser")
+    return str(name) if isinstance(name, str) and name else fallback
+
+
+def _check_name(name: str) -> str:
+    if not name or any(c in name for c in "=,; \t") or not name.isprintable():
+        raise LightplaneError(f"laser name {name!r}: use letters, digits, '_' or '-' (no spaces, '=', ',')")
+    return name
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """Camera, named planes, motion calibration; ``rotate_deg``: how image files are read."""
+
+    camera: Camera
+    planes: dict
+    turntable: Turntable | None = None
+    flange: tuple[np.ndarray, np.ndarray] | None = None
+    rotate_deg: int = 0
+    records: dict = field(default_factory=dict)  # per part: its provenance as read
+
+    def plane(self, name: str, source: str = "sensor file") -> LightPlane:
+        if name not in self.planes:
+            have = ", ".join(self.planes) or "none"
+            raise LightplaneError(f"{source}: no laser named {name!r} (it has: {have})")
+        return self.planes[name]
+
+    def to_dict(self, provenance: dict | None = None) -> dict:
+        cam = self.camera.to_dict()
+        cam.update({k: v for k, v in self.records.get("camera", {}).items() if k not in cam})
+        d = {"kind": SENSOR_KIND, "version": 1, "units": "mm", "frame": "camera", "camera": cam,
+             "frames": {"rotate_deg": self.rotate_deg, "note": "image files are rotated clockwise by rotate_deg "
+                        "before use; the camera refers to the rotated frame"},
+             "planes": {n: p.to_dict() for n, p in self.planes.items()},
+             "turntable": None if self.turntable is None else self.turntable.to_dict(),
+             "flange": None}
+        if self.flange is not None:
+            R, t = self.flange
+            d["flange"] = {"T_flange_cam": {"R": np.asarray(R).tolist(), "t_mm": np.asarray(t).tolist()},
+                           **self.records.get("flange", {})}
+        if provenance is not None:
+            d["provenance"] = provenance
+        return d
+
+    def save(self, path: str | os.PathLike, *, force: bool = False, provenance: dict | None = None) -> Path:
+        from lightplane.core.io import write_json
+
+        return write_json(path, self.to_dict(provenance), force=force)
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "sensor file") -> "Sensor":
+        if d.get("kind") != SENSOR_KIND:
+            raise LightplaneError(f"{source}: not a lightplane sensor file (kind {d.get('kind')!r}; make one with "
+                                  "'lightplane sensor' or 'lightplane import-fabscan')")
+        for key in ("camera", "planes"):
+            if not isinstance(d.get(key), dict):
+                raise LightplaneError(f"{source}: missing or malformed field '{key}'")
+        cam = Camera.from_dict(d["camera"], source=f"{source}: camera")
+        if not d["planes"]:
+            raise LightplaneError(f"{source}: holds no light plane")
+        planes = {str(n): LightPlane.from_dict(p, source=f"{source}: plane {n!r}") for n, p in d["planes"].items()}
+        tt = None
+        if d.get("turntable") is not None:
+            tt = Turntable.from_dict(d["turntable"], source=f"{source}: turntable")
+            tt.check_camera(cam, f"{source}: turntable")
+        fl = None
+        if d.get("flange") is not None:
+            fd = d["flange"]
+            fl = _rigid_from_dict(fd.get("T_flange_cam", fd), f"{source}: flange")
+        rot = (d.get("frames") or {}).get("rotate_deg", 0)
+        if rot not in (0, 90, 180, 270):
+            raise LightplaneError(f"{source}: frames.rotate_deg must be 0, 90, 180 or 270, got {rot!r}")
+        records = {"camera": {k: v for k, v in d["camera"].items() if k in ("provenance", "source")}}
+        if d.get("flange") is not None:
+            records["flange"] = {k: v for k, v in d["flange"].items() if k != "T_flange_cam"}
+        return cls(cam, planes, tt, fl, int(rot), records)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Sensor":
+        from lightplane.core.io import read_json
+
+        return cls.from_dict(read_json(path, "sensor file"), source=str(path))
+
+
+# ----------------------------------------------------------------------------- FabScan
+def _fabscan_rotation(cam: dict, source: str) -> int:
+    """FabScan's frame flips as one clockwise rotation (rotate = transpose, then the flips)."""
+
+    def flag(k):
+        return str(cam.get(k, "False")).strip().lower() in ("true", "1", "yes")
+
+    key = (flag("rotate"), flag("hflip"), flag("vflip"))
+    table = {(False, False, False): 0, (True, True, False): 90, (False, True, True): 180, (True, False, True): 270}
+    if key not in table:
+        raise LightplaneError(f"{source}: camera rotate={key[0]}, hflip={key[1]}, vflip={key[2]} mirrors the frames "
+                              "(not a rotation); lightplane reads frames rotated only")
+    return table[key]
+
+
+def import_fabscan(path: str | os.PathLike) -> Sensor:
+    """A FabScanPi configuration (``fabscan-config.json``) as a :class:`Sensor`.
+
+    Camera: ``calibration.camera_matrix`` and ``distortion_vector``, its size the
+    ``camera.resolution`` in the frame FabScan uses (``rotate``/``hflip``/``vflip``
+    recorded as one clockwise rotation of every frame, so frames are read as FabScan
+    reads them).  Planes ``laser0``, ``laser1``... from ``calibration.laser_planes``
+    (FabScan's ``normal · X = distance`` is ``d = −distance``; no covariance: FabScan
+    stores only a ``deviation``, kept as ``fabscan_deviation_mm``).  Turntable: the
+    platform's origin ``platform_translation`` and, of ``platform_rotation``'s columns,
+    the one most nearly along the camera's y axis as the axis direction;
+    ``turntable.steps`` as the counts per revolution.
+    """
+    from lightplane.core.io import provenance, read_json
+
+    src = str(path)
+    d = read_json(path, "FabScan configuration")
+    cal = d.get("calibration")
+    camd = d.get("camera")
+    if not isinstance(cal, dict) or not isinstance(camd, dict):
+        raise LightplaneError(f"{src}: not a FabScan configuration (no 'calibration' and 'camera' sections)")
+    rot = _fabscan_rotation(camd, src)
+    try:
+        K = np.asarray(cal["camera_matrix"], dtype=np.float64)
+        dist = np.asarray(cal["distortion_vector"], dtype=np.float64).ravel()
+        w, h = int(camd["resolution"]["width"]), int(camd["resolution"]["height"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise LightplaneError(f"{src}: no usable camera calibration ({e.__class__.__name__}: {e})") from None
+    if rot in (90, 270):
+        w, h = h, w
+    if K.shape != (3, 3) or not K[0, 0] > 0:
+        raise LightplaneError(f"{src}: calibration.camera_matrix is not a calibrated 3x3 matrix (run FabScan's "
+                              "calibration first)")
+    cam = Camera(K, dist, w, h, meta={"source": src})
+    prov = provenance([src], {"importer": "fabscan"})
+    planes = {}
+    for i, lp in enumerate(cal.get("laser_planes") or []):
+        try:
+            n = np.asarray(lp["normal"], dtype=np.float64)
+            dd = float(lp["distance"])
+        except (KeyError, TypeError, ValueError):
+            raise LightplaneError(f"{src}: calibration.laser_planes[{i}] lacks a normal and a distance") from None
+        meta = {"method": "fabscan", "laser": f"laser{i}", "fabscan_deviation_mm": lp.get("deviation"),
+                "provenance": prov}
+        planes[f"laser{i}"] = LightPlane(n, -dd, None, meta=meta)
+    if not planes:
+        raise LightplaneError(f"{src}: calibration.laser_planes is empty (no calibrated laser)")
+    tt = None
+    if cal.get("platform_translation") and cal.get("platform_rotation"):
+        Rp = np.asarray(cal["platform_rotation"], dtype=np.float64)
+        tp = np.asarray(cal["platform_translation"], dtype=np.float64).ravel()
+        if Rp.shape != (3, 3) or tp.shape != (3,):
+            raise LightplaneError(f"{src}: platform_rotation must be 3x3 and platform_translation 3 numbers")
+        col = int(np.argmax(np.abs(Rp[1, :])))
+        steps = (d.get("turntable") or {}).get("steps")
+        tt = Turntable.from_axis(tp, Rp[:, col], camera=cam.to_dict(),
+                                 counts_per_rev=float(steps) if steps else None,
+                                 meta={"method": "fabscan platform pose", "fabscan_platform_rotation_column": col,
+                                       "fabscan_turntable_radius_mm": (d.get("turntable") or {}).get("radius"),
+                                       "provenance": prov})
+    return Sensor(cam, planes, tt, None, rot, {"camera": {"provenance": prov}})
+
+
+# ----------------------------------------------------------------------------- measuring
+@dataclass(frozen=True)
+class LaserScanSummary:
+    """What :func:`measure_lasers` did; ``lasers``: per laser ``(name, frames, frames used, points,
+    skipped (index, name, reason)..., profile axis, stripe width px or None)``."""
+
+    path: Path
+    format: str
+    lasers: tuple  # (name, n_frames, n_used, n_points, skipped)
+    n_points: int
+    motion: dict
+    seconds: float
+
+
+def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera: Camera, out_path, *,
+                   motion: Motion | None = None, fmt: str | None = None, ascii: bool = False,
+                   force: bool = False, channel: str | None = None, width_px: float | None = None,
+                   workers: int | None = None, roi=None, axis: str = "auto",
+                   progress: Callable[[int, int | None], None] | None = None,
+                   comments: Sequence[str] = (), **stripe_options) -> LaserScanSummary:
+    """Measure one frame sequence per laser (``(name, FrameSource, plane)``) into one cloud.
+
+    Every point gets its laser's index (``laser``, :data:`LASER_POINT_DTYPE`; names in the
+    file's comments) and its frame index within its laser's sequence; the same
+    ``motion`` places every laser's frames.  All inputs are checked (first frames, sizes,
+    frame counts against the motion) before any frame is measured; the file is written
+    atomically at the end, so an error leaves nothing behind.
+    """
+    from lightplane.core.io import check_output, provenance, summarize_reasons, too_few_images_message
+    from lightplane.measure.pointcloud import PointSpool, cloud_format, write_cloud
+    from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
+
+    t0 = time.perf_counter()
+    out = check_output(out_path, force)
+    fmt = cloud_format(out, fmt)
+    if ascii and fmt != "ply":
+        raise LightplaneError("--ascii applies to PLY output only")
+    if not scans:
+        raise LightplaneError("no laser to measure")
+    names = [n for n, _, _ in scans]
+    if len(set(names)) != len(names):
+        raise LightplaneError(f"a laser is named twice: {', '.join(names)}")
+    if len(scans) > 255:
+        raise LightplaneError("at most 255 lasers in one cloud")
+    motion = Motion.none() if motion is None else motion
+    prepared = []
+    try:
+        for name, source, plane in scans:
+            try:
+                src, mo, ax, w = _prepare(source, camera, plane, motion, axis, width_px, channel)
+            except LightplaneError as e:
+                raise LightplaneError(f"laser {name}: {e}") from None
+            proc = FrameProcessor(camera, plane, mo, axis=ax, roi=roi, width_px=w, channel=channel, **stripe_options)
+            prepared.append((name, src, proc, ax, w))
+        total = sum((s.n_frames or 0) for _, s, _, _, _ in prepared) or None
+        done = 0
+        per_laser = []
+        with PointSpool(out.parent if str(out.parent) else None, dtype=LASER_POINT_DTYPE) as spool:
+            for li, (name, src, proc, ax, w) in enumerate(prepared):
+                n, skipped, count0 = 0, [], spool.count
+                nw = workers
+                if nw is None and src.n_frames is not None and src.n_frames < 64:
+                    nw = 1
+                for r in iter_scan(src, proc, workers=nw):
+                    n += 1
+                    done += 1
+                    if r.error is not None:
+                        skipped.append((r.index, r.name, r.error))
+                    elif r.records is not None and r.records.size:  # no error: the frame has its records
+                        rec = np.empty(r.records.size, LASER_POINT_DTYPE)
+                        for f in POINT_FIELDS:
+                            rec[f] = r.records[f]
+                        rec["laser"] = li
+                        spool.append(rec)
+                    if progress is not None:
+                        progress(done, total)
+                if motion.n_frames is not None and motion.n_frames != n:
+                    raise LightplaneError(f"laser {name}: the {motion.what} give {motion.n_frames} frames but the "
+                                          f"input has {n}")
+                if n == len(skipped):
+                    raise LightplaneError(f"laser {name}: " + too_few_images_message(
+                        "frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
+                if spool.count == count0:
+                    raise LightplaneError(f"laser {name}: no stripe found in any of its {n - len(skipped)} readable "
+                                          "frames (laser off, wrong --channel or --roi?); nothing written")
+                per_laser.append((name, n, n - len(skipped), spool.count - count0, tuple(skipped), ax, w))
+            opts = {"lasers": names, "axis": axis, "roi": roi, "width_px": width_px, "channel": channel,
+                    "motion": motion.to_dict()}
+            prov = provenance([getattr(s, "description", "") for _, s, _, _, _ in prepared], opts)
+            lines = [f"lightplane point cloud: x y z in mm ({motion.frame_description}); laser = index below",
+                     *(f"laser {i}: {n} ({nf} frames, {npt} points; plane {plane!r})"
+                       for i, ((n, nf, _, npt, _, _, _), (_, _, plane)) in enumerate(zip(per_laser, scans))),
+                     f"created: {prov['created_utc']}", f"command: {prov['command']}",
+                     f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
+                     f"options: {opts}",
+                     *(f"laser {n}: skipped frames: {summarize_reasons([(nm, why) for _, nm, why in sk])}"
+                       for n, _, _, _, sk, _, _ in per_laser if sk), *comments]
+            write_cloud(out, spool, fmt=fmt, ascii=ascii, force=force, comments=lines)
+            n_points = spool.count
+    finally:
+        for _, s, _ in scans:
+            s.close()
+    return LaserScanSummary(out, fmt, tuple(per_laser), n_points, motion.to_dict(), time.perf_counter() - t0)

@@ -1,0 +1,1 @@
+"""The light plane: the plane type, circle-target poses, the solvers, maximum-likelihood refinement and its Cramer-Rao bound, point uncertainty, joint camera+plane refinement, calibration from images, and Zhou's board method."""

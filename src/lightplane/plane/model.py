@@ -1,0 +1,172 @@
+"""The light plane (docs/conventions.md §Light plane; docs/method.md §Light plane).
+
+``a x + b y + c z + d = 0`` in the camera frame (mm), ``(a, b, c)`` a unit
+normal, sign fixed so that ``d < 0``: the normal points from the camera towards
+the plane.  The camera centre never lies on a triangulation sensor's plane, so
+``d = 0`` is rejected.
+
+>>> p = LightPlane([0, 0.9336, -0.3584], 140.04)   # the paper's simulated plane
+>>> bool(p.d < 0), round(float(np.linalg.norm(p.normal)), 12)
+(True, 1.0)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lightplane.camera.model import as_points
+from lightplane.core.errors import LightplaneError
+
+__all__ = ["LightPlane"]
+
+
+@dataclass(frozen=True, eq=False)
+class LightPlane:
+    """A light plane with optional 4x4 covariance of ``(a, b, c, d)``.
+
+    Attributes
+    ----------
+    normal : (3,) float64, unit, oriented so that ``d < 0``.
+    d : float, mm.
+    covariance : (4, 4) float64 or None
+        Covariance of ``(a, b, c, d)`` (mm² for d), rank 3 (the normal is unit).
+    meta : dict
+        What produced it (method, inputs, diagnostics); stored in the JSON file.
+    """
+
+    normal: np.ndarray
+    d: float
+    covariance: np.ndarray | None = None
+    meta: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).ravel()
+        if n.shape != (3,) or not np.all(np.isfinite(n)):
+            raise LightplaneError(f"plane normal must be 3 finite numbers, got {self.normal!r}")
+        try:
+            d = float(self.d)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"plane d must be a number, got {self.d!r}") from None
+        if not np.isfinite(d):
+            raise LightplaneError("plane d must be finite")
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-12:
+            raise LightplaneError("plane normal must not be zero")
+        n, d = n / norm, d / norm
+        if abs(d) < 1e-9:
+            raise LightplaneError("the light plane passes through the camera centre (d = 0): nothing can be triangulated")
+        cov = self.covariance
+        if d > 0:
+            n, d = -n, -d  # docs/conventions.md §Light plane: d < 0; (a, b, c, d) -> -(a, b, c, d) keeps the covariance
+        if cov is not None:
+            cov = np.asarray(cov, dtype=np.float64)
+            if cov.shape != (4, 4) or not np.all(np.isfinite(cov)):
+                raise LightplaneError(f"plane covariance must be a finite 4x4 matrix, got shape {cov.shape}")
+            cov = cov / norm**2
+            cov.setflags(write=False)
+        n.setflags(write=False)
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "d", d)
+        object.__setattr__(self, "covariance", cov)
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """``(a, b, c, d)``."""
+        return np.append(self.normal, self.d)
+
+    def signed_distance(self, p: np.ndarray) -> np.ndarray:
+        """Signed distance (mm) of ``(N, 3)`` points; positive on the side the normal points to."""
+        p = as_points(p, 3, "p")
+        return p @ self.normal + self.d
+
+    def angle_to(self, other: "LightPlane") -> float:
+        """Angle between the two normals, radians."""
+        c = float(np.clip(abs(self.normal @ other.normal), -1.0, 1.0))
+        return float(np.arccos(c))
+
+    def point_on_axis(self) -> np.ndarray:
+        """Where the optical axis (z) meets the plane (mm), or NaNs if parallel."""
+        c = self.normal[2]
+        if abs(c) < 1e-12:
+            return np.full(3, np.nan)
+        return np.array([0.0, 0.0, -self.d / c])
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, LightPlane):
+            return NotImplemented
+        return np.array_equal(self.normal, other.normal) and self.d == other.d
+
+    def __repr__(self) -> str:
+        a, b, c = self.normal
+        return f"LightPlane({a:+.6f} x {b:+.6f} y {c:+.6f} z {self.d:+.4f} = 0)"
+
+    # ---------------------------------------------------------------- files
+    def to_dict(self) -> dict:
+        d = {
+            "normal": self.normal.tolist(),
+            "d": self.d,
+            "units": "mm",
+            "frame": "camera",
+            "method": self.meta.get("method"),
+            "covariance": None if self.covariance is None else self.covariance.tolist(),
+        }
+        for k, v in self.meta.items():
+            if k not in d or d[k] is None:
+                d[k] = v
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "plane") -> "LightPlane":
+        for key in ("normal", "d"):
+            if key not in d:
+                raise LightplaneError(f"{source}: missing field '{key}'")
+        if d.get("units", "mm") != "mm":
+            raise LightplaneError(f"{source}: field 'units' must be 'mm', got {d.get('units')!r}")
+        if d.get("frame", "camera") != "camera":
+            raise LightplaneError(f"{source}: field 'frame' must be 'camera', got {d.get('frame')!r}")
+        try:
+            normal = np.asarray(d["normal"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"{source}: field 'normal' is not 3 numbers") from None
+        cov = d.get("covariance")
+        try:
+            cov = None if cov is None else np.asarray(cov, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"{source}: field 'covariance' is not a 4x4 matrix") from None
+        meta = {k: v for k, v in d.items() if k not in ("normal", "d", "covariance", "units", "frame")}
+        try:
+            return cls(normal, d["d"], cov, meta=meta)
+        except LightplaneError as e:
+            raise LightplaneError(f"{source}: {e}") from None
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "LightPlane":
+        """Read a light-plane JSON file (docs/conventions.md §Plane file)."""
+        from lightplane.core.io import read_json
+
+        return cls.from_dict(read_json(path, "plane file"), source=str(path))
+
+    def save(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
+        """Write the light-plane JSON file atomically."""
+        from lightplane.core.io import write_json
+
+        d = self.to_dict()
+        if extra:
+            d.update(extra)
+        return write_json(path, d, force=force)
+
+
+# The solvers live in lightplane.plane.solvers; their old names here keep working.
+_MOVED = frozenset(['Ambiguity', 'PlacementCandidates', 'PlacementResult', 'PlaneCalibration', '_ChordMoments', '_GlobalOutcome', '_KAPPA', '_PaperOutcome', '_TAU_FLOOR_REL', '_chord_ends', '_cost_from_moments', '_finite_or_none', '_fit_assignment', '_lies_on', '_moments', '_msd', '_plane_offset_var', '_sample_assignment', '_solve_global', '_solve_paper', '_tau', '_tau_unit', 'backproject_to_plane', 'calibrate_plane_from_points', 'check_calibration_args', 'estimate_sigma_px', 'fit_line_2d', 'fit_plane_points', 'prepare_placement', 'robust_line', 'sampson_distance', 'tls_line'])
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        from lightplane.plane import solvers as plane_solvers
+
+        return getattr(plane_solvers, name)
+    raise AttributeError(f"module 'lightplane.plane.model' has no attribute {name!r}")

@@ -1,0 +1,1380 @@
+"""Laser stripe centres: Steger's curvilinear-structure detector and fast per-column profiles.
+
+docs/method.md §Stripe centres (paper §2.2.1, Eq. 5–6).  Gaussian derivatives ``r_u, r_v, r_uu, r_uv, r_vv`` of the
+image give the Hessian ``H = [[r_uu, r_uv], [r_uv, r_vv]]``; its eigenvector ``n`` of
+the most negative eigenvalue ``lambda`` is the stripe normal, ``-lambda`` the ridge
+strength.  Scale: ``sigma >= w / sqrt(3)``, ``w`` the stripe's *half*-width (Steger
+1998; the paper's inequality is reversed).  ``width_px`` everywhere is the *full*
+width at half maximum (FWHM) across the stripe, so the default is
+``sigma = max(width_px / (2 sqrt(3)), 1)``.
+
+Two entry points:
+
+- :func:`extract_stripe` — every centre point of every bright line in the image
+  (any orientation), linked into ordered curves (:class:`StripePoints`): for
+  calibration (points inside the target's ellipse, via ``mask``).
+- :func:`extract_profile` — one centre per image column (or row), the measurement
+  hot path (:class:`StripeProfile`): a fused numba kernel that finds the peak of
+  each column and evaluates the Gaussian derivatives only in a small patch around
+  it; a numpy implementation of the same algorithm (``backend="numpy"``) gives the
+  same numbers; :func:`extract_profiles` runs a batch of frames.
+
+On real laser stripes (speckle, saturation) a scale larger than Steger's minimum
+helps: ``sigma_px`` ~2 px and, for profiles, ``sigma_along_px`` ~5 px of smoothing
+along the stripe (straight stripes stay unbiased at any tilt).  Where a specular
+hot spot blooms the sensor, ``channel="sum"`` keeps the stripe (the bloom is in
+the other channels), ``min_chroma`` flags whitish stretches, and with
+``saturated_centre`` :func:`extract_profile` centres them on the midpoint of the
+whitish (saturated) run across the stripe instead.
+
+Saturated (clipped) stripes, by default
+---------------------------------------
+A clipped stripe's profile is flat-topped but still symmetric, so wherever the
+Hessian test holds (the scale, from the measured width, is large enough for the
+plateau) the derivative's zero crossing stays its centre and nothing changes.
+Where it does not -- a hot spot on an otherwise unclipped stripe, whose plateau is
+wider than the scale allows (``r''`` ~ 0, no ridge, no crossing, a random normal)
+-- :func:`extract_profile` detects the flat top on its own (any single-channel
+image, any bit depth: a run of at least 3 samples within 4 % of the contrast
+below the line's peak, longer than ``0.24 FWHM + 1.5`` samples, which an
+unclipped Gaussian never reaches; the image's own plateau, not the dtype's
+maximum, so 12-bit data in 16-bit containers and laser-minus-background frames,
+whose clipped level follows the background, are found alike) and centres the line
+on the midpoint of the half-level crossings of the flanks, smoothed along the
+stripe (``sigma_along_px``): both crossings move alike under a symmetric profile,
+and the half level lies below the plateau, so a clipped level that varies with a
+subtracted background does not bias it.  Measured (benchmarks/
+bench_stripe_saturation.py): bias <= 0.01 px, RMS <= 0.06 px, 1x-8x clipped,
+8/12/16-bit, blur and 1 % noise; an off-centre halo does shift it (~0.1 px).
+:func:`extract_stripe` has no flat-top fallback yet (it relies on the symmetric
+profile and the measured width), but for colour images with a colour channel it
+uses the whitish-core cue by default (``saturated_centre``, guarded against white
+ambient light); in :func:`extract_profile` that cue (``min_chroma``,
+``saturated_centre``) stays opt-in.
+
+Sub-pixel centre: where we depart from Steger's one-step formula
+------------------------------------------------------------------
+Steger's centre is one Newton step, ``t = -(n . grad r) / (n^T H n)`` from the pixel
+centre.  On a sampled Gaussian-smoothed ridge of total scale ``S`` its error is
+``t^3 / S^2`` (third-order Taylor term), up to 0.03 px at ``|t| = 0.5`` for a 3 px
+stripe: a systematic "pixel-locking" error larger than the 0.015 px this module is
+specified for.  So instead of extrapolating, we look at ``g = n . grad r`` (the
+derivative across the stripe, ``n`` fixed at the pixel) on the two pixels of the
+image column (or row: the grid axis closer to ``n``) that bracket its zero, and
+solve the cubic Hermite interpolant of ``g`` and its slope ``n . H e`` there
+(error O(h^4)).  The point found is where the centre line crosses that grid line,
+so each crossing is reported once; the Hessian still decides where a ridge is, its
+normal and its strength, as in Steger's method.
+
+Curvature
+---------
+Smoothing a ridge that curves with radius ``rho`` moves its maximum inwards by
+``sigma^2 / (2 rho)`` (heat equation to first order: ``r = P + (sigma^2/2) P'/rho``);
+0.04 px for a 9 px stripe of radius 80 px.  Both functions remove it by default
+(``correct_curvature``), with the curvature measured on the linked centres
+(sagitta of the chord ``+-4 sigma`` along the curve) and ``sigma^2 + 1/12``
+(the pixel's own variance; for profiles the smoothing along the stripe,
+``sigma_along_px``); what remains is below 0.005 px in the tests (radius 70 px,
+widths 3-9 px; about 0.01 px for a 15 px stripe of radius 70 px).
+
+Bias of asymmetric stripes (Steger 1998, "An unbiased detector of curvilinear
+structures", IEEE TPAMI 20(2), §4)
+----------------------------------------------------------------------------
+For a bar of half-width ``w`` and height ``h`` on a background that is 0 on one side
+and ``a h`` (``0 <= a < 1``) on the other, the zero of ``r'`` moves by
+``l = -sigma^2 ln(1 - a) / (2 w)`` towards the brighter side — exactly, for the bar
+model convolved with a Gaussian.  :func:`extract_stripe` with
+``correct_asymmetry=True`` estimates ``a`` from the backgrounds on both sides of
+each point (minima along the normal within reach of the stripe) and ``w`` from the
+measured FWHM, and removes ``l``.  It is off by default, because (1) a laser
+stripe's cross-section is close to Gaussian, not a bar, and the bar formula is
+not the shift of a Gaussian line on a step (not derived here), so the correction
+can over- or under-correct; (2) in the measurement pipeline the background is subtracted
+(laser frame minus laser-off frame), which removes the asymmetry at its source;
+(3) the background estimate is noisy where the stripe is short.  Steger's full
+correction (inverting the joint width/asymmetry map by table look-up) is not
+implemented; the closed form above is the exact bar-model shift for known ``w``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import median_filter
+
+from lightplane.stripe import kernels as K
+from lightplane.core.errors import LightplaneError
+from lightplane.core.threads import in_serial_context, profile_parallel
+
+__all__ = [
+    "StripePoints",
+    "StripeProfile",
+    "extract_stripe",
+    "extract_profile",
+    "extract_profiles",
+    "release_batch_memory",
+    "estimate_width",
+    "sigma_for_width",
+    "PROFILE_STATUS",
+]
+
+#: meaning of :attr:`StripeProfile.status`
+PROFILE_STATUS = {
+    K.OK: "ok",
+    K.NO_PEAK: "no peak above min_peak",
+    K.NOT_RIDGE: "no bright ridge (Hessian not negative)",
+    K.NO_CROSSING: "no zero crossing of the derivative next to the peak",
+    K.TOO_WIDE: "wider than max_width_px (glare) or no half-level crossing",
+    K.ALONG_LINE: "stripe runs along the scan line (use the other axis)",
+    K.EDGE: "centre within the kernel radius of the image (roi) border",
+    K.WHITISH: "whitish pixels on the stripe (glare, sensor bloom): min_chroma",
+}
+
+_DEFAULT_WIDTH_PX = 5.0
+_MIN_SIGMA_PX = 1.0
+_SHADOW_REACH_WIDTHS = 12.0
+_ALONG_WIDTHS = 2.0   # default along-curve smoothing of extract_stripe, in stripe widths
+
+
+def _default_sigma_along(width_px: float, sigma: float) -> float:
+    """extract_stripe's default smoothing of the centres along their curve, points."""
+    return _ALONG_WIDTHS * width_px
+
+
+@dataclass(frozen=True)
+class StripePoints:
+    """Centre points of bright lines, ordered along their curves.
+
+    ``uv`` (N, 2) float64 px (OpenCV pixel centres); ``normals`` (N, 2) unit normal
+    across the line, oriented with ``n_v > 0`` (or ``n_u > 0`` when ``n_v = 0``);
+    ``strength`` (N,) ridge strength ``-lambda`` (grey levels / px^2, of the image as
+    given); ``width`` (N,) FWHM across the stripe, px (NaN where not measurable);
+    ``curve_id`` (N,) int, points of one curve contiguous and in order along it;
+    ``sigma_px`` the Gaussian scale used.
+    """
+
+    uv: np.ndarray
+    normals: np.ndarray
+    strength: np.ndarray
+    width: np.ndarray
+    curve_id: np.ndarray
+    sigma_px: float = float("nan")
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    @property
+    def n_curves(self) -> int:
+        return int(np.unique(self.curve_id).size)
+
+    def curve(self, k: int) -> np.ndarray:
+        """``uv`` of curve ``k``, (M, 2), in order."""
+        return self.uv[self.curve_id == k]
+
+
+@dataclass(frozen=True)
+class StripeProfile:
+    """One stripe centre per image column (``axis="columns"``) or row.
+
+    ``uv`` (N, 2) float64 px, NaN where not ``valid``; for ``axis="columns"``
+    ``uv[:, 0]`` is exactly the column index (the centre line's crossing of that
+    column), for ``"rows"`` ``uv[:, 1]`` the row.  ``valid`` (N,) bool;
+    ``intensity`` (N,) Gaussian-smoothed image value at the peak; ``strength`` (N,)
+    ridge strength ``-lambda``; ``width`` (N,) FWHM across the stripe, px;
+    ``normals`` (N, 2) (n_u, n_v); ``status`` (N,) uint8, see
+    :data:`PROFILE_STATUS`; ``lines`` (N,) the column (row) indices.
+    """
+
+    uv: np.ndarray
+    valid: np.ndarray
+    intensity: np.ndarray
+    strength: np.ndarray
+    width: np.ndarray
+    normals: np.ndarray
+    status: np.ndarray
+    lines: np.ndarray
+    axis: str
+    sigma_px: float
+    width_px: float
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    @property
+    def points(self) -> np.ndarray:
+        """``uv`` of the valid lines only, (M, 2)."""
+        return self.uv[self.valid]
+
+
+# ----------------------------------------------------------------------------------------
+# input handling
+
+def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
+    """2-D uint8, uint16 or float32 array from gray or BGR input, and its full scale.
+
+    ``channel``: None / ``"gray"`` (weighted gray), ``"red"``, ``"green"``,
+    ``"blue"``, or ``"sum"`` (unweighted B + G + R: a laser that saturates its own
+    channel blooms into the others, which carry the stripe on).  The full scale is
+    255 for 8-bit, 65535 for 16-bit, 1 or 255 for float (by the maximum), times 3
+    for ``"sum"``.  16-bit data that stays within 10, 12 or 14 bits (a 12-bit sensor
+    in a 16-bit container) gets that range as its full scale (1023, 4095, 16383).
+    """
+    from lightplane.core.io import to_gray_float
+
+    if not isinstance(image, np.ndarray):
+        raise LightplaneError(f"{name} must be a numpy array, got {type(image).__name__}")
+    out = to_gray_float(image, channel, name=name, native=True)
+    # the full scale is the input's (a bool image falls to 255 below)
+    if image.dtype == np.uint8:
+        fs = 255.0
+    elif image.dtype == np.uint16:
+        # 10-, 12- or 14-bit data in a 16-bit container: the smallest such range that holds the image
+        top = int(image.max()) if image.size else 0
+        fs = next(float(2**b - 1) for b in (10, 12, 14, 16) if top <= 2**b - 1)
+    elif image.dtype.kind == "f":
+        fs = 1.0 if (image.size == 0 or float(np.max(image)) <= 1.0) else 255.0
+    else:
+        fs = 255.0
+    if channel == "sum" and image.ndim == 3:
+        fs *= 3.0
+    if out.shape[0] < 3 or out.shape[1] < 3:
+        raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
+    # to_gray_float(native=True) gives one float type and two integer types: fewer numba
+    # specialisations to compile
+    return out, fs
+
+
+def _default_min_peak(full_scale: float) -> float:
+    """20 grey levels of 255, scaled to the image's full scale."""
+    return 20.0 / 255.0 * full_scale
+
+
+def sigma_for_width(width_px: float) -> float:
+    """Steger's scale for a stripe of full width ``width_px``: ``max(w / sqrt(3), 1)``, ``w = width_px / 2``."""
+    return max(0.5 * float(width_px) / math.sqrt(3.0), _MIN_SIGMA_PX)
+
+
+def _check_width(width_px, name="width_px") -> float | None:
+    if width_px is None:
+        return None
+    w = float(width_px)
+    if not (np.isfinite(w) and 0.5 <= w <= 200.0):
+        raise LightplaneError(f"{name} must be a full stripe width in px between 0.5 and 200, got {width_px!r}")
+    return w
+
+
+def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4) -> tuple[float, int]:
+    """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line
+    of ``A[s, l]`` (row-major, or the transposed view of a row-major image), and the number
+    of lines it is taken over (:func:`_stripe_kernels.fwhm_median`: one serial kernel call)."""
+    w, n = K.fwhm_median(A, int(every), 40, float(min_peak))
+    return float(w), int(n)
+
+
+def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str | None = None,
+                   min_peak: float | None = None) -> float:
+    """Full width at half maximum (px) of the brightest stripe, median over lines.
+
+    ``axis="columns"`` measures down the columns (stripe roughly horizontal),
+    ``"rows"`` along the rows; ``None`` takes the smaller of both (for a stripe at
+    an angle ``theta`` the result is then at most ``sqrt(2)`` times too large).
+    NaN when no line has a peak above ``min_peak``.
+    """
+    img, fs = _channel_image(image, channel)
+    mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
+    res = []
+    if axis in (None, "columns"):
+        res.append(_fwhm_median(img, mp))
+    if axis in (None, "rows"):
+        res.append(_fwhm_median(img.T, mp))   # the rows as lines, read in place (no transpose)
+    if axis not in (None, "columns", "rows"):
+        raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
+    vals = [w for w, n in res if n >= 3]
+    return float(min(vals)) if vals else float("nan")
+
+
+# ----------------------------------------------------------------------------------------
+# extract_profile
+
+def check_roi(roi, width: int, height: int, min_size: int = 1) -> tuple[int, int, int, int]:
+    """``roi`` ``(x, y, width, height)`` px checked against a ``width`` x ``height`` image
+    (None: the whole image); each side at least ``min_size`` px."""
+    if roi is None:
+        return 0, 0, width, height
+    try:
+        x, y, w, h = (int(t) for t in roi)
+    except (TypeError, ValueError):
+        raise LightplaneError(f"roi must be (x, y, width, height) in px, got {roi!r}") from None
+    if w < min_size or h < min_size or x < 0 or y < 0 or x + w > width or y + h > height:
+        raise LightplaneError(f"roi {roi!r} (x, y, width, height) is empty or outside the {width}x{height} image")
+    return x, y, w, h
+
+
+def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]:
+    """Sample-major array A[s, l] for the roi, and the (line, sample) offsets."""
+    import cv2
+
+    H, W = img.shape
+    x, y, w, h = check_roi(roi, W, H)
+    sub = img[y:y + h, x:x + w]
+    if axis == "columns":
+        return np.ascontiguousarray(sub), x, y
+    if axis == "rows":
+        return cv2.transpose(np.ascontiguousarray(sub)), y, x
+    raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
+
+
+def _profile_numba(A, w0, w1, w2, params, parallel=True):
+    S, L = A.shape
+    centre = np.empty(L)
+    normal = np.empty((L, 2))
+    strength = np.empty(L)
+    intensity = np.empty(L)
+    width = np.empty(L)
+    status = np.empty(L, np.uint8)
+    if not parallel:  # one kernel call on this thread
+        K.profile_frame(A, params["sep"], params["min_peak"], params["continuity"], params["tol"], w0, w1, w2,
+                        params["xw"], params["qpeak"], params["half"], params["max_width"], params["min_cos"],
+                        centre, normal, strength, intensity, width, status)
+        return centre, normal, strength, intensity, width, status
+    p1 = np.empty(L, np.int64)
+    p2 = np.empty(L, np.int64)
+    v1 = np.empty(L, np.float64)
+    v2 = np.empty(L, np.float64)
+    K.profile_candidates(A, params["sep"], p1, v1, p2, v2)
+    pos = K.choose_consistent(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
+    K.profile_centres(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
+                      params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
+    return centre, normal, strength, intensity, width, status
+
+
+def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float | None = None,
+                    channel: str | None = None, roi=None, min_peak: float | None = None,
+                    max_width_px: float | None = None, sigma_px: float | None = None,
+                    sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
+                    correct_curvature: bool = True,
+                    min_chroma: float | None = None, saturated_centre: bool = False,
+                    backend: str = "numba", parallel: bool | None = None) -> StripeProfile:
+    """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
+
+    Per line: the highest sample (and the highest one farther than twice the width
+    from it: a reflection candidate); with ``continuity`` the second is taken when
+    only it agrees with the median of the neighbouring lines' peaks; then the
+    stripe's middle sample (midpoint of the half-level crossings: robust to a
+    flat saturated top), the Hessian there (normal ``n``, strength ``-lambda``)
+    and the zero crossing of ``n . grad r`` along the line (module docstring),
+    from the derivatives of a small patch around it only.
+
+    Saturated stripes, by default (no flag): a line whose top is flat (clipped:
+    see the module docstring for the test) and where the Hessian finds no ridge
+    or no crossing on the plateau is centred on the midpoint of the half-level
+    crossings of its flanks, smoothed along the stripe; status ``OK``.  Lines
+    where the Hessian works keep its centre (a clipped profile is symmetric).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float array (BGR for colour).
+    axis : ``"columns"`` for a roughly horizontal stripe (one centre per column),
+        ``"rows"`` for a roughly vertical one.
+    width_px : full stripe width (FWHM) in px; estimated from the frame when None.
+    channel : ``"red"``, ``"green"``, ``"blue"``, ``"sum"`` (B + G + R) or None /
+        ``"gray"`` (weighted gray).
+    roi : ``(x, y, width, height)`` px; only this region is searched; ``uv`` stays
+        in full-image pixels.
+    min_peak : minimum contrast (peak minus the local minimum within ~1.5 widths),
+        in the image's grey levels; default 20/255 of full scale (20 for 8-bit).
+    max_width_px : lines whose stripe is wider (glare, blooming) are invalid;
+        default ``2.5 * width_px + 2``.
+    sigma_px : Gaussian scale; default :func:`sigma_for_width`.
+    sigma_along_px : Gaussian scale across the lines, i.e. along a stripe that
+        crosses them (default ``sigma_px``).  Larger values average laser speckle
+        along the stripe without widening its profile; a straight stripe's centre
+        stays unbiased at any tilt (the smoothing is point-symmetric).
+    min_cos : lines where the stripe normal makes ``|n . line direction| < min_cos``
+        are invalid (the stripe runs along them).
+    correct_curvature : remove the inward shift of curved stripes (see
+        :func:`extract_stripe`), curvature from the centres ``4 sigma`` lines away
+        (only where both are valid).
+    min_chroma : colour images only: a line is invalid (status ``WHITISH``)
+        where a pixel of its stripe (within ``width_px`` of the centre, brighter
+        than 30 % of the brightest there) has a colour saturation
+        ``(max - min) / max`` of its B, G, R below this.  A laser's light is
+        strongly coloured (a red laser's core may bloom into magenta, still
+        saturated); grey-white pixels on the stripe are glare or sensor blooming
+        (a specular hot spot), where the centre found is not the stripe's.  Off by
+        default (ambient white light on a raw frame lowers it too); 0.5 suits
+        background-subtracted frames.
+    saturated_centre : with ``min_chroma``: instead of dropping whitish lines,
+        centre them on the midpoint of the whitish run across the stripe (a
+        saturated core turns grey-white; its midpoint is the standard centre of a
+        saturated stripe), searched within ``w + 2`` px of the centre expected
+        from the valid lines around; status ``OK`` then.  Recovers a specular
+        hot spot in the laser's own channel (tests/test_stripe_real.py).
+    backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
+    parallel : numba backend: ``None`` (default) splits the frame over numba's threads
+        only when that pays and nests nothing: a large frame (at least
+        ``threads.PARALLEL_MIN_PIXELS`` pixels and ``PARALLEL_MIN_LINES`` lines in the
+        roi) called outside a pool of frame workers (:func:`lightplane.core.threads.serial_kernels`);
+        otherwise the serial kernels, the width estimate included.  ``True`` / ``False``
+        force either; all three give the same numbers.
+
+    Returns
+    -------
+    :class:`StripeProfile` with one entry per column (row) of the roi.
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> v = np.arange(40.0)[:, None]
+    >>> img = (200 * np.exp(-0.5 * ((v - 17.3) / 1.5) ** 2) + 0 * np.arange(30.0)).astype(np.uint8)
+    >>> prof = extract_profile(img, width_px=3.5)
+    >>> bool(prof.valid.all()), round(float(np.median(prof.uv[:, 1])), 1)
+    (True, 17.3)
+    """
+    if backend not in ("numba", "numpy"):
+        raise LightplaneError(f"backend must be 'numba' or 'numpy', got {backend!r}")
+    A, setup = _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
+                              sigma_along_px, continuity, min_cos, parallel=parallel)
+    w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
+    if backend == "numba":
+        raw = _profile_numba(A, w0, w1, w2, params, parallel=setup["parallel"])
+    else:
+        from lightplane.stripe.reference import profile_numpy
+
+        raw = profile_numpy(A, w0, w1, w2, params)
+    return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend, saturated_centre)
+
+
+def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px, sigma_along_px,
+                   continuity, min_cos, parallel=None, prepared=None):
+    """Sample-major array and the scales/thresholds of :func:`extract_profile`.
+
+    ``prepared``: ``(A, full_scale, line0, sample0)`` already made (a stack's frame)."""
+    if prepared is None:
+        img, fs = _channel_image(image, channel)
+        A, line0, sample0 = _lines_array(img, axis, roi)
+    else:
+        A, fs, line0, sample0 = prepared
+    S, L = A.shape
+    parallel = profile_parallel(L, S) if parallel is None else bool(parallel)
+    mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
+    w = _check_width(width_px)
+    if w is None:
+        # lines="rows": the image's own rows, read along memory (the same values as A's columns)
+        E = img[line0:line0 + L, sample0:sample0 + S].T if prepared is None and axis == "rows" else A
+        w, n = _fwhm_median(E, mp, every=max(1, L // 160))
+        if not np.isfinite(w):
+            w = _DEFAULT_WIDTH_PX
+    sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
+    if not (np.isfinite(sigma) and 0.3 <= sigma <= 100):
+        raise LightplaneError(f"sigma_px must be between 0.3 and 100 px, got {sigma_px!r}")
+    sigma_al = sigma if sigma_along_px is None else float(sigma_along_px)
+    if not (np.isfinite(sigma_al) and 0.3 <= sigma_al <= 100):
+        raise LightplaneError(f"sigma_along_px must be between 0.3 and 100 px, got {sigma_along_px!r}")
+    w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
+    R = (w0.size - 1) // 2
+    maxw = 2.5 * w + 2.0 if max_width_px is None else float(max_width_px)
+    params = dict(
+        sep=int(math.ceil(2.0 * w + 2 * R)),
+        min_peak=mp,
+        tol=max(3.0, w),
+        continuity=bool(continuity),
+        qpeak=int(math.ceil(0.5 * w)) + 1,
+        half=int(math.ceil(1.5 * w)) + 3,
+        max_width=maxw,
+        min_cos=float(min_cos),
+        xw=K.edge_kernels_cached(sigma_al),
+    )
+    setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, S=S, sigma=sigma,
+                 sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak, parallel=parallel,
+                 full_scale=fs)
+    return A, setup
+
+
+def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend,
+                    saturated_centre=False) -> StripeProfile:
+    """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature)."""
+    centre, normal, strength, intensity, width, status = raw
+    line0, sample0, L = setup["line0"], setup["sample0"], setup["L"]
+    sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
+    if min_chroma is not None:
+        status = _chroma_check(image, axis, centre, status, line0, sample0, float(min_chroma),
+                               int(math.ceil(w)))
+        if saturated_centre:
+            centre, status = _whitish_centres(image, axis, centre, status, line0, sample0, setup["S"],
+                                              float(min_chroma), w, setup["params"]["max_width"])
+    valid = status == K.OK
+    lines = np.arange(L, dtype=np.int64) + line0
+    uv = np.full((L, 2), np.nan)
+    nrm = np.empty((L, 2))
+    if axis == "columns":
+        uv[:, 0] = np.where(valid, lines, np.nan)
+        uv[:, 1] = centre + sample0
+        nrm[:] = normal
+    else:
+        uv[:, 0] = centre + sample0
+        uv[:, 1] = np.where(valid, lines, np.nan)
+        nrm[:, 0] = normal[:, 1]
+        nrm[:, 1] = normal[:, 0]
+    if correct_curvature:
+        # the inward shift comes from the smoothing along the stripe: sigma_along
+        m = max(5, int(math.ceil(4.0 * sigma_al)))
+        k = 1 if axis == "columns" else 0
+        if backend == "numba":
+            K.profile_curvature(uv, nrm, valid, sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, k)
+        else:
+            uv = _profile_curvature(uv, nrm, valid, sigma_al, m, k)
+    return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
+                         normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
+                         width_px=float(w))
+
+
+def _stack_lines(frames, axis: str, channel, roi):
+    """Stack of frames -> (N, S, L) sample-major array, each frame's full scale, offsets.
+
+    A 2-D-per-frame stack of uint8, uint16 or float32 (no channel) is cut and, for
+    ``axis="rows"``, transposed in one go; anything else goes frame by frame through
+    :func:`_channel_image` (the same conversions as :func:`extract_profile`).
+    """
+    if isinstance(frames, np.ndarray) and frames.ndim == 3 and channel in (None, "gray") \
+            and frames.dtype in (np.uint8, np.uint16, np.float32):
+        N, H, W = frames.shape
+        if H < 3 or W < 3:
+            raise LightplaneError(f"frames are too small ({W}x{H} px)")
+        if frames.dtype == np.float32 and not np.all(np.isfinite(frames)):
+            raise LightplaneError("frames contain NaN or infinite values")
+        x, y, w, h = check_roi(roi, W, H)
+        sub = frames[:, y:y + h, x:x + w]
+        if axis == "columns":
+            A3, line0, sample0 = np.ascontiguousarray(sub), x, y
+        elif axis == "rows":
+            A3, line0, sample0 = np.ascontiguousarray(sub.transpose(0, 2, 1)), y, x
+        else:
+            raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
+        if frames.dtype == np.uint8:
+            fs = np.full(N, 255.0)
+        else:
+            top = frames.reshape(N, -1).max(axis=1).astype(np.float64) if N else np.zeros(0)
+            if frames.dtype == np.uint16:   # as _channel_image: the smallest of 10/12/14/16 bits that holds it
+                fs = np.select([top <= 1023, top <= 4095, top <= 16383], [1023.0, 4095.0, 16383.0], 65535.0)
+            else:
+                fs = np.where(top <= 1.0, 1.0, 255.0)
+        return A3, fs, line0, sample0
+    seq = [frames[i] for i in range(frames.shape[0])] if isinstance(frames, np.ndarray) else list(frames)
+    arrays: list[np.ndarray] = []
+    fss: list[float] = []
+    offs: tuple[int, int] | None = None
+    for img in seq:
+        g, fs_img = _channel_image(img, channel, "frame")
+        A, line0, sample0 = _lines_array(g, axis, roi)
+        if arrays and (A.shape != arrays[0].shape or A.dtype != arrays[0].dtype):
+            raise LightplaneError("frames must all have the same size and type")
+        arrays.append(A)
+        fss.append(fs_img)
+        offs = (line0, sample0)
+    if not arrays or offs is None:
+        return None, None, 0, 0
+    return np.stack(arrays), np.asarray(fss, float), offs[0], offs[1]
+
+
+class _BatchBlock:
+    """One block of memory for a batch's outputs, handed out again once nothing holds it.
+
+    :func:`extract_profiles` writes every frame's outputs (centre, normal, strength,
+    intensity, width, image points, status, valid: 66 bytes a line, 84 MB for 1000 x 1280
+    lines) into one block.  Fresh memory that large comes from the operating system page
+    by page, zeroed, and a long-running process's allocator often returns it after each
+    batch, so every batch paid those page faults again: after a `calibrate_plane` in the
+    same process a 1000 x 1280x64 batch took 60-140 ms of system time against 0-20 ms
+    (5,000-7,800 instead of 10,500-11,700 profiles/s, the same kernels; it came and went
+    with the allocator's state).  So the block of the last batch is kept, and the next
+    batch of the same size takes it back when no profile, array or view of the last one
+    is alive any more (the block's reference count: every returned array is a view that
+    holds it); otherwise it gets a new block and the old one stays with whoever holds it.
+    The returned profiles never share memory with anything alive.  One block is kept per
+    process, at most :attr:`MAX_BYTES`; :func:`release_batch_memory` drops it.
+    """
+
+    MAX_BYTES = 512 << 20
+    #: (dtype, trailing shape) of the outputs, in the block's order
+    LAYOUT = ((np.float64, ()), (np.float64, (2,)), (np.float64, ()), (np.float64, ()), (np.float64, ()),
+              (np.float64, (2,)), (np.uint8, ()), (np.bool_, ()))
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._block: np.ndarray | None = None
+        self._probe: object | None = None
+
+    @staticmethod
+    def _sizes(N: int, L: int) -> list[int]:
+        return [N * L * int(np.prod(t, dtype=np.int64)) * np.dtype(d).itemsize for d, t in _BatchBlock.LAYOUT]
+
+    def take(self, N: int, L: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        """A block for N frames of L lines, and its arrays: centre, normal, strength,
+        intensity, width (N, L[, 2]) float64, uv (N, L, 2), status uint8, valid bool."""
+        sizes = self._sizes(N, L)
+        starts = np.concatenate([[0], np.cumsum([(n + 63) // 64 * 64 for n in sizes])]).astype(int)
+        total = int(starts[-1])
+        block = None
+        with self._lock:
+            b = self._block
+            if b is not None and b.nbytes == total:
+                # nothing else holds it: as many references as a fresh object held the same way
+                # (an attribute and a local), whatever the interpreter counts for the call itself
+                self._probe = probe = object()
+                if sys.getrefcount(b) == sys.getrefcount(probe):
+                    block, self._block = b, None
+                self._probe = probe = None
+            del b
+        if block is None:
+            block = np.empty(total, np.uint8)
+        arrays: list[np.ndarray] = [block[s0:s0 + n].view(d).reshape((N, L) + t)
+                  for (d, t), s0, n in zip(self.LAYOUT, starts[:-1], sizes)]
+        return block, arrays
+
+    def keep(self, block: np.ndarray) -> None:
+        """Keep ``block`` for the next batch (the one kept before is let go)."""
+        with self._lock:
+            self._block = block if block.nbytes <= self.MAX_BYTES else None
+
+    def release(self) -> None:
+        with self._lock:
+            self._block = None
+
+
+_BATCH = _BatchBlock()
+
+
+def release_batch_memory() -> None:
+    """Let go of the output block :func:`extract_profiles` keeps for its next batch (see
+    :class:`_BatchBlock`): memory held by no profile is returned to the allocator."""
+    _BATCH.release()
+
+
+def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = None, channel: str | None = None,
+                     roi=None, min_peak: float | None = None, max_width_px: float | None = None,
+                     sigma_px: float | None = None, sigma_along_px: float | None = None,
+                     continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
+                     min_chroma: float | None = None, saturated_centre: bool = False,
+                     parallel: bool | None = None) -> list[StripeProfile]:
+    """:func:`extract_profile` of a stack of frames in one call: the ROI sensor's batch.
+
+    ``frames``: (N, H, W) / (N, H, W, 3) array or a sequence of equally sized
+    images (e.g. N x 64 x 1280 regions of interest).  The scales (``width_px``,
+    estimated from the first frame when None) are shared by all frames; each result
+    equals ``extract_profile(frame, width_px=that width, ...)`` of that frame, bit for
+    bit.  The per-frame costs of a call (argument checks, kernel launches, Python)
+    are paid once per batch: one kernel runs the whole stack, frames across numba's
+    threads with each frame serial (``parallel`` None: unless called inside
+    :func:`lightplane.core.threads.serial_kernels`, where the batch runs on the calling
+    thread; ``True`` / ``False`` force either).  The outputs of a batch share one block of
+    memory, which the next batch of the same size reuses once nothing of this one is
+    alive (see :class:`_BatchBlock`; :func:`release_batch_memory`).
+    """
+    if isinstance(frames, np.ndarray) and frames.ndim not in (3, 4):
+        raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
+    if not isinstance(frames, np.ndarray):
+        frames = list(frames)
+    if len(frames) == 0:
+        return []
+    A3, fs, line0, sample0 = _stack_lines(frames, axis, channel, roi)
+    N, S, L = A3.shape
+    _, setup = _profile_setup(None, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
+                               sigma_along_px, continuity, min_cos, parallel=False,
+                               prepared=(A3[0], float(fs[0]), line0, sample0))
+    w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
+    mp = np.array([_default_min_peak(f) for f in fs]) if min_peak is None else np.full(N, float(min_peak))
+    block, (centre, normal, strength, intensity, width, uv, status, valid) = _BATCH.take(N, L)
+    par = (not in_serial_context() and N > 1) if parallel is None else bool(parallel)
+    (K.profiles_batch if par else K.profiles_batch_serial)(
+        A3, params["sep"], mp, params["continuity"], params["tol"], w0, w1, w2, params["xw"], params["qpeak"],
+        params["half"], params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
+    if min_chroma is not None:   # colour checks need each frame's image: frame by frame (their own arrays)
+        seq = [frames[i] for i in range(N)]
+        return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
+                                setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
+    # _profile_finish for the whole stack at once, frames across threads as the profiles were
+    lines = np.arange(L, dtype=np.int64) + line0
+    lines.setflags(write=False)   # shared by the frames' profiles
+    nrm = normal   # (u, v) in place of the kernel's (along, across) normals
+    sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
+    m = max(5, int(math.ceil(4.0 * sigma_al)))
+    (K.frames_points if par else K.frames_points_serial)(
+        centre, normal, status, lines, float(sample0), axis == "columns", bool(correct_curvature),
+        sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, uv, nrm, valid)
+    _BATCH.keep(block)
+    return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
+                          normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
+                          width_px=float(w)) for f in range(N)]
+
+
+def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Least colour saturation ``(max - min) / max`` over each set of pixels (HSV sense).
+
+    ``rows``, ``cols`` (N, K) index K pixels per point; pixels darker than 30 % of
+    the brightest of their set are ignored.  NaN where all are black.
+    """
+    if image.ndim != 3:
+        raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
+    px = image[rows, cols, :3].astype(np.float64)          # (N, K, 3)
+    hi = px.max(axis=2)
+    lo = px.min(axis=2)
+    bright = hi >= 0.3 * hi.max(axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chroma = np.where(bright & (hi > 0), (hi - lo) / hi, np.inf)
+    out = chroma.min(axis=1)
+    return np.where(np.isfinite(out), out, np.nan)
+
+
+def _chroma_check(image, axis, centre, status, line0, sample0, min_chroma, half):
+    """Flag lines whose stripe (centre +- ``half`` samples) holds whitish pixels."""
+    status = status.copy()
+    ok = np.flatnonzero(status == K.OK)
+    if ok.size == 0:
+        return status
+    n_s = image.shape[0 if axis == "columns" else 1]
+    k = np.arange(-half, half + 1)
+    s = np.clip(np.round(centre[ok]).astype(np.int64)[:, None] + sample0 + k[None, :], 0, n_s - 1)
+    ln = np.broadcast_to((ok + line0)[:, None], s.shape)
+    rows, cols = (s, ln) if axis == "columns" else (ln, s)
+    chroma = _chroma(image, rows, cols)
+    status[ok[~(chroma >= min_chroma)]] = K.WHITISH
+    return status
+
+
+def _whitish_centres(image, axis, centre, status, line0, sample0, S, min_chroma, w, max_width):
+    """Centres of saturated (whitish) stretches: midpoint of the whitish run across the stripe.
+
+    Where a laser stripe saturates the sensor, the camera renders its core grey-white
+    (R ~ G ~ B) and the laser's own channel no longer peaks there (it may even dip
+    below the red glow around it), so the Hessian centre is lost or flagged.  The
+    core's extent is still sharp: per invalid line (any status but ``EDGE``: in a
+    hot spot the red glow's normal can be anything),
+    within ``w + 2`` samples of the centre expected from the valid lines on either
+    side (linear interpolation, strays off their running median left out), the run of bright pixels with chroma below
+    ``min_chroma`` (bright: as in :func:`_chroma`); its ends are refined to where
+    the chroma crosses ``min_chroma`` (linear interpolation with the outer
+    neighbour) and the midpoint is the centre (the usual centre of a saturated,
+    flat-topped stripe).  Runs longer than ``max_width`` or touching the search
+    window's ends (glare, not a stripe core) are left invalid.
+    """
+    centre = centre.copy()
+    status = status.copy()
+    good = status == K.OK
+    todo = np.flatnonzero(~good & (status != K.EDGE))
+    if todo.size == 0 or good.sum() < 2:
+        return centre, status
+    idx = np.flatnonzero(good)
+    # expected centre: the valid lines, less those off the running median of 15 (strays)
+    c = centre[idx]
+    keep = np.abs(c - median_filter(c, size=15, mode="nearest")) <= max(w, 2.0)
+    expect = np.interp(todo, idx[keep], c[keep])
+    reach = int(math.ceil(w)) + 2
+    n_s = image.shape[0 if axis == "columns" else 1]
+    k = np.arange(-reach - 1, reach + 2)
+    base = np.round(expect).astype(np.int64) + sample0 - reach - 1   # sample of k[0]
+    s = base[:, None] + (k[None, :] + reach + 1)
+    inside = (s >= sample0) & (s < sample0 + S)
+    s = np.clip(s, 0, n_s - 1)
+    ln = np.broadcast_to((todo + line0)[:, None], s.shape)
+    rows, cols = (s, ln) if axis == "columns" else (ln, s)
+    px = image[rows, cols, :3].astype(np.float64)            # (N, K, 3)
+    hi = px.max(axis=2)
+    lo = px.min(axis=2)
+    bright = (hi >= 0.3 * hi.max(axis=1, keepdims=True)) & (hi > 0) & inside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chroma = np.where(hi > 0, (hi - lo) / hi, 1.0)
+    white = bright & (chroma < min_chroma)
+    white[:, 0] = white[:, -1] = False                       # guard samples
+    mid = reach + 1
+    for i in range(todo.size):
+        runs = np.flatnonzero(np.diff(white[i].astype(np.int8)))  # starts (0->1) and ends (1->0)
+        if runs.size < 2:
+            continue
+        a, b = runs[0::2] + 1, runs[1::2]                     # run i covers a..b
+        j = int(np.argmin(np.abs(0.5 * (a + b) - mid)))
+        a, b = int(a[j]), int(b[j])
+        if a <= 1 or b >= k.size - 2 or b - a + 1 > max_width:
+            continue
+        c = chroma[i]
+        ea = a - 0.5 if c[a - 1] == c[a] else a - (min_chroma - c[a]) / (c[a - 1] - c[a])
+        eb = b + 0.5 if c[b + 1] == c[b] else b + (min_chroma - c[b]) / (c[b + 1] - c[b])
+        ea = min(max(ea, a - 1.0), float(a))
+        eb = min(max(eb, float(b)), b + 1.0)
+        centre[todo[i]] = base[i] - sample0 + 0.5 * (ea + eb)
+        status[todo[i]] = K.OK
+    return centre, status
+
+
+# ----------------------------------------------------------------------------------------
+# extract_stripe
+
+_TILE = 32
+
+
+def _active_regions(src: np.ndarray, min_contrast: float, R: int):
+    """Boxes ``(x0, y0, x1, y1)`` px around the tiles where a stripe may be, or None.
+
+    A 32 x 32 tile is active when its max - min reaches ``min_contrast``; active
+    tiles grow by one tile (more than the kernel radius ``R``, so the derivatives
+    inside are exact) and their connected groups' bounding boxes are returned.
+    None when they cover more than half of the image (filter it whole).
+    """
+    import cv2
+
+    H, W = src.shape
+    T = max(_TILE, R + 3)
+    ny, nx = -(-H // T), -(-W // T)
+    pad = cv2.copyMakeBorder(src, 0, ny * T - H, 0, nx * T - W, cv2.BORDER_REPLICATE)
+    rows = pad.reshape(ny, T, nx * T)    # the tiles' rows reduced first: contiguous, vectorised
+    hi = rows.max(axis=1).reshape(ny, nx, T).max(axis=2)
+    lo = rows.min(axis=1).reshape(ny, nx, T).min(axis=2)
+    contrast = hi.astype(np.float32) - lo.astype(np.float32)
+    active = (contrast >= min_contrast).astype(np.uint8)
+    if not active.any():
+        return []
+    active = cv2.dilate(active, np.ones((3, 3), np.uint8))
+    if active.mean() > 0.5:
+        return None
+    n, _, stats, _ = cv2.connectedComponentsWithStats(active, connectivity=8)
+    boxes = [(int(x * T), int(y * T), int(min(W, (x + w) * T)), int(min(H, (y + h) * T)))
+             for x, y, w, h, _area in stats[1:]]
+    # merge overlapping boxes: each pixel must be filtered in one region only
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return boxes
+
+
+def _ridge_response(width_px: float, sigma: float) -> float:
+    """-r'' at the centre of a unit-contrast Gaussian stripe of FWHM ``width_px`` (same kernels)."""
+    w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
+    R = (w0.size - 1) // 2
+    s = width_px / 2.3548
+    x = np.arange(-R, R + 1, dtype=float)
+    f = np.exp(-0.5 * (x / s) ** 2)
+    return float(-np.dot(w2, f))
+
+
+class _Buffers(threading.local):
+    """Preallocated float32 derivative images, reused between calls of the same size.
+
+    One set per thread (``threading.local``), so :func:`extract_stripe` may run in
+    several threads at once (``calibrate_plane`` with a thread pool).
+    """
+
+    def __init__(self):
+        self.shape = None
+
+    def get(self, shape):
+        if self.shape != shape:
+            self.shape = shape
+            self.bufs = [np.empty(shape, np.float32) for _ in range(13)]
+            self.index_map = np.full(shape, -1, np.int64)
+        return self.bufs
+
+
+_BUFFERS = _Buffers()
+
+
+def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.ndarray | None = None, *,
+                   channel: str | None = None, sigma_px: float | None = None,
+                   low: float | None = None, high: float | None = None,
+                   min_contrast: float | None = None, min_length: int = 10, min_chroma: float | None = None,
+                   border_px: int | None = None, correct_asymmetry: bool = False,
+                   correct_curvature: bool = True, sigma_along_px: float | None = None,
+                   suppress_weaker: float | None = 0.5,
+                   saturated_centre: bool | None = None) -> StripePoints:
+    """Centre points of all bright lines (Steger's method), linked into ordered curves.
+
+    Five Gaussian-derivative images (``cv2.sepFilter2D``, pixel-integrated Gaussian
+    kernels, float32 buffers reused between calls); per pixel the Hessian's most
+    negative eigenvalue ``lambda`` and its eigenvector ``n`` (the normal); a pixel
+    holds a point when the zero of ``n . grad r`` along its column (row) lies in
+    its cell (module docstring); hysteresis: 8-connected sets of points with
+    ``-lambda >= low`` are kept when one of them reaches ``high`` and they hold at
+    least ``min_length`` points; then ordered into chains.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8 / uint16 / float.
+    width_px : full stripe width (FWHM) px; estimated (:func:`estimate_width`) when None.
+    mask : (H, W) bool, points only where True (e.g. inside the target's ellipse).
+    channel : ``"red"`` etc. or None for weighted gray.
+    sigma_px : default :func:`sigma_for_width`.
+    low, high : hysteresis thresholds on the ridge strength ``-lambda``
+        (grey levels / px^2); defaults: the response of a Gaussian stripe of width
+        ``width_px`` and contrast ``min_contrast`` (``high``) and half of it (``low``).
+    min_contrast : least stripe contrast (grey levels of the image as given);
+        default 20/255 of the full scale.
+    min_length : shortest curve kept, points.
+    min_chroma : colour images only: drop points with whitish pixels on their
+        stripe (glare, sensor bloom); see :func:`extract_profile`.
+    border_px : no points within this distance of the image border, where the
+        replicated border biases the derivatives; default ``ceil(2 sigma)``.
+    correct_asymmetry : remove the bar-model bias of stripes on asymmetric
+        backgrounds (module docstring).
+    correct_curvature : remove the inward shift ``sigma^2 kappa / 2`` of curved
+        stripes (module docstring), ``kappa`` from the linked curve.
+    sigma_along_px : smoothing of the centres along their curve (points, ~px): each
+        point's offset along its normal is replaced by the intercept of a local quadratic
+        fitted, with Gaussian weights of this scale, to its neighbours' offsets (window
+        truncated symmetrically at curve ends; the scale shrinks where the line bends, and
+        the part of a circle beyond the quadratic is taken off, so straight and curved
+        lines stay unbiased).  Default ``2 * width_px``: laser speckle on real photographs
+        is correlated over a few px along the stripe, and Steger's minimum scale
+        (``sigma_for_width``) does not average it (Ciclop board photos, inlier RMS about a
+        straight line: 0.35-0.38 px without, 0.29-0.33 px with it); unlike a larger
+        ``sigma_px`` it does not widen the profile across the stripe (no mixing of albedo
+        edges, no extra border).  0 turns it off.
+    suppress_weaker : drop a curve when, along its normal (``1.5 w + 2`` to ``12 w``
+        px away) for most of its points, a curve at least ``1 / suppress_weaker``
+        times stronger (median ridge strength) and twice as long runs alongside:
+        reflections and glow lines next to a laser stripe.  Default 0.5; None keeps all.
+    saturated_centre : centre saturated stripe cores on their whitish run (colour
+        cameras render a saturated laser core grey-white; its own channel dips
+        there).  Default (None): on for colour images with ``channel`` red, green
+        or blue.  Guarded (:func:`_stripe_cores`): the whitish run is at most
+        ``2.5 w + 2`` px across, as bright (B + G + R) as the stripe's typical peak in
+        its channel, and flanked on both sides by laser-coloured pixels within
+        ``w + 2`` px, so white ambient light on a raw frame does not qualify.
+        Chroma threshold: ``min_chroma`` or 0.5.
+
+    Returns
+    -------
+    :class:`StripePoints` (possibly empty).
+    """
+    import cv2
+
+    img, fs = _channel_image(image, channel)
+    H, W = img.shape
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (H, W):
+            raise LightplaneError(f"mask must have the image's shape {(H, W)}, got {mask.shape}")
+        mask = mask.astype(bool, copy=False)
+    gray = img          # uint8, uint16 or float32 (_channel_image); kernels read any of them
+    mc = _default_min_peak(fs) if min_contrast is None else float(min_contrast)
+    w = _check_width(width_px)
+    if w is None:
+        w = estimate_width(gray, min_peak=mc)
+        if not np.isfinite(w):
+            w = _DEFAULT_WIDTH_PX
+    sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
+    if not (np.isfinite(sigma) and 0.3 <= sigma <= 100):
+        raise LightplaneError(f"sigma_px must be between 0.3 and 100 px, got {sigma_px!r}")
+    sal = _default_sigma_along(w, sigma) if sigma_along_px is None else float(sigma_along_px)
+    if not (np.isfinite(sal) and 0 <= sal <= 100):
+        raise LightplaneError(f"sigma_along_px must be between 0 and 100 px, got {sigma_along_px!r}")
+    resp = _ridge_response(w, sigma)
+    hi = 1.0 * mc * resp if high is None else float(high)
+    lo = 0.5 * hi if low is None else float(low)
+    if not (0 < lo <= hi):
+        raise LightplaneError(f"need 0 < low <= high, got low={lo}, high={hi}")
+
+    w0, w1, w2 = (k.astype(np.float32) for k in K.gaussian_derivative_kernels(sigma))
+    bufs = _BUFFERS.get((H, W))
+    ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr, x0, x1, x2 = bufs[:13]
+    index_map = _BUFFERS.index_map
+    # separable: three row passes (value, 1st, 2nd derivative along u) on the image
+    # as given (8-bit input is filtered fastest), then five column passes
+    border = cv2.BORDER_REPLICATE
+    src = img
+    R = (w0.size - 1) // 2
+    regions = _active_regions(src, mc, R)
+    if regions is None:                   # stripes everywhere: the whole image at once
+        regions = [(0, 0, W, H)]
+    else:
+        sstr.fill(0.0)
+    for (a0, b0, a1, b1) in regions:
+        sub = src[b0:b1, a0:a1]
+        view = [buf[b0:b1, a0:a1] for buf in (x0, x1, x2, ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr)]
+        vx0, vx1, vx2, vru, vrv, vruu, vruv, vrvv, vsu, vsv, vsnu, vsnv, vsstr = view
+        for k, x in ((w0, vx0), (w1, vx1), (w2, vx2)):
+            cv2.filter2D(sub, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
+        for x, k, out in ((vx1, w0, vru), (vx0, w1, vrv), (vx2, w0, vruu), (vx1, w1, vruv), (vx0, w2, vrvv)):
+            cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
+        K.ridge_points(vru, vrv, vruu, vruv, vrvv, lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
+        # a region's inner edges (not the image's): the replicated border there is not the image
+        m = R + 1
+        if a0 > 0:
+            vsstr[:, :m] = 0.0
+        if b0 > 0:
+            vsstr[:m] = 0.0
+        if a1 < W:
+            vsstr[:, -m:] = 0.0
+        if b1 < H:
+            vsstr[-m:] = 0.0
+    if mask is not None:
+        sstr[~mask] = 0.0
+    # the replicated border biases the derivatives: no points within 2 sigma of it
+    b = int(math.ceil(2.0 * sigma)) if border_px is None else int(border_px)
+    if b > 0:
+        sstr[:b] = 0.0
+        sstr[-b:] = 0.0
+        sstr[:, :b] = 0.0
+        sstr[:, -b:] = 0.0
+
+    sat = (image.ndim == 3 and channel in ("red", "green", "blue")) if saturated_centre is None \
+        else bool(saturated_centre)
+    core_map = None
+    if sat:
+        if image.ndim != 3 or channel not in ("red", "green", "blue"):
+            raise LightplaneError("saturated_centre needs a colour (H, W, 3) image and channel red, green or blue")
+        core_map = _stripe_cores(image, img, channel, sstr, su, sv, snu, snv, hi, w, resp,
+                                 0.5 if min_chroma is None else float(min_chroma))
+
+    meta = {"low": lo, "high": hi, "width_px": w}
+    empty = StripePoints(np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0),
+                         np.empty(0, np.int64), float(sigma), meta)
+    # connected sets of points, region by region (regions are disjoint)
+    pix_l, lab_l, n_lab = [], [], 0
+    for (a0, b0, a1, b1) in regions:
+        on = (sstr[b0:b1, a0:a1] > 0).view(np.uint8)
+        n_r, labels = cv2.connectedComponents(on, connectivity=8, ltype=cv2.CV_32S)
+        loc = np.flatnonzero(on)
+        if loc.size:
+            r, c = np.divmod(loc, a1 - a0)
+            pix_l.append((r + b0) * W + (c + a0))
+            lab_l.append(labels.ravel()[loc] + n_lab)
+        n_lab += n_r
+    if not pix_l:
+        return empty
+    pix = np.concatenate(pix_l)
+    lab = np.concatenate(lab_l)
+    st = sstr.ravel()[pix]
+    maxs = np.zeros(n_lab)
+    np.maximum.at(maxs, lab, st)
+    keep = maxs[lab] >= hi
+    pix, st = pix[keep], st[keep]
+    if pix.size == 0:
+        return empty
+    pv, pu = np.divmod(pix, W)
+    N = pix.size
+    index_map.ravel()[pix] = np.arange(N)
+    order = np.empty(N, np.int64)
+    curve = np.empty(N, np.int64)
+    K.link_points(index_map, pu, pv, su, sv, order, curve, 2.9)
+    index_map.ravel()[pix] = -1          # leave the shared buffer all -1 again
+    uv = np.column_stack([su.ravel()[pix], sv.ravel()[pix]]).astype(np.float64)[order]
+    nrm = np.column_stack([snu.ravel()[pix], snv.ravel()[pix]]).astype(np.float64)[order]
+    st = st[order].astype(np.float64)
+    cid = curve[order]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    is_core = np.zeros(uv.shape[0], bool)
+    if core_map is not None:
+        core_len = core_map.ravel()[pix][order]
+        is_core = np.isfinite(core_len)
+        if is_core.any():
+            nrm = _core_normals(uv, nrm, cid, is_core)
+    width = np.empty(uv.shape[0])
+    bg = np.empty((uv.shape[0], 3))
+    K.normal_profiles(gray, uv, nrm, 1.5 * w + 3.0 + 2.0 * sigma, 0.5, width, bg)
+    # a stripe point: contrast above min_contrast, width near the stripe's (thin
+    # residual edges of a background subtraction and broad glow are not stripes)
+    contrast = bg[:, 2] - 0.5 * (bg[:, 0] + bg[:, 1])
+    keep = (contrast >= mc) & (width >= 0.4 * w) & (width <= 2.5 * w + 2.0)
+    if is_core.any():
+        # a saturated core: its extent across the stripe is its width; the channel's profile dips there
+        width[is_core] = core_len[is_core] * np.max(np.abs(nrm[is_core]), axis=1)
+        keep |= is_core
+    if min_chroma is not None:
+        steps = np.arange(-int(math.ceil(w)), int(math.ceil(w)) + 1)
+        cols = np.clip(np.round(uv[:, :1] + steps[None, :] * nrm[:, :1]).astype(np.int64), 0, W - 1)
+        rows = np.clip(np.round(uv[:, 1:] + steps[None, :] * nrm[:, 1:]).astype(np.int64), 0, H - 1)
+        if image.ndim != 3:
+            raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
+        keep &= (_chroma(image, rows, cols) >= float(min_chroma)) | is_core
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return empty
+    brk = np.ones(idx.size, bool)
+    brk[1:] = (np.diff(idx) != 1) | (np.diff(cid[idx]) != 0)      # split curves at dropped points
+    cid = np.cumsum(brk) - 1
+    uv, nrm, st, width, bg = uv[idx], nrm[idx], st[idx], width[idx], bg[idx]
+    counts = np.bincount(cid)
+    good = counts[cid] >= int(min_length)
+    if not good.any():
+        return empty
+    uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
+    _, cid = np.unique(cid, return_inverse=True)
+    if suppress_weaker is not None and float(suppress_weaker) > 0 and cid.size:
+        good = _drop_overshadowed(uv, nrm, st, cid, (H, W), _SHADOW_REACH_WIDTHS * w, 1.5 * w + 2.0,
+                                  1.0 / float(suppress_weaker))
+        if not good.all():
+            uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
+            _, cid = np.unique(cid, return_inverse=True)
+            if cid.size == 0:
+                return empty
+    if correct_asymmetry:
+        uv = _correct_asymmetry(gray.astype(np.float32), uv, nrm, width, bg, sigma)
+    if sal > 0:
+        uv = _smooth_along(uv, nrm, cid, sal)
+    if correct_curvature:
+        uv = _correct_curvature(uv, nrm, cid, sigma)
+    return StripePoints(uv=uv, normals=nrm, strength=st, width=width, curve_id=cid.astype(np.int64),
+                        sigma_px=float(sigma), meta=meta)
+
+
+CURVATURE_SIGMA2_EXTRA = 1.0 / 12.0
+
+
+def _stripe_cores(image, img, channel, sstr, su, sv, snu, snv, hi, w, resp, min_chroma):
+    """Put the centres of saturated (whitish) stripe cores into the ridge-point maps.
+
+    Guarded so that only a laser's saturated core qualifies (:func:`K.saturated_core_runs`):
+    whitish pixels as bright (B + G + R) as the stripe's typical peak in its own channel
+    (the median of the channel at the ridge points reaching ``high``), a run across the
+    stripe at most ``2.5 w + 2`` px long (no broad white light), laser-coloured pixels
+    within ``w + 2`` px on both sides.  Runs down the columns serve stripes closer to
+    horizontal, runs along the rows the others (the shorter run of the two is across
+    the stripe).  Ridge points of the channel within ``2 w + 3`` px of a core (the flanks
+    of its dip) are replaced by the core's midpoints.  Returns the (H, W) map of core
+    run lengths (NaN elsewhere), or None when there is no core.
+    """
+    import cv2
+
+    strong = sstr >= hi
+    if not strong.any():
+        return None
+    ref = float(np.median(img[strong]))
+    if not ref > 0:
+        return None
+    ch = {"blue": 0, "green": 1, "red": 2}[channel]
+    bgr = np.ascontiguousarray(image[:, :, :3])
+    H, W = img.shape
+    max_len = 2.5 * w + 2.0
+    reach = int(math.ceil(w)) + 2
+    args = (ch, float(min_chroma), ref, 0.5 * ref, 0.25 * ref, max_len, reach)
+    cc = np.full((H, W), np.nan)
+    cl = np.full((H, W), np.inf)
+    K.saturated_core_runs(bgr, *args, cc, cl)
+    rc = np.full((W, H), np.nan)
+    rl = np.full((W, H), np.inf)
+    K.saturated_core_runs(np.ascontiguousarray(bgr.transpose(1, 0, 2)), *args, rc, rl)
+    rc, rl = rc.T, rl.T
+    has_c, has_r = np.isfinite(cc), np.isfinite(rc)
+    if not (has_c.any() or has_r.any()):
+        return None
+    k5 = np.ones((5, 5), np.uint8)
+    use_c = has_c & (cl <= cv2.erode(rl.astype(np.float32), k5))
+    use_r = has_r & (rl < cv2.erode(cl.astype(np.float32), k5)) & ~use_c
+    core = use_c | use_r
+    if not core.any():
+        return None
+    d = 2 * (2 * int(math.ceil(w)) + 3) + 1
+    near = cv2.dilate(core.view(np.uint8), np.ones((d, d), np.uint8)) > 0
+    sstr[near & ~core] = 0.0
+    vv, uu = np.nonzero(use_c)
+    su[vv, uu] = uu
+    sv[vv, uu] = cc[vv, uu]
+    vv, uu = np.nonzero(use_r)
+    su[vv, uu] = rc[vv, uu]
+    sv[vv, uu] = vv
+    sstr[core] = resp * ref
+    snu[use_c], snv[use_c] = 0.0, 1.0
+    snu[use_r], snv[use_r] = 1.0, 0.0
+    out = np.full((H, W), np.nan)
+    out[use_c] = cl[use_c]
+    out[use_r] = rl[use_r]
+    return out
+
+
+def _core_normals(uv, nrm, cid, is_core):
+    """Normals of core points: perpendicular to the chord between their neighbours on the curve."""
+    nrm = nrm.copy()
+    N = uv.shape[0]
+    i = np.flatnonzero(is_core)
+    a = np.clip(i - 2, 0, N - 1)
+    b = np.clip(i + 2, 0, N - 1)
+    a = np.where(cid[a] == cid[i], a, i)
+    b = np.where(cid[b] == cid[i], b, i)
+    t = uv[b] - uv[a]
+    L = np.linalg.norm(t, axis=1)
+    ok = L > 0
+    n = np.column_stack([-t[:, 1], t[:, 0]])
+    n[ok] /= L[ok, None]
+    n[~ok] = [0.0, 1.0]
+    flip = (n[:, 1] < 0) | ((n[:, 1] == 0) & (n[:, 0] < 0))
+    n[flip] *= -1
+    nrm[i] = n
+    return nrm
+
+
+def _curvature_vectors(uv: np.ndarray, starts: np.ndarray, ends: np.ndarray, m: int) -> np.ndarray:
+    """Curvature vector (towards the centre of curvature, length kappa, 1/px) of ordered curves.
+
+    From the sagitta of the chord between the points ``m`` before and after:
+    ``kappa_vec = 8 ((a + c) / 2 - b) / |c - a|^2``; points within ``m`` of a curve's
+    end take the value of the nearest point that has both neighbours; curves with
+    fewer than ``2 m + 1`` points get 0.
+    """
+    N = uv.shape[0]
+    out = np.zeros((N, 2))
+    idx = np.arange(N)
+    for s0, e0 in zip(starts, ends):
+        n = e0 - s0
+        if n < 2 * m + 1:
+            continue
+        j = np.clip(idx[s0:e0], s0 + m, e0 - 1 - m)
+        a, b, c = uv[j - m], uv[j], uv[j + m]
+        L2 = np.sum((c - a) ** 2, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kv = 8.0 * (0.5 * (a + c) - b) / L2[:, None]
+        out[s0:e0] = np.where(np.isfinite(kv), kv, 0.0)
+    return out
+
+
+def _profile_curvature(uv, nrm, valid, sigma, m, k):
+    """:func:`_correct_curvature` for a profile: neighbours ``m`` lines before and after.
+
+    The shift ``delta`` along the normal is applied along the line (coordinate ``k``,
+    ``delta / n_k``), so the centre stays on its column (row).
+    """
+    L = uv.shape[0]
+    if L < 2 * m + 1:
+        return uv
+    i = np.arange(m, L - m)
+    ok = valid[i] & valid[i - m] & valid[i + m]
+    a, b, c = uv[i - m], uv[i], uv[i + m]
+    L2 = np.sum((c - a) ** 2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kn = np.sum(8.0 * (0.5 * (a + c) - b) * nrm[i], axis=1) / L2
+    kn = np.where(ok & np.isfinite(kn), kn, 0.0)
+    out = uv.copy()
+    out[i, k] -= 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA) * kn / nrm[i, k]
+    return out
+
+
+def _correct_curvature(uv, nrm, cid, sigma):
+    """Undo the inward shift ``(sigma^2 + 1/12) kappa / 2`` of Gaussian smoothing on curved lines.
+
+    Smoothing a curved ridge of radius ``rho`` (heat equation to first order:
+    ``r = P + (sigma^2 / 2) P' / rho``) moves its maximum ``sigma^2 / (2 rho)``
+    towards the centre of curvature; 1/12 px^2 is the pixel's own variance.
+    """
+    change = np.flatnonzero(np.diff(cid)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [cid.size]])
+    m = max(5, int(math.ceil(4.0 * sigma)))
+    kv = _curvature_vectors(uv, starts, ends, m)
+    shift = 0.5 * (sigma**2 + CURVATURE_SIGMA2_EXTRA) * np.sum(kv * nrm, axis=1)
+    return uv - shift[:, None] * nrm
+
+
+def _correct_asymmetry(gray, uv, nrm, width, bg, sigma):
+    """Remove the bar-model shift ``l = -sigma^2 ln(1 - a) / (2 w)`` (Steger 1998 §4) along ``n``."""
+    import cv2
+
+    # peak height: the image at the centre (bilinear)
+    mapx = uv[:, 0].astype(np.float32).reshape(-1, 1)
+    mapy = uv[:, 1].astype(np.float32).reshape(-1, 1)
+    peak = cv2.remap(gray, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel().astype(float)
+    b_minus, b_plus = bg[:, 0], bg[:, 1]
+    lo_bg = np.minimum(b_minus, b_plus)
+    h = peak - lo_bg
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.abs(b_plus - b_minus) / h
+        half_w = 0.5 * width
+        shift = -sigma**2 * np.log1p(-np.clip(a, 0.0, 0.9)) / (2.0 * half_w)
+    shift = np.where(np.isfinite(shift), shift, 0.0)
+    # the detected centre moved towards the brighter side; move it back
+    sgn = np.where(b_plus > b_minus, 1.0, -1.0)
+    return uv - (sgn * shift)[:, None] * nrm
+
+
+def _smooth_along(uv: np.ndarray, nrm: np.ndarray, cid: np.ndarray, sigma_along: float):
+    """Smooth each point's offset along its normal over its curve's neighbours: a local quadratic.
+
+    For point ``i``, its neighbours ``j`` on the same curve within ``3 sigma_along`` (in
+    order; the window truncated symmetrically at the curve's ends) give tangential
+    coordinates ``t_j = (p_j - p_i)·tau_i`` and normal offsets ``h_j = (p_j - p_i)·n_i``;
+    ``h = a + b t + c t^2`` is fitted with Gaussian weights and the point moves by ``a``
+    along its normal.  A quadratic absorbs the curve's own bend (``c = kappa / 2``), so
+    straight and curved lines alike stay where they are (no inward shift to correct);
+    only the noise of the offsets is averaged.  Returns the moved points.
+    """
+    N = uv.shape[0]
+    R = int(math.ceil(3.0 * sigma_along))
+    if N == 0 or R < 1:
+        return uv
+    change = np.flatnonzero(np.diff(cid)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [N]])
+    n_per = ends - starts
+    idx = np.arange(N)
+    s = np.repeat(starts, n_per)
+    e = np.repeat(ends, n_per)
+    # a quadratic is a circle only to second order: fitted with Gaussian weights of scale s to
+    # h = kappa^3 t^4 / 8, its intercept is off by -3 s^4 kappa^3 / 8.  The scale shrinks where
+    # the line bends so that this stays below ~0.001 px, and what is left of the circle's
+    # shape beyond the quadratic is fitted too and taken off (below)
+    m_k = max(5, int(math.ceil(2.0 * sigma_along)))
+    kv = _curvature_vectors(uv, starts, ends, m_k)
+    kap = np.linalg.norm(kv, axis=1)
+    side = np.sign(np.sum(kv * nrm, axis=1))  # +1 where the normal points to the centre of curvature
+    with np.errstate(divide="ignore"):
+        sig = np.minimum(sigma_along, (0.0027 / np.maximum(kap, 1e-12) ** 3) ** 0.25)
+    rad = 1.0 / np.maximum(kap, 1e-12)
+    a = K.smooth_along_quadratic(np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(nrm, dtype=np.float64),
+                                 s.astype(np.int64), (e - 1).astype(np.int64), sig.astype(np.float64), R,
+                                 rad.astype(np.float64), side.astype(np.float64))
+    # the shift along the normal, applied along the grid line the point lies on (the axis
+    # closer to the normal), so each point stays that line's crossing (module docstring)
+    kx = (np.abs(nrm[:, 0]) > np.abs(nrm[:, 1])).astype(np.int64)
+    out = uv.copy()
+    out[idx, 1 - kx] += a / nrm[idx, 1 - kx]
+    return out
+
+
+def _drop_overshadowed(uv, nrm, st, cid, shape, reach, min_gap, ratio):
+    """Keep curves unless most of their points have a stronger, longer line alongside.
+
+    Alongside: on the point's normal, between ``min_gap`` and ``reach`` px away (either
+    side), a centre point of another curve (3x3 px neighbourhood) whose median ridge
+    strength reaches ``ratio`` times the curve's own and which holds at least twice as
+    many points (a whole-curve comparison: a stripe that dims locally, under glare,
+    still overshadows the reflection next to it).  Returns the boolean keep mask.
+    """
+    import cv2
+
+    H, W = shape
+    keep = np.ones(uv.shape[0], bool)
+    if uv.shape[0] == 0 or cid.max() == 0:
+        return keep
+    ij = np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1])
+    n_pts = np.bincount(cid)
+    lmap = np.zeros((H, W), np.float32)
+    np.maximum.at(lmap, (ij[:, 1], ij[:, 0]), n_pts[cid].astype(np.float32))
+    lmap = cv2.dilate(lmap, np.ones((3, 3), np.uint8))
+    med = np.zeros(cid.max() + 1)
+    for c in np.unique(cid):
+        med[c] = np.median(st[cid == c])
+    smap = np.zeros((H, W), np.float32)
+    np.maximum.at(smap, (ij[:, 1], ij[:, 0]), med[cid].astype(np.float32))
+    smap = cv2.dilate(smap, np.ones((3, 3), np.uint8))
+    t = np.arange(math.ceil(min_gap), math.floor(reach) + 1, 1.0)
+    t = np.concatenate([-t, t])
+    q = uv[:, None, :] + t[None, :, None] * nrm[:, None, :]
+    qu = np.clip(np.round(q[..., 0]).astype(np.int64), 0, W - 1)
+    qv = np.clip(np.round(q[..., 1]).astype(np.int64), 0, H - 1)
+    inside = (q[..., 0] >= -0.5) & (q[..., 0] < W - 0.5) & (q[..., 1] >= -0.5) & (q[..., 1] < H - 0.5)
+    strong = (smap[qv, qu] >= ratio * med[cid][:, None]) & (lmap[qv, qu] >= 2.0 * n_pts[cid][:, None])
+    shadowed = (inside & strong).any(axis=1)
+    frac = np.bincount(cid, weights=shadowed.astype(float)) / np.bincount(cid)
+    return frac[cid] < 0.5
