@@ -22,7 +22,7 @@ corners of 8 mm, tilted 25–55°, over the whole image), then:
 With this 16 mm lens (17° field of view) the principal point is nearly interchangeable
 with a camera rotation plus tangential distortion, so its error scales with the corner
 error (~0.1 mm at 450 mm per px of cx or cy).  The corners come from
-:func:`lightplane.camera.intrinsics.fit_corners` (blurred-saddle fit, 0.006 px RMS on these
+:func:`lightplane.camera.corners.fit_corners` (blurred-saddle fit, 0.006 px RMS on these
 renders): with 30 views OpenCV's std of cx, cy is 0.09, 0.06 px and the camera-frame
 triangulation error 0.008–0.011 mm; with Förstner's corners (0.019 px) it was 0.28,
 0.19 px and 0.041 mm, over the 0.03 mm bar.  The calibration's time (corner detection

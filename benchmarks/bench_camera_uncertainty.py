@@ -98,7 +98,7 @@ def _save(f: Path, images) -> None:
 
 def _errors(cam, plane, cam_true, plane_true, vol, prefix: str = "") -> dict:
     """Actual and predicted errors of (camera, plane) against the truth over ``vol``."""
-    from lightplane.measure.profile import triangulate
+    from lightplane.plane.triangulate import triangulate
     from lightplane.evaluate.shapes import rigid_align
     from lightplane.plane.uncertainty import volume_sigma
 
@@ -324,7 +324,7 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     row.update(_errors(cam_true, _scaled_plane(cal_t.plane, 1 / phi_t), cam_true, plane_true, vol,
                        "truecam_noimgdisp_"))
     row["truecam_dx"] = _plane_error_whitened(cal_t.plane, plane_true)
-    from lightplane.measure.profile import triangulate
+    from lightplane.plane.triangulate import triangulate
     est_t = triangulate(cam_true, cal_t.plane, vol.uv)
     row.update(_shape_parts(triangulate(cam, cal.plane, vol.uv), est_t, vol.points))
     if joint:

@@ -50,7 +50,8 @@ import cv2
 
 from lightplane import Camera
 from lightplane.plane.calibrate import calibrate_plane
-from lightplane.camera.intrinsics import _free_parameters, board_points, calibrate_camera, rays_up_to_rotation
+from lightplane.camera.intrinsics import free_parameters, calibrate_camera, rays_up_to_rotation
+from lightplane.camera.corners import board_points
 from lightplane.camera.lens import coeff_names
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
@@ -77,7 +78,7 @@ def opencv_sigma_check(cal, flags: int) -> str:
     against its exact inverse."""
     cam = cal.camera
     dist = cam.dist
-    free = np.flatnonzero(_free_parameters(dist.size, flags))
+    free = np.flatnonzero(free_parameters(dist.size, flags))
     obj = board_points(cal.board, cal.square_mm)
     p, nv = free.size, len(cal.rvecs)
     blocks, res = [], []

@@ -263,7 +263,8 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
 def profile_speed(repeats: int = 15) -> None:
     import cv2
 
-    from lightplane.measure.profile import clear_profile_cache, measure_profile, profile_axis
+    from lightplane.measure.profile import clear_profile_cache, measure_profile
+    from lightplane.plane.triangulate import profile_axis
     from lightplane.plane.model import LightPlane
     from lightplane.stripe.extract import estimate_width, extract_profile
 

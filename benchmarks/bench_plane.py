@@ -15,13 +15,7 @@ import time
 
 import numpy as np
 
-from lightplane.plane.model import (
-    _solve_global,
-    _solve_paper,
-    calibrate_plane_from_points,
-    estimate_sigma_px,
-    prepare_placement,
-)
+from lightplane.plane.solvers import _solve_global, _solve_paper, calibrate_plane_from_points, estimate_sigma_px, prepare_placement
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 
 TARGET_MS = 10.0

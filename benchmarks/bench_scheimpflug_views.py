@@ -37,8 +37,8 @@ import numpy as np
 import cv2
 
 from lightplane import Camera
-from lightplane.camera.intrinsics import (_free_parameters, _polish, board_points, calibration_flags,
-                                   intrinsics_covariance, rays_up_to_rotation)
+from lightplane.camera.intrinsics import free_parameters, _polish, calibration_flags, intrinsics_covariance, rays_up_to_rotation
+from lightplane.camera.corners import board_points
 from lightplane.simulate.scene import scheimpflug_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, sample_board_poses
 
@@ -64,7 +64,7 @@ def poses(cam: Camera, n: int, seed: int, board=CAP["board"], dist=CAP["distance
 def normal_matrix(cam: Camera, views, board, flags: int, noise: float) -> str:
     """Part 1: OpenCV's cut against the smallest eigenvalue, sigma exact / OpenCV's pseudo-inverse."""
     obj = board_points(board, CAP["square_mm"])
-    free = np.flatnonzero(_free_parameters(14, flags))
+    free = np.flatnonzero(free_parameters(14, flags))
     p, nv = free.size, len(views)
     J = np.zeros((2 * len(obj) * nv, p + 6 * nv))
     for i, (R, t) in enumerate(views):

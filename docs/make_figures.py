@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.plane.model import calibrate_plane_from_points
+from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.plane.uncertainty import rms_triangulation_error_mm, working_volume_grid
 

@@ -14,7 +14,7 @@ The stable API (docs/conventions.md §Python API): :class:`Camera`, :class:`Ligh
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from lightplane.version import __version__
 
 from lightplane.core import threads  # noqa: F401  (first: numba's threading layer and OpenMP wait policy, before any kernel)
 
@@ -23,7 +23,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.plane.solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points
 from lightplane.plane.ml import MLOptions
-from lightplane.measure.profile import triangulate
+from lightplane.plane.triangulate import triangulate
 from lightplane.plane.circle_pose import CirclePose, circle_poses
 from lightplane.ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
 from lightplane.stripe.extract import StripePoints, StripeProfile, extract_profile, extract_stripe

@@ -1,8 +1,8 @@
-"""Numba kernels behind :func:`lightplane.camera.intrinsics.fit_corners` (the blurred-saddle fit) and
-:func:`lightplane.camera.intrinsics.refine_corners` (Förstner's step).
+"""Numba kernels behind :func:`lightplane.camera.corners.fit_corners` (the blurred-saddle fit) and
+:func:`lightplane.camera.corners.refine_corners` (Förstner's step).
 
 :func:`fit_saddles` is the Levenberg–Marquardt of ``intrinsics._fit_saddles`` a corner at a time:
-the same model (:func:`lightplane.camera.intrinsics.fit_corners`'s blurred saddle), weights, damping and stopping rule
+the same model (:func:`lightplane.camera.corners.fit_corners`'s blurred saddle), weights, damping and stopping rule
 (the corners of a chunk step together until all of them are done, as the batched numpy loop did),
 with the model's ``erf`` and the normal equations evaluated only where the weight is not zero and
 the Jacobian only at accepted steps; the cold start's ``erf`` serve the first iteration too.  On the
@@ -312,7 +312,7 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def forstner(gx, gy, unit, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no cover - compiled
-    """:func:`lightplane.camera.intrinsics.refine_corners`' iteration: each corner of ``q0`` (n, 2) moved to the
+    """:func:`lightplane.camera.corners.refine_corners`' iteration: each corner of ``q0`` (n, 2) moved to the
     point its gradients (``unit`` times ``gx, gy``, the Scharr images) are orthogonal to, over the pixels within
     ``radius`` of the integer pixel nearest to it weighted by ``exp(-d² / two_sigma2)`` (d from the
     corner); all corners step together until the largest step is below ``tol`` (``max_iter`` steps at

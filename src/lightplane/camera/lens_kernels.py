@@ -16,15 +16,15 @@ from numba import njit  # noqa: E402
 
 from lightplane.camera.lens import distort_jac, undistort_guess  # noqa: E402
 
-_distort_jac = njit(cache=True, nogil=True, inline="always", error_model="numpy")(distort_jac)
+distort_jac_kernel = njit(cache=True, nogil=True, inline="always", error_model="numpy")(distort_jac)
 _undistort_guess = njit(cache=True, nogil=True, inline="always", error_model="numpy")(undistort_guess)
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _newton_step(x, y, tx, ty, lens):  # pragma: no cover - compiled
+def newton_step_kernel(x, y, tx, ty, lens):  # pragma: no cover - compiled
     """One Newton step towards the undistorted point whose distortion is ``(tx, ty)``, from ``(x, y)``:
     the new point, the step taken ``(dx, dy)`` and the distortion's Jacobian at ``(x, y)``."""
-    xd, yd, j11, j12, j21, j22 = _distort_jac(x, y, lens)
+    xd, yd, j11, j12, j21, j22 = distort_jac_kernel(x, y, lens)
     f0 = xd - tx
     f1 = yd - ty
     det = j11 * j22 - j12 * j21
@@ -42,12 +42,12 @@ def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover
     for k in range(tx.shape[0]):
         x, y = _undistort_guess(tx[k], ty[k], lens)
         for _ in range(iters):
-            x, y, dx, dy, _, _, _, _ = _newton_step(x, y, tx[k], ty[k], lens)
+            x, y, dx, dy, _, _, _, _ = newton_step_kernel(x, y, tx[k], ty[k], lens)
             if not max(abs(dx), abs(dy)) > 1e-16:
                 break
         xy[k, 0] = x
         xy[k, 1] = y
-        xd, yd, _, _, _, _ = _distort_jac(x, y, lens)
+        xd, yd, _, _, _, _ = distort_jac_kernel(x, y, lens)
         du = K[0, 0] * xd + K[0, 1] * yd + K[0, 2] - u[k]
         dv = K[1, 1] * yd + K[1, 2] - v[k]
         err[k] = math.sqrt(du * du + dv * dv)
@@ -63,7 +63,7 @@ def newton_undistort_from(tx, ty, sx, sy, lens, tol, iters, xy, jac, done):  # p
         x, y = sx[k], sy[k]
         ok = False
         for _ in range(iters):
-            x, y, dx, dy, j11, j12, j21, j22 = _newton_step(x, y, tx[k], ty[k], lens)
+            x, y, dx, dy, j11, j12, j21, j22 = newton_step_kernel(x, y, tx[k], ty[k], lens)
             jac[0, k] = j11
             jac[1, k] = j12
             jac[2, k] = j21

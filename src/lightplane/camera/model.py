@@ -32,6 +32,8 @@ import numpy as np
 
 from lightplane.core.errors import LightplaneError
 from lightplane.camera.lens import MODELS, ROS_MODELS, distort_jac, lens_params, model_for
+from lightplane.camera.lens_kernels import newton_undistort, newton_undistort_from
+from lightplane.core.io import atomic_write, read_json, write_json
 
 __all__ = ["Camera", "as_points"]
 
@@ -241,8 +243,6 @@ class Camera:
         OpenCV's iterative undistortion (tight criteria) followed by Newton."""
         import cv2
 
-        from lightplane.camera.lens_kernels import newton_undistort
-
         target = self.pixels_to_normalized_linear(uv)
         good = np.all(np.isfinite(uv), axis=1)
         xy, err = np.empty((len(uv), 2)), np.empty(len(uv))
@@ -296,8 +296,6 @@ class Camera:
         point not there after ``iters`` steps, or not finite, is solved by :meth:`undistort_points`
         instead.  From a start within ~1 px: two evaluations of the lens model instead of ~6, a point
         at a time (compiled: :func:`lightplane.camera.lens_kernels.newton_undistort_from`)."""
-        from lightplane.camera.lens_kernels import newton_undistort_from
-
         target = self.pixels_to_normalized_linear(uv)
         n = len(uv)
         xy, jac, done = np.empty((n, 2)), np.empty((4, n)), np.empty(n, bool)
@@ -451,8 +449,6 @@ class Camera:
 
     def save_json(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
         """Write our JSON camera file atomically (``extra`` keys, e.g. provenance, are added)."""
-        from lightplane.core.io import write_json
-
         d = self.to_dict()
         if extra:
             d.update(extra)
@@ -479,15 +475,11 @@ class Camera:
         return yaml.safe_dump(doc, sort_keys=False)
 
     def save_ros_yaml(self, path: str | os.PathLike, *, force: bool = False) -> Path:
-        from lightplane.core.io import atomic_write
-
         return atomic_write(path, self.ros_yaml_text(), force=force)
 
     def save_opencv(self, path: str | os.PathLike, *, force: bool = False) -> Path:
         """Write an OpenCV FileStorage file (``.yaml``/``.yml`` or ``.xml`` by suffix)."""
         import cv2
-
-        from lightplane.core.io import atomic_write
 
         def writer(tmp: str) -> None:
             fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
@@ -531,8 +523,6 @@ class Camera:
             raise LightplaneError(f"{p}: not a text camera file (JSON, YAML or XML expected)") from None
         head = text.lstrip()[:64]
         if head.startswith("{"):
-            from lightplane.core.io import read_json
-
             d = read_json(p, "camera file")
             if d.get("kind") == "lightplane sensor" and isinstance(d.get("camera"), dict):
                 d = d["camera"]  # a sensor file (lightplane.measure.sensor) holds its camera

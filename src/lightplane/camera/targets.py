@@ -38,6 +38,8 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import robust_sigma
 from lightplane.core.io import to_gray8
+from lightplane.camera.corners import find_board
+from lightplane.core.io import to_gray_float
 
 __all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "correct_circle_centres", "to_gray8"]
 
@@ -227,7 +229,7 @@ class Target:
     def detect(self, image: np.ndarray, *, refine: bool | str = False) -> Detection | None:
         """Find the target in one image (gray or BGR, 8/16-bit or float): a :class:`Detection` or None.
 
-        Chessboard: :func:`lightplane.camera.intrinsics.find_board` (``findChessboardCornersSB``,
+        Chessboard: :func:`lightplane.camera.corners.find_board` (``findChessboardCornersSB``,
         ``cornerSubPix``, with ``refine`` the saddle fit).  Circle grids: ``findCirclesGrid``
         with blob parameters for dark dots on light, then light dots on dark, each centre
         refined to its darkness-weighted centroid (no perspective correction: see
@@ -236,8 +238,6 @@ class Target:
         corners, or with all its corners on one line, is not usable (None).
         """
         if self.kind == "chessboard":
-            from lightplane.camera.intrinsics import find_board
-
             c = find_board(image, (self.cols, self.rows), refine=refine)
             if c is None:
                 return None
@@ -430,8 +430,6 @@ def _dot_centroids(image: np.ndarray, uv0: np.ndarray, target: Target, *, dark: 
     weighted centroid is its area centroid: blur is a convolution with a centred kernel and
     keeps first moments.
     """
-    from lightplane.core.io import to_gray_float
-
     g = to_gray_float(image)
     J = _local_jacobians(target, uv0)
     R = 0.46 * target.spacing_mm
@@ -476,8 +474,6 @@ def dot_diameter_mm(image: np.ndarray, det: Detection, target: Target) -> float:
     """The dots' diameter (mm): ``target.dot_mm`` when given, else measured in one image, the
     median over dots of the dot's area (pixels beyond the mid-level between dot and board, dark
     or light as the detection found them) in :func:`_dot_window`'s disc."""
-    from lightplane.core.io import to_gray_float
-
     if target.dot_mm:
         return float(target.dot_mm)
     g = to_gray_float(image)

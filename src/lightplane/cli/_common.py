@@ -19,6 +19,8 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _click_errors  # type: ignore[no-redef]  # the same module, older typer
 
 from lightplane.core.errors import LightplaneError
+from lightplane.camera.targets import parse_target
+from lightplane.core.io import quiet_opencv
 
 class _OneLineErrors(TyperGroup):
     """The command group, with click's usage errors (a bad choice, a value out of range, a
@@ -100,8 +102,6 @@ def quiet_native_logs() -> None:
     each skipped image is in the summary and the result file.  Once per process."""
     global _QUIETED
     if not _QUIETED:
-        from lightplane.core.io import quiet_opencv
-
         quiet_opencv()
         _QUIETED = True
 
@@ -167,8 +167,6 @@ target_option = typer.Option(None, "--target", help="Target file (JSON) naming t
 
 def target_from_options(board, square, marker=None, dictionary=None, dot=None, target_file=None):
     """The :class:`lightplane.camera.targets.Target` named on the command line."""
-    from lightplane.camera.targets import parse_target
-
     return parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot, target_file=target_file)
 
 

@@ -14,6 +14,10 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
+from lightplane.camera.intrinsics import calibrate_camera, opencv_std_ratio
+from lightplane.camera.lens import MODELS, coeff_names
+from lightplane.plane.uncertainty import camera_uncertainty_summary
+from lightplane.report.plots import intrinsics_residuals
 
 
 #: Corner refinement recorded by calibrate_camera -> (what the summary says, the function in the provenance).
@@ -48,12 +52,6 @@ def calibrate_camera_cmd(
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     import cv2
 
-    from lightplane.camera.intrinsics import calibrate_camera, opencv_std_ratio
-    from lightplane.camera.lens import coeff_names
-    from lightplane.report.plots import intrinsics_residuals
-    from lightplane.plane.uncertainty import camera_uncertainty_summary
-
-    from lightplane.camera.lens import MODELS
 
     if model not in MODELS:
         raise LightplaneError(f"--model {model!r} is not a lens model (plumb_bob, rational, thin_prism, tilted, fisheye)")

@@ -11,6 +11,15 @@ from rich.table import Table
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.cli._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.model import Camera
+from lightplane.cli._common import target_from_options
+from lightplane.plane.calibrate import calibrate_plane, calibrate_planes, uncertainty_summary
+from lightplane.plane.joint import refine_joint
+from lightplane.plane.uncertainty import (camera_param_names, camera_params, camera_uncertainty_summary,
+    joint_dispersion_phrase)
+from lightplane.report.html import write_report
+from lightplane.stripe.lasers import output_paths, parse_lasers
 
 
 @app.command("calibrate-plane")
@@ -51,9 +60,6 @@ def calibrate_plane_cmd(
     it, then both are refined jointly (the circle images inform the intrinsics too); the camera
     file gets the refined intrinsics and their covariance, the plane file the refined plane.
     """
-    from lightplane.plane.calibrate import calibrate_plane, calibrate_planes
-    from lightplane.camera.model import Camera
-    from lightplane.stripe.lasers import output_paths, parse_lasers
 
     if not (diameter > 0):
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
@@ -91,8 +97,6 @@ def calibrate_plane_cmd(
                 check_output(rep / "index.html", force)
     intr = None
     if joint is not None:
-        from lightplane.camera.intrinsics import calibrate_camera
-
         board_files, target = joint
         with progress_bar("chessboard images", len(board_files)) as update:
             intr = calibrate_camera([str(f) for f in board_files], target, progress=lambda i, n: update(i))
@@ -116,8 +120,6 @@ def calibrate_plane_cmd(
                                     distance_range_mm=(near, far), progress=lambda i, n: update(i))
     jc = None
     if intr is not None:
-        from lightplane.plane.joint import refine_joint
-
         console.print("[bold]two-step[/bold] (camera from the chessboards alone, then the plane with it):")
         _print_calibration(cals[None], cam)
         jc = refine_joint(intr, cals[None])
@@ -146,8 +148,6 @@ def calibrate_plane_cmd(
         inputs += [str(f) for f in joint[0]]
     prov = provenance(inputs, options)
     if jc is not None and intr is not None:
-        from lightplane.plane.uncertainty import joint_dispersion_phrase
-
         assert camera_out is not None  # checked by _joint_inputs
         r = jc.result
         jc.camera.save_json(camera_out, force=force, extra={
@@ -169,8 +169,6 @@ def calibrate_plane_cmd(
         cal.plane.save(outputs[name], force=force, extra=extra)
         console.print(f"wrote {outputs[name]}")
     if report is not None:
-        from lightplane.report.html import write_report
-
         for name, cal in cals.items():
             rep = reports[name]
             if name is not None and len(names) > 1:
@@ -202,8 +200,6 @@ def shared_pose_lines(cals: dict) -> list[str]:
 
 def _print_calibration(cal, cam) -> dict:
     """The plane, its uncertainty and the per-image table on the console; returns the uncertainty summary."""
-    from lightplane.plane.calibrate import uncertainty_summary
-
     unc = uncertainty_summary(cal, cam)
     a, b, c = cal.plane.normal
     console.print(f"Light plane ({cal.method}, camera frame, mm): {a:+.6f} x {b:+.6f} y {c:+.6f} z "
@@ -261,8 +257,6 @@ def _print_calibration(cal, cam) -> dict:
 
 def _joint_inputs(joint_camera, board, square, camera, camera_out, output, method, laser, force):
     """``(board files, target)`` for --joint-camera, checked before any work; None without it."""
-    from lightplane.cli._common import target_from_options
-
     if joint_camera is None:
         given = [n for n, v in (("--board", board), ("--square", square), ("--camera-out", camera_out)) if v is not None]
         if given:
@@ -293,8 +287,6 @@ def _joint_inputs(joint_camera, board, square, camera, camera_out, output, metho
 def _print_joint(cam0, jc) -> None:
     """What the joint refinement changed in the intrinsics and their uncertainty."""
     import numpy as np
-
-    from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_uncertainty_summary
 
     cam = jc.camera
     names = camera_param_names(cam)

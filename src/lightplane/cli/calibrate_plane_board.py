@@ -14,6 +14,10 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, progress_bar, takes_target)
+from lightplane.camera.model import Camera
+from lightplane.core.io import try_read_image
+from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
 
 def check_background(files: list[Path], bg_files: list[Path], option: str = "--background") -> None:
@@ -99,8 +103,6 @@ def select_laser_frames(sels, lasers: list[Path], slots: list[int] | None, cycle
 
 def read_frames(files: list[Path], rotate: int, cache: dict) -> list:
     """Each file read once (``cache``: path -> image or reason); None stands for an unreadable one."""
-    from lightplane.core.io import try_read_image
-
     out = []
     for f in files:
         if f is None:
@@ -176,9 +178,6 @@ def calibrate_plane_board_cmd(
     per turntable position): --cycle P,L,L --laser laser0=cycle:1 --laser laser1=cycle:2; one plane file
     per laser (-o plane.json: plane_laser0.json, plane_laser1.json).
     """
-    from lightplane.plane.zhou import calibrate_plane_board
-    from lightplane.camera.model import Camera
-    from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
     sels = parse_lasers(laser, channel)
     outputs: dict[str | None, Path] = {None: output}

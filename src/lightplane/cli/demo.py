@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from lightplane.cli._common import app, console, handles_errors
+from lightplane.report.demo import run_demo
 
 
 @app.command("demo")
@@ -17,6 +18,4 @@ def demo_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic data set."),
 ) -> None:
     """Render a synthetic data set and run every stage of lightplane on it."""
-    from lightplane.report.demo import run_demo
-
     run_demo(out, force=force, seed=seed, console=console)

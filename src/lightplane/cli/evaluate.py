@@ -15,6 +15,9 @@ from lightplane.core.io import atomic_write, check_output, dumps_json, expand_in
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
 from lightplane.cli.calibrate_plane_board import read_laser_frames
+from lightplane.camera.model import Camera
+from lightplane.evaluate.crossratio import evaluate_images
+from lightplane.plane.model import LightPlane
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -41,9 +44,6 @@ def evaluate_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Compare light planes by the cross-ratio on a chessboard: ideal vs measured distances (paper Table 2)."""
-    from lightplane.camera.model import Camera
-    from lightplane.evaluate.crossratio import evaluate_images
-    from lightplane.plane.model import LightPlane
 
     for out in (json_out, csv_out):
         if out is not None:

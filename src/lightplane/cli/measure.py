@@ -9,6 +9,14 @@ import typer
 
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import Channel, along_stripe, app, console, err_console, handles_errors, progress_bar
+from lightplane.camera.model import Camera
+from lightplane.core.io import check_output, summarize_reasons
+from lightplane.measure.pointcloud import cloud_format
+from lightplane.measure.scan import measure_scan, open_frames
+from lightplane.measure.sensor import Sensor, measure_lasers
+from lightplane.motion.model import Motion, Turntable, load_rigid
+from lightplane.plane.model import LightPlane
+from lightplane.plane.uncertainty import camera_share_status
 
 
 def parse_vector(text: str, name: str) -> tuple[float, float, float]:
@@ -70,8 +78,6 @@ def parse_laser(text: str) -> tuple[str, str | None]:
 
 def sigma_line(camera, plane) -> str:
     """What the per-point ``sigma_mm`` of a cloud measured with ``plane`` covers (one line)."""
-    from lightplane.plane.uncertainty import camera_share_status
-
     if plane.covariance is None:
         return "per-point sigma_mm: NaN (the plane file has no covariance)"
     why_not = camera_share_status(camera, plane)
@@ -83,8 +89,6 @@ def sigma_line(camera, plane) -> str:
 def motion_from_options(*, step, direction, positions, turntable, table_from_sensor, turntable_step,
                         turntable_angles, turntable_start, counts_per_rev, poses, flange, flange_from_sensor, camera):
     """The :class:`lightplane.motion.model.Motion` named by the measure options (one form at most)."""
-    from lightplane.motion.model import Motion, Turntable, load_rigid
-
     forms = [n for n, v in (("--step", step), ("--positions", positions), ("--turntable-step", turntable_step),
                             ("--turntable-angles", turntable_angles), ("--poses", poses)) if v is not None]
     if len(forms) > 1:
@@ -170,11 +174,6 @@ def measure_cmd(
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
-    from lightplane.camera.model import Camera
-    from lightplane.core.io import check_output
-    from lightplane.plane.model import LightPlane
-    from lightplane.measure.pointcloud import cloud_format
-    from lightplane.measure.scan import measure_scan, open_frames
     out = check_output(output, force)
     fmt = cloud_format(out, fmt)
     if ascii_ply and fmt != "ply":
@@ -186,7 +185,6 @@ def measure_cmd(
             raise LightplaneError("give either --sensor or --camera/--plane, not both")
         if not laser:
             raise LightplaneError("--sensor needs --laser NAME (frames as arguments) or --laser NAME=FRAMES per laser")
-        from lightplane.measure.sensor import Sensor
 
         sens = Sensor.load(sensor)
         cam = sens.camera
@@ -222,8 +220,6 @@ def measure_cmd(
     roi_box = parse_roi(roi) if roi is not None else None
 
     if sens is not None:
-        from lightplane.measure.sensor import measure_lasers
-
         scans = []
         for name, glob in lasers:
             scans.append((name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name]))
@@ -263,8 +259,6 @@ def measure_cmd(
                   f"stripe width {s.width_px:.2f} px, motion {s.motion['kind']}, {s.seconds:.1f} s "
                   f"({s.n_frames / max(s.seconds, 1e-9):.0f} frames/s)")
     if s.skipped:
-        from lightplane.core.io import summarize_reasons
-
         console.print(f"{s.n_frames_used} of {s.n_frames} frames used, {s.n_skipped} skipped: "
                       + summarize_reasons([(name, reason) for _, name, reason in s.skipped]))
     if s.frames_without_points:

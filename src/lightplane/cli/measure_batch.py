@@ -9,6 +9,9 @@ import typer
 
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import along_stripe, app, console, err_console, fail, handles_errors
+from lightplane.cli.measure import parse_roi
+from lightplane.core.io import summarize_reasons
+from lightplane.measure.batch import measure_batch, read_manifest, require_extra
 
 #: per-scan progress bars up to this many scans (then the overall bar only)
 MAX_SCAN_BARS = 12
@@ -46,8 +49,6 @@ def measure_batch_cmd(
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from lightplane.measure.batch import measure_batch, read_manifest, require_extra
-    from lightplane.cli.measure import parse_roi
 
     require_extra()
 
@@ -91,8 +92,6 @@ def measure_batch_cmd(
                   f"{r.seconds:.1f} s ({r.n_frames / max(r.seconds, 1e-9):.0f} frames/s)")
     for s in r.scans:
         if s["skipped"]:
-            from lightplane.core.io import summarize_reasons
-
             err_console.print(f"warning: scan {s['id']}: {len(s['skipped'])} unreadable frame(s) skipped: "
                               + summarize_reasons([(name, why) for _, name, why in s["skipped"]]))
     for s in r.failed:

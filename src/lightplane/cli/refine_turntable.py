@@ -10,6 +10,11 @@ import typer
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import Channel, app, console, handles_errors, progress_bar
 from lightplane.cli.measure import parse_laser
+from lightplane.core.io import check_output, provenance
+from lightplane.measure.scan import open_frames, scan_points
+from lightplane.measure.sensor import Sensor
+from lightplane.motion.model import Motion
+from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
 
 
 @app.command("refine-turntable")
@@ -37,11 +42,6 @@ def refine_turntable_cmd(
     """
     import numpy as np
 
-    from lightplane.core.io import check_output, provenance
-    from lightplane.motion.model import Motion
-    from lightplane.measure.scan import open_frames, scan_points
-    from lightplane.measure.sensor import Sensor
-    from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
 
     check_output(output, force)
     sens = Sensor.load(sensor)

@@ -12,6 +12,11 @@ import typer
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import (app, console, dictionary_option, dot_option, handles_errors, marker_option, parse_board,
                       progress_bar, target_option)
+from lightplane.camera.targets import parse_target
+from lightplane.plane.model import LightPlane
+from lightplane.simulate.render import (check_output_dir, render_chessboard_dataset, render_circle_dataset,
+    render_scan_dataset, render_target_dataset, second_laser_plane)
+from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
 
 SCENES = ("circle", "chessboard", "target", "scan", "turntable", "turntable-board")
 
@@ -58,15 +63,6 @@ def render_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite existing files."),
 ) -> None:
     """Render synthetic images with exact ground truth (PNG images, camera.json, truth.json)."""
-    from lightplane.simulate.render import (
-        check_output_dir,
-        render_chessboard_dataset,
-        render_circle_dataset,
-        render_scan_dataset,
-        render_target_dataset,
-        second_laser_plane,
-    )
-
     if not diameter > 0:
         raise LightplaneError(f"--diameter must be positive, got {diameter} mm")
     if square is not None and not square > 0:
@@ -75,8 +71,6 @@ def render_cmd(
         raise LightplaneError(f"--step must be positive, got {step} mm")
     tgt = None
     if scene == "target":
-        from lightplane.camera.targets import parse_target
-
         tgt = parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot,
                            target_file=target_file)
         cols_rows = None
@@ -105,14 +99,10 @@ def render_cmd(
                                            with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
                                            progress=progress)
         elif scene == "turntable":
-            from lightplane.simulate.turntable import render_turntable_scan
-
             ds = render_turntable_scan(n_frames=24 if n is None else n, step_deg=turntable_step, seed=seed,
                                        difficulty=difficulty or "clean", lasers=2 if lasers is None else lasers,
                                        progress=progress)
         elif scene == "turntable-board":
-            from lightplane.simulate.turntable import render_turntable_board
-
             k = 7 if n is None else n
             ds = render_turntable_board(angles_deg=np.linspace(-40.0, 40.0, k) if k > 1 else [0.0], seed=seed,
                                         difficulty=difficulty or "clean")
@@ -128,7 +118,6 @@ def render_cmd(
         bad = [e["file"] for e in ds.truth["images"] if not e["usable"]]
         console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
                       f"{len(ds.truth['images']) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
-        from lightplane.plane.model import LightPlane
 
         for las in ds.truth.get("lasers", []):
             console.print(f"  {las['name']} ({las['channel']} channel): plane {LightPlane.from_dict(las['plane'])}")

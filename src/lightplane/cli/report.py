@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from lightplane.cli._common import app, console, handles_errors
+from lightplane.report.html import rebuild_report
 
 
 @app.command("report")
@@ -21,7 +22,5 @@ def report_cmd(
     Image thumbnails come from the image files named in the plane file when they still
     exist; otherwise the points are drawn on a blank canvas of the image's size.
     """
-    from lightplane.report.html import rebuild_report
-
     path = rebuild_report(plane, out, force=force)
     console.print(f"wrote {path}")

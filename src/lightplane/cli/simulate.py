@@ -10,6 +10,9 @@ from rich.table import Table
 
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import app, console, handles_errors, progress_bar
+from lightplane.core.io import check_output, provenance, write_json
+from lightplane.evaluate.study import n_trials_total, run_factor, write_csv
+from lightplane.report.plots import study_factor
 
 _FACTOR_NAMES = ("placements", "noise", "diameter")
 
@@ -31,9 +34,6 @@ def simulate_cmd(
     pixels on rim and stripe points.  Writes <factor>.csv and <factor>.png per factor and
     study.json (all rows and provenance).
     """
-    from lightplane.core.io import check_output, provenance, write_json
-    from lightplane.report.plots import study_factor
-    from lightplane.evaluate.study import n_trials_total, run_factor, write_csv
 
     factors = list(_FACTOR_NAMES) if factor == "all" else [factor]
     if out.exists() and not out.is_dir():

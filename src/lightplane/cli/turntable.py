@@ -14,6 +14,12 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, console, err_console, handles_errors, progress_bar, takes_target)
+from lightplane.camera.model import Camera
+from lightplane.core.io import read_json, rotation_code, try_read_image
+from lightplane.measure.sensor import Sensor, check_name, import_fabscan, plane_name
+from lightplane.motion.model import Turntable, load_rigid
+from lightplane.motion.turntable import calibrate_turntable
+from lightplane.plane.model import LightPlane
 
 
 @app.command("calibrate-turntable")
@@ -39,9 +45,6 @@ def calibrate_turntable_cmd(
     Poses by solvePnP; the axis from the circles the board points turn on, checked against
     the rotations between the poses; uncertainty by a leave-one-image-out jackknife.
     """
-    from lightplane.camera.model import Camera
-    from lightplane.core.io import try_read_image
-    from lightplane.motion.turntable import calibrate_turntable
 
     check_output(output, force)
     cam = Camera.load(camera)
@@ -107,15 +110,12 @@ def _sensor_rotation(path: Path) -> int:
     """The frame rotation of a sensor file given as the camera (0 for a camera file)."""
     if path.suffix.lower() != ".json":
         return 0
-    from lightplane.core.io import read_json
 
     d = read_json(path, "camera file")
     return int((d.get("frames") or {}).get("rotate_deg", 0)) if d.get("kind") == "lightplane sensor" else 0
 
 
 def _camera_record(path: Path):
-    from lightplane.camera.model import Camera
-    from lightplane.core.io import read_json
 
     cam = Camera.load(path)
     rec = {"source": str(path)}
@@ -144,13 +144,9 @@ def sensor_cmd(
 
     Example: lightplane sensor -o sensor.json --camera cam.json --plane laser0=p0.json --plane laser1=p1.json --turntable turntable.json
     """
-    from lightplane.core.io import _rotation_code
-    from lightplane.motion.model import Turntable, load_rigid
-    from lightplane.plane.model import LightPlane
-    from lightplane.measure.sensor import Sensor, _check_name, plane_name
 
     check_output(output, force)
-    _rotation_code(rotate)
+    rotation_code(rotate)
     if turntable is not None and flange is not None:
         raise LightplaneError("give a turntable or a flange transform, not both")
     cam, cam_rec = _camera_record(camera)
@@ -160,7 +156,7 @@ def sensor_cmd(
         if not sep:
             name, path = "", item
         pl = LightPlane.load(path)
-        name = _check_name(name.strip() or plane_name(pl, f"laser{i}"))
+        name = check_name(name.strip() or plane_name(pl, f"laser{i}"))
         if name in planes:
             raise LightplaneError(f"--plane: laser {name!r} given twice")
         pl.meta.setdefault("source", str(path))
@@ -197,8 +193,6 @@ def import_fabscan_cmd(
     FabScan's frame rotation (rotate/hflip/vflip) is recorded, so measure --sensor reads
     the frames as FabScan does; its platform pose becomes the turntable axis.
     """
-    from lightplane.measure.sensor import import_fabscan
-
     check_output(output, force)
     s = import_fabscan(config)
     s.save(output, force=force, provenance=provenance([config], {"importer": "fabscan"}))

@@ -177,10 +177,10 @@ def sampson_distance(C: np.ndarray, uv: np.ndarray, *, signed: bool = True) -> n
     uv = _points(uv, 2, "uv")
     if np.shape(C) != (3, 3):
         raise ValueError(f"the conic must be a (3, 3) array, got shape {np.shape(C)}")
-    return _sampson_distance(C, uv, signed)
+    return sampson_distance_unchecked(C, uv, signed)
 
 
-def _sampson_distance(C: np.ndarray, uv: np.ndarray, signed: bool = True) -> np.ndarray:
+def sampson_distance_unchecked(C: np.ndarray, uv: np.ndarray, signed: bool = True) -> np.ndarray:
     """:func:`sampson_distance` without the input checks: ``C`` a (3, 3) and ``uv`` an (N, 2)
     float64 array (internal hot loops that built them)."""
     X = np.column_stack([uv, np.ones(len(uv))])
@@ -192,7 +192,7 @@ def _sampson_distance(C: np.ndarray, uv: np.ndarray, signed: bool = True) -> np.
 
 
 # ------------------------------------------------------------------ conics
-def _ellipse_problems(E: np.ndarray) -> list[str | None]:
+def ellipse_problems(E: np.ndarray) -> list[str | None]:
     """For (n, 3, 3) symmetric conics (well scaled, Frobenius norm 1): per item None if a real,
     non-degenerate ellipse, else the reason (str).
 
@@ -339,7 +339,7 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
         Cn = Cn / np.sqrt(np.add.reduce(Cn * Cn, axis=(1, 2)))[:, None, None]  # Frobenius norm
         fin = np.isfinite(Cn).all(axis=(1, 2))
         Cn_safe = Cn if fin.all() else np.where(fin[:, None, None], Cn, np.eye(3))
-        shape_problems = _ellipse_problems(Cn_safe)  # in the conditioned frame
+        shape_problems = ellipse_problems(Cn_safe)  # in the conditioned frame
         Cm = Tn.transpose(0, 2, 1) @ Cn @ Tn
         Cm = 0.5 * (Cm + Cm.transpose(0, 2, 1))
         Cm = Cm / np.sqrt(np.add.reduce(Cm * Cm, axis=(1, 2)))[:, None, None]

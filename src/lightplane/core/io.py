@@ -21,6 +21,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.version import __version__
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm")
 
@@ -52,7 +53,7 @@ def try_read_image(path: str | os.PathLike, *, rotate_deg: int = 0) -> tuple[np.
     """
     import cv2
 
-    _rotation_code(rotate_deg)
+    rotation_code(rotate_deg)
     p = Path(path)
     if not p.exists():
         return None, "no such file"
@@ -93,7 +94,7 @@ def read_images(paths: Iterable[str | os.PathLike], *, rotate_deg: int = 0
     folders, empty, truncated, corrupt or not images (reasons: :func:`try_read_image`).
     Callers decide whether enough images remain (:func:`too_few_images_message`).
     """
-    _rotation_code(rotate_deg)
+    rotation_code(rotate_deg)
     ok: list[tuple[Path, np.ndarray]] = []
     skipped: list[tuple[Path, str]] = []
     for item in paths:
@@ -303,7 +304,7 @@ def quiet_opencv(decoders: bool = True) -> None:
     _QUIET["on"] = bool(decoders)
 
 
-def _rotation_code(rotate_deg: int):
+def rotation_code(rotate_deg: int):
     import cv2
 
     codes = {0: None, 90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
@@ -316,7 +317,7 @@ def rotate_image(img: np.ndarray, rotate_deg: int) -> np.ndarray:
     """Rotate clockwise by 0, 90, 180 or 270 degrees."""
     import cv2
 
-    code = _rotation_code(rotate_deg)
+    code = rotation_code(rotate_deg)
     return img if code is None else cv2.rotate(img, code)
 
 
@@ -503,8 +504,6 @@ def versions() -> dict[str, str]:
     """Versions of lightplane and the libraries that shape its numbers."""
     import cv2
     import scipy
-
-    from lightplane import __version__
 
     return {
         "lightplane": __version__,

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lightplane.ellipse.model import Ellipse
+from lightplane.core.io import to_gray8, to_gray_float
 
 __all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "normal_edge_samples", "NormalEdgeSamples",
            "edge_peaks_along_normals"]
@@ -18,16 +19,12 @@ __all__ = ["prepare_gray", "Gradients", "gradients", "normal_edge_points", "norm
 
 def prepare_gray(image: np.ndarray, name: str = "image") -> np.ndarray:
     """Gray float32 image (H, W), C-contiguous: :func:`lightplane.core.io.to_gray_float`."""
-    from lightplane.core.io import to_gray_float
-
     return np.ascontiguousarray(to_gray_float(image, name=name))
 
 
 def to_uint8(gray: np.ndarray) -> np.ndarray:
     """8-bit version of a gray image for the segment detector: :func:`lightplane.core.io.to_gray8`
     (8-bit-scale data kept, others stretched between the 0.1 and 99.9 percentiles)."""
-    from lightplane.core.io import to_gray8
-
     return to_gray8(gray, percentiles=(0.1, 99.9))
 
 

@@ -32,9 +32,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import _sampson_distance, robust_sigma
+from lightplane.core.geometry import sampson_distance_unchecked, robust_sigma
 from lightplane.ellipse.edges import gradients, normal_edge_samples, prepare_gray
 from lightplane.ellipse.model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
+from lightplane.ellipse.detect import _POLARITY
 
 __all__ = ["RefinedEllipse", "refine_ellipse", "fit_conic_robust", "edge_blur_sigma", "curvature_bias_px",
            "ellipse_curvature"]
@@ -161,7 +162,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     if C is None:
         return None
     for _ in range(iterations):
-        r = _sampson_distance(C, uv)
+        r = sampson_distance_unchecked(C, uv)
         r[~np.isfinite(r)] = np.inf
         rk = r[keep]
         med = np.median(rk)
@@ -174,7 +175,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
             return None
         C = C2
     if not geometric:
-        return C, keep, _sampson_distance(C, uv[keep])
+        return C, keep, sampson_distance_unchecked(C, uv[keep])
     g = fit_ellipse_geometric(uv[keep], C)
     if g is None:
         return None
@@ -182,7 +183,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     # a last rejection on the geometric residuals, then the final geometric fit
     med = np.median(res)
     sig = max(robust_sigma(res - med, center=False), min_sigma_px)
-    r_all = _sampson_distance(C, uv)
+    r_all = sampson_distance_unchecked(C, uv)
     keep2 = keep & (np.abs(r_all - med) <= mad_k * sig)
     if keep2.sum() >= 6 and keep2.sum() < keep.sum():
         g2 = fit_ellipse_geometric(uv[keep2], C)
@@ -238,7 +239,6 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     """
     if not isinstance(ellipse, Ellipse):
         raise LightplaneError(f"ellipse must be an Ellipse, got {type(ellipse).__name__}")
-    from lightplane.ellipse.detect import _POLARITY
 
     if polarity not in _POLARITY:
         raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")

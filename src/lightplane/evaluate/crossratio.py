@@ -34,9 +34,12 @@ import numpy as np
 
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.measure.profile import triangulate_normalized
+from lightplane.plane.triangulate import triangulate_normalized
 from lightplane.core.geometry import robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
+from lightplane.camera.targets import as_target
+from lightplane.core.io import too_few_images_message
+from lightplane.plane.zhou import find_board_views
 
 __all__ = [
     "DistanceErrors",
@@ -307,8 +310,6 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
     -------
     CrossRatioPoints (possibly empty: the caller decides whether that is an error).
     """
-    from lightplane.camera.targets import as_target
-
     if lines not in ("rows", "columns", "auto"):
         raise LightplaneError(f"lines must be 'rows', 'columns' or 'auto', got {lines!r}")
     if corners_used not in ("three", "all"):
@@ -503,9 +504,6 @@ def evaluate_images(images: Sequence, camera: Camera, planes: Sequence[LightPlan
     ``skipped``); fewer than one usable image raises LightplaneError saying why.
     ``progress(i)`` is called after each image.
     """
-    from lightplane.plane.zhou import find_board_views
-    from lightplane.core.io import too_few_images_message
-    from lightplane.camera.targets import as_target
 
     target = as_target(board, square_mm)
     v = find_board_views(images, camera, target, background_images=background_images, image_names=image_names,

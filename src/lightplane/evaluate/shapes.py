@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.plane.triangulate import triangulate
+from lightplane.plane.uncertainty import WorkingVolume, point_sigma_mm, volume_sigma, working_volume_grid
 
 __all__ = ["SphereFit", "PlaneFit", "StepFit", "Alignment", "fit_sphere", "fit_plane", "step_height",
            "rigid_align", "plane_accuracy"]
@@ -291,8 +293,6 @@ def plane_accuracy(plane_est, camera_est, plane_true, camera_true, *,
     the best rigid motion, ``plane_only_sigma_rms_mm`` the plane's image noise alone, and
     ``camera_share_included`` (sigmas None / absent without a plane covariance).
     """
-    from lightplane.measure.profile import triangulate
-    from lightplane.plane.uncertainty import WorkingVolume, point_sigma_mm, volume_sigma, working_volume_grid
 
     vol = working_volume_grid(camera_true, plane_true, distance_mm=distance_mm)
     a = triangulate(camera_est, plane_est, vol.uv)

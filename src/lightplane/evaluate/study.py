@@ -45,6 +45,13 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
+from lightplane.core.io import atomic_write
+from lightplane.plane.ml import crlb
+from lightplane.plane.solvers import SolverOptions, calibrate_plane_from_points
+from lightplane.plane.triangulate import triangulate_normalized
+from lightplane.plane.uncertainty import point_jacobian, working_volume_grid
+from lightplane.simulate.scene import (PAPER_DISTANCE_MM, paper_camera, paper_plane, sample_placements,
+    synthetic_observations)
 
 __all__ = ["FACTORS", "METHODS", "GROSS_DEG", "FactorSpec", "StudyResult", "run_factor", "write_csv",
            "n_trials_total"]
@@ -126,8 +133,6 @@ def _wrong_choice(res, placements) -> bool:
 
 
 def _errors(est: LightPlane, true: LightPlane, vol_xy: np.ndarray) -> dict:
-    from lightplane.measure.profile import triangulate_normalized
-
     ce, ct = est.coefficients, true.coefficients
     rel = np.abs(ce[1:] - ct[1:]) / np.abs(ct[1:]) * 100.0
     a = triangulate_normalized(est, vol_xy).points
@@ -143,12 +148,10 @@ def _errors(est: LightPlane, true: LightPlane, vol_xy: np.ndarray) -> dict:
 
 def _bound(cov: np.ndarray, true: LightPlane, vol_xy: np.ndarray) -> dict:
     """Per-trial variances predicted by a 4x4 covariance of (a, b, c, d)."""
-    from lightplane.plane.uncertainty import _point_jacobian
-
     ct = true.coefficients
     var = np.diag(cov)
     rel2 = var[1:] / ct[1:] ** 2 * 1e4
-    J = _point_jacobian(true, vol_xy)
+    J = point_jacobian(true, vol_xy)
     tri2 = float(np.nanmean(np.trace(J @ cov @ np.swapaxes(J, 1, 2), axis1=1, axis2=2)))
     return {"rel_b_pct": rel2[0], "rel_c_pct": rel2[1], "rel_d_pct": rel2[2], "rel_coef_pct": float(np.mean(rel2)),
             "angle_deg": float(np.trace(cov[:3, :3])) * np.degrees(1) ** 2, "offset_mm": var[3], "tri_rms_mm": tri2}
@@ -175,10 +178,6 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
     progress : callable(int), optional
         Called with 1 after every trial.
     """
-    from lightplane.plane.solvers import SolverOptions, calibrate_plane_from_points
-    from lightplane.plane.ml import crlb
-    from lightplane.plane.uncertainty import working_volume_grid
-    from lightplane.simulate.scene import PAPER_DISTANCE_MM, paper_camera, paper_plane, sample_placements, synthetic_observations
 
     if factor not in FACTORS:
         raise LightplaneError(f"factor must be one of {', '.join(FACTORS)}, got {factor!r}")
@@ -268,6 +267,4 @@ def csv_text(result: StudyResult) -> str:
 
 def write_csv(result: StudyResult, path: str | os.PathLike, *, force: bool = False) -> Path:
     """Write :func:`csv_text` atomically."""
-    from lightplane.core.io import atomic_write
-
     return atomic_write(path, csv_text(result), force=force)

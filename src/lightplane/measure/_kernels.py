@@ -64,30 +64,6 @@ def hermite_lookup(tab_xy, tab_dxy, built, block_lines, block_samples, line, t, 
         status[k] = DONE
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def triangulate_rays(xy, a, b, c, d, min_cos, pts, grazing, behind):  # pragma: no cover
-    """The rays ``(x, y, 1)`` of ``xy`` (N, 2) on the plane ``(a, b, c, d)`` in one pass
-    (:func:`lightplane.measure.profile.triangulate_normalized`): ``grazing[k]`` where the ray's cosine with
-    the normal is below ``min_cos`` (or NaN), ``behind[k]`` where the plane lies behind the camera,
-    ``pts[k]`` the point, NaN for either."""
-    nd = -d
-    for k in range(xy.shape[0]):
-        x = xy[k, 0]
-        y = xy[k, 1]
-        den = a * x + b * y + c
-        rn = math.sqrt(x * x + y * y + 1.0)
-        g = not (abs(den) >= min_cos * rn)
-        s = nd / den
-        bh = not g and not (s > 0)
-        if g or bh:
-            s = np.nan
-        grazing[k] = g
-        behind[k] = bh
-        pts[k, 0] = x * s
-        pts[k, 1] = y * s
-        pts[k, 2] = s
-
-
 @njit(cache=True, nogil=True)
 def median_where(w, mask):  # pragma: no cover
     """``(np.median(w[mask & isfinite(w)]), count)``; ``(NaN, 0)`` when none (numpy's median, bit for

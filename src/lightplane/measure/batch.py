@@ -53,6 +53,14 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
 from lightplane.measure.scan import FrameSource
+from lightplane.camera.model import Camera
+from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, write_json
+from lightplane.core.threads import frames_across_threads
+from lightplane.measure.pointcloud import PointSpool, write_cloud
+from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
+from lightplane.motion.model import Motion
+from lightplane.plane.model import LightPlane
+from lightplane.version import __version__
 
 if TYPE_CHECKING:
     from lightplane.camera.model import Camera
@@ -141,8 +149,6 @@ def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
 
 
 def _motion_of(scan: BatchScan):
-    from lightplane.motion.model import Motion
-
     dvec = None
     if scan.direction:
         try:
@@ -195,10 +201,6 @@ def plan_chunks(n_frames: int, chunk_frames: int) -> list[tuple[int, int, int]]:
 
 
 def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
-    from lightplane.camera.model import Camera
-    from lightplane.core.io import expand_inputs
-    from lightplane.plane.model import LightPlane
-    from lightplane.measure.scan import VIDEO_SUFFIXES, ImageFiles
 
     pl = _Plan(scan)
     try:
@@ -255,7 +257,6 @@ def _list_url_frames(url: str) -> tuple[list[str], list]:
         import fsspec
     except ImportError:  # pragma: no cover - fsspec comes with dask
         raise LightplaneError(f"{url}: reading URLs needs fsspec (pip install fsspec)") from None
-    from lightplane.core.io import IMAGE_SUFFIXES
 
     try:
         fs, path = fsspec.core.url_to_fs(url)
@@ -327,8 +328,6 @@ def _stat(path: str):
 
 
 def _code_versions() -> dict:
-    from lightplane import __version__
-
     return {"lightplane": __version__, "numpy": np.__version__}
 
 
@@ -352,8 +351,6 @@ class _VideoChunk(FrameSource):
     """All frames of a video (one chunk)."""
 
     def __init__(self, path: str) -> None:
-        from lightplane.measure.scan import VideoFrames
-
         self.src = VideoFrames(path)
         self.n_frames = self.src.n_frames
 
@@ -367,8 +364,6 @@ class _VideoChunk(FrameSource):
 def _prepare_task(frames: list, video: bool, camera, plane, motion, options: dict) -> dict:
     """Per scan, on a worker: the first readable frame checked against the camera, the
     profile axis and the stripe width, exactly as ``measure`` prepares a scan."""
-    from lightplane.measure.scan import ImageFiles, VideoFrames, _prepare
-
     src = None
     try:  # a worker that does not see the files says so here, for the scan
         src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else ImageFiles(frames)
@@ -386,8 +381,6 @@ _PROCESSORS: "OrderedDict[str, object]" = OrderedDict()  # per worker process: p
 
 
 def _processor(key: str, camera, plane, motion, axis: str, width_px, options: dict):
-    from lightplane.measure.scan import FrameProcessor
-
     proc = _PROCESSORS.get(key)
     if proc is None:
         proc = FrameProcessor(camera, plane, motion, axis=axis, roi=options["roi"], width_px=width_px,
@@ -412,8 +405,6 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
     """Measure one chunk and write its partition atomically; returns the chunk's summary."""
     import pyarrow.parquet as pq
 
-    from lightplane.core.io import atomic_write
-    from lightplane.measure.scan import iter_scan
 
     k, start, stop = spec["chunk"]
     if "error" in prep:
@@ -427,7 +418,6 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) ->
         src = _RemoteFrames(spec["frames"], start)
     else:
         src = _ChunkFrames(spec["frames"], start)
-    from lightplane.core.threads import frames_across_threads
 
     # remote frames that could not be fetched (filled while the frames are read)
     fetch_errors: dict = src.errors if isinstance(src, _RemoteFrames) else {}
@@ -702,8 +692,6 @@ def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
 
 
 def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
-    from lightplane.measure.pointcloud import PointSpool, write_cloud
-
     import pyarrow.parquet as pq
 
     assert pl.motion is not None  # only planned scans get this far
@@ -725,8 +713,6 @@ def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
 
 
 def _write_manifest(out: Path, result: BatchResult, options: dict, chunk_frames: int, scans) -> None:
-    from lightplane.core.io import provenance, write_json
-
     prov = provenance([s.input for s in scans], {**options, "chunk_frames": int(chunk_frames)})
     ok = [s for s in result.scans if s["status"] == "ok"]
     doc = {"format": "lightplane batch", "layout": _LAYOUT, "provenance": prov,

@@ -16,12 +16,11 @@ import numpy as np
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
+from lightplane.plane.triangulate import AXES, GRAZING_COS, points_sigma_mm, profile_axis, triangulate_normalized
+from lightplane.measure._kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup, median_where
+from lightplane.plane.uncertainty import camera_share_status, point_error_basis
+from lightplane.stripe.extract import check_roi, extract_profile, extract_profiles
 
-__all__ = ["triangulate", "triangulate_normalized", "Triangulation", "GRAZING_COS"]
-
-#: Rays whose direction makes |cos| with the plane normal below this are rejected
-#: (about 0.06°: a 0.01 px error there moves the point by metres).
-GRAZING_COS = 1e-3
 #: defaults of the per-point stripe-width filter (:class:`ProfileMeasurer`): width / frame median
 MIN_WIDTH_RATIO = 0.8
 MAX_WIDTH_RATIO = 2.0
@@ -29,109 +28,10 @@ MAX_WIDTH_RATIO = 2.0
 WIDTH_FILTER_MIN_LINES = 20
 
 
-@dataclass(frozen=True)
-class Triangulation:
-    """Triangulated points and which rays were rejected.
-
-    ``points`` (N, 3) mm, NaN where ``grazing`` (ray nearly parallel to the plane)
-    or ``behind`` (the plane is behind the camera along that ray).
-    """
-
-    points: np.ndarray
-    grazing: np.ndarray
-    behind: np.ndarray
-
-    @property
-    def valid(self) -> np.ndarray:
-        p = self.points  # column by column: 5x faster than np.all(..., axis=1) on (N, 3)
-        return ~(self.grazing | self.behind) & np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(p[:, 2])
-
-
-def triangulate_normalized(plane: LightPlane, xy: np.ndarray, *, min_cos: float = GRAZING_COS) -> Triangulation:
-    """Intersect rays ``(x, y, 1)`` (normalised, undistorted, ``(N, 2)``) with the plane."""
-    from lightplane.measure._kernels import triangulate_rays
-
-    xy = as_points(xy, 2, "xy")
-    n = len(xy)
-    pts, grazing, behind = np.empty((n, 3)), np.empty(n, bool), np.empty(n, bool)
-    a, b, c = plane.normal
-    triangulate_rays(xy, float(a), float(b), float(c), float(plane.d), float(min_cos), pts, grazing, behind)
-    return Triangulation(pts, grazing, behind)
-
-
-def triangulate(camera: Camera, plane: LightPlane, uv: np.ndarray, *, min_cos: float = GRAZING_COS,
-                return_flags: bool = False):
-    """Triangulate distorted pixels ``uv`` ``(N, 2)`` on the light plane → ``(N, 3)`` mm, camera frame.
-
-    Rays nearly parallel to the plane (|cos| between ray and plane normal below
-    ``min_cos``) or meeting it behind the camera give NaN rows.  With
-    ``return_flags=True`` returns a :class:`Triangulation` with the flags.
-
-    >>> import numpy as np
-    >>> cam = Camera(np.array([[1000., 0, 640], [0, 1000, 480], [0, 0, 1]]), np.zeros(5), 1280, 960)
-    >>> pl = LightPlane([0, 0, 1], -500)
-    >>> triangulate(cam, pl, np.array([[640., 480.]]))
-    array([[  0.,   0., 500.]])
-    """
-    if not isinstance(camera, Camera):
-        raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
-    if not isinstance(plane, LightPlane):
-        raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
-    uv = as_points(uv, 2, "uv")
-    t = triangulate_normalized(plane, camera.undistort_points(uv, normalized=True), min_cos=min_cos)
-    return t if return_flags else t.points
-
-
 # ======================================================================================
 # Profiles: one stripe centre per image column (row) -> 3D points with uncertainty
 
-__all__ += ["Profile", "ProfileMeasurer", "measure_profile", "profile_axis", "points_sigma_mm", "profile_cache_info",
-            "clear_profile_cache"]
-
-AXES = ("columns", "rows")
-
-
-def profile_axis(plane: LightPlane) -> str:
-    """Which profile axis suits the sensor: ``"columns"`` or ``"rows"``.
-
-    On a surface facing the camera (normal along the optical axis) the stripe runs
-    along ``n x z = (b, -a, 0)`` in the image (``(a, b, c)`` the plane's normal):
-    mostly horizontal when ``|b| >= |a|`` → one centre per column, else one per row.
-
-    >>> profile_axis(LightPlane([0.906, 0, -0.423], -190.0))
-    'rows'
-    """
-    a, b, _ = plane.normal
-    return "columns" if abs(b) >= abs(a) else "rows"
-
-
-def points_sigma_mm(plane: LightPlane, xy: np.ndarray, *, covariance: np.ndarray | None = None) -> np.ndarray:
-    """σ (mm) of points triangulated from normalised rays ``xy`` (N, 2), from the plane's covariance.
-
-    Same quantity as :func:`lightplane.plane.uncertainty.point_sigma_mm` (``sqrt(trace Cov X)``,
-    first-order propagation of the 4x4 covariance of ``(a, b, c, d)``), computed from
-    rays instead of pixels.  With ``X = -d x̃ / (n·x̃)`` the Jacobian is rank one,
-    ``∂X/∂(n, d) = x̃ wᵀ``, ``w = (d x̃ / (n·x̃)², -1 / (n·x̃))``, so
-    ``trace Cov X = |x̃|² wᵀ Σ w``.  ``covariance``: a 4x4 of ``(a, b, c, d)`` to use
-    instead of the plane's (e.g. a Cramér–Rao bound).  NaN where there is no covariance
-    or the ray grazes the plane.  (The package's one point-sigma formula:
-    :func:`~lightplane.plane.uncertainty.point_sigma_mm` is this, from pixels.)
-    """
-    xy = as_points(xy, 2, "xy")
-    cov = plane.covariance if covariance is None else covariance
-    if cov is None:
-        return np.full(len(xy), np.nan)
-    xt = np.column_stack([xy, np.ones(len(xy))])
-    den = xt @ plane.normal
-    n2 = np.einsum("ij,ij->i", xt, xt)
-    bad = ~(np.abs(den) >= GRAZING_COS * np.sqrt(n2))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.column_stack([plane.d * xt / (den**2)[:, None], -1.0 / den])
-        q = np.einsum("ij,jk,ik->i", w, cov, w)
-        s = np.sqrt(n2 * np.maximum(q, 0.0))
-    s[bad] = np.nan
-    return s
-
+__all__ = ["Profile", "ProfileMeasurer", "measure_profile", "profile_cache_info", "clear_profile_cache"]
 
 @dataclass(frozen=True)
 class Profile:
@@ -254,7 +154,6 @@ class ProfileMeasurer:
         self.camera = camera
         self.plane = plane
         self.axis = axis
-        from lightplane.stripe.extract import check_roi
 
         self.roi = check_roi(roi, camera.width, camera.height, min_size=3)
         self.min_ray_cos = float(min_ray_cos)
@@ -268,7 +167,6 @@ class ProfileMeasurer:
                                   f"{max_width_ratio!r}")
         self.min_width_ratio, self.max_width_ratio = lo, hi
         self.stripe_options = dict(stripe_options)
-        from lightplane.plane.uncertainty import camera_share_status
 
         #: None when the points' sigma includes the camera's share, else why not (one sentence)
         self.camera_share_missing = camera_share_status(camera, plane)
@@ -388,7 +286,6 @@ class ProfileMeasurer:
         uv = as_points(uv, 2, "uv")
         if not self._lookup:
             return self.camera.undistort_points(uv, normalized=True)
-        from lightplane.measure._kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup
 
         tab_xy, tab_dxy, built = self._alloc_tables()
         x, y = self.roi[:2]
@@ -419,8 +316,6 @@ class ProfileMeasurer:
     # --------------------------------------------------------------------- measure
     def __call__(self, image: np.ndarray) -> Profile:
         """Measure one frame: ``image`` (H, W) or (H, W, 3), the camera's size."""
-        from lightplane.stripe.extract import extract_profile
-
         if not isinstance(image, np.ndarray):
             raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
         self.camera.check_image(image)
@@ -451,7 +346,6 @@ class ProfileMeasurer:
         images = list(images)
         if len(images) < 2 or not self.batches:
             return [self(im) for im in images]
-        from lightplane.stripe.extract import extract_profiles
 
         for im in images:
             if not isinstance(im, np.ndarray):
@@ -477,8 +371,6 @@ class ProfileMeasurer:
         pts = tri.points
         pts[~ok] = np.nan
         if self.camera_share_missing is None and self.plane.covariance is not None and np.any(ok):
-            from lightplane.plane.uncertainty import point_error_basis
-
             sigma = np.full(len(uv), np.nan)
             E, _ = point_error_basis(self.camera, self.plane, uv[ok])
             sigma[ok] = np.sqrt(np.sum(E**2, axis=(1, 2)))
@@ -499,8 +391,6 @@ def width_filter(prof: Profile, min_ratio: float = MIN_WIDTH_RATIO, max_ratio: f
     :class:`Profile` (``valid`` False, ``points``/``sigma_mm`` NaN and
     ``width_rejected`` True for the dropped points).  See :class:`ProfileMeasurer`.
     """
-    from lightplane.measure._kernels import median_where
-
     w = np.asarray(prof.width_px, float)
     valid = np.asarray(prof.valid, bool)
     rej = np.zeros(len(prof), bool)

@@ -35,10 +35,16 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import default_workers
-from lightplane.measure.profile import ProfileMeasurer, profile_axis
-from lightplane.motion.model import Motion, _unit  # noqa: F401  (re-exported: lightplane.measure.scan.Motion)
+from lightplane.measure.profile import ProfileMeasurer
+from lightplane.plane.triangulate import profile_axis
+from lightplane.motion.model import Motion, unit_direction  # noqa: F401  (re-exported: lightplane.measure.scan.Motion)
 from lightplane.plane.model import LightPlane
 from lightplane.measure.pointcloud import POINT_DTYPE, PointSpool, cloud_format, write_cloud
+from lightplane.core.io import (check_output, expand_inputs, provenance, rotation_code, too_few_images_message,
+    try_read_image)
+from lightplane.core.threads import enter_serial, frames_across_threads, serial_kernels
+from lightplane.stripe import kernels as K
+from lightplane.stripe.extract import estimate_width
 
 __all__ = [
     "Motion",
@@ -95,7 +101,6 @@ def try_load_frame(payload) -> tuple[np.ndarray | None, str]:
     corrupt, not an image...: :func:`lightplane.core.io.try_read_image`)."""
     if isinstance(payload, np.ndarray):
         return payload, ""
-    from lightplane.core.io import try_read_image
 
     if isinstance(payload, RotatedPath):
         return try_read_image(payload.path, rotate_deg=payload.rotate_deg)
@@ -118,9 +123,7 @@ class ImageFiles(FrameSource):
     """Image files in the given order (use :func:`lightplane.core.io.expand_inputs` for folders/globs)."""
 
     def __init__(self, paths: Sequence[str | os.PathLike], rotate_deg: int = 0) -> None:
-        from lightplane.core.io import _rotation_code
-
-        _rotation_code(rotate_deg)  # 0, 90, 180 or 270
+        rotation_code(rotate_deg)  # 0, 90, 180 or 270
         self.rotate_deg = int(rotate_deg)
         self.paths = [Path(p) for p in paths]
         if not self.paths:
@@ -214,8 +217,6 @@ class VideoFrames(FrameSource):
 def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0) -> FrameSource:
     """A frame source for CLI-style inputs: one video file, or image files / folders / globs
     (image files read rotated clockwise by ``rotate_deg``; videos are not rotated)."""
-    from lightplane.core.io import expand_inputs
-
     items = [str(x) for x in inputs]
     if not items:
         raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
@@ -303,8 +304,6 @@ def _worker_init(processor: FrameProcessor) -> None:
     global _WORKER
     import cv2
 
-    from lightplane.core.threads import enter_serial
-
     enter_serial()          # one core per worker: numba's own threads would oversubscribe
     cv2.setNumThreads(1)    # and so would OpenCV's (this process is the worker's own)
     processor.measurer.build_lookup()  # each worker builds its own tables once (they are not pickled)
@@ -390,8 +389,6 @@ def _batches(items: Iterator, size: int) -> Iterator[list]:
 def kernels_release_gil() -> bool:
     """True when the stripe profile's numba kernels are compiled with ``nogil=True``
     (then threads can share one process: one copy of the tables, no frame copies)."""
-    from lightplane.stripe import kernels as K
-
     names = ("profile_frame", "profiles_batch_serial", "fwhm_median", "frames_points_serial")
     return all(bool(getattr(getattr(K, n, None), "targetoptions", {}).get("nogil")) for n in names)
 
@@ -399,8 +396,6 @@ def kernels_release_gil() -> bool:
 def _iter_threads(source: FrameSource, processor: FrameProcessor, workers: int, batch: int,
                   limit: int) -> Iterator[FrameResult]:
     from concurrent.futures import ThreadPoolExecutor
-
-    from lightplane.core.threads import enter_serial, frames_across_threads
 
     # one level of parallelism: frames across these threads, serial kernels in each
     with frames_across_threads(), ThreadPoolExecutor(workers, initializer=enter_serial) as ex:
@@ -438,8 +433,6 @@ def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | 
     if executor not in ("auto", "process", "thread"):
         raise LightplaneError(f"executor must be auto, process or thread, got {executor!r}")
     if workers == 1:
-        from lightplane.core.threads import serial_kernels
-
         with serial_kernels():
             if not processor.measurer.batches:
                 for item in source.items():
@@ -532,7 +525,6 @@ def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
         rep.description = source.description
         rep.exact_count = False
         return first[2], rep
-    from lightplane.core.io import too_few_images_message
 
     skipped = []
     for _, name, payload in source.items():  # nothing usable is fatal: say why for each frame
@@ -556,8 +548,6 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
     camera.check_image(first, "the first frame")
     axis = profile_axis(plane) if axis == "auto" else axis
     if width_px is None:
-        from lightplane.stripe.extract import estimate_width
-
         w = estimate_width(first, channel=channel, axis=axis)
         width_px = float(w) if np.isfinite(w) else None
     return source, motion, axis, width_px
@@ -607,8 +597,6 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
     frames are skipped and listed in the summary.  ``progress(done, total)`` is called
     after each frame (``total`` None when unknown).
     """
-    from lightplane.core.io import check_output, provenance
-
     t0 = time.perf_counter()
     original = source
     out = check_output(out_path, force)
@@ -636,8 +624,6 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             if motion.n_frames is not None and motion.n_frames != n:
                 raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
-                from lightplane.core.io import too_few_images_message
-
                 raise LightplaneError(too_few_images_message("frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
             if spool.count == 0:
                 raise LightplaneError(f"no stripe found in any of the {n - len(skipped)} readable frames "

@@ -32,9 +32,13 @@ import numpy as np
 
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
-from lightplane.motion.model import Motion, Turntable, _rigid_from_dict
+from lightplane.motion.model import Motion, Turntable, rigid_from_dict
 from lightplane.plane.model import LightPlane
 from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
+from lightplane.core.io import (check_output, provenance, read_json, summarize_reasons, too_few_images_message,
+    write_json)
+from lightplane.measure.pointcloud import PointSpool, cloud_format, write_cloud
+from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
 
 __all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
 
@@ -54,7 +58,7 @@ def plane_name(plane: LightPlane, fallback: str) -> str:
     return str(name) if isinstance(name, str) and name else fallback
 
 
-def _check_name(name: str) -> str:
+def check_name(name: str) -> str:
     if not name or any(c in name for c in "=,; \t") or not name.isprintable():
         raise LightplaneError(f"laser name {name!r}: use letters, digits, '_' or '-' (no spaces, '=', ',')")
     return name
@@ -95,8 +99,6 @@ class Sensor:
         return d
 
     def save(self, path: str | os.PathLike, *, force: bool = False, provenance: dict | None = None) -> Path:
-        from lightplane.core.io import write_json
-
         return write_json(path, self.to_dict(provenance), force=force)
 
     @classmethod
@@ -118,7 +120,7 @@ class Sensor:
         fl = None
         if d.get("flange") is not None:
             fd = d["flange"]
-            fl = _rigid_from_dict(fd.get("T_flange_cam", fd), f"{source}: flange")
+            fl = rigid_from_dict(fd.get("T_flange_cam", fd), f"{source}: flange")
         rot = (d.get("frames") or {}).get("rotate_deg", 0)
         if rot not in (0, 90, 180, 270):
             raise LightplaneError(f"{source}: frames.rotate_deg must be 0, 90, 180 or 270, got {rot!r}")
@@ -129,8 +131,6 @@ class Sensor:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Sensor":
-        from lightplane.core.io import read_json
-
         return cls.from_dict(read_json(path, "sensor file"), source=str(path))
 
 
@@ -162,8 +162,6 @@ def import_fabscan(path: str | os.PathLike) -> Sensor:
     the one most nearly along the camera's y axis as the axis direction;
     ``turntable.steps`` as the counts per revolution.
     """
-    from lightplane.core.io import provenance, read_json
-
     src = str(path)
     d = read_json(path, "FabScan configuration")
     cal = d.get("calibration")
@@ -240,9 +238,6 @@ def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera:
     frame counts against the motion) before any frame is measured; the file is written
     atomically at the end, so an error leaves nothing behind.
     """
-    from lightplane.core.io import check_output, provenance, summarize_reasons, too_few_images_message
-    from lightplane.measure.pointcloud import PointSpool, cloud_format, write_cloud
-    from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
 
     t0 = time.perf_counter()
     out = check_output(out_path, force)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.core.io import read_json, write_json
 
 __all__ = ["Motion", "Turntable", "read_table", "load_rigid", "quaternions_to_matrices", "rotation_about",
            "QUATERNION_TOL"]
@@ -42,7 +43,7 @@ __all__ = ["Motion", "Turntable", "read_table", "load_rigid", "quaternions_to_ma
 QUATERNION_TOL = 1e-3
 
 
-def _unit(direction, name: str = "direction") -> np.ndarray:
+def unit_direction(direction, name: str = "direction") -> np.ndarray:
     d = np.asarray(direction, dtype=np.float64).ravel()
     if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-12:
         raise LightplaneError(f"{name} must be 3 finite numbers, not all zero (camera frame); got {direction!r}")
@@ -53,7 +54,7 @@ def rotation_about(axis, angle_rad: float | np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) — or (F, 3, 3) for an array of angles — right-handed about unit ``axis``."""
     from scipy.spatial.transform import Rotation
 
-    a = _unit(axis, "axis")
+    a = unit_direction(axis, "axis")
     ang = np.asarray(angle_rad, dtype=np.float64)
     return Rotation.from_rotvec(np.multiply.outer(ang, a)).as_matrix()
 
@@ -124,7 +125,7 @@ def read_table(path: str | os.PathLike, what: str) -> tuple[list[str] | None, np
     return names, a
 
 
-def _rigid_from_dict(d: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
+def rigid_from_dict(d: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
     """``{"R": 3x3, "t_mm": 3}``, ``{"matrix": 4x4}`` or ``{"translation_mm": 3, "quaternion_xyzw": 4}``."""
     try:
         if "matrix" in d:
@@ -163,10 +164,8 @@ def load_rigid(path: str | os.PathLike, key: str = "T_flange_cam") -> tuple[np.n
     ``{"matrix": 4x4}`` or ``{"translation_mm": [...], "quaternion_xyzw": [...]}``; or
     those fields at the top level.
     """
-    from lightplane.core.io import read_json
-
     d = read_json(path, "transform file")
-    return _rigid_from_dict(d.get(key, d), f"{path}")
+    return rigid_from_dict(d.get(key, d), f"{path}")
 
 
 # ----------------------------------------------------------------------------- turntable
@@ -193,7 +192,7 @@ class Turntable:
         p = np.asarray(point_mm, dtype=np.float64).ravel()
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             raise LightplaneError(f"the turntable's axis point must be 3 finite numbers (mm), got {point_mm!r}")
-        d = _unit(direction, "the turntable's axis direction")
+        d = unit_direction(direction, "the turntable's axis direction")
         if d[1] > 0:
             d = -d
         return cls(p, d, **kw)
@@ -276,13 +275,9 @@ class Turntable:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Turntable":
-        from lightplane.core.io import read_json
-
         return cls.from_dict(read_json(path, "turntable file"), source=str(path))
 
     def save(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
-        from lightplane.core.io import write_json
-
         d = self.to_dict()
         d.update(extra or {})
         return write_json(path, d, force=force)
@@ -329,7 +324,7 @@ class Motion:
         step = float(step_mm)
         if not np.isfinite(step):
             raise LightplaneError(f"step must be a finite number of mm, got {step_mm!r}")
-        return cls(step_mm=step, direction=_unit(direction))
+        return cls(step_mm=step, direction=unit_direction(direction))
 
     @classmethod
     def from_positions(cls, positions_mm) -> "Motion":
@@ -364,7 +359,7 @@ class Motion:
                 col = a[:, 1 - names.index("frame")]
             if direction is None:
                 raise LightplaneError(f"{p}: a single column of positions needs a direction (--direction X,Y,Z)")
-            a = col[:, None] * _unit(direction)[None, :]
+            a = col[:, None] * unit_direction(direction)[None, :]
         else:
             raise LightplaneError(f"{p}: expected columns dx,dy,dz (mm) or a single position column, got "
                                   f"{width} columns{'' if names is None else ' ' + ','.join(names)}")

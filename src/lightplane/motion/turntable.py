@@ -2,7 +2,7 @@
 
 Images of a calibration board standing on the turntable, the table turned between
 them.  Every image gives the board's pose by solvePnP with the calibrated camera
-(:func:`lightplane.plane.zhou.find_board_pose`), so every board point ``k`` is seen
+(:func:`lightplane.camera.board_pose.find_board_pose`), so every board point ``k`` is seen
 at ``X_jk = R_j P_k + t_j`` (camera frame, image ``j``).  The axis is estimated two ways,
 which must agree:
 
@@ -35,6 +35,8 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.motion.model import Turntable
+from lightplane.camera.board_pose import find_board_pose
+from lightplane.core.io import too_few_images_message
 
 __all__ = ["AxisEstimate", "TurntableCalibration", "calibrate_turntable", "axis_from_circles",
            "axis_from_rotations", "axis_agreement"]
@@ -226,8 +228,6 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     of the board points' centroid, or, with ``board_height_mm`` (how far the board's lowest
     row of points is above the table's top), on the table's top.
     """
-    from lightplane.plane.zhou import find_board_pose
-    from lightplane.core.io import too_few_images_message
 
     names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
     if len(names) != len(images):

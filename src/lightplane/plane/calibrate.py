@@ -44,6 +44,16 @@ from lightplane.core.geometry import default_workers, robust_line, robust_sigma,
 from lightplane.plane.model import LightPlane
 from lightplane.plane.solvers import (PlacementResult, PlaneCalibration, SolverOptions, calibrate_plane_from_points,
                             check_calibration_args)
+from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
+from lightplane.core.threads import enter_serial, frames_across_threads
+from lightplane.ellipse import (Ellipse, detect_ellipses, expected_axis_range_px, refine_ellipse, select_target,
+    stripe_crossing)
+from lightplane.plane.circle_pose import CirclePose
+from lightplane.plane.solvers import Ambiguity
+from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camera_params, camera_share_status,
+    camera_steps, camera_with_params, plane_noise_covers, point_sigma_mm, volume_sigma, working_volume_grid)
+from lightplane.stripe.extract import extract_stripe
+from lightplane.stripe.lasers import LaserSelector, no_stripe_message
 
 if TYPE_CHECKING:
     from lightplane.ellipse.model import Ellipse
@@ -157,8 +167,6 @@ class ImageObservation:
     @classmethod
     def from_record(cls, r: dict) -> "ImageObservation":
         """The observation :meth:`to_record` wrote."""
-        from lightplane.ellipse import Ellipse
-
         e = r.get("ellipse")
         ell = None if e is None else Ellipse.from_params(e["centre"], e["a"], e["b"], e["angle_rad"])
         opt = {k: (None if r.get(k) is None else _unpack(r[k])) for k in ("conic_undistorted", "chord_px")}
@@ -201,8 +209,6 @@ def _pose_record(q) -> dict | None:
 
 
 def _pose_from_record(r):
-    from lightplane.plane.circle_pose import CirclePose
-
     if r is None:
         return None
     return CirclePose(np.asarray(r["center_mm"], np.float64), np.asarray(r["normal"], np.float64),
@@ -217,8 +223,6 @@ def _placement_record(p) -> dict:
 
 
 def _placement_from_record(r: dict):
-    from lightplane.plane.solvers import PlacementResult
-
     poses = r.get("poses")
     return PlacementResult(index=int(r["index"]), used=bool(r["used"]), reason=str(r["reason"]),
                            candidate=None if r.get("candidate") is None else int(r["candidate"]),
@@ -289,8 +293,6 @@ class ImagePlaneCalibration(PlaneCalibration):
     def from_report_inputs(cls, plane, inputs: dict, source: str = "plane file") -> "ImagePlaneCalibration":
         """The calibration :meth:`report_inputs` stored, around ``plane`` (a
         :class:`~lightplane.plane.model.LightPlane`); raises :class:`LightplaneError` on a malformed record."""
-        from lightplane.plane.solvers import Ambiguity
-
         try:
             version = int(inputs.get("version", 0))
             if version != REPORT_INPUTS_VERSION:
@@ -318,8 +320,6 @@ class ImagePlaneCalibration(PlaneCalibration):
 # ------------------------------------------------------------------------ per image
 def _load(source, index: int) -> tuple[np.ndarray | None, str, str]:
     """``(image, name, "")``, or ``(None, name, reason)`` for a file that cannot be read."""
-    from lightplane.core.io import try_read_image
-
     if isinstance(source, np.ndarray):
         return source, f"image[{index}]", ""
     if isinstance(source, (str, os.PathLike)):
@@ -484,10 +484,6 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
     observation per laser (in order); a laser whose stripe misses the target gets
     ``ok=False`` with the reason while the others are kept.
     """
-    from lightplane.ellipse import detect_ellipses, expected_axis_range_px, refine_ellipse, select_target, stripe_crossing
-    from lightplane.core.io import to_gray_float
-    from lightplane.stripe.lasers import LaserSelector
-    from lightplane.stripe.extract import extract_stripe
 
     t0 = time.perf_counter()
     single = lasers is None
@@ -635,8 +631,6 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
 def _process_worker_init() -> None:
     import cv2
 
-    from lightplane.core.threads import enter_serial
-
     enter_serial()
     cv2.setNumThreads(1)
 
@@ -744,8 +738,6 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
     LightplaneError (nothing solved) for a laser whose stripe is found in none of its images,
     a laser with no images, or one with too few usable placements (the message names the laser).
     """
-    from lightplane.stripe.lasers import no_stripe_message
-
     t_start = time.perf_counter()
     diameter = check_calibration_args(method, camera, diameter_mm)
     images, (lo, hi) = _checked_inputs(images, distance_range_mm)
@@ -821,8 +813,6 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
             if progress is not None:
                 progress(k + 1, n)
     else:
-        from lightplane.core.threads import enter_serial, frames_across_threads
-
         # one level of parallelism: images across the workers, serial kernels in each (lightplane.core.threads)
         if executor == "process":
             import multiprocessing as mp
@@ -859,8 +849,6 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     t_start = time.perf_counter()
     ok = [o for o in obs if o.ok]
     if len(ok) < min_placements:
-        from lightplane.core.io import too_few_images_message
-
         raise LightplaneError(too_few_images_message("images", len(ok), min_placements,
                                                      [(o.name, o.reason) for o in obs if not o.ok]))
     try:
@@ -942,8 +930,6 @@ def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plan
     within the span of the covariance.  Returns ``{"params", "matrix", "covariance_camera"
     (J Cov(K) Jᵀ, the plane's covariance due to the intrinsics alone), "method"}``.
     """
-    from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_steps, camera_with_params
-
     def statistic(pl: LightPlane) -> float | None:  # the images' dispersion statistic of an ml solve
         nm = pl.meta.get("noise_model") or {}
         d, e = nm.get("image_dispersion"), nm.get("image_dispersion_expected")
@@ -992,9 +978,6 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     (``normal_sigma_deg``, ``d_sigma_mm``: the plane's image noise only).  Empty without a
     covariance (:mod:`lightplane.plane.uncertainty`).
     """
-    from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_share_status, plane_noise_covers, point_sigma_mm, volume_sigma,
-                              working_volume_grid)
-
     C = cal.covariance
     if C is None:
         return {}

@@ -26,7 +26,7 @@ import numpy as np
 
 from lightplane.camera.model import as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import Failure, _ellipse_problems, fit_conics, sampson_distance
+from lightplane.core.geometry import Failure, ellipse_problems, fit_conics, sampson_distance
 from lightplane.core.geometry import fit_conic as _fit_conic
 
 __all__ = ["CirclePose", "circle_poses", "circle_poses_batch", "fit_conic", "fit_conics", "conic_residuals_px"]
@@ -69,8 +69,8 @@ def _check_conic(conic: np.ndarray, name: str = "conic") -> np.ndarray:
 
 def _ellipse_check(E: np.ndarray, name: str) -> None:
     """Raise unless the symmetric conic ``E`` (3, 3) is a real, non-degenerate ellipse (see
-    :func:`_ellipse_problems`)."""
-    why = _ellipse_problems(E[None])[0]
+    :func:`ellipse_problems`)."""
+    why = ellipse_problems(E[None])[0]
     if why is not None:
         raise LightplaneError(f"{name} {why}")
 
@@ -86,7 +86,7 @@ def circle_poses_batch(conics: np.ndarray, K: np.ndarray, radius_mm: float) -> t
     E = 0.5 * (E + np.swapaxes(E, 1, 2))
     W = K.T @ E @ K
     W = W / np.linalg.norm(W, axis=(1, 2))[:, None, None]
-    problems = _ellipse_problems(W)
+    problems = ellipse_problems(W)
     lam, V = np.linalg.eigh(W)  # ascending
     npos = np.sum(lam > 0, axis=1)
     # two positive: λ0 < 0 < λ1 <= λ2 -> (e1, e2, e3) = (v2, v1, v0);

@@ -50,6 +50,9 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import _huber_weights, _make_pose, _Problem, plane_param_jacobian
+from lightplane.camera.intrinsics import free_parameters, view_dispersion
+from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY
+from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_with_params
 
 if TYPE_CHECKING:
     from lightplane.plane.calibrate import ImagePlaneCalibration
@@ -118,8 +121,6 @@ def refine_joint_points(camera: Camera, free: np.ndarray, board_points: Sequence
     import cv2
     from scipy.optimize import least_squares
 
-    from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY
-    from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_with_params
 
     _check("the fisheye model is not supported (OpenCV's pinhole models only)", camera.model != "fisheye")
     names = camera_param_names(camera)
@@ -287,8 +288,6 @@ def joint_dispersion(J: np.ndarray, r: np.ndarray, shared: np.ndarray, clusters:
     plane's, which the joint solve uses and neither of them measured.  Sampling sd at least
     ``sqrt(2 / (p (M − 1)))`` (p shared parameters, M clusters: 0.08 for 12 and 28).
     """
-    from lightplane.camera.intrinsics import view_dispersion
-
     shares, scores = [], []
     for rows, own in clusters:
         Jg, Jl = J[np.ix_(rows, shared)], J[np.ix_(rows, own)]
@@ -315,8 +314,6 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
     """The joint refinement from a camera calibration (:func:`lightplane.camera.intrinsics.calibrate_camera`,
     its corners and board poses) and an ``ml`` plane calibration made with that camera
     (:func:`lightplane.plane.calibrate.calibrate_plane`, its rim and stripe points, poses and noise model)."""
-    from lightplane.camera.intrinsics import _free_parameters
-
     cam = intrinsics.camera
     if plane_cal.method != "ml" or plane_cal.covariance is None:
         raise LightplaneError("the joint refinement needs the plane calibrated with --method ml")
@@ -341,7 +338,7 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
     if s_rim is None or s_st is None:
         raise LightplaneError("the joint refinement needs the plane calibration's noise model (--method ml)")
     objs = [intrinsics.target.object_points(ids).astype(np.float64) for ids in intrinsics.ids]
-    free = _free_parameters(len(cam.dist), intrinsics.flags)
+    free = free_parameters(len(cam.dist), intrinsics.flags)
     # the rim and stripe points weighted by their long-run noise, times the images' dispersion where the
     # plane's covariance applies it (as the corners by the views' dispersion)
     phi = float(nm.get("image_dispersion") or 1.0) if nm.get("image_dispersion_applied") else 1.0

@@ -76,6 +76,7 @@ from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import robust_sigma
 from lightplane.plane.model import LightPlane
+from lightplane.plane.circle_pose import CirclePose
 
 __all__ = ["MLResult", "refine_ml", "crlb", "simulate_points", "plane_param_jacobian", "integrated_autocorr_time"]
 
@@ -534,10 +535,6 @@ def plane_param_jacobian(normal_jac: np.ndarray) -> np.ndarray:
 
 
 def _make_pose(center: np.ndarray, normal: np.ndarray, radius_mm: float):
-    try:
-        from lightplane.plane.circle_pose import CirclePose
-    except ImportError:  # pragma: no cover - circle_pose is part of the package
-        return _Pose(center, normal)
     return CirclePose(center=center, normal=normal, radius_mm=radius_mm)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from lightplane.camera.model import as_points
 from lightplane.core.errors import LightplaneError
+from lightplane.core.io import read_json, write_json
 
 __all__ = ["LightPlane"]
 
@@ -146,27 +147,11 @@ class LightPlane:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "LightPlane":
         """Read a light-plane JSON file (docs/conventions.md §Plane file)."""
-        from lightplane.core.io import read_json
-
         return cls.from_dict(read_json(path, "plane file"), source=str(path))
 
     def save(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
         """Write the light-plane JSON file atomically."""
-        from lightplane.core.io import write_json
-
         d = self.to_dict()
         if extra:
             d.update(extra)
         return write_json(path, d, force=force)
-
-
-# The solvers live in lightplane.plane.solvers; their old names here keep working.
-_MOVED = frozenset(['Ambiguity', 'PlacementCandidates', 'PlacementResult', 'PlaneCalibration', '_ChordMoments', '_GlobalOutcome', '_KAPPA', '_PaperOutcome', '_TAU_FLOOR_REL', '_chord_ends', '_cost_from_moments', '_finite_or_none', '_fit_assignment', '_lies_on', '_moments', '_msd', '_plane_offset_var', '_sample_assignment', '_solve_global', '_solve_paper', '_tau', '_tau_unit', 'backproject_to_plane', 'calibrate_plane_from_points', 'check_calibration_args', 'estimate_sigma_px', 'fit_line_2d', 'fit_plane_points', 'prepare_placement', 'robust_line', 'sampson_distance', 'tls_line'])
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        from lightplane.plane import solvers as plane_solvers
-
-        return getattr(plane_solvers, name)
-    raise AttributeError(f"module 'lightplane.plane.model' has no attribute {name!r}")

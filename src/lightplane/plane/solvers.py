@@ -67,6 +67,8 @@ if TYPE_CHECKING:
     from lightplane.plane.circle_pose import CirclePose
 
 from lightplane.plane.ml import MLOptions, refine_ml  # noqa: E402
+from lightplane.camera.model import Camera
+from lightplane.plane.circle_pose import CirclePose, circle_poses, circle_poses_batch, fit_conic, fit_conics
 
 _KAPPA = 5.0
 _TAU_FLOOR_REL = 1e-9  # tau >= 1e-9 * z: rounding of noise-free data (~1e-11 mm) stays below it
@@ -292,8 +294,6 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     poses (or why there are none), if already computed (batched, see
     :func:`calibrate_plane_from_points`).
     """
-    from lightplane.plane.circle_pose import circle_poses, fit_conic
-
     name = f"placement {index}"
     rim = as_points(rim_uv, 2, f"{name}: rim points")
     st = as_points(stripe_uv, 2, f"{name}: stripe points")
@@ -793,8 +793,6 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
 # ------------------------------------------------------------------ public entry
 def check_calibration_args(method: str, camera, diameter_mm) -> float:
     """Check the arguments every light-plane calibration shares; return the diameter (mm)."""
-    from lightplane.camera.model import Camera
-
     if method not in ("ml", "global", "paper"):
         raise LightplaneError(f"method must be 'ml', 'global' or 'paper', got {method!r}")
     if not isinstance(camera, Camera):
@@ -937,7 +935,6 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     xy_all = camera.undistort_points(np.concatenate([a for pair in zip(rims, stripes) for a in pair]), normalized=True)
     parts = np.split(xy_all, np.cumsum(sizes)[:-1])
     # ellipse fits and circle poses of all placements in one vectorised pass each
-    from lightplane.plane.circle_pose import CirclePose, circle_poses_batch, fit_conics
 
     K = camera.K
     rim_und = [parts[2 * i] @ K[:2, :2].T + K[:2, 2] for i in range(len(rims))]

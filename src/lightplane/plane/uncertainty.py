@@ -39,8 +39,9 @@ import numpy as np
 
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.measure.profile import GRAZING_COS, points_sigma_mm, triangulate_normalized
+from lightplane.plane.triangulate import GRAZING_COS, points_sigma_mm, triangulate_normalized
 from lightplane.plane.model import LightPlane
+from lightplane.camera.lens import coeff_names
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
@@ -58,7 +59,7 @@ def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
     return cov
 
 
-def _point_jacobian(plane: LightPlane, xy: np.ndarray) -> np.ndarray:
+def point_jacobian(plane: LightPlane, xy: np.ndarray) -> np.ndarray:
     """(N, 3, 4) ``∂X/∂(a, b, c, d)`` at normalised rays ``xy`` (N, 2); NaN for grazing rays."""
     xt = np.column_stack([xy, np.ones(len(xy))])
     den = xt @ plane.normal
@@ -91,7 +92,7 @@ def point_sigma_mm(camera: Camera, plane: LightPlane, uv: np.ndarray, *,
     ``sqrt(trace Cov(X))``: the RMS length of the 3D error (camera frame) due to the plane's
     uncertainty and, where the files carry it, the camera's (:func:`point_covariance`;
     :func:`camera_share_status` says whether).  NaN for grazing rays.  Raises when the
-    plane has no covariance.  Plane only: :func:`lightplane.measure.profile.points_sigma_mm`.
+    plane has no covariance.  Plane only: :func:`lightplane.plane.triangulate.points_sigma_mm`.
     """
     uv = as_points(uv, 2, "uv")
     cov = _plane_cov(plane, covariance)
@@ -160,8 +161,6 @@ def rms_triangulation_error_mm(camera: Camera, plane_est: LightPlane, plane_true
 # ------------------------------------------------------------------ the camera's share
 def camera_param_names(camera: Camera) -> tuple[str, ...]:
     """The intrinsic parameters in the order of a camera covariance: ``fx, fy, cx, cy`` then ``dist``'s."""
-    from lightplane.camera.lens import coeff_names
-
     assert camera.model is not None  # a Camera names its model on construction
     return ("fx", "fy", "cx", "cy") + coeff_names(camera.model)
 
@@ -329,7 +328,7 @@ def point_error_basis(camera: Camera, plane: LightPlane, uv: np.ndarray, *, cova
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     U = V * np.sqrt(np.maximum(w, 0.0))
     xy = camera.undistort_points(uv, normalized=True)
-    cols = [_point_jacobian(plane, xy) @ U]
+    cols = [point_jacobian(plane, xy) @ U]
     included = bool(camera_share) and camera_share_status(camera, plane) is None
     if included:
         J, _ = plane_camera_jacobian(plane)  # type: ignore[misc]

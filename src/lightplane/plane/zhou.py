@@ -21,15 +21,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from lightplane.camera.board_pose import BoardPose, find_board_pose, pose_from_corners
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
+from lightplane.camera.targets import as_target
+from lightplane.core.io import to_gray_float, too_few_images_message
+from lightplane.stripe.extract import extract_stripe
 
 __all__ = [
-    "BoardPose",
-    "find_board_pose",
-    "pose_from_corners",
     "corners_clear_of_stripe",
     "board_polygon_mask",
     "stripe_points_on_board",
@@ -42,73 +43,6 @@ __all__ = [
     "straight_stripe_inliers",
     "calibrate_plane_board",
 ]
-
-
-@dataclass(frozen=True)
-class BoardPose:
-    """A chessboard found in one image and its pose.
-
-    Attributes
-    ----------
-    corners_uv : (cols·rows, 2) float, inner corners, distorted px, OpenCV order.
-    R_cam_board : (3, 3) float, board → camera rotation.
-    t_cam_board : (3,) float, board origin in the camera frame, mm.
-    reprojection_rms_px : float, RMS corner reprojection error of the pose.
-    name : str, where it came from.
-    corner_ok : (cols·rows,) bool or None; False for corners left out of the pose (and of the
-        cross-ratio) because the laser stripe runs over them; None: all used.
-    ids : (N,) the target's point ids of ``corners_uv`` (None: all, in id order).
-    object_mm : (N, 3) board coordinates of ``corners_uv`` (mm).
-    """
-
-    corners_uv: np.ndarray
-    R_cam_board: np.ndarray
-    t_cam_board: np.ndarray
-    reprojection_rms_px: float
-    name: str = ""
-    corner_ok: np.ndarray | None = None
-    ids: np.ndarray | None = None
-    object_mm: np.ndarray | None = None
-
-    @property
-    def normal_cam(self) -> np.ndarray:
-        """Board plane normal (board z axis) in the camera frame."""
-        return self.R_cam_board[:, 2]
-
-    def to_dict(self) -> dict:
-        import cv2
-
-        rvec, _ = cv2.Rodrigues(self.R_cam_board)
-        return {"name": self.name, "rvec": rvec.ravel().tolist(), "t_cam_board_mm": self.t_cam_board.tolist(),
-                "reprojection_rms_px": self.reprojection_rms_px,
-                "corners_left_out": 0 if self.corner_ok is None else int(np.count_nonzero(~self.corner_ok))}
-
-
-def pose_from_corners(camera: Camera, corners_uv: np.ndarray, board, square_mm: float | None = None,
-                      name: str = "", corner_ok: np.ndarray | None = None, ids=None) -> BoardPose:
-    """Board pose from its detected points: :meth:`Camera.solve_pnp` (``cv2.solvePnP`` and LM, every lens model).
-
-    ``board``: a :class:`lightplane.camera.targets.Target` or ``(cols, rows)`` chessboard inner corners
-    (with ``square_mm``); ``ids``: the target's ids of ``corners_uv`` (default: all, id order);
-    ``corner_ok`` (N,) bool: only these points are used (all when None).
-    """
-    from lightplane.camera.targets import as_target
-
-    target = as_target(board, square_mm)
-    uv = as_points(corners_uv, 2, "corners_uv")
-    ids_ = np.arange(target.n_points) if ids is None else np.asarray(ids, dtype=np.intp).ravel()
-    obj = target.object_points(ids_)
-    if len(uv) != len(obj):
-        raise LightplaneError(f"{name or 'corners_uv'}: {len(uv)} points, but {len(obj)} ids for {target.describe()}")
-    use = np.ones(len(uv), bool) if corner_ok is None else np.asarray(corner_ok, bool)
-    o, u = obj[use], uv[use]
-    if len(o) < 4:
-        raise LightplaneError(f"{name or 'board'}: {len(o)} points, a pose needs at least 4")
-    R, t = camera.solve_pnp(o, u, name=name or "board")
-    res = camera.project(o @ R.T + t) - u
-    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    return BoardPose(uv, R, t, rms, name, None if corner_ok is None else use,
-                     None if ids is None else ids_, obj)
 
 
 def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarray, *,
@@ -125,36 +59,6 @@ def corners_clear_of_stripe(camera: Camera, pose: BoardPose, stripe_uv: np.ndarr
     return np.abs((c - m) @ nrm) > clearance_px
 
 
-def find_board_pose(image: np.ndarray, camera: Camera, board, square_mm: float | None = None, *,
-                    name: str = "image", channel: str | None = None) -> BoardPose:
-    """Find the target (a :class:`lightplane.camera.targets.Target`, or ``(cols, rows)`` chessboard inner
-    corners with ``square_mm``) and solve its pose.
-
-    With ``channel`` (e.g. "red" under a red laser and dim light) the board is
-    looked for in that channel, contrast-stretched.  Circle grids: the dots' centroids
-    are moved to the projected circle centres at the pose found, and the pose solved
-    again.  Raises LightplaneError naming the image when the board is not found.
-    """
-    from lightplane.core.io import to_gray_float
-    from lightplane.camera.targets import as_target, correct_circle_centres, dot_diameter_mm
-
-    target = as_target(board, square_mm)
-    camera.check_image(image, name)
-    if channel is not None:
-        image = to_gray_float(image, channel)  # float: the detectors stretch it to 8 bits
-    det = target.detect(image)
-    if det is None:
-        raise LightplaneError(f"{name}: {target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else ""))
-    ids = None if not target.partial_views else det.ids
-    pose = pose_from_corners(camera, det.uv, target, name=name, ids=ids)
-    if target.kind in ("circles", "acircles"):
-        dot = dot_diameter_mm(image, det, target)
-        for _ in range(2):
-            uv = correct_circle_centres(camera, target, det.uv, det.ids, pose.R_cam_board, pose.t_cam_board, dot)
-            pose = pose_from_corners(camera, uv, target, name=name)
-    return pose
-
-
 def board_polygon_mask(camera: Camera, pose: BoardPose, board, square_mm: float | None = None, *,
                        margin_squares: float | None = None, samples_per_edge: int = 20) -> np.ndarray:
     """uint8 mask (H, W) of the board area where stripe points are taken.
@@ -166,8 +70,6 @@ def board_polygon_mask(camera: Camera, pose: BoardPose, board, square_mm: float 
     distortion, so it follows curved edges.
     """
     import cv2
-
-    from lightplane.camera.targets import as_target
 
     target = as_target(board, square_mm)
     x0, x1, y0, y1 = target.outline_mm()
@@ -353,8 +255,6 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
                     ) -> np.ndarray:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
     subtracting the laser-off frame."""
-    from lightplane.core.io import to_gray_float
-    from lightplane.stripe.extract import extract_stripe
 
     import cv2
 
@@ -441,8 +341,6 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
     ``pose_cache``: a dict shared between calls on the same pattern frame objects (several
     lasers' frames of the same poses): each pattern frame's board is searched once.
     """
-    from lightplane.camera.targets import as_target
-
     target = as_target(board, square_mm)
     names = list(image_names) if image_names is not None else [f"image {i}" for i in range(len(images))]
     if len(names) != len(images):
@@ -519,8 +417,6 @@ def _corner_spacing_px(corners_uv: np.ndarray) -> float:
 def _same_exposure(image: np.ndarray, pattern: np.ndarray, mask: np.ndarray, channel: str | None) -> bool:
     """Whether a laser frame was taken at the pattern frame's exposure (the board's median level
     within a factor 2), so the pattern frame can be subtracted; dark laser frames are not."""
-    from lightplane.core.io import to_gray_float
-
     m = mask > 0
     a = float(np.median(to_gray_float(image, channel)[m]))
     b = float(np.median(to_gray_float(pattern, channel)[m]))
@@ -579,8 +475,6 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
     diagnostics (pose, stripe points used, residual RMS), ``meta["skipped"]`` the
     images not used with their reason.
     """
-    from lightplane.core.io import too_few_images_message
-    from lightplane.camera.targets import as_target
 
     target = as_target(board, square_mm)
     pre = dict(skipped or {})

@@ -31,6 +31,15 @@ import numpy as np
 
 from lightplane.core.errors import LightplaneError
 from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.core.io import provenance, provenance as _prov, read_image, write_json
+from lightplane.evaluate.crossratio import evaluate_images
+from lightplane.measure.profile import ProfileMeasurer
+from lightplane.plane.calibrate import observe_images, solve_observations, uncertainty_summary
+from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.report.html import Section, write_report
+from lightplane.simulate import render as R
+from lightplane.simulate.scene import default_camera, default_plane
 
 __all__ = ["run_demo", "DEMO_SETTINGS"]
 
@@ -59,8 +68,6 @@ DEMO_SETTINGS = {
 # ----------------------------------------------------------------------------- rendering
 def _render_job(kind: str, folder: str, seed: int, settings: dict) -> list[str]:
     """Render one data set into ``folder`` (runs in a worker process)."""
-    from lightplane.simulate import render as R
-
     if kind == "chessboards":
         ds = R.render_chessboard_dataset(n=settings["chessboards"], seed=seed + 1, board=settings["camera_board"],
                                          square_mm=settings["camera_square_mm"], difficulty="realistic")
@@ -81,8 +88,6 @@ def _render_job(kind: str, folder: str, seed: int, settings: dict) -> list[str]:
 
 def _load_set(folder: Path):
     import json
-
-    from lightplane.core.io import read_image
 
     truth = json.loads((folder / "truth.json").read_text())
     key = "views" if "views" in truth else ("frames" if "frames" in truth else "images")
@@ -127,8 +132,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
     ``settings`` overrides entries of :data:`DEMO_SETTINGS` (e.g. smaller counts for tests).
     Refuses a non-empty ``out`` without ``force``.
     """
-    from lightplane.core.io import provenance, write_json
-    from lightplane.simulate.scene import default_camera, default_plane
 
     t_start = time.perf_counter()
     cfg = dict(DEMO_SETTINGS)
@@ -196,8 +199,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
     def calib_camera():
         import cv2
 
-        from lightplane.camera.intrinsics import calibrate_camera
-
         truth, files, imgs = _load_set(data / "chessboards")
         ic = calibrate_camera(imgs, tuple(cfg["camera_board"]), cfg["camera_square_mm"], names=[f.name for f in files],
                               flags=cv2.CALIB_FIX_K3)
@@ -225,8 +226,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             f"({cfg['diameter_mm']:g} mm disc) (camera: {camera_source}) ...")
 
         def calib_plane():
-            from lightplane.plane.calibrate import observe_images, solve_observations, uncertainty_summary
-
             _, files, _ = _load_set(data / "circles")
             t0 = time.perf_counter()
             obs = observe_images(files, camera, cfg["diameter_mm"], workers=workers)
@@ -239,7 +238,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
         if res is not None:
             cals, unc = res
             cal = cals["ml"]
-            from lightplane.core.io import provenance as _prov
 
             cal.plane.save(out / "plane.json", force=True, extra={
                 **cal.to_dict(), "uncertainty": unc,
@@ -273,8 +271,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
         say(f"[5] Zhou's planar-target plane from {cfg['striped_boards']} rendered chessboards with the stripe ...")
 
         def zhou_stage():
-            from lightplane.plane.zhou import calibrate_plane_board
-
             _, files, imgs = _load_set(data / "striped_boards")
             return calibrate_plane_board(imgs, camera, tuple(cfg["board"]), cfg["square_mm"],
                                          image_names=[f.name for f in files])
@@ -299,8 +295,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
             say("[6] cross-ratio evaluation on the striped chessboards (paper §4.3) ...")
 
             def eval_stage():
-                from lightplane.evaluate.crossratio import evaluate_images
-
                 _, files, imgs = _load_set(data / "striped_boards")
                 return evaluate_images(imgs, camera, planes, board=tuple(cfg["board"]), square_mm=cfg["square_mm"],
                                        labels=labels, image_names=[f.name for f in files])
@@ -324,8 +318,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
                 f"{cfg['scan_step_mm']:g} mm steps) with the calibrated plane ...")
 
             def scan_stage():
-                from lightplane.measure.profile import ProfileMeasurer
-
                 truth, files, imgs = _load_set(data / "scan")
                 meas = ProfileMeasurer(camera, plane_for_scan)
                 pts = []
@@ -360,8 +352,6 @@ def run_demo(out: Path, *, force: bool = False, seed: int = 0, console=None, wor
         say("[8] writing the report ...")
 
         def report_stage():
-            from lightplane.report.html import Section, write_report
-
             sections = [Section("Demo summary", rows=_summary_rows(summary))]
             if evaluation is not None:
                 sections.append(Section("Cross-ratio evaluation (paper §4.3, Table-2 layout)",

@@ -34,6 +34,9 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.report.plots import figure_overlays, figure_poses_3d, figure_residuals, figure_uncertainty
 from lightplane.report.plots import overlays as _overlays
+from lightplane.core.io import atomic_write, check_output, read_json
+from lightplane.plane.calibrate import ImagePlaneCalibration, uncertainty_summary
+from lightplane.plane.model import LightPlane
 
 __all__ = ["Section", "write_report", "render_report_html", "figure_overlays", "figure_poses_3d",
            "figure_residuals", "figure_uncertainty", "load_report_inputs", "rebuild_report"]  # figure_*: from lightplane.report.plots
@@ -92,8 +95,6 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
     ``images``: see :func:`figure_overlays`; ``provenance``: what produced the plane
     (:func:`lightplane.core.io.provenance`), shown at the foot (default: ``cal.plane.meta``'s).
     """
-    from lightplane.plane.calibrate import uncertainty_summary
-
     cam = cal.camera
     unc = uncertainty_summary(cal, cam) if cam is not None else {}
     a, b, c = cal.plane.normal
@@ -211,8 +212,6 @@ def write_report(out_dir: str | os.PathLike, cal, *, images: Sequence | None = N
 
     Refuses to overwrite an existing ``index.html`` without ``force``; written atomically.
     """
-    from lightplane.core.io import atomic_write, check_output
-
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise LightplaneError(f"{out}: exists and is not a folder")
@@ -242,9 +241,6 @@ def load_report_inputs(plane_file: str | os.PathLike):
     Raises :class:`LightplaneError` for a file without stored inputs (an older plane file, or
     one not made from images).
     """
-    from lightplane.plane.calibrate import ImagePlaneCalibration
-    from lightplane.core.io import read_json
-    from lightplane.plane.model import LightPlane
 
     path = Path(plane_file)
     d = read_json(path, "plane file")

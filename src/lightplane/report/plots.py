@@ -24,6 +24,11 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from lightplane.core.io import atomic_write, to_gray8, try_read_image
+from lightplane.evaluate.study import METHODS
+from lightplane.plane.ml import chord_endpoints
+from lightplane.plane.triangulate import triangulate
+from lightplane.plane.uncertainty import camera_share_status, point_sigma_mm
 
 __all__ = ["save_figure", "intrinsics_residuals", "study_factor", "point_sigma_map", "overlays", "figure_overlays",
            "figure_poses_3d", "figure_residuals", "figure_uncertainty", "point_cloud"]
@@ -47,8 +52,6 @@ def _png(fig) -> bytes:
 
 def save_figure(fig, path: str | os.PathLike, *, force: bool = False, dpi: int | None = None) -> Path:
     """Save a matplotlib figure atomically (format from the suffix, PNG by default) and close it."""
-    from lightplane.core.io import atomic_write
-
     fmt = Path(path).suffix.lstrip(".").lower() or "png"
     try:
         return atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi), force=force)
@@ -90,8 +93,6 @@ def study_factor(result, path: str | os.PathLike, *, force: bool = False) -> Pat
     """PNG with four panels against the factor: relative coefficient error (%), angle error
     (deg), triangulation RMS over the working volume (mm), and the failure rate (%), for a
     :class:`~lightplane.evaluate.study.StudyResult`."""
-    from lightplane.evaluate.study import METHODS
-
     plt = _plt()
 
     spec = result.factor
@@ -138,8 +139,6 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
     whose ray meets the plane outside ``distance_mm`` are greyed out, and contours
     mark the distance to the camera (mm).  Written atomically.
     """
-    from lightplane.measure.profile import triangulate
-    from lightplane.plane.uncertainty import camera_share_status, point_sigma_mm
 
     plt = _plt()
     us = np.arange(0, camera.width, step_px)
@@ -176,15 +175,11 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
 
 # ----------------------------------------------------------------------------- calibrate-plane report
 def _gray8(img: np.ndarray) -> np.ndarray:
-    from lightplane.core.io import to_gray8
-
     return to_gray8(img, percentiles=(0.5, 99.8), keep_8bit=False)
 
 
 def _chord_px(cal, obs) -> np.ndarray | None:
     """(N, 2) distorted px of the chord where the plane cuts the observation's chosen pose."""
-    from lightplane.plane.ml import chord_endpoints
-
     p = obs.placement
     if p is None or p.pose is None or cal.camera is None:
         return None
@@ -199,8 +194,6 @@ def _overlay_image(entry, o) -> tuple[np.ndarray | None, bool]:
     """``(image, blank)`` for observation ``o`` from ``entry`` (an array, a file path or None):
     the image, or — when it cannot be read or no longer has the recorded size — a blank
     canvas of the recorded size (``blank`` True), or ``(None, True)`` without a size."""
-    from lightplane.core.io import try_read_image
-
     img = None
     if isinstance(entry, np.ndarray):
         img = entry
@@ -305,7 +298,6 @@ def figure_poses_3d(cal, plane_true=None) -> bytes:
     ax = fig.add_subplot(111, projection="3d")
     pts = []
     ends = []
-    from lightplane.plane.ml import chord_endpoints
 
     for p in cal.placements:
         if p.pose is None:

@@ -48,6 +48,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.simulate import render_core as rc
 from lightplane.simulate.scene import TargetPlacement, default_camera, default_plane, sample_placements
+from lightplane.core.io import atomic_write, provenance, write_json
 
 __all__ = [
     "DIFFICULTIES",
@@ -391,8 +392,6 @@ class Dataset:
         atomically (temporary file, then rename).
         """
         import cv2
-
-        from lightplane.core.io import atomic_write, provenance, write_json
 
         out = check_output_dir(out_dir, list(self.names) + ["camera.json", "truth.json"], force)
         try:

@@ -39,8 +39,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from lightplane.camera.lens_kernels import _distort_jac, _newton_step
+from lightplane.camera.lens_kernels import distort_jac_kernel, newton_step_kernel
 from lightplane.camera.lens import lens_params, undistort_guess
+from lightplane.core.errors import LightplaneError
 
 PATCH_COLS = 26
 SPHERE_COLS = 5
@@ -213,7 +214,7 @@ def _undistort(xd, yd, x, y, lens, max_iter):
     """Newton's method for distort(x, y) = (xd, yd), started at (x, y); ``lens`` the packed model of
     :func:`lightplane.camera.lens.lens_params` (the one implementation of every lens model)."""
     for _ in range(max_iter):
-        x, y, dx, dy, _, _, _, _ = _newton_step(x, y, xd, yd, lens)
+        x, y, dx, dy, _, _, _, _ = newton_step_kernel(x, y, xd, yd, lens)
         if abs(dx) + abs(dy) < 1e-16:
             break
     return x, y
@@ -465,7 +466,7 @@ def _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, am
     st = _pixel_state(u, v, salt + S)
     # Each sample's Newton starts from the centre's first-order prediction (the distortion's
     # inverse Jacobian at the centre's ray): two steps reach the same 1e-16 instead of three.
-    xc, yc, j11, j12, j21, j22 = _distort_jac(x0, y0, lens)
+    xc, yc, j11, j12, j21, j22 = distort_jac_kernel(x0, y0, lens)
     det = j11 * j22 - j12 * j21
     i11, i12, i21, i22 = j22 / det, -j12 / det, -j21 / det, j11 / det
     for j in range(S):
@@ -546,8 +547,6 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     texels (uint8, 1 = ink) that ``bitmap`` patches index (see :func:`make_patch`).
     """
     import cv2
-
-    from lightplane.core.errors import LightplaneError
 
     if int(samples) < 4:
         raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")

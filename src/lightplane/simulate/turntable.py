@@ -22,6 +22,7 @@ from lightplane.plane.model import LightPlane
 from lightplane.simulate import render_core as rc
 from lightplane.simulate.scene import default_camera, default_plane
 from lightplane.simulate.render import _IMAGING, DIFFICULTIES, Dataset, _check_choice, _check_n, _finish, _laser_row, laser_source
+from lightplane.simulate.render import _charuco_layout, _target_patch, target_object_points, target_spec
 
 __all__ = ["default_turntable", "mirrored_plane", "render_turntable_scan", "render_turntable_board"]
 
@@ -133,8 +134,6 @@ def render_turntable_board(target=None, angles_deg=(-40, -25, -10, 5, 20, 35), s
     axis), its first row of points ``height_mm`` above the table and its plane
     ``radial_mm`` in front of the axis.  Truth per view: ``T_cam_board`` and the angle.
     """
-    from lightplane.simulate.render import _charuco_layout, _target_patch, target_object_points, target_spec
-
     _check_choice(difficulty, DIFFICULTIES, "difficulty")
     camera = default_camera() if camera is None else camera
     table = default_turntable() if table is None else table

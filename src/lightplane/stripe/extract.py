@@ -109,6 +109,8 @@ from scipy.ndimage import median_filter
 from lightplane.stripe import kernels as K
 from lightplane.core.errors import LightplaneError
 from lightplane.core.threads import in_serial_context, profile_parallel
+from lightplane.core.io import to_gray_float
+from lightplane.stripe.reference import profile_numpy
 
 __all__ = [
     "StripePoints",
@@ -224,8 +226,6 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
     for ``"sum"``.  16-bit data that stays within 10, 12 or 14 bits (a 12-bit sensor
     in a 16-bit container) gets that range as its full scale (1023, 4095, 16383).
     """
-    from lightplane.core.io import to_gray_float
-
     if not isinstance(image, np.ndarray):
         raise LightplaneError(f"{name} must be a numpy array, got {type(image).__name__}")
     out = to_gray_float(image, channel, name=name, native=True)
@@ -444,8 +444,6 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     if backend == "numba":
         raw = _profile_numba(A, w0, w1, w2, params, parallel=setup["parallel"])
     else:
-        from lightplane.stripe.reference import profile_numpy
-
         raw = profile_numpy(A, w0, w1, w2, params)
     return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend, saturated_centre)
 

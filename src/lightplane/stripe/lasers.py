@@ -29,6 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.core.io import to_gray_float
 
 COLOURS = ("red", "green", "blue", "gray")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -110,8 +111,6 @@ class LaserSelector:
     def view(self, img: np.ndarray) -> np.ndarray:
         """The image as this laser's stripe is looked for in it: its channel (float32 gray),
         without bright lines outside its region (:meth:`outside_removed`)."""
-        from lightplane.core.io import to_gray_float
-
         return self.outside_removed(to_gray_float(img, self.channel))
 
     def outside_removed(self, gray: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:

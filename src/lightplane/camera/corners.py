@@ -1,0 +1,408 @@
+"""Calibration boards in images: OpenCV's chessboard detection, the corners refined by gradient orthogonality
+(Förstner) or by the blurred-saddle fit, in the lens's own frame where the lens bends the board's lines, and the
+board's point layout (docs/method.md §Camera calibration)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lightplane.camera._corner_kernels import fit_saddles, forstner, window_pixels
+from lightplane.camera.model import Camera
+from lightplane.core.errors import LightplaneError
+from lightplane.core.io import to_gray_float
+__all__ = ["MIN_BOARD_BLUR_PX", "board_points", "find_board", "fit_corners", "lens_bend", "refine_corners"]
+
+#: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
+#: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
+#: pixel scale (see :func:`fit_corners`); sharpened camera images (halos) are not.
+MIN_BOARD_BLUR_PX = 0.55
+
+
+def board_points(board: tuple[int, int], square_mm: float) -> np.ndarray:
+    """Inner-corner coordinates ``(cols*rows, 3)`` in the board frame (mm, z = 0), row-major
+    (x along a row, matching OpenCV's corner order)."""
+    cols, rows = board
+    if square_mm <= 0:
+        raise LightplaneError(f"square size must be positive, got {square_mm} mm")
+    xs, ys = np.meshgrid(np.arange(cols), np.arange(rows))
+    return np.column_stack([xs.ravel() * square_mm, ys.ravel() * square_mm, np.zeros(cols * rows)])
+
+
+def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, *, sigma_frac: float = 0.2,
+                   radius_frac: float = 0.6, max_radius_px: float = 30.0, max_iter: int = 30,
+                   tol_px: float = 1e-5) -> np.ndarray:
+    """Chessboard corners refined by gradient orthogonality on the pixel grid, ``(N, 2)`` px.
+
+    Each corner ``q`` solves ``sum_p w(p - q) g_p g_p^T (q - p) = 0`` (Förstner's
+    operator, as ``cv2.cornerSubPix``): the image gradient ``g_p`` (Scharr) at every
+    pixel ``p`` near the corner is orthogonal to ``p - q`` on the two board edges through
+    it.  Unlike ``cornerSubPix`` the sums run over the integer pixel grid (no bilinear
+    resampling of the image at sub-pixel offsets, whose phase-dependent error is
+    ~0.01 px) with a Gaussian weight ``w`` of σ = ``sigma_frac * spacing_px`` re-centred
+    on ``q`` at each iteration, cut at ``radius_frac * spacing_px`` (< 1 spacing: only the
+    two edges of this corner).  ``spacing_px`` is the smallest corner spacing on the
+    board (foreshortened).  On rendered 13x9 boards tilted 30–60° (realistic noise) the
+    error against the exact corners drops from 0.029 px RMS (cornerSubPix) to 0.019 px;
+    noise-free from 0.020 to 0.011 px.  Corners whose solve is singular, or that move
+    by more than a quarter of the spacing, keep their input position.  The iteration is
+    compiled (:func:`lightplane.camera._corner_kernels.forstner`; all corners step until the largest
+    step is below ``tol_px``).
+    """
+    import cv2
+
+    g = np.asarray(gray)
+    if g.ndim != 2:
+        raise LightplaneError(f"refine_corners: gray must be a 2-D image, got shape {g.shape}")
+    q0 = np.asarray(corners_uv, dtype=np.float64).reshape(-1, 2)
+    if not spacing_px > 0:
+        raise LightplaneError(f"refine_corners: spacing_px must be positive, got {spacing_px}")
+    if g.dtype == np.uint8:  # Scharr's sums are integers (|.| <= 4080): exact in int16, scaled in the kernel
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_16S, 1, 0), cv2.Scharr(g, cv2.CV_16S, 0, 1), 1.0 / 32.0
+    else:
+        g = g.astype(np.float64, copy=False)
+        gx, gy, unit = cv2.Scharr(g, cv2.CV_64F, 1, 0, scale=1 / 32), cv2.Scharr(g, cv2.CV_64F, 0, 1, scale=1 / 32), 1.0
+    radius = max(2.0, min(radius_frac * spacing_px, max_radius_px))
+    sigma = sigma_frac * spacing_px * radius / (radius_frac * spacing_px)
+    q = np.empty_like(q0)
+    forstner(np.ascontiguousarray(gx), np.ascontiguousarray(gy), float(unit), np.ascontiguousarray(q0), float(radius),
+             float(2.0 * sigma**2), int(max_iter), float(tol_px), q)
+    bad = ~np.all(np.isfinite(q), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * spacing_px)
+    q[bad] = q0[bad]
+    return q
+
+
+def _grid_geometry(corners_uv: np.ndarray, board: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per corner of a ``(cols, rows)`` grid: the distance to the nearest parallel grid line
+    (px, the smaller of the row and column line spacings), and the row and column
+    directions (central differences of the neighbouring corners, one-sided at the border)."""
+    cols, rows = board
+    g = corners_uv.reshape(rows, cols, 2)
+    e_row = np.gradient(g, axis=1)  # along a row: the edge line between two rows of squares
+    e_col = np.gradient(g, axis=0)
+    u_row = e_row / np.linalg.norm(e_row, axis=2, keepdims=True)
+    u_col = e_col / np.linalg.norm(e_col, axis=2, keepdims=True)
+    # perpendicular distance to the next row line (step along a column ⨯ row direction), and vice versa
+    cross = lambda a, b: np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])  # noqa: E731
+    dv = np.diff(g, axis=0)
+    du = np.diff(g, axis=1)
+    gap = np.full((rows, cols), np.inf)
+    d_rowline = cross(dv, u_row[1:])  # from corner (j+1, i) back to row j's line, ~ the same from j
+    d_rowline = np.minimum(d_rowline, cross(dv, u_row[:-1]))
+    gap[1:] = np.minimum(gap[1:], d_rowline)
+    gap[:-1] = np.minimum(gap[:-1], d_rowline)
+    d_colline = np.minimum(cross(du, u_col[:, 1:]), cross(du, u_col[:, :-1]))
+    gap[:, 1:] = np.minimum(gap[:, 1:], d_colline)
+    gap[:, :-1] = np.minimum(gap[:, :-1], d_colline)
+    return gap.ravel(), e_row.reshape(-1, 2), e_col.reshape(-1, 2)
+
+
+class _LensFrame:
+    """Locally rectified coordinates about corners ``q0`` (n, 2) distorted px of ``camera``.
+
+    ``p -> q0 + J0 (x(p) - x(q0))`` with ``x`` the normalised undistorted coordinates and
+    ``J0 = ∂(u, v)/∂(x, y)`` at ``q0``: the identity to first order at each corner (pixel
+    scale, the same edge angles and blur), with the lens's bending of straight lines
+    (second and higher orders) taken out.  A straight board edge is straight in it."""
+
+    def __init__(self, camera: Camera, q0: np.ndarray) -> None:
+        self.camera = camera
+        self.q0 = np.asarray(q0, np.float64)
+        self.x0 = camera.undistort_points(self.q0, normalized=True)
+        self.J0 = camera.pixel_jacobian(self.x0)  # (n, 2, 2)
+
+    def forward(self, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel centres (n, K) -> their rectified coordinates (n, K) each, and the area element
+        ``|det ∂(rectified)/∂(pixel)|`` (n, K) by which a pixel sum becomes the integral there."""
+        n, k = px.shape
+        J0 = self.J0
+        # Newton's start: the lens linearised about the corner (within the window's bend of the root)
+        Ji = np.linalg.inv(J0)
+        du, dv = px - self.q0[:, :1], py - self.q0[:, 1:]
+        start = np.stack([self.x0[:, None, 0] + Ji[:, None, 0, 0] * du + Ji[:, None, 0, 1] * dv,
+                          self.x0[:, None, 1] + Ji[:, None, 1, 0] * du + Ji[:, None, 1, 1] * dv], axis=-1)
+        x, (j11, j12, j21, j22) = self.camera._undistort_near(np.column_stack([px.ravel(), py.ravel()]),
+                                                               start.reshape(-1, 2))
+        d = x.reshape(n, k, 2) - self.x0[:, None, :]
+        X = self.q0[:, :1] + J0[:, None, 0, 0] * d[..., 0] + J0[:, None, 0, 1] * d[..., 1]
+        Y = self.q0[:, 1:] + J0[:, None, 1, 0] * d[..., 0] + J0[:, None, 1, 1] * d[..., 1]
+        # |det ∂(u, v)/∂(x, y)| = fx fy |det ∂(x_d, y_d)/∂(x, y)| (K upper triangular)
+        det_p = (self.camera.K[0, 0] * self.camera.K[1, 1]) * (j11 * j22 - j12 * j21).reshape(n, k)
+        det0 = J0[:, 0, 0] * J0[:, 1, 1] - J0[:, 0, 1] * J0[:, 1, 0]
+        area = np.abs(det0)[:, None] / np.abs(det_p)
+        return X, Y, area
+
+    def back(self, q: np.ndarray) -> np.ndarray:
+        """Rectified coordinates (n, 2) -> distorted px (n, 2) (the exact inverse of :meth:`forward`)."""
+        d = np.linalg.solve(self.J0, (q - self.q0)[..., None])[..., 0]
+        return self.camera.normalized_to_pixels(self.x0 + d)
+
+
+def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
+                 tol_px: float, camera: Camera | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg–Marquardt fit of the blurred saddle of :func:`fit_corners` to ``g`` for corners with starting
+    parameters ``P`` (n, 11) and window radii ``radius`` (n,) px: the fitted parameters
+    and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
+    the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
+    ``warm``: ``P`` is a whole fitted parameter set (else only the corner, edge angles and blur:
+    the linear parameters are solved for first).  The iteration is :func:`_corner_kernels.fit_saddles`
+    (the pixel centres, image values and lens frame prepared here)."""
+    q0 = P[:, :2].copy()
+    r = int(np.ceil(radius.max())) + 1
+    oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
+    keep = ox**2 + oy**2 <= r**2
+    ox, oy = ox[keep].astype(np.float64), oy[keep].astype(np.float64)
+    n, k = len(q0), ox.size
+    px, py, img, w0 = np.empty((n, k)), np.empty((n, k)), np.empty((n, k)), np.empty((n, k))
+    # (n, K) pixel centres about the rounded corners (fixed), the image there, 1 inside the image else 0
+    window_pixels(g, np.round(q0), ox, oy, px, py, img, w0)
+    frame = None if camera is None or not camera.has_distortion else _LensFrame(camera, q0)
+    if frame is not None:
+        px, py, area = frame.forward(px, py)
+        ok = np.isfinite(px) & np.isfinite(py) & np.isfinite(area)
+        px, py, area = np.where(ok, px, 0.0), np.where(ok, py, 0.0), np.where(ok, area, 0.0)
+        w0 = w0 * area
+    P = np.array(P, dtype=np.float64, order="C")
+    best_P = np.empty_like(P)
+    best_cost = np.empty(len(P))
+    fit_saddles(np.ascontiguousarray(px, dtype=np.float64), np.ascontiguousarray(py, dtype=np.float64), img,
+                np.ascontiguousarray(w0, dtype=np.float64), np.ascontiguousarray(radius, dtype=np.float64),
+                float(taper_px), P, bool(warm), int(max_iter), float(tol_px), best_P, best_cost)
+    if frame is not None:
+        best_P[:, :2] = frame.back(best_P[:, :2])
+    return best_P, best_cost
+
+
+def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
+                max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12,
+                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24,
+                camera: Camera | None = None) -> np.ndarray:
+    """Chessboard corners by fitting a blurred-saddle model to the image, ``(N, 2)`` px.
+
+    Around each corner ``q`` the image is modelled as
+
+        I(p) = a + g·(p - q) + (b + h·(p - q)) · E(d1 / s) · E(d2 / s),   E(t) = erf(t / √2),
+
+    with ``d_i = n_i·(p - q)`` the signed distances (px) to the two board edges through
+    the corner (normal angles φ1, φ2 free: in perspective the edges are not
+    perpendicular), ``s`` the blur (Gaussian PSF ⊗ pixel box ≈ Gaussian of
+    ``s² = σ_psf² + 1/12``), ``a, b`` the mean and half-contrast, ``g, h`` their
+    gradients (vignetting and shading; the multiplicative ``h`` term matters because,
+    being odd about ``q``, it would otherwise pull the corner).  All 11 parameters are
+    fitted per corner by Levenberg–Marquardt (compiled, :mod:`lightplane.camera._corner_kernels`;
+    the corners of a chunk step together until all are done), over the pixel centres within a disc about the *current* ``q`` (radius ``radius_frac`` × the
+    distance to the nearest parallel grid line, at most ``max_radius_px``; the weight
+    falls smoothly to 0 over its last ``taper_px``; near the image border the radius
+    shrinks so that the disc stays inside the image).
+
+    Why it is unbiased: the blurred ideal saddle is point-symmetric about ``q``, so is
+    the model, so is the weight; the residual of any symmetric misfit (the erf product is
+    exact only for perpendicular edges, the pixel box is not Gaussian) is then even about
+    ``q`` while the model's derivative in ``q`` is odd, and the two are orthogonal: no
+    pull on ``q``.  Everything being smooth on the pixel scale, the pixel-grid sums
+    equal the integrals, so there is no sub-pixel-phase error either — the error of
+    gradient operators (:func:`refine_corners`, ``cv2.cornerSubPix``) that dominates
+    on rendered boards.  On exact images of a chessboard with edges at 69° the error is
+    2e-5 px at a blur (PSF) of 0.9 px and 3e-4 px at 0.6 px, where the sampling starts
+    to alias; on sharper images (s < ``min_blur_px``, e.g. in-camera sharpening) the fit
+    is refused.  What remains is image noise: on the rendered calibration capture
+    (realistic imaging, 30 views of 15x11 corners) the error against the exact corners
+    is 0.006 px RMS (noise-free renders: 0.004 px, 8-bit quantisation and the renderer's
+    sampling), against 0.019 px for :func:`refine_corners` and 0.031 px for
+    ``cornerSubPix``; ~0.1 s of CPU per view of 165 corners (0.4 s as the numpy loop it was).
+
+    Lens distortion bends the board edges across the disc, which breaks the symmetry: the
+    straight-edge model then pulls the corners towards the image centre (a rendered wide
+    6 mm lens, ~0.06 px of bend per window: -0.003 px at r < 200 px, -0.01 px at 400–600 px,
+    enough to bias the focal length by 12 sigma).  With ``camera`` (the lens, e.g. from a
+    first calibration) the model is fitted in the lens frame about each corner
+    (:class:`_LensFrame`: the pixel centres mapped through the undistortion and back by the
+    local Jacobian, so the first-order geometry is unchanged and only the bending removed;
+    each pixel weighted by the area element so the sums stay integrals): the edges are
+    straight there and the pull is gone (+0.0003 px at every radius on the same renders).
+    :func:`calibrate_camera` does this for the corners whose windows its first
+    calibration's lens bends by more than :data:`LENS_REFIT_BEND_PX`.
+
+    Parameters
+    ----------
+    gray : (H, W) image, any real dtype (used as float, no rescaling)
+    corners_uv : (cols*rows, 2) starting corners, px, row-major as :func:`find_board`
+        (e.g. from ``cv2.cornerSubPix``); within ~0.3 px of the truth
+    board : (cols, rows) inner corners; the grid gives the edge directions and the
+        local spacing of every corner
+
+    min_blur_px : corners whose fitted blur ``|s|`` is below this keep their input
+    camera : the lens (any model): fit in its lens frame (the corners returned in distorted px)
+
+    Corners whose fit fails (singular, not finite, blur outside ``min_blur_px`` … half
+    the radius, contrast below 5x the residual noise, edge directions turned by more
+    than 20° from the grid's) or that move by more than a quarter of the local spacing
+    keep their input position.
+    """
+    return _fit_corners(gray, corners_uv, board, radius_frac=radius_frac, max_radius_px=max_radius_px,
+                        taper_px=taper_px, max_iter=max_iter, tol_px=tol_px, min_blur_px=min_blur_px,
+                        chunk_size=chunk_size, camera=camera)[0]
+
+
+def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
+                 max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12, tol_px: float = 1e-4,
+                 min_blur_px: float = 0.4, chunk_size: int = 24, camera: Camera | None = None,
+                 min_bend_px: float = 0.0, start: np.ndarray | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px, which corners were fitted (N,) bool
+    and the fitted parameters (N, 11) (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy of :func:`fit_corners`'s
+    model; NaN rows where not fitted).
+    With ``camera`` only the corners whose window the lens bends by more than ``min_bend_px``
+    (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted).
+    ``start``: (N, 11) parameters of an earlier fit about ``corners_uv`` to start from (its corners
+    ``corners_uv``; NaN rows: the corners it did not fit, which start afresh), e.g. the fit without
+    ``camera`` for the refit in the lens frame (which, to first order, changes nothing about the
+    corner): the Levenberg–Marquardt then converges in one or two steps instead of three or four."""
+    g = np.asarray(gray)
+    if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
+        raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
+    g = np.ascontiguousarray(g, dtype=np.float64)  # the kernels' layout, once for all chunks
+    q0 = np.asarray(corners_uv, dtype=np.float64)
+    cols, rows = (int(v) for v in board)
+    if cols < 2 or rows < 2:
+        raise LightplaneError(f"fit_corners: board needs at least 2x2 inner corners, got {board}")
+    if q0.shape != (cols * rows, 2):
+        raise LightplaneError(f"fit_corners: corners_uv must have shape ({cols * rows}, 2) for a {cols}x{rows} "
+                              f"board, got {q0.shape}")
+    if not np.all(np.isfinite(q0)):
+        raise LightplaneError("fit_corners: corners_uv holds non-finite values")
+    gap, e_row, e_col = _grid_geometry(q0, (cols, rows))
+    # the window stays inside the image (a cut window would not be symmetric about q)
+    h, w = g.shape
+    border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
+    radius = np.clip(np.minimum(radius_frac * gap, border), 2.0, max_radius_px)
+    n = len(q0)
+    sel = np.ones(n, bool)
+    if camera is not None and min_bend_px > 0:
+        sel = lens_bend(camera, q0, radius) > min_bend_px
+    P = np.zeros((n, 11))
+    P[:, :2] = q0
+    P[:, 2] = np.arctan2(e_row[:, 0], -e_row[:, 1])  # normal of the edge along the row
+    P[:, 3] = np.arctan2(e_col[:, 0], -e_col[:, 1])
+    P[:, 4] = 1.0
+    warm = np.zeros(n, bool)
+    if start is not None:
+        start = np.asarray(start, np.float64)
+        if start.shape != (n, 11):
+            raise LightplaneError(f"fit_corners: start must have shape ({n}, 11), got {start.shape}")
+        warm = np.all(np.isfinite(start), axis=1) & np.all(start[:, :2] == q0, axis=1)
+        P[warm] = start[warm]
+    cost = np.full(n, np.inf)
+    for group, is_warm in ((sel & ~warm, False), (sel & warm, True)):
+        # corners in chunks of similar radius: bounded memory, few padded pixels
+        order = np.flatnonzero(group)[np.argsort(radius[group])]
+        for chunk in np.array_split(order, max(1, int(np.ceil(order.size / chunk_size)))):
+            if chunk.size == 0:
+                continue
+            P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px, camera,
+                                                 warm=is_warm)
+    q = P[:, :2].copy()
+
+    def turned(phi, e):  # angle between the fitted edge and the grid direction
+        return np.abs(np.cos(phi) * e[:, 0] + np.sin(phi) * e[:, 1]) / np.linalg.norm(e, axis=1)
+
+    noise = np.sqrt(np.maximum(cost, 0.0))
+    blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
+    max_turn = np.sin(np.radians(20.0))
+    bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
+           | ~(blur >= min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
+           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
+    q[bad] = q0[bad]
+    blur[~sel] = np.nan
+    P[bad] = np.nan
+    return q, blur, ~bad, P
+
+
+def lens_bend(camera: Camera, corners_uv: np.ndarray, radius_px: np.ndarray | float) -> np.ndarray:
+    """How far ``camera``'s lens bends the corner windows of :func:`fit_corners` (N,) px: the
+    largest distance, over the rim of each window (radius ``radius_px`` about each corner of
+    ``corners_uv`` (N, 2), distorted px), between a pixel and its place in the
+    :class:`_LensFrame` about the corner: the part of the lens mapping that is not affine
+    across the window (straight board edges curved by up to about this much)."""
+    q = np.asarray(corners_uv, np.float64).reshape(-1, 2)
+    r = np.broadcast_to(np.asarray(radius_px, np.float64), (len(q),))[:, None]
+    if not camera.has_distortion or len(q) == 0:
+        return np.zeros(len(q))
+    a = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    px, py = q[:, :1] + r * np.cos(a), q[:, 1:] + r * np.sin(a)
+    X, Y, _ = _LensFrame(camera, q).forward(px, py)
+    bend = np.hypot(X - px, Y - py).max(axis=1)
+    return np.where(np.isfinite(bend), bend, np.inf)
+
+
+def find_board(image: np.ndarray, board: tuple[int, int], *, subpix: bool = True,
+               refine: bool | str = False) -> np.ndarray | None:
+    """Chessboard inner corners ``(cols*rows, 2)`` (distorted px) or None if not found.
+
+    ``cv2.findChessboardCornersSB`` finds the board robustly; ``cv2.cornerSubPix``
+    then refines each corner with a half-window of 30 % of the local corner
+    spacing (at most 11 px), as OpenCV's classic pipeline does.  That refinement
+    reproduces the published Ciclop calibration to 0.01 px, where the SB
+    detector's own sub-pixel estimate differs by up to 0.9 px in cy.  With ``refine``
+    (and ``subpix``, and a corner spacing of at least 8 px) the corners are then polished
+    with a wider window (0.6–0.75 of the spacing): ``"saddle"`` (or True) fits the blurred
+    saddle of :func:`fit_corners` to the image (0.006 px RMS on rendered boards, ~5x
+    below cornerSubPix), ``"forstner"`` runs :func:`refine_corners` (0.019 px).  Off by
+    default because the wider window also takes in a laser stripe crossing the board
+    (Zhou's images): :func:`calibrate_camera`, whose boards carry no stripe, turns it on.
+    Colour images are reduced to gray by :func:`lightplane.core.io.to_gray_float`; the saddle
+    fit runs on that float image (not on the 8-bit copy the detector gets).  The saddle
+    fit starts from Förstner's corners; corners it cannot fit keep them, and so does the
+    whole board when its edges are sharper than ``MIN_BOARD_BLUR_PX`` (median fitted blur).
+    """
+    method = _refine_method(refine)
+    c, saddle, blur, _ = _detect_board(image, board, subpix, method)
+    if saddle is not None and blur.size and np.median(blur) >= MIN_BOARD_BLUR_PX:
+        return saddle
+    return c
+
+
+def _refine_method(refine) -> str | None:
+    method = {False: None, True: "saddle", "saddle": "saddle", "forstner": "forstner"}.get(refine, "?") \
+        if isinstance(refine, (bool, str)) else "?"
+    if method == "?":
+        raise LightplaneError(f"refine must be False, True, 'saddle' or 'forstner', got {refine!r}")
+    return method
+
+
+def _detect_board(image: np.ndarray, board: tuple[int, int], subpix: bool,
+                  method: str | None) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """:func:`find_board`'s steps: the corners up to Förstner's refinement (or None when
+    the board is not found), the saddle fit's corners (None unless ``method`` is
+    ``"saddle"``; unfitted corners keep Förstner's), the blur (px) of the fitted ones and the
+    fit's parameters (N, 11), NaN rows where not fitted (None without the fit)."""
+    import cv2
+
+    none = (None, None, np.zeros(0), None)
+    gray = image if image.ndim == 2 else to_gray_float(image)
+    gray_in = gray
+    if gray.dtype != np.uint8:
+        g = gray.astype(np.float64)
+        lo, hi = np.percentile(g, [0.5, 99.5])
+        gray = np.clip((g - lo) * (255.0 / max(hi - lo, 1e-9)), 0, 255).astype(np.uint8)
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
+    found, corners = cv2.findChessboardCornersSB(gray, tuple(board), flags=flags)
+    if not found or corners is None:
+        return none
+    c32 = corners.reshape(-1, 2).astype(np.float32)
+    if not subpix:
+        return c32.astype(np.float64), None, np.zeros(0), None
+    cols, rows = board
+    grid = c32.reshape(rows, cols, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+                  np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
+    half = int(np.clip(np.floor(0.3 * spacing), 2, 11))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
+    c = cv2.cornerSubPix(gray, c32.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
+    c = c.astype(np.float64)
+    if method is None or spacing < 8:
+        return c, None, np.zeros(0), None
+    c = refine_corners(gray, c, float(spacing))
+    if method != "saddle":
+        return c, None, np.zeros(0), None
+    q, blur, ok, params = _fit_corners(gray_in, c, (cols, rows))  # corners it cannot fit keep Förstner's position
+    return c, q, blur[ok], params
