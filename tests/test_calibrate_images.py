@@ -16,7 +16,8 @@ import pytest
 from lightplane.plane.calibrate import calibrate_plane, observe_image, observe_images, solve_observations
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
-from lightplane.plane.model import LightPlane, PlaneCalibration
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import PlaneCalibration
 from _renders import cached_render
 
 

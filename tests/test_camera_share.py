@@ -16,7 +16,8 @@ import pytest
 from lightplane import Camera
 from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
 from lightplane.camera.intrinsics import intrinsics_covariance
-from lightplane.measure.profile import ProfileMeasurer, triangulate
+from lightplane.measure.profile import ProfileMeasurer
+from lightplane.plane.triangulate import triangulate
 from lightplane.plane.model import LightPlane
 from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.evaluate.shapes import rigid_align

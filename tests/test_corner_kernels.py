@@ -17,14 +17,14 @@ import pytest
 
 import lightplane.camera._corner_kernels as ck
 from lightplane.camera.model import Camera
-from lightplane.camera.intrinsics import _fit_corners, refine_corners
+from lightplane.camera.corners import _fit_corners, refine_corners
 from test_intrinsics_corners import BOARD, SHAPE, affine_board, truth_corners
 
 SAME_PX = 1e-9
 
 
 def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool):
-    """The blurred saddle of :func:`lightplane.camera.intrinsics.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
+    """The blurred saddle of :func:`lightplane.camera.corners.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
     corners; ``P`` (N, 11) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy.  Returns the model
     (N, K) and, if asked, its Jacobian (N, 11, K)."""
     from scipy.special import erf

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
-from lightplane.plane.zhou import pose_from_corners
+from lightplane.camera.board_pose import pose_from_corners
 from lightplane.core.errors import LightplaneError
 from lightplane.evaluate.crossratio import (cross_ratio, cross_ratio_points, evaluate_views, first_point_pairs,
                                  point_from_cross_ratio)

@@ -32,7 +32,8 @@ import pytest
 from lightplane.plane.zhou import calibrate_plane_board
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.core.io import read_image
-from lightplane.plane.model import LightPlane, tls_line
+from lightplane.plane.model import LightPlane
+from lightplane.plane.solvers import tls_line
 from lightplane.stripe.extract import extract_stripe
 
 pytestmark = pytest.mark.realdata

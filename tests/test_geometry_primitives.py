@@ -158,7 +158,7 @@ class TestRobustLine:
             g.robust_line(np.zeros(shape))
 
     def test_plane_fit_line_2d_uses_it(self):
-        from lightplane.plane.model import fit_line_2d
+        from lightplane.plane.solvers import fit_line_2d
 
         rng = np.random.default_rng(9)
         p = np.column_stack([np.arange(40.0), np.zeros(40)]) + rng.normal(0, 0.1, (40, 2))

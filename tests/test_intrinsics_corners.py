@@ -1,4 +1,4 @@
-"""Chessboard corners by the blurred-saddle fit (:func:`lightplane.camera.intrinsics.fit_corners`).
+"""Chessboard corners by the blurred-saddle fit (:func:`lightplane.camera.corners.fit_corners`).
 
 Ground truth: an affine chessboard (corners at ``origin + i a + j b``, edges at 69° to
 each other, not 90°) blurred by a Gaussian and integrated over the pixel box, computed
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lightplane.core.errors import LightplaneError
-from lightplane.camera.intrinsics import fit_corners
+from lightplane.camera.corners import fit_corners
 
 A_PX = np.array([26.0, 4.0])  # board step along a row, px
 B_PX = np.array([-12.0, 21.0])  # along a column: the edges meet at 69°

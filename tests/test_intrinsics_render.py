@@ -2,7 +2,7 @@
 
 The default chessboard capture (:data:`lightplane.simulate.render.CALIBRATION_CAPTURE`:
 15x11 corners of 8 mm, tilted 25-55°, covering the image) rendered with realistic
-imaging; the corners found by :func:`lightplane.camera.intrinsics.find_board` are checked
+imaging; the corners found by :func:`lightplane.camera.corners.find_board` are checked
 against the projected truth, and the intrinsics from :func:`calibrate_camera` against
 the true camera within OpenCV's own standard deviations.
 """
@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.camera.intrinsics import _detect_board, calibrate_camera, find_board
+from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.corners import _detect_board, find_board
 from lightplane.simulate.render import CALIBRATION_CAPTURE, render_chessboard_dataset
 
 N_VIEWS = 10  # half the default capture, to keep the test fast: std grows by ~sqrt(2)

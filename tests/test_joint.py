@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lightplane.core.errors import LightplaneError
-from lightplane.camera.intrinsics import _free_parameters, intrinsics_covariance
+from lightplane.camera.intrinsics import free_parameters, intrinsics_covariance
 from lightplane.plane.joint import refine_joint_points
 from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import _Pose
@@ -42,7 +42,7 @@ def _data(rng, sigma_px: float):
 
 def _solve(true, plane, poses, obj, uv, placements, obs, sigma_px, start_camera, start_plane, start_poses,
            board_poses=None):
-    free = _free_parameters(5, FLAGS)
+    free = free_parameters(5, FLAGS)
     if board_poses is None:
         board_poses = [(cv2.Rodrigues(R)[0].ravel(), t) for R, t in poses]
     return refine_joint_points(start_camera, free, [obj] * len(uv), uv, [b[0] for b in board_poses],
@@ -116,7 +116,7 @@ def test_errors_within_the_stated_covariance_and_the_circles_add_information():
         vol = working_volume_grid(true, plane)
         E, inc = point_error_basis(res.camera, res.plane, vol.uv[::40])
         assert inc
-        from lightplane.measure.profile import triangulate
+        from lightplane.plane.triangulate import triangulate
 
         err = triangulate(res.camera, res.plane, vol.uv[::40]) - vol.points[::40]
         Ef = E.reshape(-1, E.shape[2])
@@ -172,7 +172,7 @@ def test_errors_correlated_within_images_are_found_by_the_joint_dispersion():
 def test_bad_input_is_one_clear_error(case):
     rng = np.random.default_rng(1)
     true, plane, poses, obj, uv, placements, obs = _data(rng, 0.0)
-    free = _free_parameters(5, FLAGS)
+    free = free_parameters(5, FLAGS)
     rv = [cv2.Rodrigues(R)[0].ravel() for R, _ in poses]
     tv = [t for _, t in poses]
     args = dict(camera=true, free=free, board_points=[obj] * len(uv), corners_uv=uv, rvecs=rv, tvecs=tv,

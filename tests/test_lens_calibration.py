@@ -109,7 +109,7 @@ def test_saddle_fit_in_the_lens_frame_is_unbiased():
     """The wide rational lens bends the board edges across a corner's window (up to ~0.3 px): the
     straight-edge saddle pulls the corners towards the image centre, the same fit in the lens frame
     (fit_corners(camera=...)) does not.  3 clean full-size renders, the exact corners."""
-    from lightplane.camera.intrinsics import find_board, fit_corners, lens_bend
+    from lightplane.camera.corners import find_board, fit_corners, lens_bend
 
     cam = lens_camera("rational")
     ds = render_chessboard_dataset(3, seed=2, camera=cam, difficulty="clean", distance_mm=(180.0, 330.0))
@@ -235,7 +235,7 @@ def test_opencv_sigma_of_the_tilted_model(zero_tangent):
     them and the principal point, the weakest direction falls under the cut, and OpenCV's sigma are >10x
     too small; the exact inverse (our covariance) is not.  With p1 = p2 = 0 held (a lens without
     tangential distortion) the tilt is determined and the two agree."""
-    from lightplane.camera.intrinsics import _free_parameters, calibration_flags, intrinsics_covariance
+    from lightplane.camera.intrinsics import free_parameters, calibration_flags, intrinsics_covariance
 
     cam, objs, ims = _synthetic_tilted(zero_tangent)
     _, flags = calibration_flags("tilted", cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
@@ -243,7 +243,7 @@ def test_opencv_sigma_of_the_tilted_model(zero_tangent):
     _, K, dist, rv, tv, std_cv, _, _ = cv2.calibrateCameraExtended(objs, ims, cam.size, None, None, flags=flags,
                                                                    criteria=crit)
     dist = dist.ravel()
-    free = np.flatnonzero(_free_parameters(14, flags))
+    free = np.flatnonzero(free_parameters(14, flags))
     p, nv = free.size, len(objs)
     J = np.zeros((2 * sum(len(o) for o in objs), p + 6 * nv))
     r = []

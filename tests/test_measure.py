@@ -12,7 +12,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 
 from lightplane import LightPlane, LightplaneError  # noqa: E402
-from lightplane.measure.profile import ProfileMeasurer, measure_profile, points_sigma_mm, profile_axis  # noqa: E402
+from lightplane.measure.profile import ProfileMeasurer, measure_profile
+from lightplane.plane.triangulate import points_sigma_mm, profile_axis  # noqa: E402
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points  # noqa: E402
 
 # stripe centres of a noise-free Gaussian stripe are good to ~0.01 px (stripe module's spec: 0.015 px);
@@ -299,7 +300,7 @@ def test_profile_kernels_match_numpy():
     behind flags; np.median of the valid finite widths), with
     grazing rays, rays behind the camera, NaN rays and even and odd counts."""
     from lightplane.measure._kernels import median_where
-    from lightplane.measure.profile import triangulate_normalized
+    from lightplane.plane.triangulate import triangulate_normalized
 
     rng = np.random.default_rng(5)
     n = 2000

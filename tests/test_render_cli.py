@@ -242,7 +242,7 @@ def test_plane_scan_stripe_on_truth_line():
 
 def test_sphere_scan_stripe_triangulates_onto_the_sphere():
     """Stripe centres of the mid-scan frame, triangulated with the true plane, lie on the sphere."""
-    from lightplane.measure.profile import triangulate
+    from lightplane.plane.triangulate import triangulate
 
     ds = render_scan_dataset("sphere", n_frames=1, seed=0, difficulty="clean")
     cam, plane = ds.camera, default_plane()

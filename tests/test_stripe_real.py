@@ -197,7 +197,8 @@ def test_extract_stripe_defaults_on_board(frames, frame, k):
     hold at least one centre (rounded column).
 
     """
-    from lightplane.plane.zhou import board_polygon_mask, find_board_pose
+    from lightplane.plane.zhou import board_polygon_mask
+    from lightplane.camera.board_pose import find_board_pose
 
     off = read_image(DATA / f"{frame.replace('laser-', 'laser-background-', 1)}.png", rotate_deg=90)
     pose = find_board_pose(off, CAMERA, BOARD, SQUARE_MM, channel="red")

@@ -7,8 +7,8 @@ import pytest
 from test_evaluate_crossratio import BOARD, CAM, PLANE1, R1, SQ, T1, rot, scene
 
 from lightplane import LightPlane
-from lightplane.plane.zhou import (board_polygon_mask, fit_plane, plane_from_board_stripes, pose_from_corners,
-                                       stripe_points_on_board)
+from lightplane.plane.zhou import board_polygon_mask, fit_plane, plane_from_board_stripes, stripe_points_on_board
+from lightplane.camera.board_pose import pose_from_corners
 from lightplane.core.errors import LightplaneError
 
 POSES = [(R1, T1), (rot(-8, 20, -3), np.array([-45.0, -20.0, 480.0])), (rot(20, 5, 6), np.array([-35.0, -30.0, 420.0]))]
