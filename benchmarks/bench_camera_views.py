@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 
 from lightplane import Camera
-from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
+from lightplane.plane.calibrate import propagate_camera
 from lightplane.camera.intrinsics import intrinsics_covariance
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
@@ -58,7 +58,7 @@ def one(board, n_views, corner_px, seed):
         return calibrate_plane_from_points(cm, 50.0, [o[0] for o in obs], [o[1] for o in obs], method="ml").plane
 
     pl = solve(cam)
-    plane = LightPlane(pl.normal, pl.d, pl.covariance, meta={CAMERA_JACOBIAN_KEY: propagate_camera(solve, cam, pl)})
+    plane = LightPlane(pl.normal, pl.d, pl.covariance, meta={CameraDependence.KEY: propagate_camera(solve, cam, pl).to_dict()})
     ray = float(np.sqrt(np.mean(ray_sigma_rad(cam, image_grid(cam)) ** 2)))
     vs = volume_sigma(cam, plane, working_volume_grid(cam, plane))
     return {"ray_deg": float(np.degrees(ray)), **{f"ray_mm_{z}": ray * z for z in (300, 450, 600)},

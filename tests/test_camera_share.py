@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from lightplane import Camera
-from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY, propagate_camera
+from lightplane.plane.calibrate import propagate_camera
 from lightplane.camera.intrinsics import intrinsics_covariance
 from lightplane.measure.profile import ProfileMeasurer
 from lightplane.plane.triangulate import triangulate
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.evaluate.shapes import rigid_align
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
@@ -60,7 +60,7 @@ def _plane(cam, rng, n=6):
 
     pl = solve(cam)
     rec = propagate_camera(solve, cam, pl)
-    return LightPlane(pl.normal, pl.d, pl.covariance, meta={CAMERA_JACOBIAN_KEY: rec}), solve
+    return LightPlane(pl.normal, pl.d, pl.covariance, meta={CameraDependence.KEY: rec.to_dict()}), solve
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def test_plane_and_point_sensitivity_are_first_order_exact(one):
     delta = 0.5 * xi @ steps  # a half-sigma change along a random direction
     moved = camera_with_params(cam, camera_params(cam) + delta)
     pl2 = solve(moved)
-    J = np.asarray(plane.meta[CAMERA_JACOBIAN_KEY]["matrix"])
+    J = plane.camera_dependence.matrix
     dth = pl2.coefficients - plane.coefficients
     assert np.linalg.norm(dth - J @ delta) < 0.05 * np.linalg.norm(dth)
     vol = working_volume_grid(cam, plane)
@@ -102,8 +102,8 @@ def test_images_dispersion_part_due_to_the_camera(one):
     from lightplane.plane.calibrate import _dispersion_beside_camera
 
     cam, plane, solve = one
-    rec = plane.meta[CAMERA_JACOBIAN_KEY]
-    T0, EK = rec["image_dispersion_statistic"], rec["image_dispersion_camera_expected"]
+    extra = plane.camera_dependence.extra
+    T0, EK = extra["image_dispersion_statistic"], extra["image_dispersion_camera_expected"]
     assert EK > 0
 
     def stat(c):
@@ -122,7 +122,7 @@ def test_images_dispersion_part_due_to_the_camera(one):
     # measured: 1.27 of the recorded part, the draws' relative sd 1.04 (a few directions dominate)
     assert abs(np.mean(curv) / EK - 1) < 3 * np.std(curv, ddof=1) / np.sqrt(len(curv)) / EK, (np.mean(curv), EK)
     nm = solve(cam).meta["noise_model"]
-    out, f = _dispersion_beside_camera(nm, rec)
+    out, f = _dispersion_beside_camera(nm, plane.camera_dependence)
     assert out["image_dispersion"] == pytest.approx(T0 / (nm["image_dispersion_expected"] + EK))
     assert out["image_dispersion_noise_only"] == nm["image_dispersion"]
     assert f == pytest.approx(out["image_dispersion"] / nm["image_dispersion"])

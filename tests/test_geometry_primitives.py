@@ -105,11 +105,6 @@ class TestTlsLine:
         with pytest.raises(ValueError):
             g.tls_line(np.zeros(shape))
 
-    def test_plane_reexport(self):
-        from lightplane.plane import model as plane
-
-        assert plane.tls_line is g.tls_line
-
 
 # ------------------------------------------------------------------ robust_line
 class TestRobustLine:
@@ -206,11 +201,6 @@ class TestFitPlane:
         with pytest.raises(ValueError):
             g.fit_plane_tls(np.zeros(shape))
 
-    def test_plane_reexport(self):
-        from lightplane.plane import model as plane
-
-        assert plane.fit_plane_points is g.fit_plane_tls
-
     def test_scatter(self):
         rng = np.random.default_rng(10)
         p = rng.normal(size=(50, 3)) * [10.0, 3.0, 0.1]
@@ -256,11 +246,6 @@ class TestRayPlane:
     def test_bad_shapes(self):
         with pytest.raises(ValueError):
             g.ray_plane(np.zeros((3, 3)), np.array([0.0, 0.0, 1.0]), np.zeros(3))
-
-    def test_plane_reexport(self):
-        from lightplane.plane import model as plane
-
-        assert plane.backproject_to_plane is g.ray_plane
 
 
 # ------------------------------------------------------------------ sampson_distance

@@ -41,7 +41,7 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import default_workers, robust_line, robust_sigma, tls_line
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.solvers import (PlacementResult, PlaneCalibration, SolverOptions, calibrate_plane_from_points,
                             check_calibration_args)
 from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
@@ -61,10 +61,6 @@ if TYPE_CHECKING:
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
            "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
            "default_workers", "propagate_camera"]
-
-#: The plane file's key for the plane's dependence on the intrinsics (see :func:`propagate_camera`).
-CAMERA_JACOBIAN_KEY = "camera_jacobian"
-
 
 @dataclass(frozen=True, eq=False)
 class ImageObservation:
@@ -880,12 +876,15 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     meta.update({"diameter_mm": diameter, "n_images": n})
     if camera.covariance is not None and cal.covariance is not None:
         rims, stripes = [o.rim_uv for o in ok], [o.stripe_uv for o in ok]
-        meta[CAMERA_JACOBIAN_KEY] = propagate_camera(
+        dep = propagate_camera(
             lambda cam: calibrate_plane_from_points(cam, diameter, rims, stripes, method=method, options=solver,
                                                     min_placements=min_placements).plane, camera, cal.plane)
+        meta[CameraDependence.KEY] = dep.to_dict()
+    else:
+        dep = None
     cov = cal.covariance
-    if cov is not None and meta.get(CAMERA_JACOBIAN_KEY) and meta.get("noise_model"):
-        meta["noise_model"], f = _dispersion_beside_camera(meta["noise_model"], meta[CAMERA_JACOBIAN_KEY])
+    if cov is not None and dep is not None and meta.get("noise_model"):
+        meta["noise_model"], f = _dispersion_beside_camera(meta["noise_model"], dep)
         cov = f * np.asarray(cov)
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)
     return ImagePlaneCalibration(plane=plane, covariance=plane.covariance, sigma_px=cal.sigma_px,
@@ -895,7 +894,7 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
                                  seconds=seconds + time.perf_counter() - t_start)
 
 
-def _dispersion_beside_camera(nm: dict, rec: dict) -> tuple[dict, float]:
+def _dispersion_beside_camera(nm: dict, dep: CameraDependence) -> tuple[dict, float]:
     """The images' dispersion against the noise model *and* the intrinsics' covariance: ``(noise model, factor)``.
 
     With a calibrated camera each image's pull on the plane also carries the intrinsics' error
@@ -908,7 +907,7 @@ def _dispersion_beside_camera(nm: dict, rec: dict) -> tuple[dict, float]:
     ``E / (E + E_K)`` rather than counted twice.  ``factor``: the plane covariance's rescaling
     (new over old dispersion where the covariance applies it, else 1).
     """
-    T0, E, EK = rec.get("image_dispersion_statistic"), nm.get("image_dispersion_expected"), rec.get(
+    T0, E, EK = dep.extra.get("image_dispersion_statistic"), nm.get("image_dispersion_expected"), dep.extra.get(
         "image_dispersion_camera_expected")
     if T0 is None or E is None or EK is None or not (np.isfinite(E) and E > 0 and np.isfinite(EK)):
         return nm, 1.0
@@ -919,7 +918,7 @@ def _dispersion_beside_camera(nm: dict, rec: dict) -> tuple[dict, float]:
     return out, (new / old if nm.get("image_dispersion_applied") and old > 0 else 1.0)
 
 
-def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plane: LightPlane) -> dict:
+def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plane: LightPlane) -> CameraDependence:
     """The plane's dependence on the intrinsics, for the plane file (``camera_jacobian``).
 
     ``solve(camera)`` re-runs the whole plane calibration (circle poses, stripe rays,
@@ -951,15 +950,13 @@ def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plan
             curv = None if tp is None or tm is None else curv + [0.5 * (tp + tm - 2 * T0)]
     J = np.array(G).T @ np.linalg.pinv(steps.T) if len(G) else np.zeros((4, len(p0)))
     C = J @ np.asarray(camera.covariance) @ J.T
-    rec = {"params": list(camera_param_names(camera)), "matrix": J.tolist(), "covariance_camera": C.tolist(),
-           "method": "central differences of the whole plane solve at ±1 sigma along the principal axes of "
-                     "the intrinsics' covariance"}
+    extra = {}
     if curv is not None:
         # the images' dispersion statistic's expected part due to the intrinsics' covariance (its second
         # differences along the same steps; see _dispersion_beside_camera)
-        rec["image_dispersion_statistic"] = T0
-        rec["image_dispersion_camera_expected"] = float(np.sum(curv))
-    return rec
+        extra = {"image_dispersion_statistic": T0, "image_dispersion_camera_expected": float(np.sum(curv))}
+    return CameraDependence(camera_param_names(camera), J, C, "central differences of the whole plane solve at "
+                            "±1 sigma along the principal axes of the intrinsics' covariance", extra)
 
 
 def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
@@ -995,7 +992,7 @@ def uncertainty_summary(cal: PlaneCalibration, camera: Camera) -> dict:
     out: dict = {"normal_sigma_deg": principal_deg(C), "d_sigma_mm": float(np.sqrt(max(C[3, 3], 0.0)))}
     why_not = camera_share_status(camera, plane)
     if why_not is None:
-        Ct = np.asarray(C) + np.asarray(plane.meta[CAMERA_JACOBIAN_KEY]["covariance_camera"])
+        Ct = np.asarray(C) + plane.camera_dependence.covariance_camera  # type: ignore[union-attr]
         out["normal_sigma_with_camera_deg"] = principal_deg(Ct)
         out["d_sigma_with_camera_mm"] = float(np.sqrt(max(Ct[3, 3], 0.0)))
     out["camera_share"] = "included" if why_not is None else why_not

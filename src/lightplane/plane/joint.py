@@ -48,10 +48,9 @@ import numpy as np
 
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.ml import _huber_weights, _make_pose, _Problem, plane_param_jacobian
 from lightplane.camera.intrinsics import free_parameters, view_dispersion
-from lightplane.plane.calibrate import CAMERA_JACOBIAN_KEY
 from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_with_params
 
 if TYPE_CHECKING:
@@ -250,10 +249,10 @@ def refine_joint_points(camera: Camera, free: np.ndarray, board_points: Sequence
     Jpk[:, fi] = Jpk_free
     camera_out = Camera(cam_opt.K, cam_opt.dist, camera.width, camera.height, rms_px=camera.rms_px,
                         model=camera.model, covariance=cov_full, covariance_params=names)
-    rec = {"params": list(names), "matrix": Jpk.tolist(), "covariance_camera": (Jpk @ cov_full @ Jpk.T).tolist(),
-           "method": "joint refinement: Cov(plane, intrinsics) Cov(intrinsics)^-1 of the joint covariance"}
+    dep = CameraDependence(names, Jpk, Jpk @ cov_full @ Jpk.T,
+                           "joint refinement: Cov(plane, intrinsics) Cov(intrinsics)^-1 of the joint covariance")
     meta = dict(plane0.meta)
-    meta.update({CAMERA_JACOBIAN_KEY: rec, "joint_refinement": True, "joint_dispersion": psi,
+    meta.update({CameraDependence.KEY: dep.to_dict(), "joint_refinement": True, "joint_dispersion": psi,
                  "joint_dispersion_applied": bool(dispersion)})
     plane = LightPlane(nvec, dd, cov_own, meta=meta)
     poses = [_make_pose(C[i].copy(), N[i] if N[i] @ C[i] < 0 else -N[i], float(radius_mm)) for i in range(len(C))]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -22,7 +23,58 @@ from lightplane.camera.model import as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import read_json, write_json
 
-__all__ = ["LightPlane"]
+__all__ = ["LightPlane", "CameraDependence"]
+
+
+@dataclass(frozen=True, eq=False)
+class CameraDependence:
+    """How a plane depends on the intrinsics of the camera it was calibrated with.
+
+    ``matrix`` (4, P): ``∂(a, b, c, d)/∂(params)``, ``params`` the camera's parameter names in
+    the order of :func:`lightplane.plane.uncertainty.camera_param_names` (``fx, fy, cx, cy``
+    and the distortion coefficients); ``covariance_camera`` (4, 4): the plane's covariance
+    due to the intrinsics alone, ``J Cov(K) Jᵀ``; ``method``: how ``matrix`` was obtained;
+    ``extra``: further numbers the calibration recorded with it (the images' dispersion
+    statistic and its expected part due to the intrinsics).  Stored in the plane file under
+    :attr:`KEY`; a camera whose parameters differ from ``params`` is not the plane's camera.
+    """
+
+    params: tuple[str, ...]
+    matrix: np.ndarray
+    covariance_camera: np.ndarray
+    method: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    #: the plane file's field
+    KEY: ClassVar[str] = "camera_jacobian"
+
+    def __post_init__(self) -> None:
+        names = tuple(str(n) for n in self.params)
+        J = np.asarray(self.matrix, np.float64)
+        C = np.asarray(self.covariance_camera, np.float64)
+        if J.shape != (4, len(names)) or not np.all(np.isfinite(J)):
+            raise LightplaneError(f"'{self.KEY}' matrix must be finite 4x{len(names)}, got {J.shape}")
+        if C.shape != (4, 4) or not np.all(np.isfinite(C)):
+            raise LightplaneError(f"'{self.KEY}' covariance_camera must be a finite 4x4 matrix, got {C.shape}")
+        object.__setattr__(self, "params", names)
+        object.__setattr__(self, "matrix", J)
+        object.__setattr__(self, "covariance_camera", C)
+
+    def to_dict(self) -> dict:
+        return {"params": list(self.params), "matrix": self.matrix.tolist(),
+                "covariance_camera": self.covariance_camera.tolist(), "method": self.method, **self.extra}
+
+    @classmethod
+    def from_dict(cls, rec: Any, source: str = "plane file") -> "CameraDependence":
+        try:
+            known = {"params", "matrix", "covariance_camera", "method"}
+            return cls(tuple(rec["params"]), rec["matrix"], rec["covariance_camera"], str(rec.get("method", "")),
+                       {k: v for k, v in rec.items() if k not in known})
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise LightplaneError(f"{source}: field '{cls.KEY}' must hold 'params', 'matrix' (4xP) and "
+                                  "'covariance_camera' (4x4)") from None
+        except LightplaneError as e:
+            raise LightplaneError(f"{source}: {e}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,6 +156,13 @@ class LightPlane:
     def __repr__(self) -> str:
         a, b, c = self.normal
         return f"LightPlane({a:+.6f} x {b:+.6f} y {c:+.6f} z {self.d:+.4f} = 0)"
+
+    @property
+    def camera_dependence(self) -> CameraDependence | None:
+        """The plane's dependence on its camera's intrinsics (:class:`CameraDependence`), when the
+        calibration recorded it (a camera file with a covariance), else None."""
+        rec = self.meta.get(CameraDependence.KEY)
+        return None if not rec else CameraDependence.from_dict(rec)
 
     # ---------------------------------------------------------------- files
     def to_dict(self) -> dict:

@@ -272,24 +272,11 @@ def camera_uncertainty_summary(camera: Camera, distance_mm: float, step_px: floa
 
 
 # ------------------------------------------------------- points: the plane's and the camera's shares
-#: The plane file's record of the plane's dependence on the intrinsics.
-CAMERA_JACOBIAN_KEY = "camera_jacobian"
-
-
 def plane_camera_jacobian(plane: LightPlane) -> tuple[np.ndarray, tuple[str, ...]] | None:
     """``(J (4, P), params)``: ∂(a, b, c, d)/∂(intrinsics) recorded by the plane calibration
     (:func:`lightplane.plane.calibrate.propagate_camera`), or None."""
-    rec = plane.meta.get(CAMERA_JACOBIAN_KEY)
-    if not rec:
-        return None
-    try:
-        J = np.asarray(rec["matrix"], np.float64)
-        names = tuple(str(n) for n in rec["params"])
-    except (KeyError, TypeError, ValueError):
-        raise LightplaneError(f"plane file: field '{CAMERA_JACOBIAN_KEY}' must hold 'matrix' (4xP) and 'params'") from None
-    if J.shape != (4, len(names)) or not np.all(np.isfinite(J)):
-        raise LightplaneError(f"plane file: '{CAMERA_JACOBIAN_KEY}' matrix must be finite 4x{len(names)}, got {J.shape}")
-    return J, names
+    dep = plane.camera_dependence
+    return None if dep is None else (dep.matrix, dep.params)
 
 
 def camera_share_status(camera: Camera, plane: LightPlane) -> str | None:
