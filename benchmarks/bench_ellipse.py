@@ -46,6 +46,7 @@ from lightplane.ellipse import (
     select_target,
 )
 from lightplane.core.io import read_image
+from results import at_least, at_most, figure, record, within
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "elsdc-calibration-patterns"
 TARGET_MS = 60.0
@@ -104,10 +105,10 @@ def _findellipses(img: np.ndarray) -> list[Ellipse]:
     return out
 
 
-def bench_real(quick: bool, ext_python: str | None) -> None:
+def bench_real(quick: bool, ext_python: str | None) -> list[dict]:
     if not (DATA / "images").is_dir():
         print(f"real images: {DATA} absent, skipped")
-        return
+        return []
     paths = sorted((DATA / "images").glob("*.pgm"))
     if quick:
         paths = paths[::4]
@@ -136,6 +137,13 @@ def bench_real(quick: bool, ext_python: str | None) -> None:
     print(f"  detect_ellipses: precision {total.precision:.4f}  recall {total.recall:.4f}  "
           f"F {total.f_measure:.4f} (target >= {TARGET_F}, ratio {total.f_measure / TARGET_F:.3f})  "
           f"TP {total.tp} FP {total.fp} FN {total.fn}  median {1e3 * np.median(times):.1f} ms CPU/image")
+    stat = f"{len(paths)} ELSDc photographs, IoU >= 0.8"
+    figs = [figure("elsdc_f_measure", "detect_ellipses F-measure, ELSDc photos", total.f_measure, "",
+                   statistic=stat, target=at_least(TARGET_F, "")),
+            figure("elsdc_precision", "detect_ellipses precision, ELSDc photos", total.precision, "", statistic=stat),
+            figure("elsdc_recall", "detect_ellipses recall, ELSDc photos", total.recall, "", statistic=stat),
+            figure("elsdc_cpu_ms", "detect_ellipses CPU per ELSDc photo", 1e3 * np.median(times), "ms",
+                   statistic=f"median over {len(paths)} images")]
     if not has_ximgproc and ext_python:
         ext = _external_findellipses(ext_python, [str(p) for p in paths], 1)
         for p in paths:
@@ -147,17 +155,21 @@ def bench_real(quick: bool, ext_python: str | None) -> None:
         print(f"  cv2.ximgproc.findEllipses: precision {ref_total.precision:.4f}  recall {ref_total.recall:.4f}  "
               f"F {ref_total.f_measure:.4f}  median {1e3 * np.median(ref_times):.1f} ms CPU/image "
               f"(ratio ours/theirs {np.median(times) / np.median(ref_times):.2f})")
+        figs[-1] = figure("elsdc_cpu_ms", "detect_ellipses CPU per ELSDc photo", 1e3 * np.median(times), "ms",
+                          statistic=f"median over {len(paths)} images",
+                          reference=("cv2.ximgproc.findEllipses", 1e3 * np.median(ref_times), "ms"))
     else:
         print("  cv2.ximgproc.findEllipses: not importable here (opencv-contrib is not a dependency; "
               "see --ximgproc-python)")
+    return figs
 
 
-def bench_render(quick: bool, ext_python: str | None) -> None:
+def bench_render(quick: bool, ext_python: str | None) -> list[dict]:
     try:
         from lightplane.simulate.render import render_circle_dataset
     except ImportError:
         print("renders: lightplane.simulate.render not available, skipped")
-        return
+        return []
     n = 3 if quick else 6
     ds = render_circle_dataset(n, seed=7, difficulty="realistic", polarity="light")
     cam = ds.camera
@@ -213,18 +225,25 @@ def bench_render(quick: bool, ext_python: str | None) -> None:
                 ref_cpu = [t for p in paths for t in ext[p]["cpu_s"]]
     except Exception as exc:  # the reference is optional
         print(f"  cv2.ximgproc.findEllipses: failed ({exc})")
+    stat = f"median of {len(tot_ms)} runs ({n} renders x 3)"
+    ref_fig = None
     if ref_cpu:
         ref = 1e3 * float(np.median(ref_cpu))
         print(f"  cv2.ximgproc.findEllipses on the same renders: {ref:.1f} ms CPU median "
               f"(ours / theirs = {cpu / ref:.2f})")
+        ref_fig = ("cv2.ximgproc.findEllipses, CPU", ref, "ms")
+    return [figure("render_detect_refine_wall", "ellipse detection + refinement, render, wall", med, "ms",
+                   statistic=stat, target=at_most(TARGET_MS, "ms")),
+            figure("render_detect_refine_cpu", "ellipse detection + refinement, render, CPU", cpu, "ms",
+                   statistic=stat, target=at_most(TARGET_MS, "ms"), reference=ref_fig)]
 
 
-def bench_default_vs_lsd(quick: bool) -> None:
+def bench_default_vs_lsd(quick: bool) -> list[dict]:
     try:
         from lightplane.simulate.render import render_circle_dataset
     except ImportError:
         print("default detection vs LSD: lightplane.simulate.render not available, skipped")
-        return
+        return []
     import cv2
 
     from lightplane.ellipse.detect import auto_downscale
@@ -255,14 +274,19 @@ def bench_default_vs_lsd(quick: bool) -> None:
         c, t = med[k]
         print(f"  {label:28s} {c:6.1f} ms CPU, {t:6.1f} ms wall (median); ratio to LSD {c / med['lsd'][0]:.2f} CPU, "
               f"{t / med['lsd'][1]:.2f} wall" + (" (target <= 1.0)" if k == "default" else ""))
+    stat = f"median of {3 * n} runs, interleaved"
+    return [figure("detect_default_vs_lsd_cpu", "detect_ellipses defaults, 1280x960 render, CPU", med["default"][0],
+                   "ms", statistic=stat, reference=("cv2 LSD detect, CPU", med["lsd"][0], "ms"),
+                   target=at_most(1.0, "x", of="ratio"))]
 
 
-def bench_curvature_bias(quick: bool) -> None:
+def bench_curvature_bias(quick: bool) -> list[dict]:
     try:
         from lightplane.simulate.render import render_circle_dataset
     except ImportError:
         print("curvature bias: lightplane.simulate.render not available, skipped")
-        return
+        return []
+    figs = []
     from lightplane.plane.circle_pose import circle_poses
 
     n = 3 if quick else 6
@@ -294,6 +318,11 @@ def bench_curvature_bias(quick: bool) -> None:
                   f"(ratio to 0.002: {abs(bias) / 0.002:.2f}), depth error {np.mean(a[:, 1]):+.4f} mm, "
                   f"refine {np.median(a[:, 2]):.1f} ms CPU median, blur estimate {np.mean(a[:, 3]):.3f} px "
                   f"(PSF 0.9 px with the pixel footprint: 0.945)")
+            if corr:
+                figs.append(figure(f"rim_bias_{polarity}", f"refined rim bias, {polarity} target, corrected", bias,
+                                   "px", statistic=f"mean over the edge points of {len(a)} renders",
+                                   target=within(0.002, "px")))
+    return figs
 
 
 def _load() -> str:
@@ -313,10 +342,11 @@ def main() -> None:
     import cv2
 
     print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads")
-    bench_real(quick, ext_python)
-    bench_render(quick, ext_python)
-    bench_default_vs_lsd(quick)
-    bench_curvature_bias(quick)
+    figs = bench_real(quick, ext_python)
+    figs += bench_render(quick, ext_python)
+    figs += bench_default_vs_lsd(quick)
+    figs += bench_curvature_bias(quick)
+    record("bench_ellipse", figs)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from lightplane import LightPlane
 from lightplane.plane.zhou import board_views_and_stripes, plane_from_board_stripes
 from lightplane.evaluate.crossratio import evaluate_views
 from lightplane.simulate.render import render_chessboard_dataset
+from results import at_most, figure, record
 
 TARGET_IMAGE_MS = 500.0
 TARGET_GEOMETRY_MS = 5.0
@@ -50,6 +51,16 @@ def main() -> None:
     print(f"cross-ratio points + distances, one plane  : {t_geo:8.2f} ms/image  ({t_geo / TARGET_GEOMETRY_MS:.2f} x target "
           f"{TARGET_GEOMETRY_MS:.0f} ms)")
     print(f"Zhou plane fit (+ jackknife)               : {t_zhou:8.2f} ms/image  ({t_zhou / TARGET_GEOMETRY_MS:.2f} x target)")
+    s3, s20 = f"median of 3 runs / {n} images", f"median of 20 runs / {n} images"
+    record("bench_evaluate", [
+        figure("board_pose_stripe_laser_off", "board pose + stripe, laser-off frame given", t_img, "ms",
+               statistic=s3, target=at_most(TARGET_IMAGE_MS, "ms")),
+        figure("board_pose_stripe", "board pose + stripe, no laser-off frame", t_raw, "ms",
+               statistic=s3, target=at_most(TARGET_IMAGE_MS, "ms")),
+        figure("cross_ratio_geometry", "cross-ratio points + distances", t_geo, "ms",
+               statistic=s20, target=at_most(TARGET_GEOMETRY_MS, "ms")),
+        figure("zhou_plane_fit", "Zhou plane fit + jackknife", t_zhou, "ms",
+               statistic=s20, target=at_most(TARGET_GEOMETRY_MS, "ms"))])
 
 
 if __name__ == "__main__":

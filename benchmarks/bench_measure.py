@@ -40,6 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
+from results import at_least, at_most, figure, record, within
+
+#: the run's headline figures (benchmarks/results/bench_measure.json)
+FIGURES: list[dict] = []
+
 CACHE = Path(os.environ.get("LIGHTPLANE_BENCH_CACHE", tempfile.gettempdir())) / "lightplane_bench_measure"
 SCANS = {"sphere": dict(n_frames=21, step_mm=3.0), "step": dict(n_frames=11, step_mm=4.0),
          "plane": dict(n_frames=11, step_mm=4.0)}
@@ -189,10 +194,18 @@ def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
                 if kind == "sphere":
                     print(f"; without it: radius error {fit_sphere(p_all)[1] - 25.4:+.4f} mm", end="")
                 print()
+            headline = label == "calibrated" and not options
             if kind == "sphere":
                 c, r, keep = fit_sphere(p)
                 e = np.linalg.norm(p[keep] - c, axis=1) - r
                 rms = float(np.sqrt(np.mean(e**2)))
+                if headline:
+                    FIGURES.append(figure(f"sphere_radius_{difficulty}", f"sphere radius, {difficulty} scan", r, "mm",
+                                          truth=25.4, target=within(0.02, "mm", of="error"),
+                                          statistic=f"fit to {keep.sum()} points, calibrated plane"))
+                    FIGURES.append(figure(f"sphere_rms_residual_{difficulty}", f"sphere RMS residual, {difficulty} scan",
+                                          rms, "mm", target=at_most(0.02, "mm") if difficulty == "clean" else None,
+                                          statistic=f"RMS over {keep.sum()} points, calibrated plane"))
                 print(f"  sphere [{label:10s}] {keep.sum()} points ({(~keep).sum()} rejected): radius {r:.4f} mm "
                       f"(error {r - 25.4:+.4f}, target |err| <= 0.02: {abs(r - 25.4) / 0.02:.2f}x), "
                       f"RMS residual {rms:.4f} mm (target <= 0.02: {rms / 0.02:.2f}x), centre error "
@@ -209,6 +222,10 @@ def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
                 n = np.linalg.svd(np.vstack([qb - qb.mean(0), qt - qt.mean(0)]), full_matrices=False)[2][2]
                 sep = abs(float(n @ (qb.mean(0) - qt.mean(0))))
                 par = np.degrees(np.arccos(min(1.0, abs(nb @ nt))))
+                if headline:
+                    FIGURES.append(figure(f"gauge_step_{difficulty}", f"gauge step, {difficulty} scan", sep, "mm",
+                                          truth=10.0, target=within(0.02, "mm", of="error"),
+                                          statistic=f"fit to {kb.sum() + kt.sum()} points, calibrated plane"))
                 print(f"  step   [{label:10s}] base {kb.sum()} / top {kt.sum()} points: separation {sep:.4f} mm "
                       f"(error {sep - 10.0:+.4f}, target |err| <= 0.02: {abs(sep - 10) / 0.02:.2f}x), faces parallel "
                       f"to {par:.3f} deg")
@@ -216,6 +233,10 @@ def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
                 n, d, keep = fit_plane(p)
                 e = p[keep] @ n + d
                 rms = float(np.sqrt(np.mean(e**2)))
+                if headline:
+                    FIGURES.append(figure(f"plane_flatness_{difficulty}", f"plane flatness RMS, {difficulty} scan", rms,
+                                          "mm", target=at_most(0.015, "mm") if difficulty == "clean" else None,
+                                          statistic=f"RMS over {keep.sum()} points, calibrated plane"))
                 print(f"  plane  [{label:10s}] {keep.sum()} points ({(~keep).sum()} rejected): flatness RMS "
                       f"{rms:.4f} mm (target <= 0.015: {rms / 0.015:.2f}x)")
 
@@ -258,6 +279,10 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
         print(f"workers={workers}: median {med:.0f} frames/s over {repeats} runs of {n} frames "
               f"({', '.join(f'{x:.0f}' for x in rates)}); {1e3 / med:.2f} ms/frame; target 500 frames/s on 2 cores: "
               f"{med / 500:.2f}x" + ("" if workers > 1 else " (one core)"))
+        FIGURES.append(figure(f"measure_speed_{workers}_workers", f"measure from memory, {workers} worker"
+                              + ("s" if workers > 1 else ""), med, "frames/s",
+                              statistic=f"median of {repeats} runs of {n} frames",
+                              target=at_least(500.0, "frames/s") if workers > 1 else None))
 
 
 def profile_speed(repeats: int = 15) -> None:
@@ -305,6 +330,10 @@ def profile_speed(repeats: int = 15) -> None:
         med = float(np.median(v))
         print(f"  {k:36s} {med:7.2f} ms (p10 {np.percentile(v, 10):6.2f}, p90 {np.percentile(v, 90):6.2f}); "
               f"ratio to the blur {med / ref:.1f}")
+    stat = f"median of {repeats * len(frames)} runs, interleaved"
+    for k, fid in (("measure_profile", "measure_profile"), ("measure_profile cache=False", "measure_profile_uncached")):
+        FIGURES.append(figure(fid, f"{k}, 1280x960 frame", float(np.median(times[k])), "ms", statistic=stat,
+                              reference=("cv2.GaussianBlur sigma 2", ref, "ms")))
 
 
 # ----------------------------------------------------------------------------- memory
@@ -385,6 +414,11 @@ def memory(n_frames: int = 10_000) -> None:
           f"writing); peak RSS: main process {float(me):.0f} MB (getrusage; target < 500 MB: {float(me) / 500:.2f}x), "
           f"worker process peak {float(wk):.0f} MB (VmHWM; 0: threads), main + workers {float(tot):.0f} MB ({float(tot) / 500:.2f}x of "
           f"500 MB; largest simultaneous sum sampled every 0.1 s: {float(sampled):.0f} MB; shared pages count in each)")
+    stat = f"peak over a {n}-frame scan"
+    FIGURES.append(figure("memory_peak_main", "peak RSS, main process, long scan", float(me), "MB", statistic=stat,
+                          target=at_most(500.0, "MB")))
+    FIGURES.append(figure("memory_peak_total", "peak RSS, main + workers, long scan", float(tot), "MB",
+                          statistic=stat, target=at_most(500.0, "MB")))
 
 
 def main(argv: list[str]) -> None:
@@ -395,6 +429,7 @@ def main(argv: list[str]) -> None:
     print(describe())
     for p in parts:
         {"accuracy": accuracy, "speed": speed, "profile": profile_speed, "memory": memory}[p]()
+    record("bench_measure", FIGURES)
 
 
 if __name__ == "__main__":

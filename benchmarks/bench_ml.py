@@ -28,6 +28,7 @@ from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.plane.ml import crlb, refine_ml
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.plane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
+from results import at_most, between, figure, record
 
 TARGET_MS = 150.0
 
@@ -47,7 +48,7 @@ def _median_ms(fn, repeats: int) -> tuple[float, float]:
     return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
 
 
-def speed(repeats: int) -> None:
+def speed(repeats: int) -> list[dict]:
     rng = np.random.default_rng(2024)
     cam, plane = default_camera(), default_plane()
     ps = sample_placements(12, rng, camera=cam, plane=plane)
@@ -58,14 +59,22 @@ def speed(repeats: int) -> None:
     w, c = _median_ms(lambda: refine_ml(cam, 25.0, rims, sts, g.plane, poses), repeats)
     print(f"refine_ml, 12 x (200 + 300) points:           median {w:6.1f} ms wall, {c:6.1f} ms CPU"
           f"  -> {w / TARGET_MS:.2f}x the {TARGET_MS:g} ms target")
+    stat = f"median of {repeats} runs"
+    figs = [figure("refine_ml_wall", "refine_ml, 12 placements, wall", w, "ms", statistic=stat,
+                   target=at_most(TARGET_MS, "ms")),
+            figure("refine_ml_cpu", "refine_ml, 12 placements, CPU", c, "ms", statistic=stat,
+                   target=at_most(TARGET_MS, "ms"))]
     w, c = _median_ms(lambda: calibrate_plane_from_points(cam, 50.0, rims, sts, method="ml"), repeats)
     print(f"calibrate_plane_from_points(method='ml'):     median {w:6.1f} ms wall, {c:6.1f} ms CPU"
           f"  -> {w / TARGET_MS:.2f}x the {TARGET_MS:g} ms target")
+    figs.append(figure("plane_solver_ml_wall", "plane solver global + ml, wall", w, "ms", statistic=stat,
+                       target=at_most(TARGET_MS, "ms")))
     res = refine_ml(cam, 25.0, rims, sts, g.plane, poses)
     print(f"  (solver evaluations: {res.iterations}; sigma estimate {res.sigma_px:.4f} px for 0.1 px injected)")
+    return figs
 
 
-def accuracy(trials: int, seed: int) -> None:
+def accuracy(trials: int, seed: int) -> list[dict]:
     cam, plane = default_camera(distortion=False), default_plane()
     vol = working_volume_grid(cam, plane, step_px=32.0)
     sigma = 0.1
@@ -117,6 +126,18 @@ def accuracy(trials: int, seed: int) -> None:
     print(f"ml predicted sigma / MC RMS: angle {pa / a:.3f}, triangulation {pt / tr:.3f}  (target within 1 ± 0.15)")
     ok = (a / b_ang <= 1.15 and tr / b_tri <= 1.15 and abs(pa / a - 1) <= 0.15 and abs(pt / tr - 1) <= 0.15)
     print("ML targets met" if ok else "ML targets NOT met")
+    stat = f"RMS over {trials} Monte-Carlo trials"
+    return [figure("ml_angle_rms", "ml plane angle error", np.degrees(a) * 3600, "arcsec", statistic=stat,
+                   reference=("Cramér-Rao bound", np.degrees(b_ang) * 3600, "arcsec"),
+                   target=at_most(1.15, "x", of="ratio")),
+            figure("ml_triangulation_rms", "ml triangulation error", 1e3 * tr, "µm", statistic=stat,
+                   reference=("Cramér-Rao bound", 1e3 * b_tri, "µm"), target=at_most(1.15, "x", of="ratio")),
+            figure("ml_predicted_angle_sigma", "ml predicted angle sigma", np.degrees(pa) * 3600, "arcsec",
+                   statistic=stat, reference=("Monte-Carlo RMS", np.degrees(a) * 3600, "arcsec"),
+                   target=between(0.85, 1.15, "x", of="ratio")),
+            figure("ml_predicted_triangulation_sigma", "ml predicted triangulation sigma", 1e3 * pt, "µm",
+                   statistic=stat, reference=("Monte-Carlo RMS", 1e3 * tr, "µm"),
+                   target=between(0.85, 1.15, "x", of="ratio"))]
 
 
 def main() -> None:
@@ -127,9 +148,10 @@ def main() -> None:
     args = ap.parse_args()
     if hasattr(os, "getloadavg"):
         print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs (wall times inflate under load)")
-    speed(args.repeats)
+    figs = speed(args.repeats)
     if args.trials > 0:
-        accuracy(args.trials, args.seed)
+        figs += accuracy(args.trials, args.seed)
+    record("bench_ml", figs)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import numpy as np
 
 from lightplane.plane.solvers import _solve_global, _solve_paper, calibrate_plane_from_points, estimate_sigma_px, prepare_placement
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
+from results import at_most, figure, record
 
 TARGET_MS = 10.0
 
@@ -55,12 +56,18 @@ def main() -> None:
     rims, stripes = [o[0] for o in obs], [o[1] for o in obs]
 
     print("12 placements x (200 rim + 300 stripe points), default camera with distortion, sigma 0.1 px")
+    figs = []
     for method in ("paper", "global"):
         fn = lambda: calibrate_plane_from_points(cam, 50.0, rims, stripes, method=method)  # noqa: E731
         ms = _median_ms(fn, args.repeats)
         cpu = _median_ms(fn, args.repeats, cpu=True)
         print(f"  {method:7s} end to end: median {ms:7.2f} ms wall, {cpu:7.2f} ms CPU   "
               f"(target {TARGET_MS:.0f} ms: ratio {ms / TARGET_MS:.2f} wall, {cpu / TARGET_MS:.2f} CPU)")
+        stat = f"median of {args.repeats} runs"
+        figs += [figure(f"calibrate_plane_from_points_{method}_wall", f"plane solver {method}, wall", ms, "ms",
+                        statistic=stat, target=at_most(TARGET_MS, "ms")),
+                 figure(f"calibrate_plane_from_points_{method}_cpu", f"plane solver {method}, CPU", cpu, "ms",
+                        statistic=stat, target=at_most(TARGET_MS, "ms"))]
 
     allpts = np.concatenate(rims + stripes)
     ms_u = _median_ms(lambda: cam.undistort_points(allpts, normalized=True), args.repeats)
@@ -94,6 +101,7 @@ def main() -> None:
         for m, e in errs.items():
             e = np.degrees(np.array(e))
             print(f"  {m:7s} RMS plane-angle error {np.sqrt(np.mean(e**2)):.5f} deg  (wrong chords chosen: {wrong[m]})")
+    record("bench_plane", figs)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,8 @@ import os
 import statistics
 import time
 
+from results import at_most, figure, record
+
 TARGET_S = 30.0
 
 
@@ -40,6 +42,8 @@ def main() -> None:
     print(f"circle set, 12 images 1280x960, realistic: median {med:.2f} s over {args.runs} runs "
           f"(min {min(times):.2f} s, max {max(times):.2f} s), {med / 12:.3f} s per image")
     print(f"target {TARGET_S:.0f} s: ratio {med / TARGET_S:.3f} ({'PASS' if med < TARGET_S else 'FAIL'})")
+    figs = [figure("render_circle_set_12", "render 12 circle images 1280x960", med, "s",
+                   statistic=f"median of {args.runs} runs", target=at_most(TARGET_S, "s"))]
     if args.extra:
         t0 = time.perf_counter()
         render_chessboard_dataset(n=15, seed=0)
@@ -47,6 +51,7 @@ def main() -> None:
         t0 = time.perf_counter()
         render_scan_dataset("sphere", seed=0)
         print(f"sphere scan, 41 frames: {time.perf_counter() - t0:.2f} s")
+    record("bench_render", figs)
 
 
 if __name__ == "__main__":

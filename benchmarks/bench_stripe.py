@@ -23,6 +23,19 @@ import cv2
 import numpy as np
 
 from lightplane.stripe.extract import extract_profile, extract_profiles, extract_stripe
+from results import at_most, figure, record
+
+#: the rows recorded in benchmarks/results (row name -> figure id)
+HEADLINE = {
+    "extract_profile numba 1280x960": "extract_profile_1280x960",
+    "extract_profile numba 1280x960, width estimated": "extract_profile_1280x960_width_estimated",
+    "extract_profile numba 1280x128": "extract_profile_1280x128",
+    "extract_profile numba 1280x960, 1 thread": "extract_profile_1280x960_1_thread",
+    "extract_profiles, 500 x 1280x64 ROI, per frame": "extract_profiles_roi_1280x64",
+    "extract_profiles, batch of 8 1280x960, per frame": "extract_profiles_batch_1280x960",
+    "extract_stripe 1280x960": "extract_stripe_1280x960",
+    "extract_stripe 1280x960, width estimated": "extract_stripe_1280x960_width_estimated",
+}
 
 
 def frame(rng: np.random.Generator, H: int = 960, W: int = 1280, width_px: float = 5.0) -> np.ndarray:
@@ -106,6 +119,15 @@ def main() -> None:
     for name, (med, mn), target in rows:
         tgt = f"{target:10.3f} {med / target:14.2f}" if target else f"{'':10s} {'':14s}"
         print(f"{name:50s} {med:10.3f} {mn:8.3f} {1000.0 / med:9.0f} {tgt}")
+    ref = ("cv2.GaussianBlur 1280x960", blur[0], "ms")
+    stat = {"extract_profiles, 500 x 1280x64 ROI, per frame": f"median of {max(5, args.repeat // 20)} runs / 500",
+            "extract_profiles, batch of 8 1280x960, per frame": f"median of {max(5, args.repeat // 10)} runs / 8"}
+    record("bench_stripe", [
+        figure(HEADLINE[name], name.replace(" numba", "").replace(", per frame", ""), med, "ms",
+               statistic=stat.get(name, f"median of {max(10, args.repeat // 5) if 'stripe' in name else args.repeat}"
+                                        " runs"),
+               reference=ref, target=at_most(target, "ms"))
+        for name, (med, _mn), target in rows if name in HEADLINE])
 
 
 if __name__ == "__main__":

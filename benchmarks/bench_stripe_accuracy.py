@@ -25,6 +25,7 @@ import numpy as np
 from lightplane.simulate.render import render_circle_dataset
 from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
 from lightplane.stripe.extract import extract_profile, extract_stripe, sigma_for_width
+from results import at_most, figure, record
 
 BAR_REALISTIC_PX = 0.1
 
@@ -37,6 +38,7 @@ def main() -> None:
     hdr = f"{'level':<10} {'function':<16} {'scales':<22} {'points':>7} {'gross':>6} {'RMS':>7} {'bias':>8}"
     print(hdr)
     print("-" * len(hdr))
+    figs = []
     for level in args.levels.split(","):
         res: dict[tuple[str, str], list] = {}
         for seed in (0, 1):
@@ -66,6 +68,13 @@ def main() -> None:
             if level == "realistic" and scales not in ("Steger minimum", "defaults"):
                 verdict = f"  {'PASS' if rms <= BAR_REALISTIC_PX else 'FAIL'} ({rms / BAR_REALISTIC_PX:.2f}x the 0.1 px bar)"
             print(f"{level:<10} {fn_name:<16} {scales:<22} {e.size:>7} {gross:>6} {rms:>7.3f} {e.mean():>+8.4f}{verdict}")
+            if level == "realistic":
+                scored = scales not in ("Steger minimum", "defaults")
+                figs.append(figure(f"{fn_name}_realistic_{'recommended' if scored else 'defaults'}_rms",
+                                   f"{fn_name} centres, realistic renders, {scales}", rms, "px",
+                                   statistic=f"RMS over {e.size} centres of 24 images",
+                                   target=at_most(BAR_REALISTIC_PX, "px") if scored else None))
+    record("bench_stripe_accuracy", figs)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import numpy as np
 
 from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
 from lightplane.stripe.extract import extract_profile, extract_stripe
+from results import at_least, at_most, figure, record, within
 
 
 def errors(img, truth):
@@ -49,13 +50,28 @@ def main() -> None:
                          ("laser minus background (20%)", dict(subtract=True, background=0.2))):
             conds.append((f"8-bit {a:g}x hot spot, {name}", dict(amplitude=hot_spot(a), rng=np.random.default_rng(5),
                                                                 **kw)))
+    worst: dict[str, list] = {}  # function -> [largest |bias|, largest RMS, conditions passing]
     for label, kw in conds:
         img, truth = render_saturated(**kw)
         for fn, (e, found) in errors(img, truth).items():
             rms = float(np.sqrt(np.mean(e**2)))
             ok = abs(e.mean()) <= 0.05 and rms <= 0.1
+            w = worst.setdefault(fn, [0.0, 0.0, 0])
+            w[0] = max(w[0], abs(float(e.mean())))
+            w[1] = max(w[1], rms)
+            w[2] += int(ok)
             print(f"{label:<44} {fn:<16} {found:>6.2f} {e.mean():>+8.4f} {rms:>7.4f} {np.abs(e).max():>6.3f}  "
                   f"{'PASS' if ok else 'FAIL'}")
+    n = len(conds)
+    figs = []
+    for fn, (bias, rms, passing) in worst.items():
+        figs += [figure(f"{fn}_saturated_worst_bias", f"{fn}, saturated stripes: largest |bias|", bias, "px",
+                        statistic=f"largest over {n} conditions", target=within(0.05, "px")),
+                 figure(f"{fn}_saturated_worst_rms", f"{fn}, saturated stripes: largest RMS", rms, "px",
+                        statistic=f"largest over {n} conditions", target=at_most(0.1, "px")),
+                 figure(f"{fn}_saturated_passing", f"{fn}, saturated stripes: conditions passing", passing,
+                        "conditions", statistic=f"count of {n} conditions", target=at_least(n, "conditions"))]
+    record("bench_stripe_saturation", figs)
 
 
 if __name__ == "__main__":
