@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 
-.PHONY: demo test lint typecheck bench clean
+.PHONY: demo test docs lint typecheck bench clean
 
 $(VENV)/.base:
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-test
 	$(PY) -m pytest -q -n 2 --dist loadfile
+
+docs: $(VENV)/.installed-test
+	$(VENV)/bin/mkdocs build --strict --site-dir build/site
 
 lint: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests benchmarks docs
