@@ -131,6 +131,15 @@ def main(argv: list[str]) -> int:
           f"{'met' if ratio >= TARGET else 'NOT met'})")
     print(f"points identical to measure: {identical}; load {os.getloadavg()[0]:.1f}")
     shutil.rmtree(work, ignore_errors=True)
+    from results import at_least, figure, record
+
+    stat = f"median of {a.repeats} runs of {a.frames} PNG frames"
+    ref = ("measure, 2 threads", results["measure (2 threads)"], "frames/s")
+    record("bench_batch", [
+        figure("batch_2_workers", "measure-batch, 2 worker processes", results["batch 2 worker"], "frames/s",
+               statistic=stat, reference=ref, target=at_least(TARGET, "x", of="ratio")),
+        figure("batch_1_worker", "measure-batch, 1 worker process", results["batch 1 worker"], "frames/s",
+               statistic=stat, reference=ref)])
     return 0 if identical else 1
 
 

@@ -47,6 +47,7 @@ from lightplane.camera.model import Camera
 from lightplane.evaluate.shapes import plane_accuracy
 from lightplane.core.io import expand_inputs, read_image
 from lightplane.plane.model import LightPlane
+from results import at_most, figure, record
 
 CACHE = Path(__file__).resolve().parent / "out" / "renders"
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
@@ -120,7 +121,7 @@ def main() -> None:
            f"{'tri RMS':>8} {'aligned':>8} {'sigma pred':>10}  verdict")
     print(hdr)
     print("-" * len(hdr))
-    rows = []
+    rows, figs = [], []
     for diff, pol, folder in sets:
         truth = json.loads((folder / "truth.json").read_text())
         cam_true = Camera.load(folder / "camera.json")
@@ -152,9 +153,16 @@ def main() -> None:
                 if rejected and method == "ml" and cam_label == "true":
                     print(f"{'':<20} rejected: " + "; ".join(rejected))
                 rows.append({"set": f"{diff} {pol}", "camera": cam_label, "method": method, **acc})
+                if method == "ml":
+                    cam_text = "true camera" if cam_label == "true" else "calibrated camera"
+                    figs.append(figure(f"plane_{diff}_{pol}_{cam_label}_tri_rms",
+                                       f"plane from 12 {diff} {pol} images, {cam_text}: triangulation RMS",
+                                       acc["tri_rms_mm"], "mm", statistic="RMS over the working volume 380-520 mm",
+                                       target=at_most(bar, "mm")))
     (CACHE.parent / "bench_calibrate.json").write_text(json.dumps(rows, indent=1))
 
     if args.no_speed:
+        record("bench_calibrate", figs)
         return
     folder = sets[0][2]
     cam = Camera.load(folder / "camera.json")
@@ -171,6 +179,10 @@ def main() -> None:
             ts.append(time.perf_counter() - t0)
         med = float(np.median(ts))
         print(f"  workers={workers} {executor:<8} {med:6.2f} s  ({med / 3.0:.2f}x the 3 s target)")
+        figs.append(figure(f"calibrate_plane_{workers}_{executor}", f"calibrate_plane 12 images, {workers} {executor}"
+                           + ("es" if workers > 1 and executor == "process" else "s" if workers > 1 else ""),
+                           med, "s", statistic=f"median of {args.repeats} runs", target=at_most(3.0, "s")))
+    record("bench_calibrate", figs)
 
 
 if __name__ == "__main__":

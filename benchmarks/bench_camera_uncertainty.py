@@ -543,6 +543,18 @@ def run(args) -> None:
               f"shape {v['shape_mm']:.4f} mm (|dK|² in sigma units, mean {v['mean_xi_norm2']:.1f})")
     print(f"sampling sd of an RMS over {s['sets']} sets: ~{100 * s['rms_relative_sd']:.0f} %")
     (out_dir / f"{args.name}.json").write_text(json.dumps({"summary": s, "rows": rows}, indent=1))
+    from results import between, figure, record
+
+    figs = []
+    for label, pre in (("two-step", "two_step"), ("joint", "joint")):
+        for name, q in (("camera frame", "frame"), ("shape", "shape")):
+            if label in s and name in s[label]:
+                v = s[label][name]
+                figs.append(figure(f"{pre}_{q}_predicted", f"{label}: predicted {name} point sigma", v["predicted_rms"],
+                                   "mm", statistic=f"RMS over {s['sets']} sets, 380-520 mm",
+                                   reference=(f"actual {name} error", v["actual_rms"], "mm"),
+                                   target=between(0.75, 1.25, "x", of="ratio")))
+    record(args.name, figs)
 
 
 if __name__ == "__main__":

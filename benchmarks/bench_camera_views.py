@@ -35,6 +35,7 @@ from lightplane.simulate.scene import default_camera, default_plane, sample_plac
 from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
 from lightplane.simulate.render import board_corners, sample_board_poses
 from lightplane.plane.uncertainty import image_grid, ray_sigma_rad, volume_sigma, working_volume_grid
+from results import figure, record
 
 
 def one(board, n_views, corner_px, seed):
@@ -86,6 +87,12 @@ def main() -> None:
                   f"{med['ray_mm_450']:>7.4f} {med['ray_mm_600']:>7.4f} {med['frame_mm']:>9.4f} "
                   f"{med['shape_mm']:>9.4f} {med['plane_only_mm']:>13.4f}", flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
+    record("bench_camera_views", [
+        figure(f"frame_sigma_{r['board'][0]}x{r['board'][1]}_{r['views']}_views",
+               f"point sigma, camera frame, {r['board'][0]}x{r['board'][1]} board, {r['views']} views",
+               r["frame_mm"], "mm", statistic=f"median of {args.seeds} pose draws, corner noise {args.corner_px} px",
+               reference=("plane-only sigma", r["plane_only_mm"], "mm"))
+        for r in rows])
     out = Path(__file__).resolve().parent / "out"
     out.mkdir(exist_ok=True)
     (out / "bench_camera_views.json").write_text(json.dumps({"corner_px": args.corner_px, "rows": rows}, indent=1))

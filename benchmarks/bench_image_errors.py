@@ -157,6 +157,16 @@ def main() -> None:
           f"{np.median(m_d):.2f}); largest {m_mod.max():.1f} (set {rows[int(np.argmax(m_mod))]['set']})")
     print(f"sigma ratio (predicted / actual, RMS over the sets in Mahalanobis units): noise model "
           f"{np.sqrt(3 / m_mod.mean()):.2f}, with the dispersion {np.sqrt(3 * np.mean(phi) / np.mean(m_mod)):.2f}")
+    from results import figure, record
+
+    stat = f"{len(rows)} sets, {n_img} images, exact camera"
+    record("bench_image_errors", [
+        figure("plane_mahalanobis2_model", "plane error's Mahalanobis², noise model", m_mod.mean(), "",
+               statistic=f"mean over {len(rows)} sets (chi², 3 dof: 3)"),
+        figure("sigma_ratio_model", "plane sigma predicted / actual, noise model", np.sqrt(3 / m_mod.mean()), "x",
+               statistic=stat),
+        figure("sigma_ratio_dispersion", "plane sigma predicted / actual, with dispersion",
+               np.sqrt(3 * np.mean(phi) / np.mean(m_mod)), "x", statistic=stat)])
 
 
 if __name__ == "__main__":

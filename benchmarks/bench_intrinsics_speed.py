@@ -122,9 +122,23 @@ def main() -> None:
         print(f"  {v.label:<10} {cpu:6.2f} s CPU  {wall:6.2f} s wall   error vs the renderer's camera: "
               + "  ".join(f"{k} {e[k]:+.6f}" for k in ("fx", "fy", "cx", "cy"))
               + f" px   (refit corners {v.runs[-1]['refit']})")
+    from results import figure, record
+
+    stat = f"min of {args.repeats} runs"
+    ref = None
     if args.reference is not None:
         a, b = saved["this"], saved["reference"]
         print(f"  this / reference: {best['this'] / best['reference']:.3f}x the CPU time")
+        ref = (f"the same, {args.reference.name}", best["reference"], "s")
+    e = versions[0].runs[-1]["err"]
+    record("bench_intrinsics_speed", [
+        figure("calibrate_camera_cpu", f"calibrate_camera, {warm[0]['views']} views, CPU", best["this"], "s",
+               statistic=stat, reference=ref),
+        figure("calibrate_camera_wall", f"calibrate_camera, {warm[0]['views']} views, wall",
+               min(r["wall"] for r in versions[0].runs), "s", statistic=stat),
+        figure("calibrate_camera_cx_error", "calibrate_camera cx error", e["cx"], "px",
+               statistic="one calibration against the renderer's camera")])
+    if args.reference is not None:
         if a["corners"].shape == b["corners"].shape:
             d = np.abs(a["corners"] - b["corners"])
             print(f"  corners: max |difference| {d.max():.2e} px, RMS {np.sqrt(np.mean(d ** 2)):.2e} px; "

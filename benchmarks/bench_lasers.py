@@ -33,6 +33,7 @@ from lightplane.core.io import read_image
 from lightplane.stripe.lasers import parse_lasers
 from lightplane.plane.model import LightPlane
 from lightplane.evaluate.shapes import plane_accuracy
+from results import at_most, figure, record, within
 
 CACHE = Path(__file__).resolve().parent / "out" / "renders"
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
@@ -75,6 +76,7 @@ def main() -> None:
     hdr = f"{'laser':<8} {'run':<22} {'used':>5} {'angle':>8} {'offset':>8} {'tri RMS':>8} {'sigma':>8}  verdict"
     print(hdr)
     print("-" * len(hdr))
+    figs = []
     for name, true in planes.items():
         for label, cal in (("two lasers, same images", cals[name]), ("alone (its channel)", alone[name])):
             acc = plane_accuracy(cal.plane, cam, true, cam)
@@ -83,10 +85,21 @@ def main() -> None:
             print(f"{name:<8} {label:<22} {cal.n_used:>2}/{len(cal.images):<2} {acc['angle_deg']:8.4f} "
                   f"{acc['offset_mm']:+8.4f} {acc['tri_rms_mm']:8.4f} {sig if sig is None else f'{sig:8.4f}'}  "
                   f"{'meets the bars' if ok else 'MISSES a bar'}")
+            if cal is cals[name]:
+                stat = f"{cal.n_used} of {len(cal.images)} two-laser images"
+                figs += [figure(f"{name}_tri_rms", f"{name} of two, triangulation RMS", acc["tri_rms_mm"], "mm",
+                                statistic=stat + ", RMS over 380-520 mm", target=at_most(BARS["tri_rms_mm"], "mm")),
+                         figure(f"{name}_angle", f"{name} of two, normal angle error", acc["angle_deg"], "deg",
+                                statistic=stat, target=at_most(BARS["angle_deg"], "deg")),
+                         figure(f"{name}_offset", f"{name} of two, offset error at the axis", acc["offset_mm"], "mm",
+                                statistic=stat, target=within(BARS["offset_mm"], "mm"))]
     for line in shared_pose_lines(cals):
         print(line)
     print(f"time, 1 worker: both lasers at once {t_two:.2f} s; each alone {t_alone:.2f} s in all "
           f"(ratio {t_two / t_alone:.2f})")
+    figs.append(figure("two_lasers_time", "calibrate_planes, two lasers at once, 1 worker", t_two, "s",
+                       statistic="one run", reference=("each laser alone, summed", t_alone, "s")))
+    record("bench_lasers", figs)
 
 
 if __name__ == "__main__":

@@ -201,6 +201,26 @@ def main() -> None:
         v = res[k]["roi"]
         tgt = 10000.0 if k == 0 else 5000.0
         print(f"  k={k}: {np.median(v):8.0f} / {np.min(v):8.0f} profiles/s  ({np.median(v) / tgt:.2f}x target)")
+    from results import at_least, at_most, figure, record
+
+    figs = []
+    units = {"calibrate-plane, 12 images": "s"}
+    for k in sorted({levels[0], levels[-1]}):
+        for name in ref:
+            u = units.get(name, "ms")
+            scale = 1.0 if u == "s" else 1e3
+            v = res[k][name]
+            figs.append(figure(f"{name.split(',')[0].replace('-', '_')}_{name.split(', ')[1].replace(' ', '_')}_k{k}",
+                               f"{name}, {k} busy processes", float(np.median(v)) * scale, u,
+                               statistic=f"median of {len(v)} runs, default arguments",
+                               reference=("idle serial (k = 0, 1 thread)", float(np.median(ref[name])) * scale, u),
+                               target=at_most(k + 1.0, "x", of="ratio") if k else None))
+    for k in levels:
+        v = res[k]["roi"]
+        figs.append(figure(f"roi_profiles_k{k}", f"extract_profiles 1280x64 ROIs, {k} busy processes", float(np.median(v)),
+                           "profiles/s", statistic=f"median of {len(v)} calls of 1000 ROIs",
+                           target=at_least(10000.0 if k == 0 else 5000.0, "profiles/s")))
+    record("bench_load", figs)
     for f in tmp.iterdir():
         f.unlink()
     tmp.rmdir()

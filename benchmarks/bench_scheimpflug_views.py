@@ -41,6 +41,10 @@ from lightplane.camera.intrinsics import free_parameters, _polish, calibration_f
 from lightplane.camera.corners import board_points
 from lightplane.simulate.scene import scheimpflug_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, sample_board_poses
+from results import at_least, at_most, figure, record
+
+#: the numbers behind the last normal_matrix / calibrate line (for benchmarks/results)
+LAST: dict = {}
 
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
          "taux", "tauy")
@@ -81,6 +85,7 @@ def normal_matrix(cam: Camera, views, board, flags: int, noise: float) -> str:
     names = [NAMES[k] for k in free]
     parts = [f"{n} {np.sqrt(exact[j, j]) * noise:.3g} / {np.sqrt(max(pinv[j, j], 0.0)) * noise:.3g}"
              for j, n in enumerate(names) if n in ("fx", "cx", "cy", "tauy")]
+    LAST["lambda_over_cut"] = float(lam.min() / cut)
     return (f"lambda_min / cut = {lam.min() / cut:.3g} ({int(np.sum(lam <= cut))} under the cut); "
             f"sigma exact / OpenCV's: " + ", ".join(parts) + " (px, rad)")
 
@@ -113,6 +118,7 @@ def calibrate(cam: Camera, views, board, flags: int, noise: float, seed: int, gu
         z = {n: (a - b) / sd[n] for n, a, b in zip(NAMES, e, truth) if sd[n] > 0}
         zc = {n: (a - b) / s for n, a, b, s in zip(NAMES, e, truth, sc) if s > 0}
         w, wc = max(z, key=lambda n: abs(z[n])), max(zc, key=lambda n: abs(zc[n]))
+        LAST.update(worst_sigma=float(abs(z[w])), worst_sigma_opencv=float(abs(zc[wc])))
         line += (f"worst |error| {abs(z[w]):.2f} sigma of the covariance ({w}), {abs(zc[wc]):.3g} of OpenCV's ({wc}); "
                  f"cx {e[2] - truth[2]:+.2f} px (sigma {sd['cx']:.3g}, OpenCV's {sc[2]:.3g}); ")
     else:
@@ -130,13 +136,25 @@ def main() -> None:
     _, flags = calibration_flags("tilted", 0)
     print(f"Scheimpflug rig: {cam!r}; tilted model, p1 p2 k3 free; corner noise {a.noise} px")
     print("view designs (the same lens):")
+    figs = []
     for name, kw in DESIGNS.items():
         board = kw.get("board", CAP["board"])
         v = poses(cam, kw["n"], 1, board=board, dist=kw.get("dist", CAP["distance_mm"]),
                   tilt=kw.get("tilt", CAP["tilt_deg"]), centre=kw.get("centre", CAP["centre_frac"]))
         print(f"  {name}: {normal_matrix(cam, v, board, flags, a.noise)}")
+        if name == "capture (20 views)":
+            figs.append(figure("capture_lambda_over_cut", "Scheimpflug capture: smallest eigenvalue / OpenCV's cut",
+                               LAST["lambda_over_cut"], "x", statistic="at the truth, 20 views",
+                               target=at_least(1.0, "x")))
         for s in range(a.seeds):
             print(f"    seed {s}: {calibrate(cam, v, board, flags, a.noise, s)}")
+            if name == "capture (20 views)" and s == 0:
+                figs += [figure("capture_worst_sigma", "Scheimpflug capture: worst error, covariance sigma",
+                                LAST["worst_sigma"], "sigma", statistic=f"seed 0, corner noise {a.noise} px",
+                                target=at_most(3.0, "sigma")),
+                         figure("capture_worst_sigma_opencv", "Scheimpflug capture: worst error, OpenCV's sigma",
+                                LAST["worst_sigma_opencv"], "sigma", statistic=f"seed 0, corner noise {a.noise} px",
+                                target=at_most(3.0, "sigma"))]
     print("shorter lenses (the capture, distances scaled by f / 16 mm):")
     for f in (12.0, 8.0, 6.0):
         c = scheimpflug_camera(f_mm=f)
@@ -158,6 +176,7 @@ def main() -> None:
           f"{calibrate(cam, v, CAP['board'], fixed, a.noise, 0, guess=Camera(cam.K, off, 1280, 960, model='tilted'))}")
     print(f"  plumb bob (no tilt at all), noise-free corners: {calibrate(cam, v, CAP['board'], 0, 0.0, 0)}")
     print(f"  plumb bob, noisy corners: {calibrate(cam, v, CAP['board'], 0, a.noise, 0)}")
+    record("bench_scheimpflug_views", figs)
 
 
 if __name__ == "__main__":

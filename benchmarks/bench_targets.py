@@ -175,6 +175,14 @@ def main() -> int:
     print("(bias px: the dots' perspective bias in the renders, |ellipse centre - projected centre|, mean/max; "
           "sig: error / OpenCV std, then the std)")
     (CACHE.parent / "bench_targets.json").write_text(json.dumps(rows, indent=1))
+    from results import at_most, figure, record
+
+    record("bench_targets", [
+        figure(f"{r['target']}_{r['method']}_worst_sigma", f"intrinsics from {r['target']} views, {r['method']}: "
+               "worst error", max(abs(s) for s in r["error_sigma"].values()), "sigma",
+               statistic=f"worst of fx, fy, cx, cy over OpenCV's sigma, {r['used']} views",
+               target=at_most(SIGMA_BAR, "sigma"))
+        for r in rows])
     return 1 if failed else 0
 
 

@@ -33,6 +33,7 @@ from lightplane.evaluate.shapes import fit_sphere
 from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
 from lightplane.camera.targets import parse_target
 from lightplane.motion.turntable import calibrate_turntable
+from results import at_most, figure, record, within
 
 N_FRAMES = 36
 
@@ -44,7 +45,7 @@ def _axis_errors(est: Turntable, true: Turntable) -> tuple[float, float]:
     return ang, float(np.linalg.norm(off))
 
 
-def run(difficulty: str) -> None:
+def run(difficulty: str) -> list[dict]:
     t0 = time.perf_counter()
     board = render_turntable_board(angles_deg=np.linspace(-40, 40, 9), seed=11, difficulty=difficulty)
     cal = calibrate_turntable(board.images, board.camera, parse_target("chessboard:9x6", 8.0), names=board.names)
@@ -56,6 +57,11 @@ def run(difficulty: str) -> None:
           f" circles vs rotations {cal.agreement_deg:.4f} deg / {cal.agreement_mm:.4f} mm apart"
           f" ({'agree' if cal.agrees else 'disagree'}); PnP RMS "
           f"{np.median([im['pnp_rms_px'] for im in cal.images]):.3f} px median")
+    stat = f"{len(board.images)} board views, {difficulty} renders"
+    figs = [figure(f"axis_direction_{difficulty}", f"turntable axis direction error, {difficulty}", ang, "deg",
+                   statistic=stat),
+            figure(f"axis_position_{difficulty}", f"turntable axis position error, {difficulty}", off, "mm",
+                   statistic=stat)]
     scan = render_turntable_scan(n_frames=N_FRAMES, seed=12, difficulty=difficulty)
     T = scan.truth
     o_t, B_t = true.basis()
@@ -79,11 +85,20 @@ def run(difficulty: str) -> None:
             print(f"[{difficulty}] {label}, {name}: {len(p)} points, radius error {f.radius_mm - 20.0:+.4f} mm "
                   f"(bar 0.02), centre error {np.linalg.norm(c):.4f} mm, RMS residual {f.rms_mm:.4f} mm, "
                   f"inliers {f.n_inliers / len(p):.3f}")
+            if table is cal.turntable:
+                figs.append(figure(f"sphere_radius_{difficulty}_{name}", f"turntable sphere radius, {difficulty}, {name}",
+                                   f.radius_mm, "mm", truth=20.0, target=within(0.02, "mm", of="error"),
+                                   statistic=f"fit to {len(p)} points, calibrated axis"))
         cross = [float(np.sqrt(np.mean((np.linalg.norm(p - o.center_mm, axis=1) - o.radius_mm) ** 2)))
                  for p, o in ((pts[0], fits[1]), (pts[1], fits[0]))]
         print(f"[{difficulty}] {label}: laser0 points to laser1's sphere RMS {cross[0]:.4f} mm, laser1 to laser0's "
               f"{cross[1]:.4f} mm (bar 0.02 on clean renders); centres {np.linalg.norm(fits[0].center_mm - fits[1].center_mm):.4f} mm apart")
+        if table is cal.turntable:
+            figs.append(figure(f"lasers_cross_rms_{difficulty}", f"turntable laser0 points to laser1's sphere, {difficulty}",
+                               cross[0], "mm", statistic="RMS, calibrated axis",
+                               target=at_most(0.02, "mm") if difficulty == "clean" else None))
     print(f"[{difficulty}] {time.perf_counter() - t0:.0f} s")
+    return figs
 
 
 def fabscan(cloud: str, figure: str) -> None:
@@ -120,8 +135,10 @@ def main(argv: list[str]) -> None:
     if argv and argv[0] == "fabscan":
         fabscan(argv[1], argv[2])
         return
+    figs = []
     for d in argv or ["clean", "realistic"]:
-        run(d)
+        figs += run(d)
+    record("bench_turntable", figs)
 
 
 if __name__ == "__main__":

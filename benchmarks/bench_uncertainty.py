@@ -39,6 +39,7 @@ from lightplane.evaluate.shapes import plane_accuracy
 from lightplane.plane.model import LightPlane
 from lightplane.plane.solvers import SolverOptions
 from lightplane.plane.ml import MLOptions
+from results import at_most, figure, record
 
 BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
 CONFIGS = {
@@ -123,6 +124,19 @@ def main() -> None:
             print(f"  stripe_bin={s['stripe_bin']:<4} angle {s['rms_angle_deg'] / BARS['angle_deg']:.2f}x, "
                   f"offset {s['rms_offset_mm'] / BARS['offset_mm']:.2f}x, "
                   f"triangulation {s['rms_tri_rms_mm'] / BARS['tri_rms_mm']:.2f}x of the bar")
+    stat = f"RMS over {args.seeds} seeds x 2 polarities"
+    figs = []
+    for s in summary:
+        if s["config"].endswith("(new)") and s["stripe_bin"] == "auto":
+            figs += [figure("ml_angle_rms", "ml plane from 12 realistic images: angle error", s["rms_angle_deg"], "deg",
+                            statistic=stat, target=at_most(BARS["angle_deg"], "deg")),
+                     figure("ml_offset_rms", "ml plane: offset error at the axis", s["rms_offset_mm"], "mm",
+                            statistic=stat, target=at_most(BARS["offset_mm"], "mm")),
+                     figure("ml_tri_rms", "ml plane: triangulation error", s["rms_tri_rms_mm"], "mm",
+                            statistic=stat + ", over 380-520 mm", target=at_most(BARS["tri_rms_mm"], "mm")),
+                     figure("ml_predicted_sigma", "ml plane: predicted point sigma", s["rms_point_sigma_rms_mm"], "mm",
+                            statistic=stat, reference=("actual triangulation error", s["rms_tri_rms_mm"], "mm"))]
+    record("bench_uncertainty", figs)
     out = Path(__file__).resolve().parent / "out"
     out.mkdir(exist_ok=True)
     (out / "bench_uncertainty.json").write_text(json.dumps({"summary": summary,
