@@ -11,7 +11,7 @@ run as their own group, in their own directory, and are skipped with the reason 
 folder is absent.
 
 Not run here, on purpose (see ``EXCLUDED``): ``make`` targets, which are the test suite
-itself and the demo (``tests/test_demo.py``), and the install commands, which would install
+itself and the demo (its own test, ``test_demo.py``), and the install commands, which would install
 lightplane from PyPI into a new virtual environment: the environment running this test is
 that install.
 """
@@ -32,7 +32,7 @@ DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 # command prefix -> why it is not run by this test
 EXCLUDED = {
-    "make ": "make targets are the test suite itself and the demo (tests/test_demo.py)",
+    "make ": "make targets are the test suite itself and the demo (test_demo.py)",
     "python3 -m venv ": "install step: the environment running these tests is that install",
     ".venv/bin/pip install ": "install step: installs from PyPI; the environment running these tests is that install",
     "pip install ": "install step: installs from PyPI; the environment running these tests is that install",
