@@ -41,7 +41,7 @@ def num(x: float | None) -> str:
     if x == 0:
         return "0"
     a = abs(x)
-    if a >= 1e6 or a < 1e-3:
+    if a >= 1e6 or a < 1e-4:
         return f"{x:.2e}"
     if a >= 1000:
         return f"{x:.0f}"
@@ -49,7 +49,8 @@ def num(x: float | None) -> str:
 
 
 def quantity(x: float | None, unit: str) -> str:
-    return num(x) + (f" {unit}" if unit else "")
+    """A number and its unit (``x``, a ratio, written on the number)."""
+    return num(x) + ("x" if unit == "x" else f" {unit}" if unit else "")
 
 
 def cell(text: str) -> str:

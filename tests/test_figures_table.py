@@ -78,6 +78,8 @@ def test_table(folder: Path):
         " | Intel Xeon Gold 6230, 2 cores, 2025-01-02 |",
     ]
     assert all(len(line) < 200 for line in lines)
+    assert figures.num(-0.000721) == "-0.000721" and figures.num(1234.4) == "1234" and figures.num(0.3333) == "0.333"
+    assert figures.quantity(1.04, "x") == "1.04x" and figures.quantity(0.963, "") == "0.963"
 
 
 def test_write_and_check(folder: Path, tmp_path: Path, capsys):
