@@ -3,6 +3,10 @@
 Each benchmark prints medians with units and the ratio to its target; run them on a
 quiet machine (2 cores is the reference).  ``python benchmarks/run_all.py NAME...``
 runs only the named ones (e.g. ``stripe measure``).
+
+Each benchmark also writes its headline figures to ``benchmarks/results/<bench>.json``
+(``results.record``); ``python benchmarks/figures.py README.md`` then rewrites the README's
+table of figures from them (``--check``: only compare).
 """
 
 from __future__ import annotations
