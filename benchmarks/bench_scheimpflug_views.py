@@ -41,7 +41,7 @@ from lightplane.camera.intrinsics import free_parameters, _polish, calibration_f
 from lightplane.camera.corners import board_points
 from lightplane.simulate.scene import scheimpflug_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, sample_board_poses
-from results import at_least, at_most, figure, record
+from results import at_most, figure, record
 
 #: the numbers behind the last normal_matrix / calibrate line (for benchmarks/results)
 LAST: dict = {}
@@ -144,8 +144,7 @@ def main() -> None:
         print(f"  {name}: {normal_matrix(cam, v, board, flags, a.noise)}")
         if name == "capture (20 views)":
             figs.append(figure("capture_lambda_over_cut", "Scheimpflug capture: smallest eigenvalue / OpenCV's cut",
-                               LAST["lambda_over_cut"], "x", statistic="at the truth, 20 views",
-                               target=at_least(1.0, "x")))
+                               LAST["lambda_over_cut"], "x", statistic="at the truth, 20 views"))
         for s in range(a.seeds):
             print(f"    seed {s}: {calibrate(cam, v, board, flags, a.noise, s)}")
             if name == "capture (20 views)" and s == 0:
@@ -153,8 +152,7 @@ def main() -> None:
                                 LAST["worst_sigma"], "sigma", statistic=f"seed 0, corner noise {a.noise} px",
                                 target=at_most(3.0, "sigma")),
                          figure("capture_worst_sigma_opencv", "Scheimpflug capture: worst error, OpenCV's sigma",
-                                LAST["worst_sigma_opencv"], "sigma", statistic=f"seed 0, corner noise {a.noise} px",
-                                target=at_most(3.0, "sigma"))]
+                                LAST["worst_sigma_opencv"], "sigma", statistic=f"seed 0, corner noise {a.noise} px")]
     print("shorter lenses (the capture, distances scaled by f / 16 mm):")
     for f in (12.0, 8.0, 6.0):
         c = scheimpflug_camera(f_mm=f)
