@@ -1,4 +1,4 @@
-"""Benchmark of light-plane calibration from images (issue 7): accuracy and speed.
+"""Benchmark of light-plane calibration from images: accuracy and speed.
 
 Renders (cached under ``benchmarks/out/renders``) 12-image circle-target data sets —
 realistic light and dark polarity, hard light and dark — and ``N_BOARDS`` chessboards of

@@ -1,4 +1,4 @@
-"""Benchmark of ellipse detection and refinement (issue 5).
+"""Benchmark of ellipse detection and refinement.
 
 1. Real photographs: the 40 ELSDc calibration-pattern images (../shared/data/
    elsdc-calibration-patterns): precision, recall and F-measure at IoU >= 0.8 (area

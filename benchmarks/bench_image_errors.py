@@ -1,4 +1,4 @@
-"""Benchmark: where the plane's error with the exact camera exceeds its noise model (issue 15).
+"""Benchmark: where the plane's error with the exact camera exceeds its noise model.
 
 On the circle images of ``bench_camera_uncertainty.py``'s sets (its cache; rendered here when
 missing), observed and solved (``ml``) with the exact camera: the points' actual errors are their

@@ -1,4 +1,4 @@
-"""Speed of ``calibrate_camera`` on the 30-view calibration capture (issue 18), optionally against a
+"""Speed of ``calibrate_camera`` on the 30-view calibration capture, optionally against a
 reference checkout in the same run.
 
 The capture is ``bench_calibrate.py``'s (15x11 corners of 8 mm, realistic imaging, rendered once and

@@ -1,4 +1,4 @@
-"""Benchmark of the several-lasers calibration (issue 14, item 3) on two-laser circle renders.
+"""Benchmark of the several-lasers calibration on two-laser circle renders.
 
 Renders (cached under ``benchmarks/out/renders``) 12 realistic images of the default
 sensor's disc with two lasers whose stripes cross on it: the default laser in the red

@@ -1,4 +1,4 @@
-"""Lens models end to end on renders (issue 16): a Scheimpflug sensor and a rational-model wide lens.
+"""Lens models end to end on renders: a Scheimpflug sensor and a rational-model wide lens.
 
 For each rig (``lightplane.simulate.scene.lens_camera``: ``tilted`` = the default 16 mm
 lens with its sensor tilted 4.52° so that the default light plane is the plane in focus;

@@ -1,4 +1,4 @@
-"""Speed under controlled load (issue 19): the same work with 0, 1 and 2 busy background processes.
+"""Speed under controlled load: the same work with 0, 1 and 2 busy background processes.
 
 A sensor PC is never idle.  This benchmark starts ``k`` = 0, 1, 2 background processes
 that each keep a core busy (a Python loop, pinned to the same CPUs, killed by the

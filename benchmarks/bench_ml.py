@@ -1,4 +1,4 @@
-"""Benchmark and Monte-Carlo check of the joint ML refinement (issue 4, part B).
+"""Benchmark and Monte-Carlo check of the joint ML refinement.
 
 1. Speed: ``refine_ml`` and ``calibrate_plane_from_points(method="ml")`` (global + ML)
    on 12 placements x (200 rim + 300 stripe points), default sensor with distortion,

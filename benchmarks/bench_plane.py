@@ -1,4 +1,4 @@
-"""Benchmark of the light-plane solvers (issue 4): `paper` and `global` on 12 placements
+"""Benchmark of the light-plane solvers: `paper` and `global` on 12 placements
 x (200 rim + 300 stripe points), default sensor geometry with distortion, sigma 0.1 px.
 
 Target: median <= 10 ms per call of `calibrate_plane_from_points` (2 cores).  Also shown:

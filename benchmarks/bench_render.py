@@ -1,4 +1,4 @@
-"""Benchmark of the renderer (issue 3): a 12-image 1280x960 realistic circle set.
+"""Benchmark of the renderer: a 12-image 1280x960 realistic circle set.
 
 Target: under 30 s on 2 cores.  Prints the median of several runs (after one
 warm-up that compiles or loads the numba kernels), the per-image time and the

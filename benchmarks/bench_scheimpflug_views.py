@@ -1,4 +1,4 @@
-"""Which views determine a Scheimpflug sensor's tilt (issue 16)?  Exact corners plus Gaussian noise.
+"""Which views determine a Scheimpflug sensor's tilt?  Exact corners plus Gaussian noise.
 
 The tilted model (OpenCV's, ``calibrate-camera --model tilted``) with free principal point and
 tangential distortion, for the Scheimpflug rig of ``bench_lens_models.py``

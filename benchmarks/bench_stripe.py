@@ -1,4 +1,4 @@
-"""Speed of the stripe extractors on 1280x960 8-bit frames (docs/method.md §Stripe centres; issue 6 targets).
+"""Speed of the stripe extractors on 1280x960 8-bit frames (docs/method.md §Stripe centres).
 
 Run: ``.venv/bin/python benchmarks/bench_stripe.py [--repeat N]``.  Prints the median
 (and the minimum, which shows what the code does when the shared machine is not
@@ -9,7 +9,7 @@ core, so medians on a loaded 2-core machine can be many times the minimum; the
 fast this machine is right now).  Targets: ``extract_profile`` <= 1 ms per 1280x960
 frame (>= 1000 profiles/s), >= 3000 profiles/s on a 1280x128 region,
 ``extract_stripe`` <= 8 ms per frame; batched 1280x64 regions of interest
-(``extract_profiles``) >= 10,000 profiles/s (0.1 ms a frame; issue 19).  The threading
+(``extract_profiles``) >= 10,000 profiles/s (0.1 ms a frame).  The threading
 layer and thread counts are printed first (``lightplane.core.threads.describe``).
 """
 

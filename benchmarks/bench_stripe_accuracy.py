@@ -1,4 +1,4 @@
-"""Accuracy of the stripe centres on rendered circle-target images (issue 6: <= 0.1 px on realistic renders).
+"""Accuracy of the stripe centres on rendered circle-target images (<= 0.1 px on realistic renders).
 
 For each difficulty level (clean, realistic, hard) 24 images (seeds 0 and 1, 12 each)
 are rendered and both extractors are scored against the exact truth: the signed

@@ -16,7 +16,7 @@ the same volume, and the ratio predicted / actual (honest: ~1); the offset's and
 angle's predicted sigma (RMS over the data sets); the median solve time (global + ML).  Since every data set
 has different placements, the offset's mean over the data sets (a systematic error
 common to all, which no noise model covers) is printed separately from its scatter.
-Targets (issue 7): angle <= 0.01 deg, offset <= 0.02 mm, triangulation <= 0.02 mm RMS.
+Targets: angle <= 0.01 deg, offset <= 0.02 mm, triangulation <= 0.02 mm RMS.
 
 Renders are cached as compressed .npz under ``--cache`` (default /tmp/lightplane_bench_uncertainty).
 

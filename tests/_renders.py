@@ -27,3 +27,11 @@ def cached_render(name: str, make: Callable[[], object]) -> Path:
         except OSError:  # another worker was faster
             pass
     return out
+
+
+def cached_circle_render(n: int = 5, seed: int = 11, difficulty: str = "realistic", polarity: str = "light") -> Path:
+    """Folder with ``n`` rendered circle images, camera.json and truth.json (rendered once per renderer version)."""
+    import lightplane.simulate.render as R
+
+    return cached_render(f"circle_{difficulty}_{polarity}_n{n}_s{seed}",
+                         lambda: R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, polarity=polarity))

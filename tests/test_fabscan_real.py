@@ -287,7 +287,7 @@ def test_scan_stripe_coverage(fabscan, scan):
 
 
 def test_cli_two_lasers_from_the_cycle_of_frames(fabscan, camera_cal, planes, tmp_path):
-    """``calibrate-plane-board`` with both lasers at once, defaults otherwise (issue 14, item 3):
+    """``calibrate-plane-board`` with both lasers at once, defaults otherwise:
     the 51 frames 67-117 in order, ``--cycle P,L,L --laser laser0=cycle:1 --laser laser1=cycle:2``.
 
     Two plane files, each naming its laser; each equals Zhou's plane of that laser computed

@@ -1,4 +1,4 @@
-"""Shapes fitted to measured points, and comparisons against a known truth (issue 18, item 3).
+"""Shapes fitted to measured points, and comparisons against a known truth.
 
 What a measurement is checked with: a sphere's radius and centre (:func:`fit_sphere`),
 a plane's flatness (:func:`fit_plane`), the height of a step between two parallel faces

@@ -1,4 +1,4 @@
-"""Joint refinement of the camera and the light plane (issue 15, item 4; docs/method.md §Joint refinement).
+"""Joint refinement of the camera and the light plane (docs/method.md §Joint refinement).
 
 The two-step calibration solves the intrinsics from the chessboard corners alone, then the
 plane from the circle images with those intrinsics held fixed.  The circle images carry

@@ -9,7 +9,7 @@ the plane moves it by ``J δ`` with
 so ``Cov(X) = J Σ Jᵀ`` (Σ: the plane's 4x4 covariance).  ``point_sigma_mm`` is
 ``sqrt(trace Cov(X))``: the RMS length of the 3D error vector (mm).
 
-The camera's share (issue 15): a camera file from ``calibrate-camera`` carries the
+The camera's share: a camera file from ``calibrate-camera`` carries the
 covariance of its intrinsics (``fx, fy, cx, cy``, distortion); the plane calibration then
 records ``∂(a, b, c, d)/∂(intrinsics)`` (the circle poses and the stripe rays both depend
 on them).  A point moved by a change δK of the intrinsics moves by

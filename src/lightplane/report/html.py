@@ -1,4 +1,4 @@
-"""Self-contained HTML report of a light-plane calibration from images (issue 7).
+"""Self-contained HTML report of a light-plane calibration from images.
 
 One file, ``index.html``, that opens offline: the figures are PNGs (:mod:`lightplane.report.plots`)
 embedded as base64, no scripts, no external style sheets.  Contents:

@@ -1,4 +1,4 @@
-"""Every figure of lightplane, in one module (issue 18, item 3).
+"""Every figure of lightplane, in one module.
 
 matplotlib is imported inside the functions (Agg backend), so nothing else pays for it
 and the library's computing modules never import it: the CLI commands, the report
