@@ -16,8 +16,6 @@ from __future__ import annotations
 
 from lightplane.version import __version__
 
-from lightplane.core import threads  # noqa: F401  (first: numba's threading layer and OpenMP wait policy, before any kernel)
-
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
@@ -37,8 +35,6 @@ from lightplane.camera.targets import Detection, Target, parse_target
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.plane.zhou import calibrate_plane_board
 from lightplane.evaluate.crossratio import evaluate_images
-
-threads.limit_blas()   # last: the BLAS libraries numpy and scipy load are all in by now
 
 __all__ = [
     "Camera",

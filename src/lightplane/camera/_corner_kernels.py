@@ -20,8 +20,7 @@ import math
 
 import numpy as np
 
-from lightplane.core import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
-from numba import njit  # noqa: E402
+from numba import njit
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_2_PI = math.sqrt(2.0 / math.pi)

@@ -20,6 +20,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.camera.lens import COEFF_NAMES, MODELS, coeff_names
 from lightplane.camera.targets import Target, as_target, correct_circle_centres, dot_diameter_mm
 from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
+from lightplane.core.threads import with_blas_limited
 
 __all__ = ["BoardView", "IntrinsicsCalibration",
            "LENS_REFIT_BEND_PX", "opencv_std_ratio", "rays_up_to_rotation",
@@ -316,6 +317,7 @@ class IntrinsicsCalibration:
         }
 
 
+@with_blas_limited
 def calibrate_camera(
     images: Sequence,
     board: "tuple[int, int] | Target",

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import math
 
-from lightplane.core import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
-from numba import njit  # noqa: E402
+from numba import njit
 
 from lightplane.camera.lens import distort_jac, undistort_guess  # noqa: E402
 

@@ -8,6 +8,7 @@ a missing file...) gives one line on stderr and exit status 2.
 from __future__ import annotations
 
 from lightplane.cli._common import app
+from lightplane.core.threads import blas_limited, ensure_configured
 
 # Importing the modules registers their subcommands on ``app``.
 from lightplane.cli import (  # noqa: E402,F401
@@ -27,7 +28,10 @@ from lightplane.cli import (  # noqa: E402,F401
 
 
 def main() -> None:  # console-script entry point
-    app()
+    """The command line owns its process: lightplane's thread settings for all of it (core.threads)."""
+    ensure_configured()
+    with blas_limited():
+        app()
 
 
 __all__ = ["app", "main"]

@@ -15,23 +15,24 @@ other processes hold the cores.  The rules, applied by the library itself:
   never nested inside a pool.
 
 BLAS: the OpenBLAS / MKL pools (numpy's, scipy's and the one OpenCV's wheel brings) are
-set to **one thread** when lightplane is imported (:func:`limit_blas`, through
-``threadpoolctl``), unless the user has set ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``,
-``BLIS_NUM_THREADS`` or ``OMP_NUM_THREADS``.  Our matrices are small (least-squares
-Jacobians of a few thousand rows, 3x3 and 4x4 transforms), so BLAS threads never paid here; but OpenBLAS's threads
-spin for ~0.1 s after every call it splits, and on two cores they took the cores from
-the frame kernels that came next: a 200-frame ROI batch took 54 ms right after a few
-BLAS calls against 34 ms after a 50 ms pause (same run, medians of 8).  Process-wide,
-as the OpenMP settings are; ``threadpoolctl.threadpool_limits`` undoes it for a block
-of the user's own heavy linear algebra.
+held at **one thread** while lightplane's own calibrations and scans run (:func:`blas_limited`, a
+``threadpoolctl`` context around each of them; the command line holds it for the whole command),
+unless the user has set ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS`` or
+``OMP_NUM_THREADS``.  Our matrices are small (least-squares Jacobians of a few thousand rows, 3x3
+and 4x4 transforms), so BLAS threads never paid here; but OpenBLAS's threads spin for ~0.1 s
+after every call it splits, and on two cores they took the cores from the frame kernels that came
+next (a 200-frame ROI batch took 54 ms right after a few BLAS calls against 34 ms after a 50 ms
+pause, same run, medians of 8).  Outside those calls the user's own BLAS settings stand;
+:func:`limit_blas` applies the same limit to the whole process for those who want it.
 
 Threading layer: OpenMP first (thread-safe for launches from several Python threads,
 unlike ``workqueue``; TBB is rarely installed), with the *passive* wait policy
 (``OMP_WAIT_POLICY=PASSIVE``, ``KMP_BLOCKTIME=0``, and for GNU OpenMP a short spin first,
 ``GOMP_SPINCOUNT=20000`` iterations): a thread that has finished its
-share sleeps soon instead of spinning on a core another process needs.  They are
-set here before numba loads its OpenMP runtime (that is, at the import of
-:mod:`lightplane`), unless the user has set them (environment variables
+share sleeps soon instead of spinning on a core another process needs.  ``import lightplane``
+changes none of this: :func:`ensure_configured` sets them right before lightplane launches its
+first parallel kernel (the OpenMP runtime reads them once, when numba loads it), and the command
+line at its start, unless the user has set them (environment variables
 ``NUMBA_THREADING_LAYER``, ``OMP_WAIT_POLICY``, ``KMP_BLOCKTIME``, ``GOMP_SPINCOUNT``, which win).
 :func:`threading_info` reports what is in effect (printed by the benchmarks).
 """
@@ -39,11 +40,17 @@ set here before numba loads its OpenMP runtime (that is, at the import of
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import threading
 import time
+from typing import Callable, ParamSpec, TypeVar
 
-__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "limit_blas", "BLAS_THREADS",
+P = ParamSpec("P")
+R = TypeVar("R")
+
+__all__ = ["serial_kernels", "frames_across_threads", "threading_info", "limit_blas", "blas_limited", "BLAS_THREADS",
+           "ensure_configured", "with_blas_limited",
            "profile_parallel", "idle_cpus", "in_serial_context", "PARALLEL_MIN_PIXELS", "PARALLEL_MIN_LINES"]
 
 #: which OpenMP runtime was already loaded before lightplane set its wait policy (then it has no effect)
@@ -63,8 +70,16 @@ def _omp_runtimes_loaded() -> list[str]:
 GOMP_SPINCOUNT = 20000
 
 
-def _configure() -> None:
-    global _OMP_PRELOADED
+_configured = False
+
+
+def ensure_configured() -> None:
+    """Set OpenMP's wait policy and numba's threading layer (see the module's notes) unless the user
+    has set them; once, before lightplane's first parallel kernel.  Cheap after the first call."""
+    global _OMP_PRELOADED, _configured
+    if _configured:
+        return
+    _configured = True
     _OMP_PRELOADED = _omp_runtimes_loaded()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # GNU and LLVM/Intel OpenMP: sleep, do not spin
     os.environ.setdefault("KMP_BLOCKTIME", "0")           # LLVM/Intel OpenMP: the same, in ms of spinning
@@ -80,20 +95,18 @@ def _configure() -> None:
         numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 
-_configure()
-
 #: BLAS threads lightplane leaves in numpy's, scipy's and OpenCV's pools (:func:`limit_blas`)
 BLAS_THREADS = 1
 _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "OMP_NUM_THREADS")
 #: what :func:`limit_blas` did (reported by :func:`threading_info`)
-_blas_note = ["not applied yet"]
+_blas_note = [f"held at {BLAS_THREADS} inside lightplane's calibrations and scans only"]
 
 
 def limit_blas() -> None:
-    """numpy's, scipy's and OpenCV's BLAS pools to :data:`BLAS_THREADS` (called once, at the end of
-    ``import lightplane``, when the BLAS libraries it uses are loaded), unless one of
-    ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``,
-    ``OMP_NUM_THREADS`` is set: then the user's setting stands."""
+    """numpy's, scipy's and OpenCV's BLAS pools to :data:`BLAS_THREADS` for the rest of the process
+    (an opt-in: lightplane itself limits them only around its own calls, :func:`blas_limited`), unless
+    one of ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``, ``OMP_NUM_THREADS``
+    is set: then the user's setting stands."""
     given = [v for v in _BLAS_ENV if v in os.environ]
     if given:
         _blas_note[0] = f"left as set by {', '.join(given)}"
@@ -107,6 +120,41 @@ def limit_blas() -> None:
 
     threadpool_limits(limits=BLAS_THREADS, user_api="blas")
     _blas_note[0] = f"limited to {BLAS_THREADS} by lightplane"
+
+
+_blas_depth = threading.local()
+
+
+@contextlib.contextmanager
+def blas_limited():
+    """Hold numpy's, scipy's and OpenCV's BLAS pools at :data:`BLAS_THREADS` for a block of
+    lightplane's own work (its calibrations and scans), then give the user's setting back; nested
+    blocks cost nothing.  A no-op when the user has set one of the BLAS thread variables."""
+    depth = getattr(_blas_depth, "n", 0)
+    if depth or any(v in os.environ for v in _BLAS_ENV):
+        _blas_depth.n = depth + 1
+        try:
+            yield
+        finally:
+            _blas_depth.n = depth
+        return
+    from threadpoolctl import threadpool_limits
+
+    _blas_depth.n = 1
+    try:
+        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+            yield
+    finally:
+        _blas_depth.n = 0
+
+
+def with_blas_limited(func: Callable[P, R]) -> Callable[P, R]:
+    """Decorator: ``func`` runs inside :func:`blas_limited`."""
+    @functools.wraps(func)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        with blas_limited():
+            return func(*args, **kwargs)
+    return wrapper
 
 
 def _blas_pools() -> list[tuple[str, int]]:
@@ -135,6 +183,7 @@ def in_serial_context() -> bool:
 
 
 def _numba():
+    ensure_configured()  # numba's thread calls load its OpenMP runtime
     try:
         import numba
 

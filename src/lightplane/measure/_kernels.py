@@ -13,8 +13,7 @@ import math
 
 import numpy as np
 
-from lightplane.core import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
-from numba import njit  # noqa: E402
+from numba import njit
 
 #: :func:`hermite_lookup`'s status of each point
 NOT_FINITE, DONE, OFF_GRID, NOT_BUILT = 0, 1, 2, 3

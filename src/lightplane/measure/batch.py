@@ -61,6 +61,7 @@ from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, 
 from lightplane.motion.model import Motion
 from lightplane.plane.model import LightPlane
 from lightplane.version import __version__
+from lightplane.core.threads import with_blas_limited
 
 if TYPE_CHECKING:
     from lightplane.camera.model import Camera
@@ -512,6 +513,7 @@ def _partition_path(out_dir: Path, sid: str, k: int) -> Path:
     return out_dir / "points" / f"scan={sid}" / f"part-{k}.parquet"
 
 
+@with_blas_limited
 def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: str | os.PathLike, *,
                   client=None, scheduler: str | None = None, local_workers: int | None = None,
                   chunk_frames: int = DEFAULT_CHUNK_FRAMES, axis: str = "auto", roi=None,

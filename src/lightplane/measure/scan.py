@@ -45,6 +45,7 @@ from lightplane.core.io import (check_output, expand_inputs, provenance, rotatio
 from lightplane.core.threads import enter_serial, frames_across_threads, serial_kernels
 from lightplane.stripe import kernels as K
 from lightplane.stripe.extract import estimate_width
+from lightplane.core.threads import with_blas_limited
 
 __all__ = [
     "Motion",
@@ -553,6 +554,7 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
     return source, motion, axis, width_px
 
 
+@with_blas_limited
 def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motion: Motion | None = None,
                 axis: str = "auto", roi=None, width_px: float | None = None, channel: str | None = None,
                 workers: int | None = 1, executor: str = "auto", **stripe_options) -> tuple[np.ndarray, ScanSummary]:
@@ -580,6 +582,7 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motio
     return recs, summ
 
 
+@with_blas_limited
 def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_path: str | os.PathLike, *,
                  fmt: str | None = None, ascii: bool = False, motion: Motion | None = None, axis: str = "auto",
                  roi=None, width_px: float | None = None, channel: str | None = None, workers: int | None = None,

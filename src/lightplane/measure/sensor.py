@@ -39,6 +39,7 @@ from lightplane.core.io import (check_output, provenance, read_json, summarize_r
     write_json)
 from lightplane.measure.pointcloud import PointSpool, cloud_format, write_cloud
 from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
+from lightplane.core.threads import with_blas_limited
 
 __all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
 
@@ -224,6 +225,7 @@ class LaserScanSummary:
     seconds: float
 
 
+@with_blas_limited
 def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera: Camera, out_path, *,
                    motion: Motion | None = None, fmt: str | None = None, ascii: bool = False,
                    force: bool = False, channel: str | None = None, width_px: float | None = None,

@@ -54,6 +54,7 @@ from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camer
     camera_steps, camera_with_params, plane_noise_covers, point_sigma_mm, volume_sigma, working_volume_grid)
 from lightplane.stripe.extract import extract_stripe
 from lightplane.stripe.lasers import LaserSelector, no_stripe_message
+from lightplane.core.threads import with_blas_limited
 
 if TYPE_CHECKING:
     from lightplane.ellipse.model import Ellipse
@@ -663,6 +664,7 @@ def _checked_inputs(images, distance_range_mm) -> tuple[list, tuple[float, float
 
 
 # ------------------------------------------------------------------------ public
+@with_blas_limited
 def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml", *,
                     workers: int | None = None, executor: str = "thread",
                     progress: Callable[[int, int], None] | None = None,

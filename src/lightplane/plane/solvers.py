@@ -222,6 +222,7 @@ def _finite_or_none(x) -> float | None:
 from lightplane.core.geometry import fit_plane_tls as fit_plane_points  # noqa: E402
 from lightplane.core.geometry import ray_plane as backproject_to_plane  # noqa: E402
 from lightplane.core.geometry import robust_line, sampson_distance, tls_line  # noqa: E402,F401
+from lightplane.core.threads import with_blas_limited  # noqa: E402
 
 
 def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -831,6 +832,7 @@ class SolverOptions:
             raise LightplaneError(f"ml must be MLOptions, got {type(self.ml).__name__}")
 
 
+@with_blas_limited
 def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.ndarray], stripes: Sequence[np.ndarray],
                                 method: str = "ml", options: SolverOptions | None = None, *,
                                 min_placements: int = 3) -> PlaneCalibration:

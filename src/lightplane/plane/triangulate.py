@@ -14,10 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lightplane.camera.model import Camera, as_points
-from lightplane.core import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
-from numba import njit  # noqa: E402
+from numba import njit
 
 __all__ = ["triangulate", "triangulate_normalized", "Triangulation", "GRAZING_COS", "AXES", "profile_axis",
            "points_sigma_mm"]

@@ -29,6 +29,7 @@ from lightplane.plane.model import LightPlane
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
 from lightplane.stripe.extract import extract_stripe
+from lightplane.core.threads import with_blas_limited
 
 __all__ = [
     "corners_clear_of_stripe",
@@ -438,6 +439,7 @@ def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, boa
     return v.poses, v.stripes, v.names
 
 
+@with_blas_limited
 def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: float | None = None, *,
                           background_images: Sequence[np.ndarray] | None = None,
                           pattern_images: Sequence | None = None,

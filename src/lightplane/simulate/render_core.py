@@ -39,6 +39,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from lightplane.core.threads import ensure_configured
 from lightplane.camera.lens_kernels import distort_jac_kernel, newton_step_kernel
 from lightplane.camera.lens import lens_params, undistort_guess
 from lightplane.core.errors import LightplaneError
@@ -520,6 +521,7 @@ _RAY_MAPS: dict = {}
 def _ray_maps(camera) -> tuple[np.ndarray, np.ndarray]:
     """Cached rays (normalised undistorted x, y) of the pixel centres ``(H, W, 2)`` and
     corners ``(H+1, W+1, 2)`` of a camera (the last two cameras used are kept, ~40 MB each at 1280x960)."""
+    ensure_configured()  # OpenMP settings before the first parallel kernel
     key = (camera.K.tobytes(), camera.model, camera.dist.tobytes(), camera.width, camera.height)
     if key not in _RAY_MAPS:
         if len(_RAY_MAPS) >= 2:
@@ -546,6 +548,7 @@ def render_radiance(camera, patches: np.ndarray, spheres: np.ndarray, laser: np.
     per-pixel mode (0 uniform, 1 S x S, 2 F x F).  ``texels``: the pool of bitmap
     texels (uint8, 1 = ink) that ``bitmap`` patches index (see :func:`make_patch`).
     """
+    ensure_configured()  # OpenMP settings before the first parallel kernel
     import cv2
 
     if int(samples) < 4:

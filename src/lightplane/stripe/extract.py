@@ -108,7 +108,7 @@ from scipy.ndimage import median_filter
 
 from lightplane.stripe import kernels as K
 from lightplane.core.errors import LightplaneError
-from lightplane.core.threads import in_serial_context, profile_parallel
+from lightplane.core.threads import ensure_configured, in_serial_context, profile_parallel
 from lightplane.core.io import to_gray_float
 from lightplane.stripe.reference import profile_numpy
 
@@ -330,6 +330,7 @@ def _lines_array(img: np.ndarray, axis: str, roi) -> tuple[np.ndarray, int, int]
 
 
 def _profile_numba(A, w0, w1, w2, params, parallel=True):
+    ensure_configured()  # OpenMP settings before the first parallel kernel
     S, L = A.shape
     centre = np.empty(L)
     normal = np.empty((L, 2))
@@ -674,6 +675,7 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     memory, which the next batch of the same size reuses once nothing of this one is
     alive (see :class:`_BatchBlock`; :func:`release_batch_memory`).
     """
+    ensure_configured()  # OpenMP settings before the first parallel kernel
     if isinstance(frames, np.ndarray) and frames.ndim not in (3, 4):
         raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
     if not isinstance(frames, np.ndarray):
@@ -957,6 +959,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     -------
     :class:`StripePoints` (possibly empty).
     """
+    ensure_configured()  # OpenMP settings before the first parallel kernel
     import cv2
 
     img, fs = _channel_image(image, channel)

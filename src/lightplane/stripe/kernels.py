@@ -20,7 +20,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from lightplane.core import threads as _threads  # noqa: F401  (sets numba's threading layer and wait policy first)
 from numba import njit, prange  # noqa: E402
 
 __all__ = ["gaussian_derivative_kernels"]
