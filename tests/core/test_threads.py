@@ -188,24 +188,31 @@ def test_threading_configuration_is_applied():
     assert "numba threading layer" in threads.describe()
 
 
-def test_blas_pools_limited_unless_the_user_set_them():
-    """numpy's, scipy's and OpenCV's BLAS pools at one thread after ``import lightplane``; a
-    user's ``OPENBLAS_NUM_THREADS`` (here 2) stands.  Fresh interpreters: the limit is set at import."""
+def test_import_changes_no_process_setting_and_blas_is_held_only_inside_lightplane():
+    """``import lightplane`` leaves the BLAS pools and the OpenMP variables as they were; inside
+    :func:`blas_limited` (lightplane's calibrations and scans, the whole command line) the pools are at
+    one thread and afterwards back; a user's ``OPENBLAS_NUM_THREADS`` (here 2) stands throughout.
+    Fresh interpreters, so that nothing of this process's state counts."""
+    import json
     import subprocess
 
-    code = ("import lightplane, json; from lightplane import threads; "
-            "print(json.dumps([threads.threading_info()['blas_pools'], threads.threading_info()['blas_setting']]))")
-    env = {k: v for k, v in os.environ.items() if k not in threads._BLAS_ENV}
+    code = ("import json, os, cv2, scipy.linalg; from threadpoolctl import threadpool_info\n"
+            "def pools(): return sorted(d['num_threads'] for d in threadpool_info() if d['user_api'] == 'blas')\n"
+            "before = pools(); import lightplane; from lightplane.core import threads\n"
+            "after = pools(); omp = [v for v in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT', 'KMP_BLOCKTIME') if v in os.environ]\n"
+            "with threads.blas_limited():\n    inside = pools()\n"
+            "print(json.dumps([before, after, omp, inside, pools()]))")
+    env = {k: v for k, v in os.environ.items() if k not in threads._BLAS_ENV + ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT",
+                                                                                 "KMP_BLOCKTIME")}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    import json
-
-    pools, note = json.loads(out.stdout.strip().splitlines()[-1])
-    assert len(pools) >= 2 and all(n == threads.BLAS_THREADS for _, n in pools), pools   # numpy's and scipy's at least
-    assert "limited" in note
+    before, after, omp, inside, later = json.loads(out.stdout.strip().splitlines()[-1])
+    assert after == before and omp == [], (before, after, omp)
+    assert len(inside) >= 2 and all(n == threads.BLAS_THREADS for n in inside), inside
+    assert later == before
     out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"}, capture_output=True,
                          text=True, check=True)
-    pools, note = json.loads(out.stdout.strip().splitlines()[-1])
-    assert "OPENBLAS_NUM_THREADS" in note and any(n == 2 for _, n in pools), (pools, note)
+    before, after, omp, inside, later = json.loads(out.stdout.strip().splitlines()[-1])
+    assert inside == before and 2 in inside, (before, inside)
 
 
 def test_scan_worker_threads_run_serial_kernels():
