@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import lightplane.camera._corner_kernels as ck
+import lightplane.camera.corners as corners_module
 from lightplane.camera.model import Camera
 from lightplane.camera.corners import _fit_corners, refine_corners
 from test_intrinsics_corners import BOARD, SHAPE, affine_board, truth_corners
@@ -167,7 +168,7 @@ def _recorded_fits(monkeypatch, run):
         kernel(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost)
         calls.append(((px, py, img, w0, radius, taper, start, warm, max_iter, tol), best_P.copy(), best_cost.copy()))
 
-    monkeypatch.setattr(ck, "fit_saddles", record)
+    monkeypatch.setattr(corners_module, "fit_saddles", record)  # where the corner fit looks it up
     out = run()
     monkeypatch.undo()
     return calls, out
