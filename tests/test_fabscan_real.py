@@ -33,7 +33,7 @@ from lightplane.plane.zhou import calibrate_plane_board
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.core.io import read_image
 from lightplane.plane.model import LightPlane
-from lightplane.plane.solvers import tls_line
+from lightplane.core.geometry import tls_line
 from lightplane.stripe.extract import extract_stripe
 
 pytestmark = pytest.mark.realdata

@@ -275,3 +275,36 @@ def test_idle_cpus_does_not_count_this_process_own_threads(monkeypatch):
     assert threads.idle_cpus() == 1
     threads._idle_time[0] = -1.0
     assert threads._own_running_threads() >= 1   # the real reading counts at least the caller
+
+
+def test_blas_limited_blocks_of_two_threads_restore_the_pools_once_both_end():
+    """The BLAS pools are process-wide: a block that ends while another thread's block still runs
+    keeps the limit, and the last one to end gives the original setting back."""
+    import threading
+
+    from threadpoolctl import threadpool_info
+
+    if any(v in os.environ for v in threads._BLAS_ENV):
+        pytest.skip("a BLAS thread variable is set: blas_limited leaves the pools alone")
+
+    def pools():
+        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+
+    before = pools()
+    entered, release = threading.Event(), threading.Event()
+
+    def other():
+        with threads.blas_limited():
+            entered.set()
+            release.wait(30)
+
+    t = threading.Thread(target=other)
+    t.start()
+    entered.wait(30)
+    with threads.blas_limited():
+        assert all(n == threads.BLAS_THREADS for n in pools())
+    still = pools()
+    release.set()
+    t.join(30)
+    assert all(n == threads.BLAS_THREADS for n in still), still   # the other thread's block still runs
+    assert pools() == before

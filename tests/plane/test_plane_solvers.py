@@ -356,7 +356,7 @@ def test_paper_stopping_rule_and_reasons():
 def test_tls_line_recovers_a_line_and_its_normal():
     """Points on u = 3 + 0.5 t, v = -2 + t (t spread over 200 px) with 0.01 px noise across: direction and normal
     of the line to ~1e-4 rad, centroid on the line within the noise, normal orthogonal to the direction."""
-    from lightplane.plane.solvers import tls_line
+    from lightplane.core.geometry import tls_line
 
     rng = np.random.default_rng(4)
     t = rng.uniform(-100, 100, 400)

@@ -102,12 +102,17 @@ _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "OMP
 _blas_note = [f"held at {BLAS_THREADS} inside lightplane's calibrations and scans only"]
 
 
+def _blas_set_by_user() -> list[str]:
+    """The BLAS thread variables the user has set (then lightplane leaves the pools alone)."""
+    return [v for v in _BLAS_ENV if v in os.environ]
+
+
 def limit_blas() -> None:
     """numpy's, scipy's and OpenCV's BLAS pools to :data:`BLAS_THREADS` for the rest of the process
     (an opt-in: lightplane itself limits them only around its own calls, :func:`blas_limited`), unless
     one of ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``, ``OMP_NUM_THREADS``
     is set: then the user's setting stands."""
-    given = [v for v in _BLAS_ENV if v in os.environ]
+    given = _blas_set_by_user()
     if given:
         _blas_note[0] = f"left as set by {', '.join(given)}"
         return
@@ -122,30 +127,35 @@ def limit_blas() -> None:
     _blas_note[0] = f"limited to {BLAS_THREADS} by lightplane"
 
 
-_blas_depth = threading.local()
+_blas_lock = threading.Lock()
+_blas_users = 0
+_blas_limiter = None
 
 
 @contextlib.contextmanager
 def blas_limited():
     """Hold numpy's, scipy's and OpenCV's BLAS pools at :data:`BLAS_THREADS` for a block of
-    lightplane's own work (its calibrations and scans), then give the user's setting back; nested
-    blocks cost nothing.  A no-op when the user has set one of the BLAS thread variables."""
-    depth = getattr(_blas_depth, "n", 0)
-    if depth or any(v in os.environ for v in _BLAS_ENV):
-        _blas_depth.n = depth + 1
-        try:
-            yield
-        finally:
-            _blas_depth.n = depth
+    lightplane's own work (its calibrations and scans), then give the user's setting back.  The
+    pools are process-wide: the first block (of any thread) sets them, the last one to end restores
+    them, and blocks inside it cost nothing.  A no-op when the user has set a BLAS thread variable."""
+    global _blas_users, _blas_limiter
+    if _blas_set_by_user():
+        yield
         return
     from threadpoolctl import threadpool_limits
 
-    _blas_depth.n = 1
+    with _blas_lock:
+        if _blas_users == 0:
+            _blas_limiter = threadpool_limits(limits=BLAS_THREADS, user_api="blas")
+        _blas_users += 1
     try:
-        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-            yield
+        yield
     finally:
-        _blas_depth.n = 0
+        with _blas_lock:
+            _blas_users -= 1
+            if _blas_users == 0 and _blas_limiter is not None:
+                _blas_limiter.restore_original_limits()
+                _blas_limiter = None
 
 
 def with_blas_limited(func: Callable[P, R]) -> Callable[P, R]:

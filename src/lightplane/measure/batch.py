@@ -46,7 +46,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -55,18 +55,12 @@ from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
 from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
 from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, write_json
-from lightplane.core.threads import frames_across_threads
 from lightplane.measure.pointcloud import PointSpool, write_cloud
 from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
 from lightplane.motion.model import Motion
 from lightplane.plane.model import LightPlane
 from lightplane.version import __version__
-from lightplane.core.threads import with_blas_limited
-
-if TYPE_CHECKING:
-    from lightplane.camera.model import Camera
-    from lightplane.plane.model import LightPlane
-    from lightplane.motion.model import Motion
+from lightplane.core.threads import frames_across_threads, with_blas_limited
 
 __all__ = ["BatchScan", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
            "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]

@@ -34,7 +34,7 @@ import time
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, cast, Sequence, TYPE_CHECKING
+from typing import Callable, cast, Sequence
 
 import numpy as np
 
@@ -55,9 +55,6 @@ from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camer
 from lightplane.stripe.extract import extract_stripe
 from lightplane.stripe.lasers import LaserSelector, no_stripe_message
 from lightplane.core.threads import with_blas_limited
-
-if TYPE_CHECKING:
-    from lightplane.ellipse.model import Ellipse
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
            "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
@@ -876,16 +873,15 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     warnings.extend(f"{o.name} not used: {o.reason}" for o in obs if not o.ok)
     meta = dict(cal.plane.meta)
     meta.update({"diameter_mm": diameter, "n_images": n})
+    dep = None
     if camera.covariance is not None and cal.covariance is not None:
         rims, stripes = [o.rim_uv for o in ok], [o.stripe_uv for o in ok]
         dep = propagate_camera(
             lambda cam: calibrate_plane_from_points(cam, diameter, rims, stripes, method=method, options=solver,
                                                     min_placements=min_placements).plane, camera, cal.plane)
         meta[CameraDependence.KEY] = dep.to_dict()
-    else:
-        dep = None
     cov = cal.covariance
-    if cov is not None and dep is not None and meta.get("noise_model"):
+    if dep is not None and meta.get("noise_model"):
         meta["noise_model"], f = _dispersion_beside_camera(meta["noise_model"], dep)
         cov = f * np.asarray(cov)
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)

@@ -7,12 +7,19 @@ paper's progressive solver, the global disambiguation and the joint ML refinemen
 
 from __future__ import annotations
 
+from dataclasses import dataclass as _dataclass
+from dataclasses import field as _field
 from functools import cached_property
+from typing import Sequence
 
 import numpy as np
 
-from lightplane.camera.model import as_points
+from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
+from lightplane.core.geometry import fit_plane_tls, ray_plane, robust_line, sampson_distance
+from lightplane.core.threads import with_blas_limited
+from lightplane.plane.circle_pose import CirclePose, circle_poses, circle_poses_batch, fit_conic, fit_conics
+from lightplane.plane.ml import MLOptions, refine_ml
 from lightplane.plane.model import LightPlane
 
 __all__ = [
@@ -59,16 +66,6 @@ __all__ = [
 # msd/tau^2 ~0.6 on average, < 4 at worst), a wrong chord is typically > 20 tau away
 # at 0.2 px (msd/tau^2 > 500) and > 7 tau at 1 px (default geometry).
 
-from dataclasses import dataclass as _dataclass  # noqa: E402
-from dataclasses import field as _field  # noqa: E402
-from typing import TYPE_CHECKING, Sequence  # noqa: E402
-
-if TYPE_CHECKING:
-    from lightplane.plane.circle_pose import CirclePose
-
-from lightplane.plane.ml import MLOptions, refine_ml  # noqa: E402
-from lightplane.camera.model import Camera
-from lightplane.plane.circle_pose import CirclePose, circle_poses, circle_poses_batch, fit_conic, fit_conics
 
 _KAPPA = 5.0
 _TAU_FLOOR_REL = 1e-9  # tau >= 1e-9 * z: rounding of noise-free data (~1e-11 mm) stays below it
@@ -218,11 +215,6 @@ def _finite_or_none(x) -> float | None:
 
 
 # ------------------------------------------------------------------- geometry helpers
-# the primitives live in lightplane.core.geometry; these names stay importable from here
-from lightplane.core.geometry import fit_plane_tls as fit_plane_points  # noqa: E402
-from lightplane.core.geometry import ray_plane as backproject_to_plane  # noqa: E402
-from lightplane.core.geometry import robust_line, sampson_distance, tls_line  # noqa: E402,F401
-from lightplane.core.threads import with_blas_limited  # noqa: E402
 
 
 def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -361,7 +353,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
                           tau_unit_mm=(np.nan, np.nan), usable=False,
                           reason=f"too few stripe points on a line ({n_in} < {min_stripe_points})")
     xy = stripe_xy[inliers]
-    chords = tuple(backproject_to_plane(xy, p.normal, p.center) for p in poses)
+    chords = tuple(ray_plane(xy, p.normal, p.center) for p in poses)
     if any(not np.all(np.isfinite(ch)) for ch in chords):
         return candidates(chords=empty, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
                           stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=(np.nan, np.nan), usable=False,
@@ -441,7 +433,7 @@ def _fit_assignment(cands, idx, choice, sigma_px, weighted=True):
     P = np.concatenate(pts)
     W = np.concatenate(ws)
     W = W / W.max()
-    n, d, _ = fit_plane_points(P, W)
+    n, d, _ = fit_plane_tls(P, W)
     return n, d
 
 
@@ -1036,7 +1028,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
             kk = k if k is not None else 0
             if k is not None and method == "ml":
                 xy = c.stripe_xy
-                chord = backproject_to_plane(xy, poses_final[i].normal, poses_final[i].center)
+                chord = ray_plane(xy, poses_final[i].normal, poses_final[i].center)
             else:
                 chord = c.chords[kk]
             chord_rms = float(np.sqrt(_msd(chord, plane.normal, plane.d))) if k is not None else np.nan
