@@ -279,32 +279,26 @@ def test_idle_cpus_does_not_count_this_process_own_threads(monkeypatch):
 
 def test_blas_limited_blocks_of_two_threads_restore_the_pools_once_both_end():
     """The BLAS pools are process-wide: a block that ends while another thread's block still runs
-    keeps the limit, and the last one to end gives the original setting back."""
-    import threading
+    keeps the limit, and the last one to end gives the original setting back.  A fresh interpreter,
+    so that no other test's threads or loaded libraries count."""
+    import json
+    import subprocess
 
-    from threadpoolctl import threadpool_info
-
-    if any(v in os.environ for v in threads._BLAS_ENV):
-        pytest.skip("a BLAS thread variable is set: blas_limited leaves the pools alone")
-
-    def pools():
-        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
-
-    before = pools()
-    entered, release = threading.Event(), threading.Event()
-
-    def other():
-        with threads.blas_limited():
-            entered.set()
-            release.wait(30)
-
-    t = threading.Thread(target=other)
-    t.start()
-    entered.wait(30)
-    with threads.blas_limited():
-        assert all(n == threads.BLAS_THREADS for n in pools())
-    still = pools()
-    release.set()
-    t.join(30)
+    code = ("import json, threading, cv2, scipy.linalg; from threadpoolctl import threadpool_info\n"
+            "from lightplane.core import threads\n"
+            "def pools(): return [d['num_threads'] for d in threadpool_info() if d['user_api'] == 'blas']\n"
+            "before = pools(); entered, release = threading.Event(), threading.Event()\n"
+            "def other():\n"
+            "    with threads.blas_limited():\n        entered.set(); release.wait(30)\n"
+            "t = threading.Thread(target=other); t.start(); entered.wait(30)\n"
+            "with threads.blas_limited():\n    both = pools()\n"
+            "still = pools(); release.set(); t.join(30)\n"
+            "print(json.dumps([before, both, still, pools()]))")
+    env = {k: v for k, v in os.environ.items() if k not in threads._BLAS_ENV}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    before, both, still, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(before) >= 2, before
+    assert all(n == threads.BLAS_THREADS for n in both), both
     assert all(n == threads.BLAS_THREADS for n in still), still   # the other thread's block still runs
-    assert pools() == before
+    assert after == before, (before, after)
+

@@ -137,7 +137,7 @@ def blas_limited():
     """Hold numpy's, scipy's and OpenCV's BLAS pools at :data:`BLAS_THREADS` for a block of
     lightplane's own work (its calibrations and scans), then give the user's setting back.  The
     pools are process-wide: the first block (of any thread) sets them, the last one to end restores
-    them, and blocks inside it cost nothing.  A no-op when the user has set a BLAS thread variable."""
+    them; a block entered while another runs applies the limit again (about a millisecond).  A no-op when the user has set a BLAS thread variable."""
     global _blas_users, _blas_limiter
     if _blas_set_by_user():
         yield
@@ -147,6 +147,8 @@ def blas_limited():
     with _blas_lock:
         if _blas_users == 0:
             _blas_limiter = threadpool_limits(limits=BLAS_THREADS, user_api="blas")
+        else:   # again: a library loaded since, or a pool another caller has changed meanwhile
+            threadpool_limits(limits=BLAS_THREADS, user_api="blas")
         _blas_users += 1
     try:
         yield
