@@ -23,7 +23,8 @@ from lightplane.plane.solvers import PlaneCalibration, SolverOptions, calibrate_
 from lightplane.plane.ml import MLOptions
 from lightplane.plane.triangulate import triangulate
 from lightplane.plane.circle_pose import CirclePose, circle_poses
-from lightplane.ellipse import Ellipse, detect_ellipses, refine_ellipse, select_target
+from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, EllipseRefinementOptions, detect_ellipses,
+                                refine_ellipse, select_target)
 from lightplane.stripe.extract import StripePoints, StripeProfile, extract_profile, extract_stripe
 from lightplane.plane.calibrate import calibrate_plane
 from lightplane.evaluate.crossratio import DistanceErrors, distance_errors
@@ -47,6 +48,8 @@ __all__ = [
     "parse_target",
     "DistanceErrors",
     "Ellipse",
+    "EllipseDetectionOptions",
+    "EllipseRefinementOptions",
     "LightPlane",
     "LightplaneError",
     "Motion",
