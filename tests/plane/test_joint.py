@@ -8,13 +8,14 @@ the rendered-image version is benchmarks/bench_camera_uncertainty.py.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
 
 from lightplane.core.errors import LightplaneError
 from lightplane.camera.intrinsics import free_parameters, intrinsics_covariance
-from lightplane.plane.joint import refine_joint_points
+from lightplane.plane.joint import JointBoardViews, JointOptions, JointTargetPlacements, refine_joint_points
 from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import _Pose
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
@@ -30,8 +31,7 @@ N_VIEWS, N_PLACEMENTS = 8, 6
 def _data(rng, sigma_px: float):
     """Exact geometry and its noisy observations: board views and target placements."""
     true, plane = default_camera(), default_plane()
-    poses = sample_board_poses(N_VIEWS, rng, camera=true, board=BOARD, square_mm=8.0, distance_mm=CC["distance_mm"],
-                               tilt_deg=CC["tilt_deg"], centre_frac=0.8, spin_deg=30.0)
+    poses = sample_board_poses(N_VIEWS, rng, replace(CC, board=BOARD, square_mm=8.0), camera=true)
     obj = board_corners(BOARD, 8.0)
     uv = [true.project(obj @ R.T + t) + sigma_px * rng.standard_normal((len(obj), 2)) for R, t in poses]
     placements = sample_placements(N_PLACEMENTS, rng, camera=true, plane=plane)
@@ -45,9 +45,10 @@ def _solve(true, plane, poses, obj, uv, placements, obs, sigma_px, start_camera,
     free = free_parameters(5, FLAGS)
     if board_poses is None:
         board_poses = [(cv2.Rodrigues(R)[0].ravel(), t) for R, t in poses]
-    return refine_joint_points(start_camera, free, [obj] * len(uv), uv, [b[0] for b in board_poses],
-                               [b[1] for b in board_poses], sigma_px, 25.0, [o[0] for o in obs], [o[1] for o in obs],
-                               start_plane, start_poses, sigma_px, sigma_px, huber_c=None)
+    views = JointBoardViews([obj] * len(uv), uv, [b[0] for b in board_poses], [b[1] for b in board_poses], sigma_px)
+    targets = JointTargetPlacements(25.0, [o[0] for o in obs], [o[1] for o in obs], start_plane, start_poses,
+                                    sigma_px, sigma_px)
+    return refine_joint_points(start_camera, free, views, targets, JointOptions(huber_c=None))
 
 
 def test_noise_free_recovers_the_truth_from_a_perturbed_start():
@@ -175,9 +176,9 @@ def test_bad_input_is_one_clear_error(case):
     free = free_parameters(5, FLAGS)
     rv = [cv2.Rodrigues(R)[0].ravel() for R, _ in poses]
     tv = [t for _, t in poses]
-    args = dict(camera=true, free=free, board_points=[obj] * len(uv), corners_uv=uv, rvecs=rv, tvecs=tv,
-                sigma_corner_px=0.05, radius_mm=25.0, rims_uv=[o[0] for o in obs], stripes_uv=[o[1] for o in obs],
-                plane0=plane, poses0=placements, sigma_rim_px=0.05, sigma_stripe_px=0.05)
+    args = dict(board_points=[obj] * len(uv), corners_uv=uv, rvecs=rv, tvecs=tv, sigma_corner_px=0.05,
+                radius_mm=25.0, rims_uv=[o[0] for o in obs], stripes_uv=[o[1] for o in obs], plane0=plane,
+                poses0=placements, sigma_rim_px=0.05, sigma_stripe_px=0.05)
     if case == "lengths":
         args["rvecs"] = rv[:-1]
         msg = "one entry per view"
@@ -188,7 +189,10 @@ def test_bad_input_is_one_clear_error(case):
         args["sigma_corner_px"] = 0.0
         msg = "sigma_corner_px must be positive"
     else:
-        args["free"] = free[:5]
+        free = free[:5]
         msg = "'free' must have 9 entries"
+    views = JointBoardViews(*(args[k] for k in ("board_points", "corners_uv", "rvecs", "tvecs", "sigma_corner_px")))
+    targets = JointTargetPlacements(*(args[k] for k in ("radius_mm", "rims_uv", "stripes_uv", "plane0", "poses0",
+                                                        "sigma_rim_px", "sigma_stripe_px")))
     with pytest.raises(LightplaneError, match=msg):
-        refine_joint_points(**args)
+        refine_joint_points(true, free, views, targets)

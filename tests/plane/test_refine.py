@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane, LightplaneError
-from lightplane.plane.ml import _Pose, _Problem, crlb, refine_ml
+from lightplane.plane.ml import MLOptions, _Pose, _Problem, crlb, refine_ml
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 from lightplane.plane.uncertainty import (
     point_covariance,
@@ -320,8 +320,8 @@ def test_per_type_weighting_reaches_crlb_where_a_shared_sigma_does_not():
     for _ in range(n_trials):
         rims = [o[0] + rng.normal(0, s_rim, o[0].shape) for o in obs]
         sts = [o[1] + rng.normal(0, s_st, o[1].shape) for o in obs]
-        r1 = refine_ml(cam, R_MM, rims, sts, plane, ps, correlated=False)
-        r2 = refine_ml(cam, R_MM, rims, sts, plane, ps, noise="shared", huber_c=None, correlated=False)
+        r1 = refine_ml(cam, R_MM, rims, sts, plane, ps, MLOptions(correlated=False))
+        r2 = refine_ml(cam, R_MM, rims, sts, plane, ps, MLOptions(noise="shared", huber_c=None, correlated=False))
         e_typ.append(rms_triangulation_error_mm(cam, r1.plane, plane, vol) ** 2)
         e_sh.append(rms_triangulation_error_mm(cam, r2.plane, plane, vol) ** 2)
         s_r.append(r1.sigma_rim_px)
@@ -363,7 +363,7 @@ def test_correlated_stripe_noise_inflated_covariance_matches_monte_carlo():
         rims = [o[0] + rng.normal(0, s_rim, o[0].shape) for o in obs]
         sts = [o[1] + _ar1(rng, len(o[1]), phi, s_st) for o in obs]
         res = refine_ml(cam, R_MM, rims, sts, plane, ps)
-        res_w = refine_ml(cam, R_MM, rims, sts, plane, ps, correlated=False)
+        res_w = refine_ml(cam, R_MM, rims, sts, plane, ps, MLOptions(correlated=False))
         e2_w.append(rms_triangulation_error_mm(cam, res_w.plane, plane, vol) ** 2)
         e2.append(rms_triangulation_error_mm(cam, res.plane, plane, vol) ** 2)
         pred2.append(rms_point_sigma_mm(cam, res.plane, vol) ** 2)
@@ -394,7 +394,7 @@ def test_white_noise_is_not_inflated_and_outliers_are_downweighted():
         nrm = np.linalg.svd(s - s.mean(axis=0), full_matrices=False)[2][1]
         s[rng.choice(len(s), 4, replace=False)] += 3.0 * nrm
     robust = refine_ml(cam, R_MM, rims, bad, plane, ps)
-    plain = refine_ml(cam, R_MM, rims, bad, plane, ps, huber_c=None)
+    plain = refine_ml(cam, R_MM, rims, bad, plane, ps, MLOptions(huber_c=None))
     assert robust.n_outliers >= 32
     sd = np.sqrt(np.trace(clean.covariance[:3, :3]))
     assert _angle(robust.plane.normal, clean.plane.normal) < 1.0 * sd

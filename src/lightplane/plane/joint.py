@@ -56,7 +56,8 @@ from lightplane.plane.uncertainty import camera_param_names, camera_params, came
 if TYPE_CHECKING:
     from lightplane.plane.calibrate import ImagePlaneCalibration
 
-__all__ = ["JointResult", "refine_joint_points", "refine_joint", "JointCalibration", "joint_dispersion"]
+__all__ = ["JointResult", "JointBoardViews", "JointTargetPlacements", "JointOptions", "refine_joint_points",
+           "refine_joint", "JointCalibration", "joint_dispersion"]
 
 
 @dataclass(frozen=True)
@@ -99,140 +100,221 @@ def _check(name: str, ok: bool) -> None:
         raise LightplaneError(f"refine_joint: {name}")
 
 
-def refine_joint_points(camera: Camera, free: np.ndarray, board_points: Sequence[np.ndarray],
-                        corners_uv: Sequence[np.ndarray], rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray],
-                        sigma_corner_px: float, radius_mm: float, rims_uv: Sequence[np.ndarray],
-                        stripes_uv: Sequence[np.ndarray], plane0: LightPlane, poses0: Sequence,
-                        sigma_rim_px: float, sigma_stripe_px: float, *, tau_rim: float = 1.0, tau_stripe: float = 1.0,
-                        huber_c: float | None = 3.0, max_nfev: int = 100, dispersion: bool = True) -> JointResult:
+@dataclass(frozen=True)
+class JointBoardViews:
+    """The camera calibration's side of the joint problem (:func:`refine_joint_points`).
+
+    Per chessboard view: its corners in the board frame ``board_points`` (N, 3) mm, their
+    detections ``corners_uv`` (N, 2) distorted px and the start pose (``rvecs``, ``tvecs`` of
+    ``cv2``); ``sigma_corner_px`` the corner noise (px).
+    """
+
+    board_points: Sequence[np.ndarray]
+    corners_uv: Sequence[np.ndarray]
+    rvecs: Sequence[np.ndarray]
+    tvecs: Sequence[np.ndarray]
+    sigma_corner_px: float
+
+
+@dataclass(frozen=True)
+class JointTargetPlacements:
+    """The plane calibration's side of the joint problem (:func:`refine_joint_points`).
+
+    ``radius_mm`` the target's radius; per target placement: rim and stripe points
+    ``rims_uv``, ``stripes_uv`` (distorted px) and the start pose ``poses0`` (objects with
+    ``center``, ``normal``); the plane's start ``plane0``; the rim and stripe noise sigmas (px)
+    and autocorrelation times of :func:`lightplane.plane.ml.refine_ml`'s noise model.
+    """
+
+    radius_mm: float
+    rims_uv: Sequence[np.ndarray]
+    stripes_uv: Sequence[np.ndarray]
+    plane0: LightPlane
+    poses0: Sequence
+    sigma_rim_px: float
+    sigma_stripe_px: float
+    tau_rim: float = 1.0
+    tau_stripe: float = 1.0
+
+
+@dataclass(frozen=True)
+class JointOptions:
+    """Options of the joint refinement (:func:`refine_joint_points`, :func:`refine_joint`).
+
+    ``huber_c``: points beyond ``huber_c`` sigma at the start are down-weighted (Huber), as in
+    :func:`lightplane.plane.ml.refine_ml` (None: no reweighting); ``max_nfev``: the solver's
+    evaluations at most; ``dispersion`` (default): the covariance is multiplied by the joint
+    problem's dispersion (:func:`joint_dispersion`); False: it is reported only.
+    """
+
+    huber_c: float | None = 3.0
+    max_nfev: int = 100
+    dispersion: bool = True
+
+    def __post_init__(self):
+        if self.huber_c is not None and not (np.isfinite(self.huber_c) and self.huber_c > 0):
+            raise LightplaneError(f"huber_c must be positive or None, got {self.huber_c}")
+        if int(self.max_nfev) < 1:
+            raise LightplaneError(f"max_nfev must be >= 1, got {self.max_nfev}")
+
+
+class _JointModel:
+    """The joint problem's residuals and Jacobian in the stacked parameters
+    ``[free intrinsics, board poses (rvec, tvec) ..., plane and target poses (refine_ml's)]``."""
+
+    def __init__(self, camera: Camera, free: np.ndarray, views: JointBoardViews, targets: JointTargetPlacements,
+                 huber_c: float | None):
+        self.camera = camera
+        self.names = camera_param_names(camera)
+        self.p0 = p0 = camera_params(camera)
+        free = np.asarray(free, bool).ravel()
+        _check(f"'free' must have {len(p0)} entries, got {free.size}", free.size == len(p0))
+        self.fi = fi = np.flatnonzero(free)
+        self.nf = fi.size
+        self.nb = nb = len(views.board_points)
+        _check("board points, corners and poses must have one entry per view",
+               nb == len(views.corners_uv) == len(views.rvecs) == len(views.tvecs) and nb >= 1)
+        t = targets
+        _check("rims, stripes and poses must have one entry per placement",
+               len(t.rims_uv) == len(t.stripes_uv) == len(t.poses0))
+        _check(f"at least 2 target placements are needed, got {len(t.rims_uv)}", len(t.rims_uv) >= 2)
+        for name, v in (("sigma_corner_px", views.sigma_corner_px), ("sigma_rim_px", t.sigma_rim_px),
+                        ("sigma_stripe_px", t.sigma_stripe_px), ("tau_rim", t.tau_rim), ("tau_stripe", t.tau_stripe)):
+            _check(f"{name} must be positive and finite, got {v}", bool(np.isfinite(v) and v > 0))
+        self.obj = [np.asarray(o, np.float64).reshape(-1, 3) for o in views.board_points]
+        self.uvc = [np.asarray(u, np.float64).reshape(-1, 2) for u in views.corners_uv]
+        _check("each view needs as many corners as board points",
+               all(len(o) == len(u) for o, u in zip(self.obj, self.uvc)))
+        self.sigma_corner_px = views.sigma_corner_px
+        self.radius_mm = t.radius_mm
+        self.rims = [np.asarray(r, np.float64).reshape(-1, 2) for r in t.rims_uv]
+        self.stripes = [np.asarray(s, np.float64).reshape(-1, 2) for s in t.stripes_uv]
+        self.plane0 = t.plane0
+        self.poses0 = list(t.poses0)
+        self.rows_c = np.cumsum([0] + [2 * len(o) for o in self.obj])
+        self.mc = int(self.rows_c[-1])
+        self.nbp = 6 * nb
+        # the ML weights, fixed at the start (refine_ml's, re-derived from its sigmas and taus)
+        self.prob0 = prob0 = self.problem(camera)
+        self.m_rim = prob0.m_rim
+        is_rim = np.arange(prob0.m) < self.m_rim
+        s_rows = np.where(is_rim, t.sigma_rim_px, t.sigma_stripe_px)
+        r_start = prob0.residuals(prob0.x0)
+        hub = _huber_weights(r_start / s_rows, huber_c) if huber_c is not None else np.ones(prob0.m)
+        self.row_w = np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, t.tau_rim, t.tau_stripe)))
+        self.n_par = self.nf + self.nbp + prob0.p
+        self.m_all = self.mc + prob0.m
+        self.x0 = np.concatenate([p0[fi]] + [np.concatenate([np.ravel(r), np.ravel(tv)])
+                                             for r, tv in zip(views.rvecs, views.tvecs)] + [prob0.x0])
+        # central-difference steps of the intrinsics: 1e-3 px for fx, fy, cx, cy; 1e-6 for the coefficients
+        self.scale = np.where(fi < 4, 1e-3, 1e-6)
+
+    def cam_at(self, k: np.ndarray) -> Camera:
+        q = self.p0.copy()
+        q[self.fi] = k
+        return camera_with_params(self.camera, q)
+
+    def problem(self, cam: Camera) -> _Problem:
+        return _Problem(cam, self.radius_mm, self.rims, self.stripes, self.plane0, self.poses0)
+
+    def corners(self, x: np.ndarray, jac: bool):
+        import cv2
+
+        nf, rows_c, sc = self.nf, self.rows_c, self.sigma_corner_px
+        cam = self.cam_at(x[:nf])
+        r = np.empty(self.mc)
+        J = np.zeros((self.mc, self.n_par)) if jac else None
+        for i in range(self.nb):
+            rv, tv = x[nf + 6 * i:nf + 6 * i + 3], x[nf + 6 * i + 3:nf + 6 * i + 6]
+            proj, jc = cv2.projectPoints(self.obj[i], rv, tv, cam.K, cam.dist)
+            r[rows_c[i]:rows_c[i + 1]] = (proj.reshape(-1, 2) - self.uvc[i]).ravel() / sc
+            if J is not None:
+                J[rows_c[i]:rows_c[i + 1], :nf] = jc[:, 6:6 + len(self.p0)][:, self.fi] / sc
+                J[rows_c[i]:rows_c[i + 1], nf + 6 * i:nf + 6 * i + 6] = jc[:, :6] / sc
+        return r, J
+
+    def ml(self, k: np.ndarray, xm: np.ndarray) -> np.ndarray:
+        pr = self.problem(self.cam_at(k))
+        pr.set_row_weights(self.row_w)
+        return pr.residuals(xm)
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([self.corners(x, False)[0], self.ml(x[:self.nf], x[self.nf + self.nbp:])])
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        nf = self.nf
+        _, J = self.corners(x, True)
+        assert J is not None
+        k, xm = x[:nf], x[nf + self.nbp:]
+        pr = self.problem(self.cam_at(k))
+        pr.set_row_weights(self.row_w)
+        Jm = np.zeros((self.prob0.m, self.n_par))
+        Jm[:, nf + self.nbp:] = pr.dense_jacobian(xm)
+        for j in range(nf):
+            e = np.zeros(nf)
+            e[j] = self.scale[j]
+            Jm[:, j] = (self.ml(k + e, xm) - self.ml(k - e, xm)) / (2 * self.scale[j])
+        return np.vstack([J, Jm])
+
+    def covariance(self, x: np.ndarray, fun: np.ndarray, dispersion: bool) -> tuple[np.ndarray, float]:
+        """The covariance of all parameters at the solution ``x`` (weighted residuals ``fun``), times the
+        joint dispersion when ``dispersion``; and the dispersion."""
+        nf, nbp, rows_c, prob0 = self.nf, self.nbp, self.rows_c, self.prob0
+        J = self.jac(x)
+        H = J.T @ J
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        Hs = H / np.outer(d, d)
+        w = np.linalg.eigvalsh(Hs)
+        _check("the joint problem is singular (the views do not determine the intrinsics, poses and plane)",
+               bool(w[0] > 1e-13 * w[-1]))
+        cov = np.linalg.inv(Hs) / np.outer(d, d)
+        cov = 0.5 * (cov + cov.T)
+        # the images' and views' pulls on the shared parameters (intrinsics, plane) against the weights'
+        # (fun: the weighted residuals at x; the rows' images are the same in every _Problem of these points)
+        glob = np.r_[np.arange(nf), nf + nbp + np.arange(3)]
+        clusters = [(np.arange(rows_c[i], rows_c[i + 1]), nf + 6 * i + np.arange(6)) for i in range(self.nb)]
+        clusters += [(self.mc + np.r_[np.flatnonzero(prob0.rim_idx == i), self.m_rim + np.flatnonzero(prob0.st_idx == i)],
+                      nf + nbp + 3 + 5 * i + np.arange(5)) for i in range(prob0.n)]
+        psi = joint_dispersion(J, fun, glob, clusters)
+        if dispersion:
+            cov = psi * cov
+        return cov, psi
+
+
+def refine_joint_points(camera: Camera, free: np.ndarray, views: JointBoardViews, targets: JointTargetPlacements,
+                        options: JointOptions | None = None) -> JointResult:
     """The joint maximum-likelihood refinement on points (module docstring).
 
     ``camera``: start intrinsics (an OpenCV model, not fisheye); ``free`` (P,) bool: which of
-    ``fx, fy, cx, cy, dist...`` are estimated (the others held); per board view: its corners
-    in the board frame (N, 3) mm, their detections (N, 2) distorted px and the start pose
-    (rvec, tvec of ``cv2``); ``sigma_corner_px`` the corner noise; per target placement: rim
-    and stripe points (distorted px) and the start pose (objects with ``center``, ``normal``);
-    the plane's start ``plane0``; the rim and stripe noise sigmas (px) and autocorrelation
-    times.  Points beyond ``huber_c`` sigma at the start are down-weighted (Huber), as in
-    :func:`lightplane.plane.ml.refine_ml`.  ``dispersion`` (default): the covariance is multiplied
-    by the joint problem's dispersion (:func:`joint_dispersion`); False: it is reported only.
+    ``fx, fy, cx, cy, dist...`` are estimated (the others held); ``views``: the chessboard views
+    (:class:`JointBoardViews`: corners, start poses, corner noise); ``targets``: the target
+    placements (:class:`JointTargetPlacements`: rim and stripe points, start poses and plane,
+    their noise model); ``options`` (:class:`JointOptions`): Huber reweighting, the solver's
+    evaluations, whether the covariance includes the joint dispersion.
     """
-    import cv2
     from scipy.optimize import least_squares
 
-
+    opts = JointOptions() if options is None else options
     _check("the fisheye model is not supported (OpenCV's pinhole models only)", camera.model != "fisheye")
-    names = camera_param_names(camera)
-    p0 = camera_params(camera)
-    free = np.asarray(free, bool).ravel()
-    _check(f"'free' must have {len(p0)} entries, got {free.size}", free.size == len(p0))
-    fi = np.flatnonzero(free)
-    nf = fi.size
-    nb = len(board_points)
-    _check("board points, corners and poses must have one entry per view",
-           nb == len(corners_uv) == len(rvecs) == len(tvecs) and nb >= 1)
-    _check("rims, stripes and poses must have one entry per placement", len(rims_uv) == len(stripes_uv) == len(poses0))
-    _check(f"at least 2 target placements are needed, got {len(rims_uv)}", len(rims_uv) >= 2)
-    for s, v in (("sigma_corner_px", sigma_corner_px), ("sigma_rim_px", sigma_rim_px),
-                 ("sigma_stripe_px", sigma_stripe_px), ("tau_rim", tau_rim), ("tau_stripe", tau_stripe)):
-        _check(f"{s} must be positive and finite, got {v}", bool(np.isfinite(v) and v > 0))
-    obj = [np.asarray(o, np.float64).reshape(-1, 3) for o in board_points]
-    uvc = [np.asarray(u, np.float64).reshape(-1, 2) for u in corners_uv]
-    _check("each view needs as many corners as board points", all(len(o) == len(u) for o, u in zip(obj, uvc)))
-    rims = [np.asarray(r, np.float64).reshape(-1, 2) for r in rims_uv]
-    stripes = [np.asarray(s, np.float64).reshape(-1, 2) for s in stripes_uv]
-    poses0 = list(poses0)
-    rows_c = np.cumsum([0] + [2 * len(o) for o in obj])
-    mc = int(rows_c[-1])
-    nbp = 6 * nb
-
-    def cam_at(k: np.ndarray) -> Camera:
-        q = p0.copy()
-        q[fi] = k
-        return camera_with_params(camera, q)
-
-    def problem(cam: Camera) -> _Problem:
-        return _Problem(cam, radius_mm, rims, stripes, plane0, poses0)
-
-    # the ML weights, fixed at the start (refine_ml's, re-derived from its sigmas and taus)
-    prob0 = problem(camera)
-    m_rim = prob0.m_rim
-    is_rim = np.arange(prob0.m) < m_rim
-    s_rows = np.where(is_rim, sigma_rim_px, sigma_stripe_px)
-    r_start = prob0.residuals(prob0.x0)
-    hub = _huber_weights(r_start / s_rows, huber_c) if huber_c is not None else np.ones(prob0.m)
-    row_w = np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, tau_rim, tau_stripe)))
-    nml = prob0.p
-    n_par = nf + nbp + nml
-    m_all = mc + prob0.m
-    x0 = np.concatenate([p0[fi]] + [np.concatenate([np.ravel(r), np.ravel(t)]) for r, t in zip(rvecs, tvecs)]
-                        + [prob0.x0])
-    # central-difference steps of the intrinsics: 1e-3 px for fx, fy, cx, cy; 1e-6 for the coefficients
-    scale = np.where(fi < 4, 1e-3, 1e-6)
-
-    def corners(x: np.ndarray, jac: bool):
-        cam = cam_at(x[:nf])
-        r = np.empty(mc)
-        J = np.zeros((mc, n_par)) if jac else None
-        for i in range(nb):
-            rv, tv = x[nf + 6 * i:nf + 6 * i + 3], x[nf + 6 * i + 3:nf + 6 * i + 6]
-            proj, jc = cv2.projectPoints(obj[i], rv, tv, cam.K, cam.dist)
-            r[rows_c[i]:rows_c[i + 1]] = (proj.reshape(-1, 2) - uvc[i]).ravel() / sigma_corner_px
-            if J is not None:
-                J[rows_c[i]:rows_c[i + 1], :nf] = jc[:, 6:6 + len(p0)][:, fi] / sigma_corner_px
-                J[rows_c[i]:rows_c[i + 1], nf + 6 * i:nf + 6 * i + 6] = jc[:, :6] / sigma_corner_px
-        return r, J
-
-    def ml(k: np.ndarray, xm: np.ndarray) -> np.ndarray:
-        pr = problem(cam_at(k))
-        pr.set_row_weights(row_w)
-        return pr.residuals(xm)
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate([corners(x, False)[0], ml(x[:nf], x[nf + nbp:])])
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        _, J = corners(x, True)
-        assert J is not None
-        k, xm = x[:nf], x[nf + nbp:]
-        pr = problem(cam_at(k))
-        pr.set_row_weights(row_w)
-        Jm = np.zeros((prob0.m, n_par))
-        Jm[:, nf + nbp:] = pr.dense_jacobian(xm)
-        for j in range(nf):
-            e = np.zeros(nf)
-            e[j] = scale[j]
-            Jm[:, j] = (ml(k + e, xm) - ml(k - e, xm)) / (2 * scale[j])
-        return np.vstack([J, Jm])
-
-    r0 = fun(x0)
+    jm = _JointModel(camera, free, views, targets, opts.huber_c)
+    r0 = jm.fun(jm.x0)
     _check("the start values give non-finite residuals", bool(np.all(np.isfinite(r0))))
     with np.errstate(all="ignore"):
-        res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                            max_nfev=max_nfev)
+        res = least_squares(jm.fun, jm.x0, jac=jm.jac, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                            gtol=1e-12, max_nfev=opts.max_nfev)
     x = res.x
     _check("the solver did not reach a finite solution", bool(np.all(np.isfinite(x))))
-    J = jac(x)
-    H = J.T @ J
-    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    Hs = H / np.outer(d, d)
-    w = np.linalg.eigvalsh(Hs)
-    _check("the joint problem is singular (the views do not determine the intrinsics, poses and plane)",
-           bool(w[0] > 1e-13 * w[-1]))
-    cov = np.linalg.inv(Hs) / np.outer(d, d)
-    cov = 0.5 * (cov + cov.T)
-    # the images' and views' pulls on the shared parameters (intrinsics, plane) against the weights'
-    # (res.fun: the weighted residuals at x; the rows' images are the same in every _Problem of these points)
-    glob = np.r_[np.arange(nf), nf + nbp + np.arange(3)]
-    clusters = [(np.arange(rows_c[i], rows_c[i + 1]), nf + 6 * i + np.arange(6)) for i in range(nb)]
-    clusters += [(mc + np.r_[np.flatnonzero(prob0.rim_idx == i), m_rim + np.flatnonzero(prob0.st_idx == i)],
-                  nf + nbp + 3 + 5 * i + np.arange(5)) for i in range(prob0.n)]
-    psi = joint_dispersion(J, res.fun, glob, clusters)
-    if dispersion:
-        cov = psi * cov
-    # the solution's parts
-    cam_opt = cam_at(x[:nf])
-    pr = problem(cam_opt)
+    cov, psi = jm.covariance(x, res.fun, opts.dispersion)
+    return _joint_result(jm, x, res, cov, psi, float(r0 @ r0), opts.dispersion)
+
+
+def _joint_result(jm: _JointModel, x: np.ndarray, res, cov: np.ndarray, psi: float, cost_start: float,
+                  dispersion: bool) -> JointResult:
+    """The solution's parts: the camera with its covariance, the plane split into its own covariance and
+    its dependence on the intrinsics, the poses and the residuals (module docstring)."""
+    nf, nbp, nb, fi, camera = jm.nf, jm.nbp, jm.nb, jm.fi, jm.camera
+    cam_opt = jm.cam_at(x[:nf])
+    pr = jm.problem(cam_opt)
     nvec, dn, dd, C, N, _ = pr.unpack(x[nf + nbp:])
     G = plane_param_jacobian(dn)  # (4, 3) of (a, b, c, d) in the plane's minimal parameters
     ip = nf + nbp + np.arange(3)
@@ -242,28 +324,29 @@ def refine_joint_points(camera: Camera, free: np.ndarray, board_points: Sequence
     Jpk_free = cov_pk @ np.linalg.inv(cov_k)
     cov_own = cov_p - Jpk_free @ cov_k @ Jpk_free.T
     cov_own = 0.5 * (cov_own + cov_own.T)
-    P = len(p0)
+    P = len(jm.p0)
     cov_full = np.zeros((P, P))
     cov_full[np.ix_(fi, fi)] = cov_k
     Jpk = np.zeros((4, P))
     Jpk[:, fi] = Jpk_free
     camera_out = Camera(cam_opt.K, cam_opt.dist, camera.width, camera.height, rms_px=camera.rms_px,
-                        model=camera.model, covariance=cov_full, covariance_params=names)
-    dep = CameraDependence(names, Jpk, Jpk @ cov_full @ Jpk.T,
+                        model=camera.model, covariance=cov_full, covariance_params=jm.names)
+    dep = CameraDependence(jm.names, Jpk, Jpk @ cov_full @ Jpk.T,
                            "joint refinement: Cov(plane, intrinsics) Cov(intrinsics)^-1 of the joint covariance")
-    meta = dict(plane0.meta)
+    meta = dict(jm.plane0.meta)
     meta.update({CameraDependence.KEY: dep.to_dict(), "joint_refinement": True, "joint_dispersion": psi,
                  "joint_dispersion_applied": bool(dispersion)})
     plane = LightPlane(nvec, dd, cov_own, meta=meta)
-    poses = [_make_pose(C[i].copy(), N[i] if N[i] @ C[i] < 0 else -N[i], float(radius_mm)) for i in range(len(C))]
+    poses = [_make_pose(C[i].copy(), N[i] if N[i] @ C[i] < 0 else -N[i], float(jm.radius_mm)) for i in range(len(C))]
     rv = [x[nf + 6 * i:nf + 6 * i + 3].copy() for i in range(nb)]
     tv = [x[nf + 6 * i + 3:nf + 6 * i + 6].copy() for i in range(nb)]
-    rc = res.fun[:mc] * sigma_corner_px
+    rc = res.fun[:jm.mc] * jm.sigma_corner_px
     pr.set_row_weights(np.ones(pr.m))
     rm = pr.residuals(x[nf + nbp:])
+    m_rim = jm.m_rim
     return JointResult(camera=camera_out, plane=plane, plane_covariance_total=0.5 * (cov_p + cov_p.T), poses=poses,
-                       rvecs=rv, tvecs=tv, cost_start=float(r0 @ r0), cost=float(res.fun @ res.fun),
-                       n_residuals=m_all, n_params=n_par, nfev=int(res.nfev),
+                       rvecs=rv, tvecs=tv, cost_start=cost_start, cost=float(res.fun @ res.fun),
+                       n_residuals=jm.m_all, n_params=jm.n_par, nfev=int(res.nfev),
                        corner_rms_px=float(np.sqrt(np.mean(rc.reshape(-1, 2) ** 2) * 2)),
                        rim_rms_px=float(np.sqrt(np.mean(rm[:m_rim] ** 2))),
                        stripe_rms_px=float(np.sqrt(np.mean(rm[m_rim:] ** 2))), converged=bool(res.status > 0),
@@ -309,10 +392,11 @@ class JointCalibration:
     camera: Camera
 
 
-def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: float | None = 3.0) -> JointCalibration:
+def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", options: JointOptions | None = None) -> JointCalibration:
     """The joint refinement from a camera calibration (:func:`lightplane.camera.intrinsics.calibrate_camera`,
     its corners and board poses) and an ``ml`` plane calibration made with that camera
-    (:func:`lightplane.plane.calibrate.calibrate_plane`, its rim and stripe points, poses and noise model)."""
+    (:func:`lightplane.plane.calibrate.calibrate_plane`, its rim and stripe points, poses and noise model);
+    ``options``: :class:`JointOptions` (defaults when omitted)."""
     cam = intrinsics.camera
     if plane_cal.method != "ml" or plane_cal.covariance is None:
         raise LightplaneError("the joint refinement needs the plane calibrated with --method ml")
@@ -341,11 +425,13 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", *, huber_c: flo
     # the rim and stripe points weighted by their long-run noise, times the images' dispersion where the
     # plane's covariance applies it (as the corners by the views' dispersion)
     phi = float(nm.get("image_dispersion") or 1.0) if nm.get("image_dispersion_applied") else 1.0
-    res = refine_joint_points(cam, free, objs, list(intrinsics.corners_uv), list(intrinsics.rvecs),
-                              list(intrinsics.tvecs), float(sigma_c), plane_cal.diameter_mm / 2,
-                              [o.rim_uv for o in used], stripes, plane_cal.plane, [o.placement.pose for o in used],
-                              float(s_rim), float(s_st), tau_rim=phi * float(nm.get("tau_rim") or 1.0),
-                              tau_stripe=phi * float(nm.get("tau_stripe") or 1.0), huber_c=huber_c)
+    views = JointBoardViews(objs, list(intrinsics.corners_uv), list(intrinsics.rvecs), list(intrinsics.tvecs),
+                            float(sigma_c))
+    targets = JointTargetPlacements(plane_cal.diameter_mm / 2, [o.rim_uv for o in used], stripes, plane_cal.plane,
+                                    [o.placement.pose for o in used], float(s_rim), float(s_st),
+                                    tau_rim=phi * float(nm.get("tau_rim") or 1.0),
+                                    tau_stripe=phi * float(nm.get("tau_stripe") or 1.0))
+    res = refine_joint_points(cam, free, views, targets, options)
     by_index = {o.index: q for o, q in zip(used, res.poses)}
     images = tuple(replace(o, placement=replace(o.placement, pose=by_index[o.index])) if o.index in by_index else o
                    for o in plane_cal.images)

@@ -74,7 +74,7 @@ import numpy as np
 
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import robust_sigma
+from lightplane.core.geometry import robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
 from lightplane.plane.circle_pose import CirclePose
 
@@ -250,8 +250,8 @@ class _Problem:
                           for a, b in zip(rb[:-1], rb[1:])]
         self.st_order = []
         for a, b in zip(sb[:-1], sb[1:]):
-            q = sxy[a:b] - sxy[a:b].mean(axis=0)
-            self.st_order.append(np.argsort(q @ np.linalg.svd(q, full_matrices=False)[2][0]))
+            m, direction, _ = tls_line(sxy[a:b]) if b - a >= 2 else (sxy[a:b].mean(axis=0), np.array([1.0, 0.0]), None)
+            self.st_order.append(np.argsort((sxy[a:b] - m) @ direction))
         # the last evaluation (x, residuals, Jacobian blocks or None)
         self._cache_x: np.ndarray | None = None
         self._cache_r: np.ndarray | None = None
@@ -631,9 +631,7 @@ def _huber_weights(u: np.ndarray, c: float) -> np.ndarray:
 
 
 def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], stripes_uv: Sequence[np.ndarray],
-              plane0: LightPlane, poses0: Sequence[Any], *, max_iter: int = 100, noise: str = "per_type",
-              rounds: int = 3, huber_c: float | None = 3.0, correlated: bool = True,
-              dispersion: bool = True) -> MLResult:
+              plane0: LightPlane, poses0: Sequence[Any], options: MLOptions | None = None) -> MLResult:
     """Joint maximum-likelihood refinement of the light plane and all target poses.
 
     Parameters
@@ -650,31 +648,33 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     poses0 : list of poses
         Start values, objects with ``center`` (mm) and unit ``normal`` (the chosen
         candidate of :func:`lightplane.plane.circle_pose.circle_poses`).
-    noise : ``"per_type"`` (default), ``"per_placement"`` or ``"shared"``
-        ``per_type``: rim points and stripe points have their own noise sigma, each
-        estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
-        in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
-        then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
-        ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
-        consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
-        share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
-        2–4x more than the rim's edge points (speckle), so one shared sigma
-        under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
-        all points (the original model; no reweighting).  ``per_placement``: a sigma per type
-        *and* placement (stripes differ in brightness, width and speckle from image to image).
-    huber_c : float or None
-        Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
-        3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
-        influence grows only linearly).  None: plain least squares.
-    correlated : bool
-        True (default): each group's weight and covariance contribution account for the
-        integrated autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
-        stripe points ordered along the chord, rim points by angle).  False: white noise.
-    dispersion : bool
-        True (default): the covariance is multiplied by the images' dispersion
-        (:func:`image_dispersion`: how much more each image's points pull the plane than their
-        sigmas and autocorrelation times say); False: it is reported (``image_dispersion``), not
-        applied.
+    options : MLOptions, optional
+        The refinement's options (defaults when omitted):
+
+        - ``noise``: ``"per_type"`` (default), ``"per_placement"`` or ``"shared"``.
+          ``per_type``: rim points and stripe points have their own noise sigma, each
+          estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
+          in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
+          then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
+          ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
+          consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
+          share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
+          2–4x more than the rim's edge points (speckle), so one shared sigma
+          under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
+          all points (the original model; no reweighting).  ``per_placement``: a sigma per type
+          *and* placement (stripes differ in brightness, width and speckle from image to image).
+        - ``rounds``: rounds of solve / re-estimate of the sigmas (default 3).
+        - ``max_iter``: iterations of each round's Levenberg–Marquardt solve (default 100).
+        - ``huber_c``: Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
+          3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
+          influence grows only linearly).  None: plain least squares.
+        - ``correlated``: True (default): each group's weight and covariance contribution account for the
+          integrated autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
+          stripe points ordered along the chord, rim points by angle).  False: white noise.
+        - ``dispersion``: True (default): the covariance is multiplied by the images' dispersion
+          (:func:`image_dispersion`: how much more each image's points pull the plane than their
+          sigmas and autocorrelation times say); False: it is reported (``image_dispersion``), not
+          applied.
 
     Weights and covariance (what it covers, and what not)
     ------------------------------------------------------
@@ -720,45 +720,78 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
     if not isinstance(plane0, LightPlane):
         raise LightplaneError(f"plane0 must be a LightPlane, got {type(plane0).__name__}")
-    if noise not in ("per_type", "per_placement", "shared"):
-        raise LightplaneError(f"noise must be 'per_type', 'per_placement' or 'shared', got {noise!r}")
-    if huber_c is not None and not huber_c > 0:
-        raise LightplaneError(f"huber_c must be positive or None, got {huber_c}")
+    opts = MLOptions() if options is None else options
+    if not isinstance(opts, MLOptions):
+        raise LightplaneError(f"options must be MLOptions, got {type(opts).__name__}")
     rims, stripes = _check_inputs(float(radius_mm), list(rims_uv), list(stripes_uv), list(poses0))
     prob = _Problem(camera, radius_mm, rims, stripes, plane0, list(poses0))
     if prob.m <= prob.p:
         raise LightplaneError(f"refine_ml: {prob.m} points cannot determine {prob.p} parameters")
-    m_rim = prob.m_rim
-    is_rim = np.arange(prob.m) < m_rim
-    # noise groups: one sigma each
+    fit = _solve_rounds(prob, opts)
+    return _ml_result(prob, fit, opts, plane0, float(radius_mm))
+
+
+@dataclass(frozen=True)
+class _RoundsFit:
+    """Where :func:`_solve_rounds` ends: the solution ``x`` and the weights' ingredients."""
+
+    x: np.ndarray
+    nfev: int
+    converged: bool
+    r_raw: np.ndarray   # unweighted residuals at x (px)
+    hub: np.ndarray     # Huber factors of the rows
+    sig: np.ndarray     # sigma of each noise group (>= 1e-9)
+    grp: np.ndarray     # noise group of each row
+    is_rim: np.ndarray  # rim rows
+    tau_w: np.ndarray   # long-run variance factors used in the weights (rim, stripe)
+    n_rounds: int
+    kappa: float        # E[u² | |u| <= huber_c] of a standard normal (1 without Huber)
+
+
+def _noise_groups(prob: "_Problem", noise: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(is_rim (m,), group (m,))``: the rim rows and each row's noise group (one sigma each)."""
+    is_rim = np.arange(prob.m) < prob.m_rim
     if noise == "shared":
         grp = np.zeros(prob.m, int)
     elif noise == "per_type":
         grp = (~is_rim).astype(int)
     else:
         grp = np.concatenate([prob.rim_idx, prob.n + prob.st_idx]).astype(int)
+    return is_rim, grp
+
+
+def _truncated_kappa(huber_c: float | None) -> float:
+    """``E[u² | |u| <= c]`` of a standard normal (1 without Huber): the scale of the points within ``c`` sigma."""
+    if huber_c is None:
+        return 1.0
+    # a truncated Gaussian: E[u² | |u| <= c] = 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3, so that gross
+    # outliers do not inflate the scale
+    c = float(huber_c)
+    return 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / math.erf(c / math.sqrt(2))
+
+
+def _solve_rounds(prob: "_Problem", opts: MLOptions) -> _RoundsFit:
+    """The solve, then ``rounds`` rounds of re-estimated sigmas, Huber factors and autocorrelation
+    times in the weights, each followed by a solve (see :func:`refine_ml`)."""
+    huber_c = opts.huber_c
+    is_rim, grp = _noise_groups(prob, opts.noise)
     n_grp = int(grp.max()) + 1
-    x, nfev, converged = _levenberg_marquardt(prob, prob.x0, max_iter=max_iter)
-    n_rounds = int(rounds) if noise != "shared" or huber_c is not None else 0
+    x, nfev, converged = _levenberg_marquardt(prob, prob.x0, max_iter=opts.max_iter)
+    n_rounds = int(opts.rounds) if opts.noise != "shared" or huber_c is not None else 0
     r_raw = prob.residuals(x) / prob.row_w
     hub = np.ones(prob.m)
     # robust start: MAD of each group's residuals (residuals have zero mean)
     sig = np.array([robust_sigma(r_raw[grp == g], center=False) for g in range(n_grp)])
-    kappa = 1.0
-    if huber_c is not None:
-        # scale from the points within huber_c sigma (a truncated Gaussian: E[u² | |u| <= c] =
-        # 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3), so that gross outliers do not inflate it
-        c = float(huber_c)
-        kappa = 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / math.erf(c / math.sqrt(2))
+    kappa = _truncated_kappa(huber_c)
     tau_w = np.ones(2)  # long-run variance factors used in the weights (rim, stripe)
     for _round in range(n_rounds):
         sig = np.maximum(sig, 1e-9)
         s_rows = sig[grp]
         hub = _huber_weights(r_raw / s_rows, huber_c) if huber_c is not None else np.ones(prob.m)
-        if correlated and _round > 0:
+        if opts.correlated and _round > 0:
             tau_w = _residual_tau(prob, r_raw / s_rows, huber_c)
         prob.set_row_weights(np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, tau_w[0], tau_w[1]))))
-        x, nf, converged = _levenberg_marquardt(prob, x, max_iter=max_iter)
+        x, nf, converged = _levenberg_marquardt(prob, x, max_iter=opts.max_iter)
         nfev += nf
         r_raw = prob.residuals(x) / prob.row_w
         # re-estimate each group's sigma with its degrees of freedom (its rows' leverages)
@@ -769,11 +802,29 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         ss = np.bincount(grp, np.where(inl, r_raw**2, 0.0), minlength=n_grp)
         nn = np.bincount(grp, inl.astype(float), minlength=n_grp)
         sig = np.sqrt(ss / (kappa * np.maximum(nn - p_g, 1.0)))
-    # final: covariance from the weighted normal equations
     if n_rounds == 0:
         sig = np.full(n_grp, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
     sig = np.maximum(sig, 1e-9)  # noise-free data: keep the weights finite
-    s_rows = sig[grp]
+    return _RoundsFit(x, nfev, converged, r_raw, hub, sig, grp, is_rim, tau_w, n_rounds, kappa)
+
+
+@dataclass(frozen=True)
+class _Covariances:
+    """The final covariance of the minimal parameters and what goes with it (:func:`_covariances`)."""
+
+    cov: np.ndarray        # sandwich, times the images' dispersion when applied
+    cov_white: np.ndarray  # what a white-noise model with these sigmas would claim
+    sigma: float           # pooled sigma (px)
+    sig_type: np.ndarray   # rim, stripe sigma (px)
+    tau: np.ndarray        # rim, stripe autocorrelation times of the final residuals
+    disp: float
+    disp_expected: float
+
+
+def _covariances(prob: "_Problem", fit: _RoundsFit, opts: MLOptions) -> _Covariances:
+    """The covariance from the weighted normal equations at the solution (see :func:`refine_ml`)."""
+    x, r_raw, hub, is_rim, tau_w = fit.x, fit.r_raw, fit.hub, fit.is_rim, fit.tau_w
+    s_rows = fit.sig[fit.grp]
     prob.set_row_weights(np.sqrt(hub) / (s_rows * np.sqrt(np.where(is_rim, tau_w[0], tau_w[1]))))
     r_w, Jb = prob.evaluate(x, want_jac=True)
     ne_rim, ne_st = prob.group_normals(r_w, Jb)
@@ -785,25 +836,33 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
     lev = _row_leverages(prob, Jb, Hinv)
     inl = hub >= 1.0
     sig_type = np.array([np.sqrt(np.sum(np.where(inl & t, r_raw**2, 0.0))
-                                 / (kappa * max(np.sum(inl & t) - np.sum(lev[t]), 1.0))) for t in (is_rim, ~is_rim)])
-    if n_rounds == 0:
-        sig_type[:] = sig[0]
-    tau = _residual_tau(prob, r_raw / s_rows, huber_c) if correlated else np.ones(2)
+                                 / (fit.kappa * max(np.sum(inl & t) - np.sum(lev[t]), 1.0)))
+                         for t in (is_rim, ~is_rim)])
+    if fit.n_rounds == 0:
+        sig_type[:] = fit.sig[0]
+    tau = _residual_tau(prob, r_raw / s_rows, opts.huber_c) if opts.correlated else np.ones(2)
     # sandwich H⁻¹ M H⁻¹: rows were weighted with tau_w, the noise has tau (see the docstring)
     ne_rim_w, ne_st_w = _scale_normals(ne_rim, tau_w[0]), _scale_normals(ne_st, tau_w[1])
     M = (tau[0] / tau_w[0]) * ne_rim.dense() + (tau[1] / tau_w[1]) * ne_st.dense()
     cov = Hinv @ M @ Hinv
     cov = 0.5 * (cov + cov.T)
     disp, disp_expected = image_dispersion(prob, Jb, r_w, tau / tau_w, H)
-    if dispersion:
+    if opts.dispersion:
         cov = disp * cov
     # what a white-noise model with these sigmas would claim: (Σ_g J_gᵀJ_g / sigma_g²)⁻¹
     cov_white = _add_normals(ne_rim_w, ne_st_w).inverse()
-    nvec, dn, d, C, N, dN = prob.unpack(x)
+    return _Covariances(cov, cov_white, sigma, sig_type, tau, disp, disp_expected)
+
+
+def _ml_result(prob: "_Problem", fit: _RoundsFit, opts: MLOptions, plane0: LightPlane, radius_mm: float) -> MLResult:
+    """The :class:`MLResult` at the solution: plane and pose covariances, residual RMS, oriented poses."""
+    cv = _covariances(prob, fit, opts)
+    cov, tau, sig_type = cv.cov, cv.tau, cv.sig_type
+    nvec, dn, d, C, N, dN = prob.unpack(fit.x)
     G = plane_param_jacobian(dn)
     cov4 = G @ cov[:3, :3] @ G.T
     cov4 = 0.5 * (cov4 + cov4.T)
-    cov4_white = G @ cov_white[:3, :3] @ G.T
+    cov4_white = G @ cv.cov_white[:3, :3] @ G.T
     cov4_white = 0.5 * (cov4_white + cov4_white.T)
     pose_covs = []
     for i in range(prob.n):
@@ -812,30 +871,31 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         Gi[3:, 3:] = dN[i]
         sl = slice(3 + 5 * i, 8 + 5 * i)
         pose_covs.append(Gi @ cov[sl, sl] @ Gi.T)
-    r_rim, r_st = r_raw[:m_rim], r_raw[m_rim:]
+    m_rim = prob.m_rim
+    r_rim, r_st = fit.r_raw[:m_rim], fit.r_raw[m_rim:]
     rim_rms = np.array([np.sqrt(np.mean(r_rim[prob.rim_idx == i] ** 2)) for i in range(prob.n)])
     st_rms = np.array([np.sqrt(np.mean(r_st[prob.st_idx == i] ** 2)) for i in range(prob.n)])
     meta = dict(plane0.meta)
-    meta.update({"method": "ml", "sigma_px": sigma, "sigma_rim_px": float(sig_type[0]),
+    meta.update({"method": "ml", "sigma_px": cv.sigma, "sigma_rim_px": float(sig_type[0]),
                  "sigma_stripe_px": float(sig_type[1]),
-                 "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": noise,
-                 "image_dispersion": disp, "image_dispersion_applied": bool(dispersion),
-                 "image_dispersion_expected": disp_expected})
+                 "tau_rim": float(tau[0]), "tau_stripe": float(tau[1]), "noise": opts.noise,
+                 "image_dispersion": cv.disp, "image_dispersion_applied": bool(opts.dispersion),
+                 "image_dispersion_expected": cv.disp_expected})
     plane = LightPlane(nvec, d, cov4, meta=meta)
     assert plane.covariance is not None  # cov4, as the plane keeps it
     # orient each normal towards the camera (docs/conventions.md §Target pose)
     poses = []
     for i in range(prob.n):
         Ni = N[i] if N[i] @ C[i] < 0 else -N[i]
-        poses.append(_make_pose(C[i].copy(), Ni, float(radius_mm)))
-    return MLResult(plane=plane, covariance=plane.covariance, poses=poses, sigma_px=sigma, rim_rms_px=rim_rms,
-                    stripe_rms_px=st_rms, iterations=nfev, pose_covariances=pose_covs,
-                    n_residuals=prob.m, n_params=prob.p, converged=converged,
+        poses.append(_make_pose(C[i].copy(), Ni, radius_mm))
+    return MLResult(plane=plane, covariance=plane.covariance, poses=poses, sigma_px=cv.sigma, rim_rms_px=rim_rms,
+                    stripe_rms_px=st_rms, iterations=fit.nfev, pose_covariances=pose_covs,
+                    n_residuals=prob.m, n_params=prob.p, converged=fit.converged,
                     sigma_rim_px=float(sig_type[0]), sigma_stripe_px=float(sig_type[1]), tau_rim=float(tau[0]),
                     tau_stripe=float(tau[1]), covariance_white=cov4_white,
-                    n_outliers=int(np.sum(hub < 1.0)), image_dispersion=disp,
-                    image_dispersion_expected=disp_expected,
-                    dispersion_applied=bool(dispersion))
+                    n_outliers=int(np.sum(fit.hub < 1.0)), image_dispersion=cv.disp,
+                    image_dispersion_expected=cv.disp_expected,
+                    dispersion_applied=bool(opts.dispersion))
 
 
 def _residual_tau(prob: "_Problem", u: np.ndarray, huber_c: float | None) -> np.ndarray:

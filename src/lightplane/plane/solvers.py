@@ -16,9 +16,9 @@ import numpy as np
 
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import fit_plane_tls, ray_plane, robust_line, sampson_distance
+from lightplane.core.geometry import fit_conics, fit_plane_tls, ray_plane, robust_line, sampson_distance
 from lightplane.core.threads import with_blas_limited
-from lightplane.plane.circle_pose import CirclePose, circle_poses, circle_poses_batch, fit_conic, fit_conics
+from lightplane.plane.circle_pose import CirclePose, circle_poses, circle_poses_batch, fit_rim_conic
 from lightplane.plane.ml import MLOptions, refine_ml
 from lightplane.plane.model import LightPlane
 
@@ -302,7 +302,7 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
     if not np.all(np.isfinite(rim_und)):
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
     if conic is None:
-        conic = fit_conic(rim_und, name=f"{name}: rim points")
+        conic = fit_rim_conic(rim_und, name=f"{name}: rim points")
     res = sampson_distance(conic, rim_und)  # px
     rim_rms = float(np.sqrt(np.mean(res**2)))
     if not np.isfinite(rim_rms) or rim_rms > max_rim_rms_px:
@@ -999,8 +999,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         g_plane = LightPlane(normal, d)
         res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
                                                              for i in used], g_plane, [poses_final[i] for i in used],
-                        max_iter=opts.ml.max_iter, noise=opts.ml.noise, rounds=opts.ml.rounds,
-                        huber_c=opts.ml.huber_c, correlated=opts.ml.correlated, dispersion=opts.ml.dispersion)
+                        opts.ml)
         noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
                        ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion",
                         "image_dispersion_expected")
