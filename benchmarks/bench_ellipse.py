@@ -38,6 +38,8 @@ import numpy as np
 
 from lightplane.ellipse import (
     Ellipse,
+    EllipseDetectionOptions,
+    EllipseRefinementOptions,
     MatchCounts,
     detect_ellipses,
     match_ellipses,
@@ -125,7 +127,7 @@ def bench_real(quick: bool, ext_python: str | None) -> list[dict]:
         img = read_image(p)
         labels = read_ellipse_labels(DATA / "ground_truth" / (p.stem + ".txt"))
         t0 = time.process_time()
-        found = detect_ellipses(img, min_axis_px=1.5)
+        found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=1.5))
         times.append(time.process_time() - t0)
         total = total + match_ellipses(found, labels, iou_min=0.8)
         if has_ximgproc:
@@ -178,7 +180,7 @@ def bench_render(quick: bool, ext_python: str | None) -> list[dict]:
         for _ in range(3):
             c0 = time.process_time()
             t0 = time.perf_counter()
-            found = detect_ellipses(img, min_axis_px=40)
+            found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=40))
             t1 = time.perf_counter()
             c1 = time.process_time()
             sel = select_target(img, found)
@@ -253,7 +255,7 @@ def bench_default_vs_lsd(quick: bool) -> list[dict]:
     lsd = cv2.createLineSegmentDetector()
     grays = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) for img in ds.images]
     runs = {"lsd": lambda g: lsd.detect(g), "default": lambda g: detect_ellipses(g),
-            "full": lambda g: detect_ellipses(g, downscale=1)}
+            "full": lambda g: detect_ellipses(g, EllipseDetectionOptions(downscale=1))}
     cpu = {k: [] for k in runs}
     wall = {k: [] for k in runs}
     for f in runs.values():
@@ -296,14 +298,14 @@ def bench_curvature_bias(quick: bool) -> list[dict]:
         cam = ds.camera
         rows = {False: [], True: []}
         for img, tr in zip(ds.images, ds.truth["images"]):
-            sel = select_target(img, detect_ellipses(img, min_axis_px=40))
+            sel = select_target(img, detect_ellipses(img, EllipseDetectionOptions(min_axis_px=40)))
             if sel.ellipse is None:
                 continue
             C = Ellipse.from_conic(np.array(tr["target"]["conic_undistorted_px"])).conic  # interior < 0
             c_true = np.array(tr["target"]["center_mm"])
             for corr in (False, True):
                 c0 = time.process_time()
-                r = refine_ellipse(img, sel.ellipse, cam, correct_curvature=corr)
+                r = refine_ellipse(img, sel.ellipse, cam, options=EllipseRefinementOptions(correct_curvature=corr))
                 cpu = time.process_time() - c0
                 h = np.column_stack([r.edge_points_undistorted, np.ones(r.n_inliers)])
                 d = np.einsum("ni,ij,nj->n", h, C, h) / np.linalg.norm(2 * h @ C[:, :2], axis=1)

@@ -344,17 +344,18 @@ class TestFitConic:
         with pytest.raises(ValueError):
             g.fit_conic(_ellipse_points(*self.E, n=20), np.ones(19))
 
-    def test_old_names_use_it(self):
-        from lightplane.plane.circle_pose import fit_conic as cp_fit_conic
+    def test_the_other_fits_use_it(self):
+        from lightplane.plane.circle_pose import fit_rim_conic
         from lightplane.ellipse import fit_ellipse_direct
         from lightplane.core.errors import LightplaneError
 
         p = _ellipse_points(*self.E, n=30)
-        np.testing.assert_array_equal(cp_fit_conic(p), g.fit_conic(p))
+        np.testing.assert_array_equal(fit_rim_conic(p), g.fit_conic(p))
         np.testing.assert_array_equal(fit_ellipse_direct(p), g.fit_conic(p))
-        assert fit_ellipse_direct(np.zeros((4, 2))) is None
+        r = fit_ellipse_direct(np.zeros((4, 2)))
+        assert isinstance(r, g.Failure) and "at least 5" in r.reason
         with pytest.raises(LightplaneError, match="rim: need at least 5"):
-            cp_fit_conic(np.zeros((4, 2)), name="rim")
+            fit_rim_conic(np.zeros((4, 2)), name="rim")
 
 
 # ------------------------------------------------------------------ default_workers

@@ -11,6 +11,7 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.ellipse import (
     Ellipse,
+    EllipseDetectionOptions,
     detect_ellipses,
     ellipse_iou,
     fit_conic_robust,
@@ -21,6 +22,7 @@ from lightplane.ellipse import (
     render_ellipses,
     select_target,
 )
+from lightplane.core.geometry import Failure
 from lightplane.ellipse.detect import arc_groups, arc_support_segments
 from lightplane.ellipse.edges import gradients, to_uint8
 
@@ -116,16 +118,21 @@ def test_direct_and_geometric_fit_recover_ellipse_from_noisy_points():
     t = rng.uniform(0, 2 * np.pi, n)
     pts = e.points_at(t) + e.normals_at(t) * rng.normal(0, sigma, n)[:, None]
     C = fit_ellipse_direct(pts)
+    assert not isinstance(C, Failure)
     g = fit_ellipse_geometric(pts, C)
-    assert g is not None
+    assert not isinstance(g, Failure)
     eg = Ellipse.from_conic(g[0])
     # centre standard error ~ sigma * sqrt(2 / n); allow 5 sigma
     tol = 5 * sigma * math.sqrt(2 / n)
     assert np.hypot(*(eg.centre - e.centre)) < tol
     assert abs(eg.a - e.a) < 2 * tol and abs(eg.b - e.b) < 2 * tol
     assert abs(np.std(g[1]) - sigma) < 0.15 * sigma
-    assert fit_ellipse_direct(np.zeros((3, 2))) is None  # too few points
-    assert fit_ellipse_direct(np.column_stack([np.arange(20.0), np.arange(20.0)])) is None  # a line
+    few = fit_ellipse_direct(np.zeros((3, 2)))  # too few points
+    assert isinstance(few, Failure) and "at least 5" in few.reason
+    line = fit_ellipse_direct(np.column_stack([np.arange(20.0), np.arange(20.0)]))  # a line
+    assert isinstance(line, Failure) and "collinear" in line.reason
+    assert isinstance(fit_ellipse_geometric(np.zeros((3, 2)), C), Failure)
+    assert isinstance(fit_conic_robust(np.zeros((3, 2))), Failure)
 
 
 def test_robust_fit_rejects_outliers():
@@ -134,7 +141,9 @@ def test_robust_fit_rejects_outliers():
     t = rng.uniform(0, 2 * np.pi, 300)
     pts = e.points_at(t) + rng.normal(0, 0.05, (300, 2))
     pts[:30] += rng.uniform(3, 15, (30, 2))  # 10 % gross outliers
-    C, keep, res = fit_conic_robust(pts)
+    fit = fit_conic_robust(pts)
+    assert not isinstance(fit, Failure)
+    C, keep, res = fit
     assert not np.any(keep[:30])
     assert np.hypot(*(Ellipse.from_conic(C).centre - e.centre)) < 0.03
 
@@ -210,7 +219,7 @@ def _scene(rng):
 
 def test_detect_finds_each_ellipse_once_with_polarity():
     es, img = _scene(np.random.default_rng(6))
-    found = detect_ellipses(img, min_axis_px=10)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10))
     m = match_ellipses(found, es, iou_min=0.95)
     assert (m.tp, m.fp, m.fn) == (3, 0, 0)
     for e in found:
@@ -218,13 +227,13 @@ def test_detect_finds_each_ellipse_once_with_polarity():
         assert np.hypot(*(e.centre - t.centre)) < 0.5
         assert 0.9 <= e.inlier_ratio <= 1 and 0.9 <= e.coverage <= 1 and e.score == pytest.approx(e.inlier_ratio * e.coverage)
     assert [e.score for e in found] == sorted([e.score for e in found], reverse=True)
-    dark = detect_ellipses(img, min_axis_px=10, polarity="dark")
+    dark = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10, polarity="dark"))
     assert len(dark) == 2 and all(e.polarity == -1 for e in dark)
-    light = detect_ellipses(img, min_axis_px=10, polarity="light")
+    light = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10, polarity="light"))
     assert len(light) == 1 and light[0].polarity == 1
-    assert len(detect_ellipses(img, min_axis_px=10, max_count=1)) == 1
+    assert len(detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10, max_count=1))) == 1
     # the 35 px minor axis is excluded by min_axis_px=38
-    assert len(detect_ellipses(img, min_axis_px=38)) == 2
+    assert len(detect_ellipses(img, EllipseDetectionOptions(min_axis_px=38))) == 2
 
 
 def test_arc_support_groups_turn_with_polarity():
@@ -254,7 +263,7 @@ def test_detect_with_stripe_across_the_rim():
     dist = np.abs((uu - 300) * math.cos(1.2) + (vv - 240) * math.sin(1.2))
     img = np.maximum(img, 255.0 * np.exp(-0.5 * (dist / 2.5) ** 2))
     img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
-    found = detect_ellipses(img, min_axis_px=20)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=20))
     assert len(found) >= 1
     assert ellipse_iou(found[0], e) > 0.98
     sel = select_target(img, found)
@@ -268,7 +277,7 @@ def test_detect_ellipse_cut_by_the_image_border():
     mostly_out = Ellipse.from_params((330.0, 120.0), 50.0, 35.0, 0.3)  # centre 10 px outside: < 40 % visible
     img = render_ellipses((240, 320), [mostly_in, mostly_out], inside=40.0, background=200.0, blur_px=0.8,
                           noise_sigma=2.0, rng=rng, dtype=np.uint8)
-    found = detect_ellipses(img, min_axis_px=10)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10))
     assert len(found) == 1 and ellipse_iou(found[0], mostly_in) > 0.95
     assert found[0].coverage > 0.9  # coverage of the visible sectors
 
@@ -296,7 +305,7 @@ def test_detect_degenerate_images_give_empty_list(kind):
         "colour_noise": rng.integers(0, 256, (240, 320, 3)).astype(np.uint8),
     }[kind]
     assert detect_ellipses(img) == []
-    assert detect_ellipses(img, min_axis_px=20) == []
+    assert detect_ellipses(img, EllipseDetectionOptions(min_axis_px=20)) == []
 
 
 @pytest.mark.parametrize("kind", ["uint16", "colour", "float01", "bgra"])
@@ -305,22 +314,22 @@ def test_detect_other_depths_and_colour(kind):
     img = render_ellipses((240, 320), [e], inside=50.0, background=200.0, blur_px=0.8)
     img = {"uint16": (img * 257).astype(np.uint16), "colour": np.dstack([img, 0.5 * img, img]).astype(np.uint8),
            "float01": img / 255.0, "bgra": np.dstack([img, img, img, np.full_like(img, 255)]).astype(np.uint8)}[kind]
-    found = detect_ellipses(img, min_axis_px=10)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=10))
     assert len(found) == 1 and ellipse_iou(found[0], e) > 0.97
 
 
 def test_detect_bad_arguments():
     img = np.zeros((50, 50), np.uint8)
     with pytest.raises(LightplaneError):
-        detect_ellipses(img, polarity="bright")
+        detect_ellipses(img, EllipseDetectionOptions(polarity="bright"))
     with pytest.raises(LightplaneError):
-        detect_ellipses(img, min_axis_px=30, max_axis_px=10)
+        detect_ellipses(img, EllipseDetectionOptions(min_axis_px=30, max_axis_px=10))
     with pytest.raises(LightplaneError):
         detect_ellipses(np.zeros((4, 4, 4, 4)))
     with pytest.raises(LightplaneError):
-        detect_ellipses(img, max_count=0)
+        detect_ellipses(img, EllipseDetectionOptions(max_count=0))
     with pytest.raises(LightplaneError):
-        detect_ellipses(img, min_axis_px=np.nan)
+        detect_ellipses(img, EllipseDetectionOptions(min_axis_px=np.nan))
 
 
 # ----------------------------------------------------------------------------- target selection
@@ -341,7 +350,7 @@ def test_select_target_ignores_uncrossed_clutter_and_small_crossed_holes():
     img = _stripe(img, (230.0, 0.0), 0.0, level=240.0)
     img = _stripe(img, (560.0, 0.0), 0.0, width=4.0, level=255.0)
     img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
-    found = detect_ellipses(img, min_axis_px=20)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=20))
     sel = select_target(img, found)
     assert sel.ellipse is not None and ellipse_iou(sel.ellipse, target) > 0.97
     status = dict(sel.candidates)
@@ -349,14 +358,14 @@ def test_select_target_ignores_uncrossed_clutter_and_small_crossed_holes():
     # with no stripe through the target nothing is chosen
     img2 = render_ellipses((480, 640), [target, big_uncrossed], inside=170.0, background=30.0, blur_px=0.8)
     img2 = _stripe(img2, (620.0, 0.0), 0.0).astype(np.uint8)
-    sel2 = select_target(img2, detect_ellipses(img2, min_axis_px=20))
+    sel2 = select_target(img2, detect_ellipses(img2, EllipseDetectionOptions(min_axis_px=20)))
     assert sel2.ellipse is None and sel2.reason == "stripe misses the target"
 
 
 def test_select_target_with_stripe_hint_and_size_prior():
     target = Ellipse.from_params((320.0, 240.0), 120.0, 80.0, 0.0)
     img = render_ellipses((480, 640), [target], inside=170.0, background=30.0, blur_px=0.8).astype(np.uint8)
-    found = detect_ellipses(img, min_axis_px=20)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=20))
     hint = np.column_stack([np.full(200, 330.0), np.linspace(0, 479, 200)])
     sel = select_target(img, found, stripe_hint=hint)
     assert sel.ellipse is not None and sel.crossing.chord_fraction > 0.9

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.special import chndtr
 
-from lightplane.ellipse import Ellipse, refine_ellipse
+from lightplane.ellipse import Ellipse, EllipseRefinementOptions, refine_ellipse
 from lightplane.ellipse.refine import edge_blur_sigma
 
 SIGMA_FILTER = 0.8  # refine_ellipse's default pre-smoothing (px)
@@ -81,7 +81,7 @@ def test_curvature_bias_removed_on_exact_blurred_discs(radius_px, sigma_px, pola
             centre = np.array([size // 2 + du, size // 2 + dv])
             img = _blurred_disc(size, centre, radius_px, sigma_px, inside, outside)
             init = Ellipse.from_params(centre + (0.4, -0.3), 1.02 * radius_px, 0.98 * radius_px, 0.4)
-            r0 = refine_ellipse(img, init, correct_curvature=False)
+            r0 = refine_ellipse(img, init, options=EllipseRefinementOptions(correct_curvature=False))
             r1 = refine_ellipse(img, init)
             before.append(np.mean(_signed_distance_to_circle(r0.edge_points_px, centre, radius_px)))
             after.append(np.mean(_signed_distance_to_circle(r1.edge_points_px, centre, radius_px)))
@@ -103,7 +103,7 @@ def test_curvature_bias_removed_on_blurred_ellipse():
     sigma_px = 1.0
     img = _blurred_ellipse((141, 161), e, sigma_px, 30.0, 190.0)
     init = Ellipse.from_params((80.0, 71.0), 61.0, 39.0, 0.45)
-    r0 = refine_ellipse(img, init, correct_curvature=False)
+    r0 = refine_ellipse(img, init, options=EllipseRefinementOptions(correct_curvature=False))
     r1 = refine_ellipse(img, init)
     d0 = _signed_distance_to_ellipse(r0.edge_points_px, e)
     d1 = _signed_distance_to_ellipse(r1.edge_points_px, e)

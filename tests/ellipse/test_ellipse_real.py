@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightplane.ellipse import MatchCounts, detect_ellipses, ellipse_iou, match_ellipses, read_ellipse_labels
+from lightplane.ellipse import EllipseDetectionOptions, MatchCounts, detect_ellipses, ellipse_iou, match_ellipses, read_ellipse_labels
 from lightplane.core.io import read_image
 
 DATASET = "elsdc-calibration-patterns"
@@ -30,7 +30,7 @@ def test_f_measure_on_real_calibration_patterns(calibration_patterns):
     total = MatchCounts(0, 0, 0)
     junk = n_found = 0
     for img, labels in calibration_patterns:
-        found = detect_ellipses(img, min_axis_px=1.5)
+        found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=1.5))
         total = total + match_ellipses(found, labels, iou_min=0.8)
         # false positives that are not even near-misses of a label (IoU < 0.5 with all)
         n_found += len(found)
@@ -52,7 +52,7 @@ def test_real_detections_are_consistent_with_labels(calibration_patterns):
     down of ours, ~1 px in some images); the spread about that shift is small, and the
     ring images' concentric pairs (dark disc and light hole) are both found."""
     img, labels = calibration_patterns[20]  # ring1img1: 70 rings, inner and outer contours
-    found = detect_ellipses(img, min_axis_px=1.5)
+    found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=1.5))
     off = []
     for lab in labels:
         near = [f for f in found if np.hypot(*(f.centre - lab.centre)) < 2 and abs(f.a - lab.a) < 2]

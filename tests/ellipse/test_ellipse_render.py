@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lightplane.plane.circle_pose import circle_poses
-from lightplane.ellipse import Ellipse, detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
+from lightplane.ellipse import Ellipse, EllipseDetectionOptions, detect_ellipses, expected_axis_range_px, refine_ellipse, select_target
 
 render = pytest.importorskip("lightplane.simulate.render")
 
@@ -24,7 +24,7 @@ def _measure(ds):
     rng_px = expected_axis_range_px(cam, 50.0, (380.0, 520.0))
     out, selections = [], []
     for img, tr in zip(ds.images, ds.truth["images"]):
-        found = detect_ellipses(img, min_axis_px=40)
+        found = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=40))
         sel = select_target(img, found, axis_range_px=rng_px)
         selections.append((sel, tr))
         if sel.ellipse is None or not tr["usable"]:

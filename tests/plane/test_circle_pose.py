@@ -1,11 +1,11 @@
-"""Tests of circle_poses (paper §2.2.2, docs/method.md §Circle pose) and fit_conic."""
+"""Tests of circle_poses (paper §2.2.2, docs/method.md §Circle pose) and fit_rim_conic."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from lightplane.plane.circle_pose import circle_poses, conic_residuals_px, fit_conic
+from lightplane.plane.circle_pose import circle_poses, conic_residuals_px, fit_rim_conic
 from lightplane.core.errors import LightplaneError
 from lightplane.simulate.scene import TargetPlacement, default_camera, sample_placements
 
@@ -81,18 +81,18 @@ def test_scale_and_sign_of_conic_do_not_matter():
         assert np.allclose(p.center, q.center, atol=1e-9) and np.allclose(p.normal, q.normal, atol=1e-12)
 
 
-def test_fit_conic_exact_and_noisy():
+def test_fit_rim_conic_exact_and_noisy():
     rng = np.random.default_rng(13)
     cam = default_camera(distortion=False)
     rms_all = []
     for tp in sample_placements(10, rng):
         uv = cam.project(tp.rim_points(200), distort=False)
-        C = fit_conic(uv)
+        C = fit_rim_conic(uv)
         C0 = tp.conic(cam)
         assert np.max(np.abs(C - C0)) < 1e-9
         sigma = 0.2
         noisy = uv + rng.normal(0, sigma, uv.shape)
-        Cn = fit_conic(noisy)
+        Cn = fit_rim_conic(noisy)
         # residuals of the truth's points to the noisy fit: well below the noise
         assert np.sqrt(np.mean(conic_residuals_px(Cn, uv) ** 2)) < sigma / 2
         # residuals of the noisy points: ~ sigma (RMS of the orthogonal noise component)
@@ -123,25 +123,26 @@ def test_circle_poses_bad_radius():
             circle_poses(tp.conic(cam), cam.K, r)
 
 
-def test_fit_conic_bad_points():
+def test_fit_rim_conic_bad_points():
     with pytest.raises(LightplaneError, match="at least 5"):
-        fit_conic(np.zeros((3, 2)))
+        fit_rim_conic(np.zeros((3, 2)))
     line = np.column_stack([np.arange(20.0), 2 * np.arange(20.0)])
     with pytest.raises(LightplaneError, match="rim"):
-        fit_conic(line)
+        fit_rim_conic(line)
     t = np.linspace(-2, 2, 40)
     hyperbola = np.column_stack([np.cosh(t), np.sinh(t)]) * 50
     hyperbola = np.vstack([hyperbola, -hyperbola])
     # the direct fit is ellipse-specific: a hyperbola gets an ellipse with huge residuals
-    assert np.sqrt(np.mean(conic_residuals_px(fit_conic(hyperbola), hyperbola) ** 2)) > 5.0
+    assert np.sqrt(np.mean(conic_residuals_px(fit_rim_conic(hyperbola), hyperbola) ** 2)) > 5.0
     bad = np.ones((10, 2))
     bad[3, 0] = np.nan
     with pytest.raises(LightplaneError, match="NaN"):
-        fit_conic(bad)
+        fit_rim_conic(bad)
 
 
 def test_batched_versions_match_single_and_flag_bad_items():
-    from lightplane.plane.circle_pose import circle_poses_batch, fit_conics
+    from lightplane.core.geometry import fit_conics
+    from lightplane.plane.circle_pose import circle_poses_batch
 
     rng = np.random.default_rng(14)
     cam = default_camera(distortion=False)
@@ -153,7 +154,7 @@ def test_batched_versions_match_single_and_flag_bad_items():
     for k, pts in enumerate(sets):
         if k != 2:
             assert problems[k] is None
-            assert np.allclose(conics[k], fit_conic(pts), atol=1e-15)
+            assert np.allclose(conics[k], fit_rim_conic(pts), atol=1e-15)
     good = [k for k in range(len(sets)) if k != 2]
     centers, normals, probs = circle_poses_batch(conics[good], cam.K, 25.0)
     assert all(p is None for p in probs)

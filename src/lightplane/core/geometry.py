@@ -264,6 +264,32 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
     ``conics (n, 3, 3)`` (NaN where the fit failed) and a list of n problems (None, or why not).
     """
     n = len(point_sets)
+    S_all, Tn_all, problems = _conditioned_scatters(point_sets, weights)
+    good_idx = [k for k in range(n) if problems[k] is None]
+    conics = np.full((n, 3, 3), np.nan)
+    if not good_idx:
+        return conics, problems
+    if len(good_idx) == n:
+        S, Tn = S_all, Tn_all
+    else:
+        S, Tn = S_all[good_idx], Tn_all[good_idx]
+    Cm, ok3, fitted = _direct_ellipse_fits(S, Tn)
+    for j, k in enumerate(good_idx):
+        if not ok3[j]:
+            problems[k] = "degenerate point set (collinear?)"
+        elif not fitted[j]:
+            problems[k] = "the points do not lie on an ellipse"
+        else:
+            conics[k] = Cm[j]
+    return conics, problems
+
+
+def _conditioned_scatters(point_sets, weights) -> tuple[np.ndarray, np.ndarray, list]:
+    """Per point set: the scatter matrix ``Dᵀ D`` (6, 6) of Halir & Flusser's design matrix in the
+    conditioned frame (centred, unit RMS radius), the conditioning transform (3, 3) and the
+    problem (None, or why the set cannot be fitted: too few, non-finite, coincident or
+    collinear points); zero rows where there is a problem."""
+    n = len(point_sets)
     problems: list = [None] * n
     S_all = np.zeros((n, 6, 6))
     Tn_all = np.zeros((n, 3, 3))
@@ -303,15 +329,15 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
         Tn_all[k, 0, 0] = Tn_all[k, 1, 1] = 1 / s
         Tn_all[k, 0, 2] = -m0 / s
         Tn_all[k, 1, 2] = -m1 / s
-    good_idx = [k for k in range(n) if problems[k] is None]
-    conics = np.full((n, 3, 3), np.nan)
-    if not good_idx:
-        return conics, problems
-    if len(good_idx) == n:
-        S, Tn = S_all, Tn_all
-    else:
-        S, Tn = S_all[good_idx], Tn_all[good_idx]
-    g = len(good_idx)
+    return S_all, Tn_all, problems
+
+
+def _direct_ellipse_fits(S: np.ndarray, Tn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Halir & Flusser's eigen-step for g scatter matrices ``S`` (g, 6, 6) of conditioned frames ``Tn``
+    (g, 3, 3): the conics (g, 3, 3) mapped back to the points' frame (Frobenius norm 1, positive
+    trace of the 2x2 block), whether ``S3`` was invertible (g,) and whether a real ellipse was
+    found (g,)."""
+    g = len(S)
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
     ok3 = np.abs(det3) > 1e-12 * np.abs(S3).reshape(g, 9).max(axis=1) ** 3
@@ -345,14 +371,8 @@ def fit_conics(point_sets, weights=None) -> tuple[np.ndarray, list]:
         Cm = Cm / np.sqrt(np.add.reduce(Cm * Cm, axis=(1, 2)))[:, None, None]
     np.negative(Cm, out=Cm, where=(Cm[:, 0, 0] + Cm[:, 1, 1] < 0)[:, None, None])  # positive trace of the block
     picked = score[rows, pick]
-    for j, k in enumerate(good_idx):
-        if not ok3[j]:
-            problems[k] = "degenerate point set (collinear?)"
-        elif not (np.isfinite(picked[j]) and fin[j]) or shape_problems[j] is not None:
-            problems[k] = "the points do not lie on an ellipse"
-        else:
-            conics[k] = Cm[j]
-    return conics, problems
+    fitted = np.array([bool(np.isfinite(picked[j]) and fin[j]) and shape_problems[j] is None for j in range(g)])
+    return Cm, ok3, fitted
 
 
 # ------------------------------------------------------------------ misc

@@ -40,6 +40,7 @@ bypassing the arc-support evidence test.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,7 +48,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.ellipse.edges import Gradients, edge_peaks_along_normals, gradients, prepare_gray, to_uint8
 from lightplane.ellipse.model import Ellipse
 
-__all__ = ["detect_ellipses", "auto_downscale", "arc_support_segments", "arc_groups"]
+__all__ = ["EllipseDetectionOptions", "detect_ellipses", "auto_downscale", "arc_support_segments", "arc_groups"]
 
 _POLARITY = {None: 0, 0: 0, "any": 0, "dark": -1, "light": 1, -1: -1, 1: 1}
 
@@ -244,8 +245,18 @@ def _fit_candidate(pts: np.ndarray, min_axis_px: float, max_axis_px: float):
 
 
 def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], *, min_axis_px: float,
-                        max_axis_px: float, polarity: int, shape: tuple[int, int]) -> list[tuple]:
+                        max_axis_px: float, polarity: int) -> list[tuple]:
+    """Lu §III-C: the candidates ``(cx, cy, a, b, angle, sign)`` of the groups of ``polarity``
+    (0: both): local fits of salient groups, then fits of admissible pairs of groups."""
     G = [_Group(segs, idx, s) for idx, s in groups if polarity == 0 or s == polarity]
+    cands = _local_candidates(G, min_axis_px, max_axis_px)
+    if len(G) >= 2:
+        cands += _pair_candidates(G, min_axis_px, max_axis_px)
+    return cands
+
+
+def _local_candidates(G: list[_Group], min_axis_px: float, max_axis_px: float) -> list[tuple]:
+    """Fits of the salient groups (angular span large enough) on their own."""
     cands: list[tuple] = []  # (cx, cy, a, b, angle, sign)
     # local: salient groups.  A chain may have picked up a stray segment at an end (a
     # stripe's straight edge meeting the rim): fits without one or two end segments are
@@ -263,68 +274,82 @@ def _initial_candidates(segs: np.ndarray, groups: list[tuple[np.ndarray, int]], 
             if e is not None and np.mean(np.abs(_param_distance(e, g.pts[sel]))) < 1.0:
                 cands.append((*e, g.sign))
                 break
-    # global: pairs of groups under polarity and region conditions
-    m = len(G)
-    if m >= 2:
-        sign = np.array([g.sign for g in G])
-        head = np.array([g.head for g in G])
-        tail = np.array([g.tail for g in G])
-        mid = np.array([g.mid for g in G])
-        nrm = np.array([g.normal for g in G])
-        # interior direction of each group = sign * normal (normal points to the brighter side)
-        inward = nrm * sign[:, None]
-        # chord line of group i: points x with (x - head_i) . cn_i, cn_i the chord normal pointing inward
-        ch = tail - head
-        cn = np.column_stack([-ch[:, 1], ch[:, 0]])
-        cn_len = np.maximum(np.hypot(cn[:, 0], cn[:, 1]), 1e-9)
-        cn = cn / cn_len[:, None]
-        flipc = np.sum(cn * inward, axis=1) < 0
-        cn[flipc] *= -1
-
-        def side(i_line, pts):  # signed distance of pts (for each j) from chord of i, inward positive
-            return np.sum((pts[None, :, :] - head[:, None, :]) * cn[:, None, :], axis=2)
-
-        tol = 2.0
-        ok = (sign[:, None] == sign[None, :])
-        ok &= side(None, mid) > -tol
-        ok &= side(None, head) > -tol
-        ok &= side(None, tail) > -tol
-        ok &= ok.T
-        # each group's interior direction points towards the other group
-        dv = mid[None, :, :] - mid[:, None, :]  # from i to j
-        ok &= np.sum(dv * inward[:, None, :], axis=2) > 0
-        ok &= ok.T
-        dist = np.hypot(dv[..., 0], dv[..., 1])
-        # two arcs of one ellipse are at most 2a apart; the arcs' radius of curvature
-        # (length / turn) bounds a (a <= 2 R for the axis ratios we accept)
-        radius = np.array([g.length / max(g.span, 1e-3) for g in G])
-        rmax = np.maximum(radius[:, None], radius[None, :])
-        ok &= dist <= np.minimum(4.0 * rmax, 2 * max_axis_px)
-        ok &= dist >= 0.5 * min_axis_px
-        # complete arcs need no partner
-        full = np.array([g.span >= math.radians(300) for g in G])
-        ok &= ~(full[:, None] & full[None, :])
-        # each group pairs with its nearest admissible partners only
-        dd = np.where(ok, dist, np.inf)
-        k = min(6, m - 1)
-        near_k = np.argpartition(dd, k - 1, axis=1)[:, :k] if k > 0 else np.zeros((m, 0), int)
-        sel = np.zeros_like(ok)
-        sel[np.arange(m)[:, None], near_k] = True
-        ok &= sel | sel.T
-        ok = np.triu(ok, 1)
-        ii, jj = np.nonzero(ok)
-        for i, j in zip(ii, jj):
-            pts = np.concatenate([G[i].pts, G[j].pts])
-            e = _fit_candidate(pts, min_axis_px, max_axis_px)
-            if e is None:
-                continue
-            # adaptive inlier criterion: both groups must lie on the fitted ellipse
-            di = np.abs(_param_distance(e, G[i].pts))
-            dj = np.abs(_param_distance(e, G[j].pts))
-            thr = max(1.0, 0.03 * e[3])
-            if np.mean(di < thr) >= 0.8 and np.mean(dj < thr) >= 0.8:
-                cands.append((*e, G[i].sign))
     return cands
+
+
+def _pair_candidates(G: list[_Group], min_axis_px: float, max_axis_px: float) -> list[tuple]:
+    """Fits of the admissible pairs of groups (:func:`_admissible_pairs`), kept when both groups
+    support the fit (adaptive inlier criterion)."""
+    cands: list[tuple] = []
+    ii, jj = _admissible_pairs(G, min_axis_px, max_axis_px)
+    for i, j in zip(ii, jj):
+        pts = np.concatenate([G[i].pts, G[j].pts])
+        e = _fit_candidate(pts, min_axis_px, max_axis_px)
+        if e is None:
+            continue
+        # adaptive inlier criterion: both groups must lie on the fitted ellipse
+        di = np.abs(_param_distance(e, G[i].pts))
+        dj = np.abs(_param_distance(e, G[j].pts))
+        thr = max(1.0, 0.03 * e[3])
+        if np.mean(di < thr) >= 0.8 and np.mean(dj < thr) >= 0.8:
+            cands.append((*e, G[i].sign))
+    return cands
+
+
+def _admissible_pairs(G: list[_Group], min_axis_px: float, max_axis_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(i, j)``, i < j, of groups (at least 2) under the polarity and region conditions: the
+    same polarity, each group on the interior side of the other's chord and facing it, at a
+    distance that two arcs of one ellipse can have, not both complete, each among the other's
+    nearest admissible partners."""
+    m = len(G)
+    sign = np.array([g.sign for g in G])
+    head = np.array([g.head for g in G])
+    tail = np.array([g.tail for g in G])
+    mid = np.array([g.mid for g in G])
+    nrm = np.array([g.normal for g in G])
+    # interior direction of each group = sign * normal (normal points to the brighter side)
+    inward = nrm * sign[:, None]
+    # chord line of group i: points x with (x - head_i) . cn_i, cn_i the chord normal pointing inward
+    ch = tail - head
+    cn = np.column_stack([-ch[:, 1], ch[:, 0]])
+    cn_len = np.maximum(np.hypot(cn[:, 0], cn[:, 1]), 1e-9)
+    cn = cn / cn_len[:, None]
+    flipc = np.sum(cn * inward, axis=1) < 0
+    cn[flipc] *= -1
+
+    def side(i_line, pts):  # signed distance of pts (for each j) from chord of i, inward positive
+        return np.sum((pts[None, :, :] - head[:, None, :]) * cn[:, None, :], axis=2)
+
+    tol = 2.0
+    ok = (sign[:, None] == sign[None, :])
+    ok &= side(None, mid) > -tol
+    ok &= side(None, head) > -tol
+    ok &= side(None, tail) > -tol
+    ok &= ok.T
+    # each group's interior direction points towards the other group
+    dv = mid[None, :, :] - mid[:, None, :]  # from i to j
+    ok &= np.sum(dv * inward[:, None, :], axis=2) > 0
+    ok &= ok.T
+    dist = np.hypot(dv[..., 0], dv[..., 1])
+    # two arcs of one ellipse are at most 2a apart; the arcs' radius of curvature
+    # (length / turn) bounds a (a <= 2 R for the axis ratios we accept)
+    radius = np.array([g.length / max(g.span, 1e-3) for g in G])
+    rmax = np.maximum(radius[:, None], radius[None, :])
+    ok &= dist <= np.minimum(4.0 * rmax, 2 * max_axis_px)
+    ok &= dist >= 0.5 * min_axis_px
+    # complete arcs need no partner
+    full = np.array([g.span >= math.radians(300) for g in G])
+    ok &= ~(full[:, None] & full[None, :])
+    # each group pairs with its nearest admissible partners only
+    dd = np.where(ok, dist, np.inf)
+    k = min(6, m - 1)
+    near_k = np.argpartition(dd, k - 1, axis=1)[:, :k] if k > 0 else np.zeros((m, 0), int)
+    sel = np.zeros_like(ok)
+    sel[np.arange(m)[:, None], near_k] = True
+    ok &= sel | sel.T
+    ok = np.triu(ok, 1)
+    ii, jj = np.nonzero(ok)
+    return ii, jj
 
 
 # --------------------------------------------------------------------------
@@ -609,8 +634,7 @@ def _detect_arrays(gray8: np.ndarray, *, min_axis_px: float, max_axis_px: float,
     grad = gradients(gray8.astype(np.float32), 0.8, with_magnitude=False)
     segs = arc_support_segments(gray8, grad, lsd_scale=lsd_scale)
     groups = arc_groups(segs)
-    cands = _initial_candidates(segs, groups, min_axis_px=min_axis_px, max_axis_px=max_axis_px,
-                                polarity=pol, shape=gray8.shape)
+    cands = _initial_candidates(segs, groups, min_axis_px=min_axis_px, max_axis_px=max_axis_px, polarity=pol)
     if use_contours:
         cands += _contour_candidates(gray8, min_axis_px=min_axis_px, max_axis_px=max_axis_px, polarity=pol)
     P0, S0 = cluster_candidates(cands)
@@ -674,29 +698,48 @@ def auto_downscale(shape: tuple[int, int], min_axis_px: float) -> int:
     return f
 
 
-def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px: float | None = None,
-                    max_count: int | None = None, polarity: str | int | None = None,
-                    min_inlier_ratio: float = 0.7, min_coverage: float = 0.7,
-                    use_contours: bool | None = None, downscale: int | None = None,
-                    lsd_scale: float = 0.8) -> list[Ellipse]:
-    """Detect ellipses in a gray or colour, 8-/16-bit/float image (docs/method.md §Ellipse, RALS).
+@dataclass(frozen=True)
+class EllipseDetectionOptions:
+    """Options of :func:`detect_ellipses` (checked on construction).
 
-    Parameters
-    ----------
-    image : (H, W) or (H, W, 3) array.
     min_axis_px, max_axis_px : range of the semi-axes (px), the minor one >= ``min_axis_px``;
-        ``max_axis_px`` defaults to half the image's smaller side.
-    max_count : keep at most this many (best scores first).
+        ``max_axis_px`` None: half the image's smaller side.
+    max_count : keep at most this many (best scores first); None: all.
     polarity : ``"dark"`` (interior darker than the surround), ``"light"``, or None (both).
     min_inlier_ratio, min_coverage : verification thresholds (Lu §III-E).
-    use_contours : add adaptive-threshold contour candidates; default: only when
+    use_contours : add adaptive-threshold contour candidates; None: only when
         ``min_axis_px < 12`` (LSD misses ellipses a few pixels across).
     downscale : run the pipeline on an image reduced by this integer factor (area
-        averaging) and scale the ellipses back; default from the image size and
+        averaging) and scale the ellipses back; None: from the image size and
         ``min_axis_px`` (:func:`auto_downscale`): large targets and large images need no
         full-resolution search, and :func:`refine_ellipse` does the metrology at full
         resolution.
     lsd_scale : LSD's own image scale (OpenCV default 0.8).
+    """
+
+    min_axis_px: float = 3.0
+    max_axis_px: float | None = None
+    max_count: int | None = None
+    polarity: str | int | None = None
+    min_inlier_ratio: float = 0.7
+    min_coverage: float = 0.7
+    use_contours: bool | None = None
+    downscale: int | None = None
+    lsd_scale: float = 0.8
+
+    def __post_init__(self) -> None:
+        if self.polarity not in _POLARITY:
+            raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {self.polarity!r}")
+        if self.max_count is not None and not int(self.max_count) >= 1:
+            raise LightplaneError(f"max_count must be >= 1 or None, got {self.max_count}")
+
+
+def detect_ellipses(image: np.ndarray, options: EllipseDetectionOptions | None = None) -> list[Ellipse]:
+    """Detect ellipses in a gray or colour, 8-/16-bit/float image (docs/method.md §Ellipse, RALS).
+
+    ``image``: (H, W) or (H, W, 3) array; ``options``: :class:`EllipseDetectionOptions` (None:
+    the defaults): the semi-axes' range, how many, the polarity, the verification thresholds,
+    the contour candidates, the reduction and LSD's scale.
 
     Returns a list of :class:`Ellipse` sorted by decreasing score (inlier ratio x
     coverage); empty for blank, noise-only or tiny images.  Each ellipse carries the
@@ -704,23 +747,18 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     """
     import cv2
 
-    if polarity not in _POLARITY:
-        raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")
-    if max_count is not None and not int(max_count) >= 1:
-        raise LightplaneError(f"max_count must be >= 1 or None, got {max_count}")
-    pol = _POLARITY[polarity]
+    opts = EllipseDetectionOptions() if options is None else options
+    pol = _POLARITY[opts.polarity]
     gray = prepare_gray(image)
     h, w = gray.shape
     if min(h, w) < 8:
         return []
-    if max_axis_px is None:
-        max_axis_px = 0.5 * min(h, w)
-    min_axis_px = max(float(min_axis_px), 1.0)
+    max_axis_px = 0.5 * min(h, w) if opts.max_axis_px is None else opts.max_axis_px
+    min_axis_px = max(float(opts.min_axis_px), 1.0)
     if not (math.isfinite(min_axis_px) and max_axis_px >= min_axis_px):
         raise LightplaneError(f"max_axis_px ({max_axis_px}) must be >= min_axis_px ({min_axis_px})")
-    if use_contours is None:
-        use_contours = min_axis_px < 12
-    f = max(int(downscale), 1) if downscale is not None else auto_downscale((h, w), min_axis_px)
+    use_contours = min_axis_px < 12 if opts.use_contours is None else opts.use_contours
+    f = max(int(opts.downscale), 1) if opts.downscale is not None else auto_downscale((h, w), min_axis_px)
     if min(h, w) // f < 16:
         f = 1
     # from the input itself: the same 8-bit image as from ``gray`` (to_gray8 converts it the same way;
@@ -731,12 +769,18 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
     if f > 1:
         gray8 = cv2.resize(gray8, (w // f, h // f), interpolation=cv2.INTER_AREA)
     P, S, ratio, cov = _detect_arrays(gray8, min_axis_px=min_axis_px / f, max_axis_px=max_axis_px / f, pol=pol,
-                                      min_inlier_ratio=min_inlier_ratio, min_coverage=min_coverage,
-                                      use_contours=use_contours, lsd_scale=lsd_scale)
+                                      min_inlier_ratio=opts.min_inlier_ratio, min_coverage=opts.min_coverage,
+                                      use_contours=use_contours, lsd_scale=opts.lsd_scale)
     if f > 1:  # pixel centres: u_full = f * (u_small + 0.5) - 0.5
         P = P.copy()
         P[:, :2] = f * (P[:, :2] + 0.5) - 0.5
         P[:, 2:4] *= f
+    return _suppress_duplicates(_ellipses(P, S, ratio, cov), opts.max_count)
+
+
+def _ellipses(P: np.ndarray, S: np.ndarray, ratio: np.ndarray, cov: np.ndarray) -> list[Ellipse]:
+    """The detections ``P`` (K, 5: cx, cy, a, b, angle) as :class:`Ellipse` (degenerate ones left out),
+    with their polarity ``S``, inlier ratio, coverage and score (their product)."""
     found: list[Ellipse] = []
     for k in range(len(P)):
         try:
@@ -745,7 +789,12 @@ def detect_ellipses(image: np.ndarray, *, min_axis_px: float = 3.0, max_axis_px:
                                              coverage=float(cov[k]), polarity=int(S[k])))
         except LightplaneError:
             continue
-    # final non-maximum suppression: duplicates that survived clustering
+    return found
+
+
+def _suppress_duplicates(found: list[Ellipse], max_count: int | None) -> list[Ellipse]:
+    """Final non-maximum suppression (duplicates that survived clustering): best scores first,
+    at most ``max_count``."""
     found.sort(key=lambda e: (-e.score, -e.a))
     kept: list[Ellipse] = []
     kc = np.zeros((len(found), 2))

@@ -251,22 +251,22 @@ class Ellipse:
 # Fitting
 # --------------------------------------------------------------------------
 
-def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray | None:
+def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> "np.ndarray | Failure":
     """Halir–Flusser numerically stable direct least-squares ellipse fit.
 
     ``uv`` (N, 2) px, N >= 5; ``weights`` (N,) >= 0 optional.  Returns the normalised
-    conic (3x3) or None if no real ellipse fits (degenerate data, bad shapes).  The fit
-    is :func:`lightplane.core.geometry.fit_conic` (the package's one Halir–Flusser fit).
+    conic (3x3) or a :class:`~lightplane.core.geometry.Failure` with the reason when no real
+    ellipse fits (degenerate data, bad shapes).  The fit is
+    :func:`lightplane.core.geometry.fit_conic` (the package's one Halir–Flusser fit).
     """
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim != 2 or uv.shape[1] != 2:
-        return None
+        return Failure(f"uv must be an (N, 2) array, got shape {uv.shape}")
     if weights is not None:
         weights = np.asarray(weights, dtype=np.float64)
         if weights.shape != (len(uv),) or not np.all(weights >= 0):
-            return None
-    C = fit_conic(uv, weights)
-    return None if isinstance(C, Failure) else C
+            return Failure(f"weights must be ({len(uv)},) and >= 0")
+    return fit_conic(uv, weights)
 
 
 def _ortho_parts(params: np.ndarray, uv: np.ndarray):
@@ -308,35 +308,36 @@ def _ortho_jacobian(params: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def fit_ellipse_geometric(uv: np.ndarray, init: "Ellipse | np.ndarray", *, loss: str = "linear",
-                          f_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray] | None:
+                          f_scale: float = 1.0) -> "tuple[np.ndarray, np.ndarray] | Failure":
     """Geometric refinement of an ellipse fit (Sampson distance in px, Levenberg–Marquardt).
 
     ``uv`` (N, 2) px, ``init`` an :class:`Ellipse` or conic. Returns ``(conic, residuals_px)``
-    or None on failure.  The Sampson distance equals the orthogonal distance to first
-    order, which for edge points within a pixel of the curve is exact far below their noise.
+    or a :class:`~lightplane.core.geometry.Failure` with the reason.  The Sampson distance equals
+    the orthogonal distance to first order, which for edge points within a pixel of the curve is
+    exact far below their noise.
     """
     from scipy.optimize import least_squares
 
     uv = np.asarray(uv, dtype=np.float64)
     if len(uv) < 6:
-        return None
+        return Failure(f"need at least 6 points for the geometric fit, got {len(uv)}")
     if not isinstance(init, Ellipse):
         try:
             init = Ellipse.from_conic(init)
-        except LightplaneError:
-            return None
+        except LightplaneError as exc:
+            return Failure(f"the starting conic is not an ellipse ({exc})")
     x0 = np.array([init.centre[0], init.centre[1], math.log(init.a), math.log(init.b), init.angle])
     try:
         res = least_squares(_ortho_residuals, x0, jac=_ortho_jacobian, args=(uv,),
                             method="lm" if loss == "linear" else "trf", loss=loss, f_scale=f_scale,
                             x_scale="jac", max_nfev=100)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return Failure(f"the geometric fit failed ({exc})")
     if not np.all(np.isfinite(res.x)):
-        return None
+        return Failure("the geometric fit diverged (non-finite parameters)")
     cx, cy, la, lb, ang = res.x
     try:
         e = Ellipse.from_params((cx, cy), math.exp(la), math.exp(lb), ang)
-    except LightplaneError:
-        return None
+    except LightplaneError as exc:
+        return Failure(f"the geometric fit is not an ellipse ({exc})")
     return e.conic, _ortho_residuals(res.x, uv)

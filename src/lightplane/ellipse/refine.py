@@ -14,8 +14,8 @@ difference kernel and the bilinear sampling of the gradient) — the same effect
 Steger corrects on curved stripes.  With the PSF sigma 0.9 px of a realistic render
 and R ~ 150 px it is ~0.006 px: small, but the same sign all around the rim, so it
 shrinks the ellipse and biases the circle's pose (depth).  ``refine_ellipse``
-(``correct_curvature=True``) estimates the optical blur from the width of the
-gradient profiles across the rim (:func:`edge_blur_sigma`), shifts each edge point
+(``EllipseRefinementOptions.correct_curvature``, on by default) estimates the optical
+blur from the width of the gradient profiles across the rim (:func:`edge_blur_sigma`), shifts each edge point
 outward along its normal by the predicted bias and refits.
 
 With a camera the edge points are undistorted first
@@ -32,12 +32,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import sampson_distance_unchecked, robust_sigma
-from lightplane.ellipse.edges import gradients, normal_edge_samples, prepare_gray
+from lightplane.core.geometry import Failure, robust_sigma, sampson_distance_unchecked
+from lightplane.ellipse.edges import Gradients, NormalEdgeSamples, gradients, normal_edge_samples, prepare_gray
 from lightplane.ellipse.model import Ellipse, fit_ellipse_direct, fit_ellipse_geometric, sampson_distance
 from lightplane.ellipse.detect import _POLARITY
 
-__all__ = ["RefinedEllipse", "refine_ellipse", "fit_conic_robust", "edge_blur_sigma", "curvature_bias_px",
+__all__ = ["RefinedEllipse", "EllipseRefinementOptions", "refine_ellipse", "fit_conic_robust", "edge_blur_sigma", "curvature_bias_px",
            "ellipse_curvature"]
 
 # Variance (px²) that the 5-sample log-parabola width of a bilinearly sampled gradient
@@ -147,20 +147,21 @@ def curvature_bias_px(curvature_px: np.ndarray, normals: np.ndarray, blur_sigma_
 
 
 def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float = 0.05,
-                     iterations: int = 2, geometric: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                     iterations: int = 2, geometric: bool = True) -> "tuple[np.ndarray, np.ndarray, np.ndarray] | Failure":
     """Direct (Halir–Flusser) then geometric conic fit with MAD outlier rejection.
 
     ``uv`` (N, 2) px.  Points farther than ``mad_k`` robust sigmas (1.4826 MAD, at least
     ``min_sigma_px``) from the current fit are dropped, ``iterations`` times; then (if
     ``geometric``) a Levenberg–Marquardt fit of the Sampson distances, one more
     rejection and a final geometric fit.
-    Returns ``(conic (3, 3), inlier mask (N,), residuals of the inliers (M,) px)`` or None.
+    Returns ``(conic (3, 3), inlier mask (N,), residuals of the inliers (M,) px)`` or a
+    :class:`~lightplane.core.geometry.Failure` with the reason.
     """
     uv = np.asarray(uv, dtype=np.float64)
     keep = np.all(np.isfinite(uv), axis=1)
     C = fit_ellipse_direct(uv[keep])
-    if C is None:
-        return None
+    if isinstance(C, Failure):
+        return C
     for _ in range(iterations):
         r = sampson_distance_unchecked(C, uv)
         r[~np.isfinite(r)] = np.inf
@@ -169,16 +170,16 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
         sig = max(robust_sigma(rk - med, center=False), min_sigma_px)  # robust_sigma(rk), its median not recomputed
         keep = np.abs(r - med) <= mad_k * sig
         if keep.sum() < 6:
-            return None
+            return Failure(f"only {int(keep.sum())} points left after the outlier rejection")
         C2 = fit_ellipse_direct(uv[keep])
-        if C2 is None:
-            return None
+        if isinstance(C2, Failure):
+            return C2
         C = C2
     if not geometric:
         return C, keep, sampson_distance_unchecked(C, uv[keep])
     g = fit_ellipse_geometric(uv[keep], C)
-    if g is None:
-        return None
+    if isinstance(g, Failure):
+        return g
     C, res = g
     # a last rejection on the geometric residuals, then the final geometric fit
     med = np.median(res)
@@ -187,7 +188,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
     keep2 = keep & (np.abs(r_all - med) <= mad_k * sig)
     if keep2.sum() >= 6 and keep2.sum() < keep.sum():
         g2 = fit_ellipse_geometric(uv[keep2], C)
-        if g2 is not None:
+        if not isinstance(g2, Failure):
             C, res = g2
             keep = keep2
     return C, keep, res
@@ -196,7 +197,7 @@ def fit_conic_robust(uv: np.ndarray, *, mad_k: float = 3.5, min_sigma_px: float 
 def _fit_edge_points(uv: np.ndarray, geometric: bool, what: str):
     """Robust conic fit of edge points -> ``(conic, inlier mask, Ellipse)``; LightplaneError if none fits."""
     fit = fit_conic_robust(uv, geometric=geometric)
-    if fit is None:
+    if isinstance(fit, Failure):
         raise LightplaneError(f"refine_ellipse: no ellipse fits {what}")
     C, keep, _ = fit
     try:
@@ -205,9 +206,52 @@ def _fit_edge_points(uv: np.ndarray, geometric: bool, what: str):
         raise LightplaneError(f"refine_ellipse: {exc}") from exc
 
 
-def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px: float | None = None,
-                   sigma_px: float = 0.8, polarity: str | int | None = None, iterations: int = 3,
-                   min_inliers: int = 20, correct_curvature: bool = True) -> RefinedEllipse:
+@dataclass(frozen=True)
+class EllipseRefinementOptions:
+    """Options of :func:`refine_ellipse` (checked on construction).
+
+    band_px : half-width of the search band along the normals for the first pass
+        (None: ``clip(0.1 b, 3, 8)`` px of the ellipse); later passes use 2 px around the new fit.
+    sigma_px : Gaussian pre-smoothing before the gradient (px).
+    polarity : ``"dark"``/``"light"`` interior, or None: the ellipse's own polarity if
+        known, else the stronger response.
+    iterations : passes of edge sampling and fitting (at least one is made).
+    min_inliers : fewer edge points (found, or inliers of the fit) raise LightplaneError.
+    correct_curvature : estimate the rim's blur (:func:`edge_blur_sigma`) and move each
+        edge point outward along its normal by the curvature bias of the gradient peak
+        (:func:`curvature_bias_px`, with the curvature of the current fit), then refit.
+        The blur estimate is returned (``blur_sigma_px``) either way.
+    """
+
+    band_px: float | None = None
+    sigma_px: float = 0.8
+    polarity: str | int | None = None
+    iterations: int = 3
+    min_inliers: int = 20
+    correct_curvature: bool = True
+
+    def __post_init__(self) -> None:
+        if self.polarity not in _POLARITY:
+            raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {self.polarity!r}")
+
+
+@dataclass
+class _EdgeFit:
+    """The state of :func:`refine_ellipse` after its passes: the edge samples of the last pass
+    (crop coordinates), their points (moved by the curvature correction, if any), the inlier
+    mask and fit (crop coordinates), the ellipse the samples were taken on and the polarity."""
+
+    samples: NormalEdgeSamples
+    uv: np.ndarray
+    keep: np.ndarray
+    conic: np.ndarray
+    local: Ellipse
+    sampled_on: Ellipse
+    pol: int
+
+
+def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None,
+                   options: EllipseRefinementOptions | None = None) -> RefinedEllipse:
     """Refine ``ellipse`` on ``image`` to sub-pixel accuracy (docs/method.md §Ellipse).
 
     Parameters
@@ -217,17 +261,10 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     camera : optional :class:`lightplane.camera.model.Camera`; then the edge points are
         undistorted (``camera.undistort_points``) and the returned conic is in
         undistorted pixels.
-    band_px : half-width of the search band along the normals for the first pass
-        (default ``clip(0.1 b, 3, 8)`` px); later passes use 2 px around the new fit.
-    sigma_px : Gaussian pre-smoothing before the gradient (px).
-    polarity : ``"dark"``/``"light"`` interior, or None: the ellipse's own polarity if
-        known, else the stronger response.
-    correct_curvature : estimate the rim's blur (:func:`edge_blur_sigma`) and move each
-        edge point outward along its normal by the curvature bias of the gradient peak
-        (:func:`curvature_bias_px`, with the curvature of the current fit), then refit.
-        The blur estimate is returned (``blur_sigma_px``) either way.
+    options : :class:`EllipseRefinementOptions` (None: the defaults): the search band, the
+        pre-smoothing, the polarity, the passes, the fewest inliers and the curvature correction.
 
-    Raises LightplaneError when too few edge points are found (< ``min_inliers``).
+    Raises LightplaneError when too few edge points are found (< ``options.min_inliers``).
 
     >>> import numpy as np
     >>> img = np.full((120, 160), 200.0)
@@ -237,79 +274,30 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
     >>> bool(np.hypot(*(r.ellipse.centre - (80.3, 60.2))) < 0.1)
     True
     """
+    opts = EllipseRefinementOptions() if options is None else options
     if not isinstance(ellipse, Ellipse):
         raise LightplaneError(f"ellipse must be an Ellipse, got {type(ellipse).__name__}")
-
-    if polarity not in _POLARITY:
-        raise LightplaneError(f"polarity must be None, 'dark' or 'light', got {polarity!r}")
-    pol = _POLARITY[polarity] or int(ellipse.polarity)
+    pol = _POLARITY[opts.polarity] or int(ellipse.polarity)
     gray = prepare_gray(image)
     if camera is not None:
         camera.check_image(gray)
-    h, w = gray.shape
-    if band_px is None:
-        band_px = float(np.clip(0.1 * ellipse.b, 3.0, 8.0))
-    # work on a crop around the ellipse (gradients of the whole image are not needed)
-    m = int(math.ceil(band_px + 4 * sigma_px + 4))
-    u0, v0, u1, v1 = ellipse.bbox()
-    cu0, cv0 = max(int(math.floor(u0)) - m, 0), max(int(math.floor(v0)) - m, 0)
-    cu1, cv1 = min(int(math.ceil(u1)) + m, w - 1), min(int(math.ceil(v1)) + m, h - 1)
-    if cu1 - cu0 < 4 or cv1 - cv0 < 4:
-        raise LightplaneError("ellipse lies outside the image")
-    grad = gradients(np.ascontiguousarray(gray[cv0:cv1 + 1, cu0:cu1 + 1]), sigma_px)
-    off = np.array([cu0, cv0], dtype=np.float64)
+    band_px = opts.band_px if opts.band_px is not None else float(np.clip(0.1 * ellipse.b, 3.0, 8.0))
+    grad, off = _gradients_about(gray, ellipse, band_px, opts.sigma_px)
     local = Ellipse.from_params(ellipse.centre - off, ellipse.a, ellipse.b, ellipse.angle)
     n = int(np.clip(round(ellipse.perimeter), 64, 4000))
-    # weak-edge floor: a fraction of the strongest gradient in the crop
-    assert grad.mag is not None  # gradients() computes the magnitude by default
-    min_mag = 0.05 * float(np.percentile(grad.mag, 99.5))
-    band = band_px
-    uv = None
-    keep = None
-    samples = None
-    sampled_on = local
-    for it in range(max(1, iterations)):
-        samples = normal_edge_samples(grad, local, n=n, band_px=band, step_px=0.5, polarity=pol,
-                                      min_mag=min_mag, max_angle_rad=math.radians(30))
-        pts, pol = samples.uv, samples.polarity
-        sampled_on = local
-        if len(pts) < min_inliers:
-            raise LightplaneError(f"refine_ellipse: only {len(pts)} edge points found near the ellipse")
-        last = it == max(1, iterations) - 1
-        C, keep, new_local = _fit_edge_points(pts, last and camera is None, "the edge points")
-        if np.hypot(*(new_local.centre - local.centre)) > max(band, 0.5 * ellipse.b):
-            raise LightplaneError("refine_ellipse: the fit moved away from the given ellipse")
-        local = new_local
-        uv = pts
-        band = 2.0
-    assert samples is not None and uv is not None and keep is not None  # the loop runs at least once
-    blur = edge_blur_sigma(samples.width_sq[keep], samples.normal[keep], sigma_px)
+    fit = _edge_passes(grad, ellipse, local, n, band_px, pol, opts, camera is None)
+    blur = edge_blur_sigma(fit.samples.width_sq[fit.keep], fit.samples.normal[fit.keep], opts.sigma_px)
     shift_mean = 0.0
-    if correct_curvature and np.isfinite(blur):
-        # the points lie on the normals of the ellipse they were sampled on: its curvature
-        # there (the final fit differs by a few hundredths of a px)
-        kappa = ellipse_curvature(sampled_on, samples.t)
-        shift = curvature_bias_px(kappa, samples.normal, blur, sigma_px)
-        uv = uv + shift[:, None] * samples.normal
-        C, keep, local = _fit_edge_points(uv, camera is None, "the curvature-corrected edge points")
-        shift_mean = float(np.mean(shift[keep]))
-    uv_px = uv[keep] + off
-    if int(keep.sum()) < min_inliers:
-        raise LightplaneError(f"refine_ellipse: only {int(keep.sum())} inlier edge points")
+    if opts.correct_curvature and np.isfinite(blur):
+        shift_mean = _correct_curvature(fit, blur, opts.sigma_px, camera is None)
+    uv_px = fit.uv[fit.keep] + off
+    if int(fit.keep.sum()) < opts.min_inliers:
+        raise LightplaneError(f"refine_ellipse: only {int(fit.keep.sum())} inlier edge points")
+    local = fit.local
     image_ellipse = Ellipse.from_params(local.centre + off, local.a, local.b, local.angle,
-                                        polarity=pol or ellipse.polarity, score=ellipse.score,
+                                        polarity=fit.pol or ellipse.polarity, score=ellipse.score,
                                         inlier_ratio=ellipse.inlier_ratio, coverage=ellipse.coverage)
-    if camera is None:
-        conic = image_ellipse.conic
-        und = uv_px.copy()
-        res = sampson_distance(conic, und)
-    else:
-        und = camera.undistort_points(uv_px)
-        fit = fit_conic_robust(und, iterations=1)
-        if fit is None:
-            raise LightplaneError("refine_ellipse: no ellipse fits the undistorted edge points")
-        conic, k2, res = fit
-        uv_px, und = uv_px[k2], und[k2]
+    conic, uv_px, und, res = _final_conic(image_ellipse, uv_px, camera)
     out_ellipse = Ellipse.from_conic(conic, polarity=image_ellipse.polarity, score=ellipse.score,
                                      inlier_ratio=ellipse.inlier_ratio, coverage=ellipse.coverage)
     uv_px.flags.writeable = False
@@ -318,3 +306,74 @@ def refine_ellipse(image: np.ndarray, ellipse: Ellipse, camera=None, *, band_px:
                           edge_points_px=uv_px, edge_points_undistorted=und,
                           residual_rms_px=float(np.sqrt(np.mean(res ** 2))), n_inliers=len(uv_px), n_samples=n,
                           blur_sigma_px=blur, curvature_shift_px=shift_mean)
+
+
+def _gradients_about(gray: np.ndarray, ellipse: Ellipse, band_px: float, sigma_px: float):
+    """The gradients of a crop of ``gray`` around ``ellipse`` (the gradients of the whole image
+    are not needed) and the crop's offset ``(u0, v0)`` (2,) px; LightplaneError when the
+    ellipse lies outside the image."""
+    h, w = gray.shape
+    m = int(math.ceil(band_px + 4 * sigma_px + 4))
+    u0, v0, u1, v1 = ellipse.bbox()
+    cu0, cv0 = max(int(math.floor(u0)) - m, 0), max(int(math.floor(v0)) - m, 0)
+    cu1, cv1 = min(int(math.ceil(u1)) + m, w - 1), min(int(math.ceil(v1)) + m, h - 1)
+    if cu1 - cu0 < 4 or cv1 - cv0 < 4:
+        raise LightplaneError("ellipse lies outside the image")
+    grad = gradients(np.ascontiguousarray(gray[cv0:cv1 + 1, cu0:cu1 + 1]), sigma_px)
+    return grad, np.array([cu0, cv0], dtype=np.float64)
+
+
+def _edge_passes(grad: Gradients, ellipse: Ellipse, local: Ellipse, n: int, band_px: float, pol: int,
+                 opts: EllipseRefinementOptions, geometric_last: bool) -> _EdgeFit:
+    """:func:`refine_ellipse`'s passes: edge points along the normals of the current fit (``n``
+    samples, a band of ``band_px`` first, then 2 px), each pass refitted (geometrically on the
+    last pass when ``geometric_last``); ``local`` the starting ellipse in crop coordinates."""
+    # weak-edge floor: a fraction of the strongest gradient in the crop
+    assert grad.mag is not None  # gradients() computes the magnitude by default
+    min_mag = 0.05 * float(np.percentile(grad.mag, 99.5))
+    band = band_px
+    fit = None
+    passes = max(1, opts.iterations)
+    for it in range(passes):
+        samples = normal_edge_samples(grad, local, n=n, band_px=band, step_px=0.5, polarity=pol,
+                                      min_mag=min_mag, max_angle_rad=math.radians(30))
+        pts, pol = samples.uv, samples.polarity
+        sampled_on = local
+        if len(pts) < opts.min_inliers:
+            raise LightplaneError(f"refine_ellipse: only {len(pts)} edge points found near the ellipse")
+        C, keep, new_local = _fit_edge_points(pts, it == passes - 1 and geometric_last, "the edge points")
+        if np.hypot(*(new_local.centre - local.centre)) > max(band, 0.5 * ellipse.b):
+            raise LightplaneError("refine_ellipse: the fit moved away from the given ellipse")
+        local = new_local
+        fit = _EdgeFit(samples, pts, keep, C, local, sampled_on, pol)
+        band = 2.0
+    assert fit is not None  # the loop runs at least once
+    return fit
+
+
+def _correct_curvature(fit: _EdgeFit, blur: float, sigma_px: float, geometric: bool) -> float:
+    """Move ``fit``'s edge points outward by the curvature bias of the gradient peak and refit
+    (``fit`` updated in place); the mean shift of the inliers (px)."""
+    samples = fit.samples
+    # the points lie on the normals of the ellipse they were sampled on: its curvature
+    # there (the final fit differs by a few hundredths of a px)
+    kappa = ellipse_curvature(fit.sampled_on, samples.t)
+    shift = curvature_bias_px(kappa, samples.normal, blur, sigma_px)
+    fit.uv = fit.uv + shift[:, None] * samples.normal
+    fit.conic, fit.keep, fit.local = _fit_edge_points(fit.uv, geometric, "the curvature-corrected edge points")
+    return float(np.mean(shift[fit.keep]))
+
+
+def _final_conic(image_ellipse: Ellipse, uv_px: np.ndarray, camera):
+    """The refined conic, the inlier edge points (distorted px), the same undistorted and their
+    residuals: without a camera the image ellipse's; with one, fitted again to the undistorted points."""
+    if camera is None:
+        conic = image_ellipse.conic
+        und = uv_px.copy()
+        return conic, uv_px, und, sampson_distance(conic, und)
+    und = camera.undistort_points(uv_px)
+    fit = fit_conic_robust(und, iterations=1)
+    if isinstance(fit, Failure):
+        raise LightplaneError("refine_ellipse: no ellipse fits the undistorted edge points")
+    conic, k2, res = fit
+    return conic, uv_px[k2], und[k2], res

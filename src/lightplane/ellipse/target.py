@@ -248,7 +248,7 @@ def select_target(image: np.ndarray, ellipses: list[Ellipse], stripe_hint: np.nd
     Parameters
     ----------
     image : the calibration image (gray or colour, any depth).
-    ellipses : candidates, e.g. ``detect_ellipses(image, min_axis_px=...)``.
+    ellipses : candidates, e.g. ``detect_ellipses(image, EllipseDetectionOptions(min_axis_px=...))``.
     stripe_hint : optional (N, 2) stripe centre points (px), e.g. from ``extract_stripe``.
     axis_range_px : optional ``(min, max)`` for the major semi-axis ``a`` (px); for a disc
         of radius r at distance Z, ``a ~ f r / Z`` whatever its tilt: see

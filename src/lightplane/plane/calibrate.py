@@ -46,8 +46,8 @@ from lightplane.plane.solvers import (PlacementResult, PlaneCalibration, SolverO
                             check_calibration_args)
 from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
 from lightplane.core.threads import enter_serial, frames_across_threads
-from lightplane.ellipse import (Ellipse, detect_ellipses, expected_axis_range_px, refine_ellipse, select_target,
-    stripe_crossing)
+from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, detect_ellipses, expected_axis_range_px,
+    refine_ellipse, select_target, stripe_crossing)
 from lightplane.plane.circle_pose import CirclePose
 from lightplane.plane.solvers import Ambiguity
 from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camera_params, camera_share_status,
@@ -500,7 +500,7 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
 
     lo, hi = expected_axis_range_px(camera, diameter_mm, distance_range_mm)
     # the minor semi-axis of a disc tilted by up to ~70 deg is >= a cos 70 deg
-    ellipses = detect_ellipses(img, min_axis_px=max(0.35 * lo, 6.0), max_axis_px=hi)
+    ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(0.35 * lo, 6.0), max_axis_px=hi))
     if not ellipses:
         return [reject("no target ellipse found") for _ in sels]
     # one laser with no region: its stripe is looked for in the image as given (as always)

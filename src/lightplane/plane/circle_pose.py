@@ -6,8 +6,9 @@ camera matrix ``K`` give the oblique elliptical cone through the optical centre
 cone in a standard frame where a plane cuts it in a circle of radius ``r`` in
 exactly two ways (Eq. 13–15); one of them is the target.
 
-Also here: :func:`fit_conic`, the Halir–Flusser direct least-squares ellipse fit,
-for rim points that are already undistorted.
+Also here: :func:`fit_rim_conic`, the Halir–Flusser direct least-squares ellipse fit
+(:func:`lightplane.core.geometry.fit_conic`) for rim points that are already undistorted,
+raising :class:`LightplaneError` when no ellipse fits.
 
 >>> import numpy as np
 >>> from lightplane.simulate.scene import TargetPlacement, default_camera
@@ -26,10 +27,9 @@ import numpy as np
 
 from lightplane.camera.model import as_points
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import Failure, ellipse_problems, fit_conics, sampson_distance
-from lightplane.core.geometry import fit_conic as _fit_conic
+from lightplane.core.geometry import Failure, ellipse_problems, fit_conic, sampson_distance
 
-__all__ = ["CirclePose", "circle_poses", "circle_poses_batch", "fit_conic", "fit_conics", "conic_residuals_px"]
+__all__ = ["CirclePose", "circle_poses", "circle_poses_batch", "fit_rim_conic", "conic_residuals_px"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,7 +178,7 @@ def circle_poses(conic: np.ndarray, K: np.ndarray, radius_mm: float) -> tuple[Ci
     return out[0], out[1]
 
 
-def fit_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
+def fit_rim_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
     """Direct least-squares ellipse fit (Halir & Flusser 1998) to ``(N, 2)`` points.
 
     Points are centred and scaled to unit RMS radius first (conditioning), then the
@@ -190,7 +190,7 @@ def fit_conic(uv: np.ndarray, *, name: str = "rim points") -> np.ndarray:
     :func:`conic_residuals_px` against the expected noise.
     """
     p = as_points(uv, 2, name)
-    C = _fit_conic(p)
+    C = fit_conic(p)
     if isinstance(C, Failure):
         raise LightplaneError(f"{name}: {C.reason}")
     return C
