@@ -152,17 +152,6 @@ class TestRobustLine:
         with pytest.raises(ValueError):
             g.robust_line(np.zeros(shape))
 
-    def test_plane_fit_line_2d_uses_it(self):
-        from lightplane.plane.solvers import fit_line_2d
-
-        rng = np.random.default_rng(9)
-        p = np.column_stack([np.arange(40.0), np.zeros(40)]) + rng.normal(0, 0.1, (40, 2))
-        c, nrm, inl = fit_line_2d(p)
-        m, _, n, inl2 = g.robust_line(p, refits=4, rel_tol=1e-9, upper_median=True)
-        np.testing.assert_array_equal(inl, inl2)
-        np.testing.assert_array_equal(c, m)
-        assert fit_line_2d(np.ones((1, 2)))[2].tolist() == [True]
-
 
 # ------------------------------------------------------------------ fit_plane_tls
 class TestFitPlane:

@@ -11,8 +11,9 @@ import pytest
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.solvers import SolverOptions
 from lightplane.plane.model import LightPlane
-from lightplane.plane.solvers import _KAPPA, _msd, _tau, calibrate_plane_from_points, fit_line_2d, prepare_placement
+from lightplane.plane.solvers import _KAPPA, _msd, _stripe_line, _tau, calibrate_plane_from_points, prepare_placement
 from lightplane.simulate.scene import (
+    PlacementOptions,
     PAPER_DISTANCE_MM,
     TargetPlacement,
     default_camera,
@@ -32,7 +33,7 @@ def _angle(a: LightPlane, b: LightPlane) -> float:
 def _scene(n, rng, sigma_px=0.0, camera=None, plane=None, n_rim=200, n_stripe=300, **kw):
     camera = default_camera() if camera is None else camera
     plane = default_plane() if plane is None else plane
-    ps = sample_placements(n, rng, camera=camera, plane=plane, **kw)
+    ps = sample_placements(n, rng, PlacementOptions(**kw), camera=camera, plane=plane)
     obs = [synthetic_observations(camera, plane, p, n_rim=n_rim, n_stripe=n_stripe, sigma_px=sigma_px, rng=rng)
            for p in ps]
     return camera, plane, ps, [o[0] for o in obs], [o[1] for o in obs]
@@ -208,18 +209,32 @@ def test_stripe_outliers_are_rejected():
     assert all(p.n_stripe <= 300 - 12 + 1 for p in res.placements)
 
 
-def test_fit_line_2d_and_fast_undistortion():
+def test_stripe_line_and_fast_undistortion():
     rng = np.random.default_rng(110)
     t = np.linspace(0, 100, 200)
     p = np.column_stack([t, 0.5 * t + 3]) + rng.normal(0, 0.1, (200, 2))
     p[::20] += 50.0
-    c, n, inl = fit_line_2d(p)
+    c, n, inl = _stripe_line(p)
     assert inl.sum() == 190 and not inl[::20].any()
     assert abs(abs(n @ np.array([-0.5, 1.0]) / np.hypot(0.5, 1.0)) - 1) < 1e-4
     cam = default_camera()
     uv = rng.uniform([0, 0], [1279, 959], (500, 2))
     xy = cam.undistort_points(uv, normalized=True)
     assert np.max(np.abs(cam.normalized_to_pixels(xy) - uv)) < 1e-9
+
+
+def test_stripe_line_is_core_robust_line():
+    """The solver's stripe line is core.geometry.robust_line (3 refits after the first fit, the upper median)."""
+    from lightplane.core.geometry import robust_line
+
+    rng = np.random.default_rng(9)
+    p = np.column_stack([np.arange(40.0), np.zeros(40)]) + rng.normal(0, 0.1, (40, 2))
+    c, nrm, inl = _stripe_line(p)
+    m, _, n, inl2 = robust_line(p, refits=4, rel_tol=1e-9, upper_median=True)
+    np.testing.assert_array_equal(inl, inl2)
+    np.testing.assert_array_equal(c, m)
+    np.testing.assert_array_equal(nrm, n)
+    assert _stripe_line(np.ones((1, 2)))[2].tolist() == [True]
 
 
 # ------------------------------------------------------------------ bad input

@@ -91,9 +91,34 @@ class _Pose:
 
 @dataclass(frozen=True)
 class MLOptions:
-    """Options of the joint maximum-likelihood refinement (:func:`refine_ml`; meanings there).
+    """Options of the joint maximum-likelihood refinement (:func:`refine_ml`).
 
     The defaults are what every command uses.  Checked on construction.
+
+    - ``noise``: ``"per_type"`` (default), ``"per_placement"`` or ``"shared"``.
+      ``per_type``: rim points and stripe points have their own noise sigma, each
+      estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
+      in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
+      then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
+      ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
+      consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
+      share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
+      2–4x more than the rim's edge points (speckle), so one shared sigma
+      under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
+      all points (the original model; no reweighting).  ``per_placement``: a sigma per type
+      *and* placement (stripes differ in brightness, width and speckle from image to image).
+    - ``rounds``: rounds of solve / re-estimate of the sigmas (default 3).
+    - ``max_iter``: iterations of each round's Levenberg–Marquardt solve (default 100).
+    - ``huber_c``: Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
+      3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
+      influence grows only linearly).  None: plain least squares.
+    - ``correlated``: True (default): each group's weight and covariance contribution account for the
+      integrated autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
+      stripe points ordered along the chord, rim points by angle).  False: white noise.
+    - ``dispersion``: True (default): the covariance is multiplied by the images' dispersion
+      (:func:`image_dispersion`: how much more each image's points pull the plane than their
+      sigmas and autocorrelation times say); False: it is reported (``image_dispersion``), not
+      applied.
     """
 
     max_iter: int = 100
@@ -649,32 +674,7 @@ def refine_ml(camera: Camera, radius_mm: float, rims_uv: Sequence[np.ndarray], s
         Start values, objects with ``center`` (mm) and unit ``normal`` (the chosen
         candidate of :func:`lightplane.plane.circle_pose.circle_poses`).
     options : MLOptions, optional
-        The refinement's options (defaults when omitted):
-
-        - ``noise``: ``"per_type"`` (default), ``"per_placement"`` or ``"shared"``.
-          ``per_type``: rim points and stripe points have their own noise sigma, each
-          estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
-          in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
-          then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
-          ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
-          consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
-          share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
-          2–4x more than the rim's edge points (speckle), so one shared sigma
-          under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
-          all points (the original model; no reweighting).  ``per_placement``: a sigma per type
-          *and* placement (stripes differ in brightness, width and speckle from image to image).
-        - ``rounds``: rounds of solve / re-estimate of the sigmas (default 3).
-        - ``max_iter``: iterations of each round's Levenberg–Marquardt solve (default 100).
-        - ``huber_c``: Huber reweighting of standardised residuals beyond ``huber_c`` sigma (default
-          3: an efficiency loss under 0.2 % for Gaussian noise, while a gross outlier's
-          influence grows only linearly).  None: plain least squares.
-        - ``correlated``: True (default): each group's weight and covariance contribution account for the
-          integrated autocorrelation time of its residuals (:func:`integrated_autocorr_time`;
-          stripe points ordered along the chord, rim points by angle).  False: white noise.
-        - ``dispersion``: True (default): the covariance is multiplied by the images' dispersion
-          (:func:`image_dispersion`: how much more each image's points pull the plane than their
-          sigmas and autocorrelation times say); False: it is reported (``image_dispersion``), not
-          applied.
+        The refinement's options (:class:`MLOptions`, meanings there; defaults when omitted).
 
     Weights and covariance (what it covers, and what not)
     ------------------------------------------------------

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass as _dataclass
 from dataclasses import field as _field
+from dataclasses import replace as _replace
 from functools import cached_property
 from typing import Sequence
 
@@ -31,7 +32,7 @@ __all__ = [
     "prepare_placement",
     "PlacementCandidates",
     "estimate_sigma_px",
-    "fit_line_2d",
+    "SolverOptions",
 ]
 
 # =====================================================================================
@@ -217,17 +218,17 @@ def _finite_or_none(x) -> float | None:
 # ------------------------------------------------------------------- geometry helpers
 
 
-def fit_line_2d(p: np.ndarray, *, iterations: int = 3, k_mad: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust total-least-squares line through (K, 2) points.
+def _stripe_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stripe's line through (K, 2) undistorted pixels: :func:`lightplane.core.geometry.robust_line`
+    (a total-least-squares fit, refitted 3 times on the points within 4 robust sigmas, the upper
+    median of the absolute distances, the band never below 1e-9 of the coordinates).
 
-    Refits ``iterations`` times on points within ``k_mad`` x 1.4826 MAD of the line
-    (:func:`lightplane.core.geometry.robust_line`).
-    Returns ``(point (2,), unit normal (2,), inlier mask (K,))``; for fewer than 2 points
-    their mean (NaN for none), (1, 0) and all points.
+    Returns ``(point (2,), unit normal (2,), inlier mask (K,))``; for fewer than 2 points their
+    mean (NaN for none), (1, 0) and all points.
     """
     if len(p) < 2:
         return (p.mean(axis=0) if len(p) else np.full(2, np.nan)), np.array([1.0, 0.0]), np.ones(len(p), bool)
-    c, _, nrm, inl = robust_line(p, refits=iterations + 1, k_mad=k_mad, rel_tol=1e-9, upper_median=True)
+    c, _, nrm, inl = robust_line(p, refits=4, k_mad=4.0, rel_tol=1e-9, upper_median=True)
     return c, nrm, inl
 
 
@@ -273,20 +274,48 @@ def _tau_unit(pose, f_px: float, n_rim: int, n_stripe: int) -> float:
     return (z / f_px) * np.sqrt((2.0 / n_rim) * ((z / r) ** 2 + 2.0 / (sin_t * cos_t) ** 2) + 1.0 / n_stripe)
 
 
-def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *, min_stripe_points: int = 10,
-                      max_rim_rms_px: float = 3.0, rim_xy: np.ndarray | None = None,
-                      stripe_xy: np.ndarray | None = None, conic: np.ndarray | None = None,
-                      poses: tuple | None = None, pose_problem: str | None = None) -> PlacementCandidates:
+def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int,
+                      options: SolverOptions | None = None) -> PlacementCandidates:
     """Undistort, fit the rim's ellipse, get both poses and both candidate chords of one placement.
 
     Raises LightplaneError naming the placement for bad input (empty or too few rim
-    points, NaN, rim points that are not an ellipse).  Too few stripe points do not
-    raise: the placement is returned with ``usable=False`` and the reason.
-    ``rim_xy``/``stripe_xy``: the points already undistorted (normalised), if at hand;
-    ``conic``/``poses``/``pose_problem``: the rim's conic (undistorted px) and its two
-    poses (or why there are none), if already computed (batched, see
-    :func:`calibrate_plane_from_points`).
+    points, NaN, rim points that are not an ellipse: farther than ``options.max_rim_rms_px``).
+    Too few stripe points (fewer than ``options.min_stripe_points``) do not raise: the placement
+    is returned with ``usable=False`` and the reason.  ``options``: :class:`SolverOptions`
+    (defaults when omitted).
     """
+    opts = SolverOptions() if options is None else options
+    return _prepare_placement(camera, radius_mm, rim_uv, stripe_uv, index, opts, _Batched())
+
+
+@_dataclass(frozen=True)
+class _Batched:
+    """What :func:`calibrate_plane_from_points` computed for all placements at once: the points
+    undistorted (normalised), the rim's conic (undistorted px) and its two poses, or why there are
+    none (None: computed by :func:`_prepare_placement` itself)."""
+
+    rim_xy: np.ndarray | None = None
+    stripe_xy: np.ndarray | None = None
+    conic: np.ndarray | None = None
+    poses: tuple | None = None
+    pose_problem: str | None = None
+
+
+@_dataclass(frozen=True)
+class _RimPart:
+    """One placement's rim: its two poses, point count, residuals to its ellipse and the focal length."""
+
+    poses: tuple
+    n_rim: int
+    rim_rms_px: float
+    rim_res2: float
+    rim_dof: int
+    f_px: float
+
+
+def _prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, opts: SolverOptions,
+                       pre: _Batched) -> PlacementCandidates:
+    """:func:`prepare_placement` with what was computed in a batch (``pre``)."""
     name = f"placement {index}"
     rim = as_points(rim_uv, 2, f"{name}: rim points")
     st = as_points(stripe_uv, 2, f"{name}: stripe points")
@@ -296,13 +325,17 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
         raise LightplaneError(f"{name}: rim points contain NaN or infinite values")
     if not np.all(np.isfinite(st)):
         raise LightplaneError(f"{name}: stripe points contain NaN or infinite values")
-    if rim_xy is None:
-        rim_xy = camera.undistort_points(rim, normalized=True)
+    rp = _rim_part(camera, radius_mm, rim, name, opts.max_rim_rms_px, pre)
+    return _stripe_part(camera, st, index, rp, opts.min_stripe_points, pre.stripe_xy)
+
+
+def _rim_part(camera, radius_mm: float, rim: np.ndarray, name: str, max_rim_rms_px: float, pre: _Batched) -> _RimPart:
+    """The rim's ellipse (its residuals checked against ``max_rim_rms_px``) and its two poses."""
+    rim_xy = pre.rim_xy if pre.rim_xy is not None else camera.undistort_points(rim, normalized=True)
     rim_und = camera.normalized_to_pixels(rim_xy, distort=False)
     if not np.all(np.isfinite(rim_und)):
         raise LightplaneError(f"{name}: some rim points cannot be undistorted (outside the lens model)")
-    if conic is None:
-        conic = fit_rim_conic(rim_und, name=f"{name}: rim points")
+    conic = pre.conic if pre.conic is not None else fit_rim_conic(rim_und, name=f"{name}: rim points")
     res = sampson_distance(conic, rim_und)  # px
     rim_rms = float(np.sqrt(np.mean(res**2)))
     if not np.isfinite(rim_rms) or rim_rms > max_rim_rms_px:
@@ -310,57 +343,50 @@ def prepare_placement(camera, radius_mm: float, rim_uv, stripe_uv, index: int, *
             f"{name}: the rim points are not an ellipse (RMS distance to the best ellipse {rim_rms:.3g} px "
             f"> {max_rim_rms_px} px)"
         )
-    if pose_problem is not None:
-        raise LightplaneError(f"{name}: conic {pose_problem}")
+    if pre.pose_problem is not None:
+        raise LightplaneError(f"{name}: conic {pre.pose_problem}")
+    poses = pre.poses
     if poses is None:
         try:
             poses = circle_poses(conic, camera.K, radius_mm)
         except LightplaneError as e:
             raise LightplaneError(f"{name}: {e}") from None
-    f_px = float(np.sqrt(camera.fx * camera.fy))
+    return _RimPart(poses, len(rim), rim_rms, float(np.sum(res**2)), max(len(rim) - 5, 0),
+                    float(np.sqrt(camera.fx * camera.fy)))
+
+
+def _stripe_part(camera, st: np.ndarray, index: int, rp: _RimPart, min_stripe_points: int,
+                 stripe_xy: np.ndarray | None) -> PlacementCandidates:
+    """The stripe's line (robust, undistorted px) and both candidate chords, or why the placement is unusable."""
     empty = (np.zeros((0, 3)), np.zeros((0, 3)))
-    rim_res2, rim_dof = float(np.sum(res**2)), max(len(rim) - 5, 0)
-
-    def candidates(*, chords: tuple, stripe_xy: np.ndarray, stripe_inliers: np.ndarray, stripe_rms_px: float,
-                   stripe_res2: float, stripe_dof: int, tau_unit_mm: tuple, usable: bool,
-                   reason: str) -> PlacementCandidates:
-        # the rim's part is common to every outcome
-        return PlacementCandidates(index=index, poses=poses, chords=chords, stripe_xy=stripe_xy,
-                                   stripe_inliers=stripe_inliers, n_rim=len(rim), rim_rms_px=rim_rms,
-                                   stripe_rms_px=stripe_rms_px, rim_res2=rim_res2, rim_dof=rim_dof,
-                                   stripe_res2=stripe_res2, stripe_dof=stripe_dof, tau_unit_mm=tau_unit_mm,
-                                   usable=usable, reason=reason)
-
+    # the rim's part is common to every outcome
+    out = PlacementCandidates(index=index, poses=rp.poses, chords=empty, stripe_xy=np.zeros((0, 2)),
+                              stripe_inliers=np.zeros(len(st), bool), n_rim=rp.n_rim, rim_rms_px=rp.rim_rms_px,
+                              stripe_rms_px=np.nan, rim_res2=rp.rim_res2, rim_dof=rp.rim_dof, stripe_res2=0.0,
+                              stripe_dof=0, tau_unit_mm=(np.nan, np.nan), usable=False, reason="")
     if len(st) < min_stripe_points:
-        return candidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=np.zeros(len(st), bool),
-                          stripe_rms_px=np.nan, stripe_res2=0.0, stripe_dof=0, tau_unit_mm=(np.nan, np.nan),
-                          usable=False, reason=f"too few stripe points ({len(st)} < {min_stripe_points})")
+        return _replace(out, reason=f"too few stripe points ({len(st)} < {min_stripe_points})")
     if stripe_xy is None:
         stripe_xy = camera.undistort_points(st, normalized=True)
     st_und = camera.normalized_to_pixels(stripe_xy, distort=False)
     ok = np.all(np.isfinite(st_und), axis=1)
     # the chord is a straight line in undistorted pixels: robust line fit, residuals -> noise
-    c2, n2, inl = fit_line_2d(st_und[ok])
+    c2, n2, inl = _stripe_line(st_und[ok])
     inliers = np.zeros(len(st), bool)
     inliers[np.flatnonzero(ok)[inl]] = True
     r2 = (st_und[inliers] - c2) @ n2
     n_in = int(inliers.sum())
     st_rms = float(np.sqrt(np.mean(r2**2))) if n_in else np.nan
-    st_res2, st_dof = float(np.sum(r2**2)), max(n_in - 2, 0)
+    out = _replace(out, stripe_inliers=inliers, stripe_rms_px=st_rms, stripe_res2=float(np.sum(r2**2)),
+                   stripe_dof=max(n_in - 2, 0))
     if n_in < min_stripe_points:
-        return candidates(chords=empty, stripe_xy=np.zeros((0, 2)), stripe_inliers=inliers,
-                          stripe_rms_px=st_rms, stripe_res2=st_res2, stripe_dof=st_dof,
-                          tau_unit_mm=(np.nan, np.nan), usable=False,
-                          reason=f"too few stripe points on a line ({n_in} < {min_stripe_points})")
+        return _replace(out, reason=f"too few stripe points on a line ({n_in} < {min_stripe_points})")
     xy = stripe_xy[inliers]
-    chords = tuple(ray_plane(xy, p.normal, p.center) for p in poses)
+    chords = tuple(ray_plane(xy, p.normal, p.center) for p in rp.poses)
     if any(not np.all(np.isfinite(ch)) for ch in chords):
-        return candidates(chords=empty, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
-                          stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=(np.nan, np.nan), usable=False,
-                          reason="stripe rays graze a candidate target plane")
-    taus = tuple(_tau_unit(p, f_px, len(rim), n_in) for p in poses)
-    return candidates(chords=chords, stripe_xy=xy, stripe_inliers=inliers, stripe_rms_px=st_rms,
-                      stripe_res2=st_res2, stripe_dof=st_dof, tau_unit_mm=taus, usable=True, reason="")
+        return _replace(out, stripe_xy=xy, reason="stripe rays graze a candidate target plane")
+    taus = tuple(_tau_unit(p, rp.f_px, rp.n_rim, n_in) for p in rp.poses)
+    return _replace(out, chords=chords, stripe_xy=xy, tau_unit_mm=taus, usable=True, reason="")
 
 
 def estimate_sigma_px(cands: Sequence[PlacementCandidates]) -> float:
@@ -450,6 +476,18 @@ class _GlobalOutcome:
     d_all: float
 
 
+def _plane_from_moments(M: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted least-squares plane ``(normal, d)`` (camera frame) from (10,) moments about ``ref``
+    (:func:`_moments`): the scatter's smallest eigenvector, as :func:`lightplane.core.geometry.plane_scatter`
+    finds it from the points (here from their sums, which the search adds up by the thousand)."""
+    c = M[1:4] / M[0]
+    S = np.zeros((3, 3))
+    S[_IU3] = M[4:]
+    S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
+    n = np.linalg.eigh(S)[1][:, 0]
+    return n, -float(n @ (c + ref))
+
+
 class _ChordMoments:
     """Weighted moments of every candidate chord, about a common reference point.
 
@@ -475,13 +513,7 @@ class _ChordMoments:
 
     def plane(self, bits) -> tuple[np.ndarray, float]:
         """Weighted LS plane ``(normal, d)`` (camera frame) of an assignment."""
-        M = self.total(bits)
-        c = M[1:4] / M[0]
-        S = np.zeros((3, 3))
-        S[_IU3] = M[4:]
-        S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
-        n = np.linalg.eigh(S)[1][:, 0]
-        return n, -float(n @ (c + self.ref))
+        return _plane_from_moments(self.total(bits), self.ref)
 
     def chord_costs(self, n: np.ndarray, d: float) -> np.ndarray:
         """(n, 2) normalised cost ``msd/tau²`` of every candidate chord w.r.t. the plane ``(n, d)``."""
@@ -575,13 +607,7 @@ def _sample_assignment(cm: _ChordMoments, rng, n_samples: int) -> tuple[np.ndarr
                 sub = np.zeros(n, dtype=np.int64)
                 sub[a], sub[b] = ka, kb
                 # plane of the pair alone: moments of the two chords only
-                M = cm.mom[a, ka] + cm.mom[b, kb]
-                c = M[1:4] / M[0]
-                S = np.zeros((3, 3))
-                S[_IU3] = M[4:]
-                S = S + np.triu(S, 1).T - M[0] * np.outer(c, c)
-                nrm = np.linalg.eigh(S)[1][:, 0]
-                d = -float(nrm @ (c + cm.ref))
+                nrm, d = _plane_from_moments(cm.mom[a, ka] + cm.mom[b, kb], cm.ref)
                 for _ in range(3):
                     bits = np.argmin(cm.chord_costs(nrm, d), axis=1)
                     nrm, d = cm.plane(bits)
@@ -677,9 +703,23 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
     notes: list = []
     if len(idx) < 2:
         raise LightplaneError("paper method: fewer than 2 usable placements")
-    first = idx[0]
-    rest = idx[1:]
-    cand_planes: list = []  # each: dict(n, d, support=[(i,k)], pending=[i], cost)
+    rest = idx[1:]  # the placements not yet seen, in order (the steps below take them from the front)
+    cand_planes = _initial_planes(cands, idx[0], rest, sigma_px, strict, reasons, notes)
+    cand_planes, seen = _eliminate_planes(cands, cand_planes, rest, sigma_px, reasons)
+    if len(cand_planes) > 1:
+        cand_planes = [_one_candidate_plane(cands, cand_planes, sigma_px, strict, notes)]
+    support, n_, d_, refined = _refine_progressively(cands, cand_planes[0], rest, sigma_px, rel_change, reasons)
+    choice = dict(support)
+    for i, _ in support:
+        reasons.setdefault(i, "used")
+    return _PaperOutcome(n_, d_, choice, reasons, 2 + seen + refined, tuple(notes))
+
+
+def _initial_planes(cands, first, rest: list, sigma_px, strict: bool, reasons: dict, notes: list) -> list:
+    """Initial determination (:func:`_solve_paper`): the candidate planes through a coplanar pair of chords
+    of ``first`` and of the next placement taken from ``rest``, the next one again while none is coplanar.
+    Each candidate: ``dict(n, d, support=[(i, k)], pending=[i], cost)``."""
+    cand_planes: list = []
     best_pair = None
     while rest and not cand_planes:
         second = rest.pop(0)
@@ -703,11 +743,16 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
             reasons[second] = f"rejected: no chord coplanar with a chord of placement {first}"
     if not cand_planes:
         raise LightplaneError(f"paper method: no chord of any placement is coplanar with a chord of placement {first}")
-    processed = 2
-    # step 3/4: eliminate candidate planes
+    return cand_planes
+
+
+def _eliminate_planes(cands, cand_planes: list, rest: list, sigma_px, reasons: dict) -> tuple[list, int]:
+    """Steps 3/4 (:func:`_solve_paper`): the placements taken from ``rest`` keep the candidate planes one of
+    their chords lies on, until one is left.  Returns the survivors and the placements seen."""
+    seen = 0
     while len(cand_planes) > 1 and rest:
         i = rest.pop(0)
-        processed += 1
+        seen += 1
         survivors = []
         for cp in cand_planes:
             fits = [_lies_on(cands, i, k, cp["n"], cp["d"], cp["support"], sigma_px) for k in (0, 1)]
@@ -721,39 +766,50 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
             cand_planes = survivors
         else:
             reasons[i] = "rejected: neither chord lies on any candidate plane"
-    if len(cand_planes) > 1:
-        # Several survive.  They are the same plane in practice when each one's support
-        # chords lie on the best-supported one (e.g. a face-on first placement whose two
-        # chords nearly coincide); otherwise the ambiguity is real.
-        cand_planes.sort(key=lambda cp: -len(cp["support"]))
-        best = cand_planes[0]
-        for other in cand_planes[1:]:
-            if not all(_lies_on(cands, i, k, best["n"], best["d"], best["support"], sigma_px)
-                       for i, k in other["support"]):
-                if not strict:
-                    top = [cp for cp in cand_planes if len(cp["support"]) == len(best["support"])]
-                    for cp in top:
-                        cp["cost"] = sum(_msd(cands[i].chords[k], cp["n"], cp["d"]) / _tau(cands[i], k, sigma_px) ** 2
-                                         for i, k in cp["support"])
-                    best = min(top, key=lambda cp: cp["cost"])
-                    notes.append(f"{len(cand_planes)} different candidate planes remained; the best-supported, "
-                                 "lowest-cost one was taken (ambiguous)")
-                    break
-                raise LightplaneError(
-                    f"paper method: {len(cand_planes)} different candidate light planes remain after all placements: "
-                    "the placements cannot resolve the ambiguity (add placements with different tilts)"
-                )
-        cand_planes = [best]
-    cp = cand_planes[0]
+    return cand_planes, seen
+
+
+def _one_candidate_plane(cands, cand_planes: list, sigma_px, strict: bool, notes: list) -> dict:
+    """Several candidate planes survive all placements.  They are the same plane in practice when each one's
+    support chords lie on the best-supported one (e.g. a face-on first placement whose two chords nearly
+    coincide); otherwise the ambiguity is real: an error, or with ``strict=False`` the best-supported,
+    lowest-cost candidate."""
+    cand_planes.sort(key=lambda cp: -len(cp["support"]))
+    best = cand_planes[0]
+    for other in cand_planes[1:]:
+        if not all(_lies_on(cands, i, k, best["n"], best["d"], best["support"], sigma_px)
+                   for i, k in other["support"]):
+            if not strict:
+                top = [cp for cp in cand_planes if len(cp["support"]) == len(best["support"])]
+                for cp in top:
+                    cp["cost"] = sum(_msd(cands[i].chords[k], cp["n"], cp["d"]) / _tau(cands[i], k, sigma_px) ** 2
+                                     for i, k in cp["support"])
+                best = min(top, key=lambda cp: cp["cost"])
+                notes.append(f"{len(cand_planes)} different candidate planes remained; the best-supported, "
+                             "lowest-cost one was taken (ambiguous)")
+                break
+            raise LightplaneError(
+                f"paper method: {len(cand_planes)} different candidate light planes remain after all placements: "
+                "the placements cannot resolve the ambiguity (add placements with different tilts)"
+            )
+    return best
+
+
+def _refine_progressively(cands, cp: dict, rest: list, sigma_px, rel_change: float,
+                          reasons: dict) -> tuple[list, np.ndarray, float, int]:
+    """The progressive refinement (:func:`_solve_paper`) of the candidate plane ``cp``: first the placements
+    seen during elimination that were ambiguous, then those of ``rest``; each one whose chord alone lies on
+    the plane is added and the plane refitted, until it changes by less than ``rel_change``.
+    Returns ``(support [(i, k)], normal, d, placements processed)``."""
     support = list(cp["support"])
     n_, d_ = cp["n"], cp["d"]
-    # progressive refinement: first the placements seen during elimination that were ambiguous
     queue = list(cp["pending"]) + rest
     sup_idx = [i for i, _ in support]
     sup_ch = [k for _, k in support]
     if len(support) > 2:
         n_, d_ = _fit_assignment(cands, sup_idx, sup_ch, sigma_px, weighted=False)
     converged = False
+    processed = 0
     for i in queue:
         if converged:
             reasons[i] = "not used: the plane had converged (change < 0.1 %)"
@@ -777,10 +833,7 @@ def _solve_paper(cands, idx, sigma_px, *, rel_change: float = 1e-3, strict: bool
         change = np.linalg.norm(np.append(n_new, d_new) - old) / np.linalg.norm(old)
         n_, d_ = n_new, d_new
         converged = bool(change < rel_change)
-    choice = dict(support)
-    for i, _ in support:
-        reasons.setdefault(i, "used")
-    return _PaperOutcome(n_, d_, choice, reasons, processed, tuple(notes))
+    return support, n_, d_, processed
 
 
 # ------------------------------------------------------------------ public entry
@@ -801,10 +854,32 @@ def check_calibration_args(method: str, camera, diameter_mm) -> float:
 
 @_dataclass(frozen=True)
 class SolverOptions:
-    """Options of the plane solvers (:func:`calibrate_plane_from_points`; meanings there).
+    """Options of the plane solvers (:func:`calibrate_plane_from_points`).
 
-    The defaults are what every command uses; ``ml`` holds the maximum-likelihood
-    refinement's options.  Checked when a solve starts.
+    The defaults are what every command uses.  Checked on construction.
+
+    - ``sigma_px``: image noise sigma (px) for the tolerances; estimated from the
+      rim-ellipse and stripe-line residuals when None.
+    - ``min_stripe_points``: placements with fewer stripe points (after the robust
+      line fit) are rejected.
+    - ``max_rim_rms_px``: rim points farther than this (RMS, px) from their best
+      ellipse are "not an ellipse".
+    - ``min_normal_spread_deg``: the chosen target normals must spread by more than
+      this (max pairwise angle), or the two-fold ambiguity cannot be resolved.
+    - ``max_exhaustive``: ``global``: exhaustive search up to this many placements,
+      sampling beyond (random generator seeded with ``seed``).
+    - ``strict``: True (default): undecided placements (both chords fit) are left
+      out, an unresolvable ambiguity or placements too alike raise.  False (for
+      simulation studies, e.g. the paper's two-placement runs): always return the
+      lowest-cost answer, undecided placements included, with warnings saying what
+      was ambiguous.
+    - ``paper_rel_change``: ``paper``: the stopping rule, relative change of
+      ``(a, b, c, d)`` (the paper's 0.1 %).
+    - ``ml`` (:class:`~lightplane.plane.ml.MLOptions`): ``ml``: options of
+      :func:`lightplane.plane.ml.refine_ml` (``noise``, ``correlated``, ``huber_c``,
+      ``rounds``, ``max_iter``, ``dispersion``).  The noise model it found (rim and stripe
+      sigmas in px, their correlation factors along the curves, outliers, the images'
+      dispersion and whether the covariance includes it) is kept in ``plane.meta["noise_model"]``.
     """
 
     sigma_px: float | None = None
@@ -847,30 +922,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         sampling with greedy assignment beyond).  ``ml``: ``global`` then the joint
         maximum-likelihood refinement (:func:`lightplane.plane.ml.refine_ml`) with covariance.
     options : SolverOptions, optional
-        The solver's knobs (defaults when omitted):
-
-        - ``sigma_px``: image noise sigma (px) for the tolerances; estimated from the
-          rim-ellipse and stripe-line residuals when None.
-        - ``min_stripe_points``: placements with fewer stripe points (after the robust
-          line fit) are rejected.
-        - ``max_rim_rms_px``: rim points farther than this (RMS, px) from their best
-          ellipse are "not an ellipse".
-        - ``min_normal_spread_deg``: the chosen target normals must spread by more than
-          this (max pairwise angle), or the two-fold ambiguity cannot be resolved.
-        - ``max_exhaustive``: ``global``: exhaustive search up to this many placements,
-          sampling beyond (random generator seeded with ``seed``).
-        - ``strict``: True (default): undecided placements (both chords fit) are left
-          out, an unresolvable ambiguity or placements too alike raise.  False (for
-          simulation studies, e.g. the paper's two-placement runs): always return the
-          lowest-cost answer, undecided placements included, with warnings saying what
-          was ambiguous.
-        - ``paper_rel_change``: ``paper``: the stopping rule, relative change of
-          ``(a, b, c, d)`` (the paper's 0.1 %).
-        - ``ml`` (:class:`~lightplane.plane.ml.MLOptions`): ``ml``: options of
-          :func:`lightplane.plane.ml.refine_ml` (``noise``, ``correlated``, ``huber_c``,
-          ``rounds``, ``max_iter``, ``dispersion``).  The noise model it found (rim and stripe
-          sigmas in px, their correlation factors along the curves, outliers, the images'
-          dispersion and whether the covariance includes it) is kept in ``plane.meta["noise_model"]``.
+        The solver's knobs (:class:`SolverOptions`, meanings there; defaults when omitted).
     min_placements : int
         Fewest usable placements accepted (default 3; >= 2).  Two are what the paper's
         §3 study uses: then only the coplanarity of the true pair of chords resolves
@@ -904,7 +956,78 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     opts = SolverOptions() if options is None else options
     if not isinstance(opts, SolverOptions):
         raise LightplaneError(f"options must be SolverOptions, got {type(opts).__name__}")
-    sigma_px, strict = opts.sigma_px, opts.strict
+    rims, stripes, min_placements = _checked_point_sets(rims, stripes, min_placements)
+    r = 0.5 * diameter
+    cands = _prepare_placements(camera, r, rims, stripes, opts)
+    sigma_est = estimate_sigma_px(cands)
+    sigma = float(opts.sigma_px) if opts.sigma_px is not None else sigma_est
+    usable = [c.index for c in cands if c.usable]
+    if len(usable) < min_placements:
+        why = "; ".join(f"placement {c.index}: {c.reason}" for c in cands if not c.usable)
+        raise LightplaneError(f"only {len(usable)} usable placements, need at least {min_placements} ({why})")
+    ch = _choose_chords(cands, usable, sigma, method, opts)
+    used = sorted(ch.choice)
+    if len(used) < min_placements:
+        why = "; ".join(f"placement {i}: {ch.reasons[i]}" for i in sorted(ch.reasons))
+        raise LightplaneError(f"only {len(used)} placements could be used ({why}), need at least {min_placements}")
+    warnings = list(ch.warnings) + _spread_warnings(cands, used, ch.choice, opts)
+    fit = _Final(LightPlane(ch.normal, ch.d, meta={"method": method}), None, sigma_est, ch.iterations,
+                 {i: cands[i].poses[ch.choice[i]] for i in used}, {c.index: c.rim_rms_px for c in cands},
+                 {c.index: c.stripe_rms_px for c in cands}, None)
+    if method == "ml":
+        fit = _refined(camera, r, (rims, stripes), cands, used, fit, opts.ml, warnings)
+    results = _placement_results(cands, ch, fit, method)
+    warnings.extend(f"placement {c.index} not used: {c.reason}" for c in cands if not c.usable)
+    meta: dict = {"method": method, "sigma_px": fit.sigma_px, "n_used": len(used)}
+    if fit.noise_model is not None:
+        meta["noise_model"] = fit.noise_model
+    if opts.sigma_px is not None:
+        meta["sigma_px_assumed"] = float(opts.sigma_px)
+    plane = LightPlane(fit.plane.normal, fit.plane.d, fit.covariance, meta=meta)
+    return PlaneCalibration(plane=plane, covariance=fit.covariance, sigma_px=fit.sigma_px, placements=tuple(results),
+                            method=method, ambiguity=ch.ambiguity, warnings=tuple(warnings),
+                            iterations=int(fit.iterations))
+
+
+@_dataclass(frozen=True)
+class _Final:
+    """The plane from the chosen chords (refined for ``ml``): its covariance (``ml``), the noise sigma,
+    the solver's count, and by placement the final pose and the rim's and stripe's residual RMS (px);
+    the ML refinement's noise model."""
+
+    plane: LightPlane
+    covariance: np.ndarray | None
+    sigma_px: float
+    iterations: int
+    poses: dict
+    rim_rms: dict
+    stripe_rms: dict
+    noise_model: dict | None
+
+
+def _refined(camera, r: float, points: tuple, cands, used: list, fit: _Final, ml_options: MLOptions,
+             warnings: list) -> _Final:
+    """The joint ML refinement (:func:`lightplane.plane.ml.refine_ml`) of the plane and poses of the used
+    placements, from ``fit``; ``points``: all rim and stripe points (the stripes' inliers are used)."""
+    rims, stripes = points
+    res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
+                                                         for i in used], LightPlane(fit.plane.normal, fit.plane.d),
+                    [fit.poses[i] for i in used], ml_options)
+    if not getattr(res, "converged", True):
+        warnings.append(f"the maximum-likelihood refinement stopped after {res.iterations} iterations "
+                        "without converging")
+    plane = LightPlane(res.plane.normal, res.plane.d, res.covariance, meta={"method": "ml"})
+    poses, rim_rms, st_rms = dict(fit.poses), dict(fit.rim_rms), dict(fit.stripe_rms)
+    for j, i in enumerate(used):
+        poses[i] = res.poses[j]
+        rim_rms[i] = float(res.rim_rms_px[j])
+        st_rms[i] = float(res.stripe_rms_px[j])
+    return _Final(plane, plane.covariance, float(res.sigma_px), int(res.iterations), poses, rim_rms, st_rms,
+                  _noise_model(res))
+
+
+def _checked_point_sets(rims, stripes, min_placements) -> tuple[list, list, int]:
+    """The rim and stripe point sets as (N, 2) arrays, one pair per placement, checked; ``min_placements`` as an int."""
     rims, stripes = list(rims), list(stripes)
     if len(rims) != len(stripes):
         raise LightplaneError(f"rims and stripes must have one entry per placement, got {len(rims)} and {len(stripes)}")
@@ -913,7 +1036,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
     min_placements = int(min_placements)
     if len(rims) < min_placements:
         raise LightplaneError(f"need at least {min_placements} placements, got {len(rims)}")
-    r = 0.5 * diameter
+
     def _pts(a, what):
         return np.zeros((0, 2)) if np.size(a) == 0 else as_points(a, 2, what)
 
@@ -924,12 +1047,16 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
             raise LightplaneError(f"placement {i}: no rim points")
         if not (np.all(np.isfinite(rm)) and np.all(np.isfinite(st))):
             raise LightplaneError(f"placement {i}: rim or stripe points contain NaN or infinite values")
+    return rims, stripes, min_placements
+
+
+def _prepare_placements(camera, r: float, rims: list, stripes: list, opts: SolverOptions) -> list:
+    """:func:`prepare_placement` of every placement, the undistortion, ellipse fits and circle poses
+    of all placements in one vectorised pass each."""
     # undistort everything at once (one vectorised call), then split per placement
     sizes = [len(a) for pair in zip(rims, stripes) for a in pair]
     xy_all = camera.undistort_points(np.concatenate([a for pair in zip(rims, stripes) for a in pair]), normalized=True)
     parts = np.split(xy_all, np.cumsum(sizes)[:-1])
-    # ellipse fits and circle poses of all placements in one vectorised pass each
-
     K = camera.K
     rim_und = [parts[2 * i] @ K[:2, :2].T + K[:2, 2] for i in range(len(rims))]
     conics, fit_problems = fit_conics(rim_und)
@@ -944,85 +1071,85 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         poses = None
         if pose_problems[i] is None:
             poses = tuple(CirclePose(centers[i, j], normals[i, j], r) for j in range(2))
-        cands.append(prepare_placement(camera, r, rm, st, i, min_stripe_points=opts.min_stripe_points,
-                                       max_rim_rms_px=opts.max_rim_rms_px, rim_xy=parts[2 * i],
-                                       stripe_xy=parts[2 * i + 1], conic=conics[i], poses=poses,
-                                       pose_problem=pose_problems[i]))
-    sigma_est = estimate_sigma_px(cands)
-    sigma = float(sigma_px) if sigma_px is not None else sigma_est
-    usable = [c.index for c in cands if c.usable]
-    warnings: list[str] = []
-    if len(usable) < min_placements:
-        why = "; ".join(f"placement {c.index}: {c.reason}" for c in cands if not c.usable)
-        raise LightplaneError(f"only {len(usable)} usable placements, need at least {min_placements} ({why})")
+        pre = _Batched(rim_xy=parts[2 * i], stripe_xy=parts[2 * i + 1], conic=conics[i], poses=poses,
+                       pose_problem=pose_problems[i])
+        cands.append(_prepare_placement(camera, r, rm, st, i, opts, pre))
+    return cands
 
+
+@_dataclass(frozen=True)
+class _Chords:
+    """The chosen chords (:func:`_choose_chords`): the plane through them, which candidate of each used
+    placement, every placement's reason, the solver's count, the ambiguity (``global``) and warnings."""
+
+    normal: np.ndarray
+    d: float
+    choice: dict
+    reasons: dict
+    iterations: int
+    ambiguity: Ambiguity | None
+    warnings: tuple
+
+
+def _choose_chords(cands, usable: list, sigma: float, method: str, opts: SolverOptions) -> _Chords:
+    """One chord per usable placement by the ``paper`` or the ``global`` method (``ml`` starts from ``global``)."""
+    strict = opts.strict
     reasons: dict = {c.index: c.reason for c in cands if not c.usable}
-    ambiguity = None
     if method == "paper":
         out = _solve_paper(cands, usable, sigma, strict=strict, rel_change=opts.paper_rel_change)
-        normal, d, choice, iterations = out.normal, out.d, out.choice, out.processed
         reasons.update(out.reasons)
-        warnings.extend(out.notes)
-    else:
-        g = _solve_global(cands, usable, sigma, max_exhaustive=opts.max_exhaustive,
-                          rng=np.random.default_rng(opts.seed))
-        normal, d, iterations, ambiguity = g.normal, g.d, g.evaluated, g.ambiguity
-        choice = {i: g.choice[i] for i in usable if g.decided[i] or not strict}
-        for i in usable:
-            why = f"both chords fit the plane (flipping it costs {g.flip_cost[i]:.3g} <= {_KAPPA**2:g})"
-            reasons[i] = "used" if g.decided[i] else (f"rejected: {why}" if strict else f"used, undecided: {why}")
-        if not strict and not all(g.decided[i] for i in usable):
-            normal, d = g.normal_all, g.d_all
-            warnings.append("undecided placements kept (strict=False): "
-                            + ", ".join(str(i) for i in usable if not g.decided[i]))
-        if not ambiguity.separated:
-            warnings.append("ambiguous choice of chords: " + ambiguity.message)
-    used = sorted(choice)
-    if len(used) < min_placements:
-        why = "; ".join(f"placement {i}: {reasons[i]}" for i in sorted(reasons))
-        raise LightplaneError(f"only {len(used)} placements could be used ({why}), need at least {min_placements}")
+        return _Chords(out.normal, out.d, out.choice, reasons, out.processed, None, tuple(out.notes))
+    warnings = []
+    g = _solve_global(cands, usable, sigma, max_exhaustive=opts.max_exhaustive, rng=np.random.default_rng(opts.seed))
+    normal, d = g.normal, g.d
+    choice = {i: g.choice[i] for i in usable if g.decided[i] or not strict}
+    for i in usable:
+        why = f"both chords fit the plane (flipping it costs {g.flip_cost[i]:.3g} <= {_KAPPA**2:g})"
+        reasons[i] = "used" if g.decided[i] else (f"rejected: {why}" if strict else f"used, undecided: {why}")
+    if not strict and not all(g.decided[i] for i in usable):
+        normal, d = g.normal_all, g.d_all
+        warnings.append("undecided placements kept (strict=False): "
+                        + ", ".join(str(i) for i in usable if not g.decided[i]))
+    if not g.ambiguity.separated:
+        warnings.append("ambiguous choice of chords: " + g.ambiguity.message)
+    return _Chords(normal, d, choice, reasons, g.evaluated, g.ambiguity, tuple(warnings))
+
+
+def _spread_warnings(cands, used: list, choice: dict, opts: SolverOptions) -> list:
+    """The chosen target normals must spread by more than ``min_normal_spread_deg``: an error
+    (strict) or a warning."""
     normals = np.array([cands[i].poses[choice[i]].normal for i in used])
     spread = float(np.degrees(np.arccos(np.clip(np.min(normals @ normals.T), -1.0, 1.0))))
-    if spread <= opts.min_normal_spread_deg and not strict:
-        warnings.append(f"placements too alike: all target normals within {spread:.2f} deg of each other")
-    elif spread <= opts.min_normal_spread_deg:
+    if spread <= opts.min_normal_spread_deg and not opts.strict:
+        return [f"placements too alike: all target normals within {spread:.2f} deg of each other"]
+    if spread <= opts.min_normal_spread_deg:
         raise LightplaneError(
             f"placements too alike: all target normals within {spread:.2f} deg of each other "
             f"(need > {opts.min_normal_spread_deg} deg to resolve the two-fold pose ambiguity); tilt the target differently"
         )
-    plane = LightPlane(normal, d, meta={"method": method})
-    covariance = None
-    poses_final = {i: cands[i].poses[choice[i]] for i in used}
-    rim_rms = {c.index: c.rim_rms_px for c in cands}
-    st_rms = {c.index: c.stripe_rms_px for c in cands}
-    if method == "ml":
-        g_plane = LightPlane(normal, d)
-        res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
-                                                             for i in used], g_plane, [poses_final[i] for i in used],
-                        opts.ml)
-        noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
-                       ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion",
-                        "image_dispersion_expected")
-                       if hasattr(res, k)}
-        if hasattr(res, "n_outliers"):
-            noise_model["n_outliers"] = int(res.n_outliers)
-        if hasattr(res, "dispersion_applied"):
-            noise_model["image_dispersion_applied"] = bool(res.dispersion_applied)
-        if not getattr(res, "converged", True):
-            warnings.append(f"the maximum-likelihood refinement stopped after {res.iterations} iterations "
-                            "without converging")
-        plane = LightPlane(res.plane.normal, res.plane.d, res.covariance, meta={"method": "ml"})
-        covariance = plane.covariance
-        sigma_est = float(res.sigma_px)
-        iterations = int(res.iterations)
-        for j, i in enumerate(used):
-            poses_final[i] = res.poses[j]
-            rim_rms[i] = float(res.rim_rms_px[j])
-            st_rms[i] = float(res.stripe_rms_px[j])
+    return []
+
+
+def _noise_model(res) -> dict:
+    """The plane file's ``noise_model``: what the ML refinement found about the noise."""
+    noise_model = {k: _finite_or_none(float(getattr(res, k))) for k in
+                   ("sigma_rim_px", "sigma_stripe_px", "tau_rim", "tau_stripe", "image_dispersion",
+                    "image_dispersion_expected")
+                   if hasattr(res, k)}
+    if hasattr(res, "n_outliers"):
+        noise_model["n_outliers"] = int(res.n_outliers)
+    if hasattr(res, "dispersion_applied"):
+        noise_model["image_dispersion_applied"] = bool(res.dispersion_applied)
+    return noise_model
+
+
+def _placement_results(cands, ch: _Chords, fit: _Final, method: str) -> list:
+    """Every placement's :class:`PlacementResult`."""
+    poses_final, rim_rms, st_rms, plane = fit.poses, fit.rim_rms, fit.stripe_rms, fit.plane
     results = []
     for c in cands:
         i = c.index
-        k = choice.get(i)
+        k = ch.choice.get(i)
         if c.usable:
             kk = k if k is not None else 0
             if k is not None and method == "ml":
@@ -1034,18 +1161,8 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
         else:
             chord_rms = np.nan
         results.append(PlacementResult(
-            index=i, used=k is not None, reason=reasons.get(i, "used"), candidate=k,
+            index=i, used=k is not None, reason=ch.reasons.get(i, "used"), candidate=k,
             pose=poses_final.get(i), poses=c.poses, n_rim=c.n_rim, n_stripe=int(c.stripe_inliers.sum()),
             rim_rms_px=float(rim_rms[i]), stripe_rms_px=float(st_rms[i]), chord_rms_mm=chord_rms,
             stripe_inliers=c.stripe_inliers))
-    for c in cands:
-        if not c.usable:
-            warnings.append(f"placement {c.index} not used: {c.reason}")
-    meta = {"method": method, "sigma_px": sigma_est, "n_used": len(used)}
-    if method == "ml":
-        meta["noise_model"] = noise_model
-    if sigma_px is not None:
-        meta["sigma_px_assumed"] = float(sigma_px)
-    plane = LightPlane(plane.normal, plane.d, covariance, meta=meta)
-    return PlaneCalibration(plane=plane, covariance=covariance, sigma_px=sigma_est, placements=tuple(results),
-                            method=method, ambiguity=ambiguity, warnings=tuple(warnings), iterations=int(iterations))
+    return results
