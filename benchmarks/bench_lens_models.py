@@ -51,7 +51,7 @@ import cv2
 from lightplane import Camera
 from lightplane.plane.calibrate import calibrate_plane
 from lightplane.camera.intrinsics import free_parameters, calibrate_camera, rays_up_to_rotation
-from lightplane.camera.corners import board_points
+from lightplane.camera.targets import board_object_points
 from lightplane.camera.lens import coeff_names
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
@@ -80,7 +80,7 @@ def opencv_sigma_check(cal, flags: int) -> str:
     cam = cal.camera
     dist = cam.dist
     free = np.flatnonzero(free_parameters(dist.size, flags))
-    obj = board_points(cal.board, cal.square_mm)
+    obj = board_object_points("chessboard", *cal.board, cal.square_mm)
     p, nv = free.size, len(cal.rvecs)
     blocks, res = [], []
     for i, (uv, rv, tv) in enumerate(zip(cal.corners_uv, cal.rvecs, cal.tvecs)):

@@ -38,7 +38,7 @@ import cv2
 
 from lightplane import Camera
 from lightplane.camera.intrinsics import free_parameters, _polish, calibration_flags, intrinsics_covariance, rays_up_to_rotation
-from lightplane.camera.corners import board_points
+from lightplane.camera.targets import board_object_points
 from lightplane.simulate.scene import scheimpflug_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, sample_board_poses
 from results import at_most, figure, record
@@ -67,7 +67,7 @@ def poses(cam: Camera, n: int, seed: int, board=CAP["board"], dist=CAP["distance
 
 def normal_matrix(cam: Camera, views, board, flags: int, noise: float) -> str:
     """Part 1: OpenCV's cut against the smallest eigenvalue, sigma exact / OpenCV's pseudo-inverse."""
-    obj = board_points(board, CAP["square_mm"])
+    obj = board_object_points("chessboard", *board, CAP["square_mm"])
     free = np.flatnonzero(free_parameters(14, flags))
     p, nv = free.size, len(views)
     J = np.zeros((2 * len(obj) * nv, p + 6 * nv))
@@ -92,7 +92,7 @@ def normal_matrix(cam: Camera, views, board, flags: int, noise: float) -> str:
 
 def calibrate(cam: Camera, views, board, flags: int, noise: float, seed: int, guess: Camera | None = None):
     """Part 2: one calibration on noisy corners; the worst |error| / sigma (covariance, OpenCV), the rays."""
-    obj = board_points(board, CAP["square_mm"]).astype(np.float32)
+    obj = board_object_points("chessboard", *board, CAP["square_mm"]).astype(np.float32)
     rng = np.random.default_rng(seed)
     objs = [obj] * len(views)
     ims = [(cam.project(obj.astype(float) @ R.T + t) + rng.normal(0.0, noise, (len(obj), 2)))

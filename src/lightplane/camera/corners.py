@@ -1,6 +1,7 @@
 """Calibration boards in images: OpenCV's chessboard detection, the corners refined by gradient orthogonality
-(Förstner) or by the blurred-saddle fit, in the lens's own frame where the lens bends the board's lines, and the
-board's point layout (docs/method.md §Camera calibration)."""
+(Förstner) or by the blurred-saddle fit, in the lens's own frame where the lens bends the board's lines
+(docs/method.md §Camera calibration).  The board's point layout is
+:func:`lightplane.camera.targets.board_object_points`."""
 
 from __future__ import annotations
 
@@ -10,22 +11,12 @@ from lightplane.camera._corner_kernels import fit_saddles, forstner, window_pixe
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import to_gray_float
-__all__ = ["MIN_BOARD_BLUR_PX", "board_points", "find_board", "fit_corners", "lens_bend", "refine_corners"]
+__all__ = ["MIN_BOARD_BLUR_PX", "find_board", "fit_corners", "lens_bend", "refine_corners"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
 #: pixel scale (see :func:`fit_corners`); sharpened camera images (halos) are not.
 MIN_BOARD_BLUR_PX = 0.55
-
-
-def board_points(board: tuple[int, int], square_mm: float) -> np.ndarray:
-    """Inner-corner coordinates ``(cols*rows, 3)`` in the board frame (mm, z = 0), row-major
-    (x along a row, matching OpenCV's corner order)."""
-    cols, rows = board
-    if square_mm <= 0:
-        raise LightplaneError(f"square size must be positive, got {square_mm} mm")
-    xs, ys = np.meshgrid(np.arange(cols), np.arange(rows))
-    return np.column_stack([xs.ravel() * square_mm, ys.ravel() * square_mm, np.zeros(cols * rows)])
 
 
 def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, *, sigma_frac: float = 0.2,

@@ -41,10 +41,40 @@ from lightplane.core.io import to_gray8
 from lightplane.camera.corners import find_board
 from lightplane.core.io import to_gray_float
 
-__all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "correct_circle_centres", "to_gray8"]
+__all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "board_object_points", "correct_circle_centres",
+           "to_gray8"]
 
 KINDS = ("chessboard", "circles", "acircles", "charuco")
 _MIN_CHARUCO_CORNERS = 6
+
+
+def board_object_points(kind: str, cols: int, rows: int, square_mm: float, ids=None) -> np.ndarray:
+    """(M, 3) board coordinates (mm, z = 0) of the points ``ids`` (default: all, id order) of a
+    ``kind`` board (one of :data:`KINDS`) of ``cols`` x ``rows`` inner corners, dots or ChArUco
+    squares, square (centre pitch) ``square_mm``: the board frames of the module docstring.
+
+    The one layout of every board kind: :meth:`Target.object_points` and the simulator's targets
+    are this.  Lattice point ``(x, y)`` (:func:`board_lattice_index`) lies at
+    ``origin + (x, y) · square_mm``, the origin ``(square_mm, square_mm)`` on a ChArUco board
+    (OpenCV's ``CharucoBoard`` frame), else ``(0, 0)``.
+    """
+    s = square_mm if kind == "charuco" else 0.0
+    xy = np.array([s, s]) + board_lattice_index(kind, cols, rows, ids) * square_mm
+    return np.column_stack([xy, np.zeros(len(xy))])
+
+
+def board_lattice_index(kind: str, cols: int, rows: int, ids=None) -> np.ndarray:
+    """(M, 2) int lattice coordinates ``(x, y)`` of the points ``ids`` (default: all, id order) of a
+    ``kind`` board of ``cols`` x ``rows``: id ``y · n + x`` with ``n`` the points per row (``cols``,
+    ChArUco ``cols - 1``), staggered ``x = 2 i + y mod 2`` on an asymmetric circle grid.  The ids
+    are not checked (:meth:`Target.lattice_index` does)."""
+    n = cols - 1 if kind == "charuco" else cols
+    ids = np.arange(n * (rows - 1 if kind == "charuco" else rows)) if ids is None \
+        else np.asarray(ids, dtype=np.intp).ravel()
+    i, j = ids % n, ids // n
+    if kind == "acircles":
+        i = 2 * i + j % 2
+    return np.column_stack([i, j]).astype(np.intp)
 
 
 @dataclass(frozen=True)
@@ -131,14 +161,14 @@ class Target:
         """(M, 2) int lattice coordinates ``(x, y)`` of the points: board position
         ``lattice_origin_mm + (x, y) · square_mm``.  Rows (equal y) and columns (equal x)
         of the lattice are straight lines of points (the cross-ratio check uses them)."""
+        return board_lattice_index(self.kind, self.cols, self.rows, self._checked_ids(ids))
+
+    def _checked_ids(self, ids) -> np.ndarray:
+        """``ids`` as an (M,) int array (None: all, id order); LightplaneError outside the board."""
         ids = np.arange(self.n_points) if ids is None else np.asarray(ids, dtype=np.intp).ravel()
         if ids.size and (ids.min() < 0 or ids.max() >= self.n_points):
             raise LightplaneError(f"point ids must be in 0..{self.n_points - 1} for {self.describe()}")
-        n = self.cols - 1 if self.kind == "charuco" else self.cols
-        i, j = ids % n, ids // n
-        if self.kind == "acircles":
-            i = 2 * i + j % 2
-        return np.column_stack([i, j]).astype(np.intp)
+        return ids
 
     @property
     def lattice_shape(self) -> tuple[int, int]:
@@ -156,9 +186,9 @@ class Target:
         return np.array([s, s])
 
     def object_points(self, ids=None) -> np.ndarray:
-        """(M, 3) board coordinates (mm, z = 0) of the points ``ids`` (default: all, id order)."""
-        xy = self.lattice_origin_mm + self.lattice_index(ids) * self.square_mm
-        return np.column_stack([xy, np.zeros(len(xy))])
+        """(M, 3) board coordinates (mm, z = 0) of the points ``ids`` (default: all, id order):
+        :func:`board_object_points`."""
+        return board_object_points(self.kind, self.cols, self.rows, self.square_mm, self._checked_ids(ids))
 
     def outline_mm(self) -> tuple[float, float, float, float]:
         """``(x0, x1, y0, y1)`` board rectangle (mm) sure to be printed target: stripe points are taken

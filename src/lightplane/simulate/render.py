@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from lightplane.camera.model import Camera
+from lightplane.camera.targets import board_object_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.simulate import render_core as rc
@@ -952,17 +953,10 @@ def target_object_points(target) -> np.ndarray:
     """``(N, 3)`` points of a target in its board frame (mm, z = 0), in id order: chessboard
     inner corners and ChArUco chessboard corners ``j * (cols') + i`` at ``(i, j) * square``
     (ChArUco: ``((i + 1), (j + 1)) * square``, its own frame), circle-grid dot centres
-    ``(i, j) * pitch``, or staggered ``((2 i + j mod 2), j) * pitch``; ``i`` fastest."""
+    ``(i, j) * pitch``, or staggered ``((2 i + j mod 2), j) * pitch``; ``i`` fastest: the camera
+    layer's :func:`lightplane.camera.targets.board_object_points`."""
     spec = target_spec(target)
-    s = spec.square_mm
-    if spec.kind == "charuco":
-        j, i = np.mgrid[0:spec.rows - 1, 0:spec.cols - 1]
-        return np.column_stack([(i.ravel() + 1) * s, (j.ravel() + 1) * s, np.zeros(i.size)])
-    j, i = np.mgrid[0:spec.rows, 0:spec.cols]
-    i, j = i.ravel(), j.ravel()
-    if spec.kind == "acircles":
-        return np.column_stack([(2 * i + j % 2) * s, j * s, np.zeros(i.size)]).astype(np.float64)
-    return np.column_stack([i * s, j * s, np.zeros(i.size)]).astype(np.float64)
+    return board_object_points(spec.kind, spec.cols, spec.rows, spec.square_mm)
 
 
 def _target_outline(spec: TargetSpec) -> np.ndarray:
