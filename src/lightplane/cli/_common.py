@@ -7,7 +7,7 @@ import functools
 import inspect
 import sys
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal, Optional, TypedDict, TypeVar
+from typing import Any, Callable, Iterator, Literal, Optional, TypeVar
 
 import typer
 from rich.console import Console
@@ -129,16 +129,6 @@ def handles_errors(fn: F) -> F:
             fail("interrupted", code=130)
 
     return wrapper  # type: ignore[return-value]
-
-
-class AlongStripe(TypedDict, total=False):
-    """``--sigma-along`` as a stripe option: absent when not given (the extractor's default applies)."""
-
-    sigma_along_px: float
-
-
-def along_stripe(sigma_along: float | None) -> AlongStripe:
-    return {} if sigma_along is None else {"sigma_along_px": sigma_along}
 
 
 def parse_board(text: str) -> tuple[int, int]:

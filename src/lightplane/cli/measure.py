@@ -2,21 +2,23 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional
 
 import typer
 
 from lightplane.core.errors import LightplaneError
-from lightplane.cli._common import Channel, along_stripe, app, console, err_console, handles_errors, progress_bar
+from lightplane.cli._common import Channel, app, console, err_console, handles_errors, progress_bar
 from lightplane.camera.model import Camera
-from lightplane.core.io import check_output, summarize_reasons
-from lightplane.measure.pointcloud import cloud_format
+from lightplane.core.io import summarize_reasons
+from lightplane.measure.options import CloudOutput, MeasureOptions
 from lightplane.measure.scan import measure_scan, open_frames
 from lightplane.measure.sensor import Sensor, measure_lasers
 from lightplane.motion.model import Motion, Turntable, load_rigid
 from lightplane.plane.model import LightPlane
 from lightplane.plane.uncertainty import camera_share_status
+from lightplane.stripe.options import StripeOptions
 
 
 def parse_vector(text: str, name: str) -> tuple[float, float, float]:
@@ -86,44 +88,71 @@ def sigma_line(camera, plane) -> str:
         f"the plane calibration only: {why_not}") + "; the stripe centre's own noise is not included"
 
 
-def motion_from_options(*, step, direction, positions, turntable, table_from_sensor, turntable_step,
-                        turntable_angles, turntable_start, counts_per_rev, poses, flange, flange_from_sensor, camera):
-    """The :class:`lightplane.motion.model.Motion` named by the measure options (one form at most)."""
-    forms = [n for n, v in (("--step", step), ("--positions", positions), ("--turntable-step", turntable_step),
-                            ("--turntable-angles", turntable_angles), ("--poses", poses)) if v is not None]
-    if len(forms) > 1:
-        raise LightplaneError(f"give one motion, not {' and '.join(forms)}")
-    dvec = parse_vector(direction, "--direction") if direction is not None else None
-    if dvec is not None and not ({"--step", "--positions"} & set(forms)):
-        raise LightplaneError("--direction needs --step or a single-column --positions file")
-    if (turntable is not None or turntable_start is not None or counts_per_rev is not None) and not (
-            {"--turntable-step", "--turntable-angles"} & set(forms)):
-        raise LightplaneError("--turntable/--turntable-start/--counts-per-rev need --turntable-step DEG or "
-                              "--turntable-angles CSV")
-    if flange is not None and poses is None:
-        raise LightplaneError("--flange needs --poses (the flange's pose per frame)")
-    if step is not None:
+@dataclass(frozen=True)
+class MotionArgs:
+    """The measure command's motion options, one form at most (checked on construction; see
+    ``lightplane measure --help``)."""
+
+    step: float | None = None
+    direction: str | None = None
+    positions: Path | None = None
+    turntable: Path | None = None
+    turntable_step: float | None = None
+    turntable_angles: Path | None = None
+    turntable_start: float | None = None
+    counts_per_rev: float | None = None
+    poses: Path | None = None
+    flange: Path | None = None
+
+    def __post_init__(self) -> None:
+        forms = [n for n, v in (("--step", self.step), ("--positions", self.positions),
+                                ("--turntable-step", self.turntable_step),
+                                ("--turntable-angles", self.turntable_angles), ("--poses", self.poses)) if v is not None]
+        if len(forms) > 1:
+            raise LightplaneError(f"give one motion, not {' and '.join(forms)}")
+        dvec = self.direction_vector
+        if dvec is not None and not ({"--step", "--positions"} & set(forms)):
+            raise LightplaneError("--direction needs --step or a single-column --positions file")
+        if (self.turntable is not None or self.turntable_start is not None or self.counts_per_rev is not None) and not (
+                {"--turntable-step", "--turntable-angles"} & set(forms)):
+            raise LightplaneError("--turntable/--turntable-start/--counts-per-rev need --turntable-step DEG or "
+                                  "--turntable-angles CSV")
+        if self.flange is not None and self.poses is None:
+            raise LightplaneError("--flange needs --poses (the flange's pose per frame)")
+
+    @property
+    def direction_vector(self) -> tuple[float, float, float] | None:
+        return parse_vector(self.direction, "--direction") if self.direction is not None else None
+
+
+def motion_from_options(args: MotionArgs, camera, sensor: Sensor | None = None) -> Motion:
+    """The :class:`lightplane.motion.model.Motion` named by the measure options; the turntable and
+    the flange transform from ``sensor`` when the options give none."""
+    dvec = args.direction_vector
+    if args.step is not None:
         if dvec is None:
             raise LightplaneError("--step needs --direction X,Y,Z")
-        return Motion.linear(step, dvec)
-    if positions is not None:
-        return Motion.load_positions(positions, dvec)
-    if turntable_step is not None or turntable_angles is not None:
-        if turntable is not None:
-            table = Turntable.load(turntable)
-            table.check_camera(camera, str(turntable))
-        elif table_from_sensor is not None:
-            table = table_from_sensor
+        return Motion.linear(args.step, dvec)
+    if args.positions is not None:
+        return Motion.load_positions(args.positions, dvec)
+    if args.turntable_step is not None or args.turntable_angles is not None:
+        if args.turntable is not None:
+            table = Turntable.load(args.turntable)
+            table.check_camera(camera, str(args.turntable))
+        elif sensor is not None and sensor.turntable is not None:
+            table = sensor.turntable
         else:
             raise LightplaneError("a turntable motion needs the axis: --turntable tt.json (from calibrate-turntable) "
                                   "or a sensor file with a turntable")
-        start = 0.0 if turntable_start is None else turntable_start
-        if turntable_step is not None:
-            return Motion.turntable(table, turntable_step, start_deg=start)
-        return Motion.load_turntable_angles(turntable_angles, table, counts_per_rev=counts_per_rev, start_deg=start)
-    if poses is not None:
-        fl = load_rigid(flange) if flange is not None else flange_from_sensor
-        return Motion.load_poses(poses, flange=fl)
+        start = 0.0 if args.turntable_start is None else args.turntable_start
+        if args.turntable_step is not None:
+            return Motion.turntable(table, args.turntable_step, start_deg=start)
+        assert args.turntable_angles is not None  # one of the two, above
+        return Motion.load_turntable_angles(args.turntable_angles, table, counts_per_rev=args.counts_per_rev,
+                                            start_deg=start)
+    if args.poses is not None:
+        fl = load_rigid(args.flange) if args.flange is not None else None if sensor is None else sensor.flange
+        return Motion.load_poses(args.poses, flange=fl)
     return Motion.none()
 
 
@@ -174,87 +203,98 @@ def measure_cmd(
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
-    out = check_output(output, force)
-    fmt = cloud_format(out, fmt)
-    if ascii_ply and fmt != "ply":
-        raise LightplaneError("--ascii applies to PLY output only")
+    output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force)
+    out, _ = output_opts.target(output)
     inputs = list(inputs or [])
-    sens = None
+    sens: Sensor | None = None
+    lasers: list[tuple[str, str | None]] = []
+    rot = 0 if rotate is None else rotate
     if sensor is not None:
         if camera is not None or plane is not None:
             raise LightplaneError("give either --sensor or --camera/--plane, not both")
-        if not laser:
-            raise LightplaneError("--sensor needs --laser NAME (frames as arguments) or --laser NAME=FRAMES per laser")
-
-        sens = Sensor.load(sensor)
-        cam = sens.camera
-        lasers = [parse_laser(t) for t in laser]
-        for name, _ in lasers:
-            sens.plane(name, str(sensor))  # every laser named must be in the sensor file
-        with_glob = [g for _, g in lasers if g is not None]
-        if with_glob and len(with_glob) != len(lasers):
-            raise LightplaneError("give every --laser as NAME=FRAMES, or a single --laser NAME with the frames as arguments")
-        if not with_glob:
-            if len(lasers) != 1:
-                raise LightplaneError("several lasers need their frames each: --laser NAME=FRAMES")
-            if not inputs:
-                raise LightplaneError(f"no frames for laser {lasers[0][0]}: give them as arguments or --laser NAME=FRAMES")
-            lasers = [(lasers[0][0], None)]
-        elif inputs:
-            raise LightplaneError("frames given both as arguments and in --laser NAME=FRAMES")
+        sens, lasers = _sensor_lasers(sensor, laser, inputs)
         rot = sens.rotate_deg if rotate is None else rotate
+        cam = sens.camera
     else:
-        if laser:
-            raise LightplaneError("--laser needs --sensor")
-        if camera is None or plane is None:
-            raise LightplaneError("give --camera and --plane, or --sensor with --laser")
-        if not inputs:
-            raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
-        cam = Camera.load(camera)
-        rot = 0 if rotate is None else rotate
-    motion = motion_from_options(step=step, direction=direction, positions=positions, turntable=turntable,
-                                 table_from_sensor=None if sens is None else sens.turntable,
-                                 turntable_step=turntable_step, turntable_angles=turntable_angles,
-                                 turntable_start=turntable_start, counts_per_rev=counts_per_rev, poses=poses,
-                                 flange=flange, flange_from_sensor=None if sens is None else sens.flange, camera=cam)
-    roi_box = parse_roi(roi) if roi is not None else None
-
+        cam = _single_camera(camera, plane, laser, inputs)
+    motion = motion_from_options(MotionArgs(step=step, direction=direction, positions=positions, turntable=turntable,
+                                            turntable_step=turntable_step, turntable_angles=turntable_angles,
+                                            turntable_start=turntable_start, counts_per_rev=counts_per_rev,
+                                            poses=poses, flange=flange), cam, sens)
+    options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
+                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth)
     if sens is not None:
-        scans = []
-        for name, glob in lasers:
-            scans.append((name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name]))
+        scans = [(name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name])
+                 for name, glob in lasers]
         total = sum(src.n_frames or 0 for _, src, _ in scans) or None
         with progress_bar("measuring frames", total) as update:
-            ls = measure_lasers(scans, cam, out, motion=motion, fmt=fmt, ascii=ascii_ply, force=force,
-                                channel=channel, width_px=stripe_width, workers=workers, roi=roi_box, axis=axis,
-                                progress=lambda done, tot: update(done, total=tot), smooth_lines=smooth,
-                                **along_stripe(sigma_along))
-        for name, nf, nu, npts, skipped, ax, w in ls.lasers:
-            width = "estimated per frame" if w is None else f"{w:.2f} px"
-            console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
-                          f"stripe width {width}" + (f", {len(skipped)} frames skipped" if skipped else ""))
-            for idx, fname, reason in skipped[:10]:
-                err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
-        console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
-        for name, _ in lasers:
-            console.print(f"laser {name}: " + sigma_line(cam, sens.planes[name]))
+            ls = measure_lasers(scans, cam, out, options, motion=motion, output=output_opts, workers=workers,
+                                progress=lambda done, tot: update(done, total=tot))
+        _print_lasers(ls, cam, sens, lasers)
         console.print(f"wrote {ls.path} ({ls.format}{' ascii' if ascii_ply else ''})")
         return
 
     assert plane is not None  # checked above when there is no sensor
     pl = LightPlane.load(plane)
     source = open_frames(inputs, rot)
-
     with progress_bar("measuring frames", source.n_frames) as update:
+        s = measure_scan(source, cam, pl, out, options, motion=motion, output=output_opts, workers=workers,
+                         progress=lambda done, tot: update(done, total=tot))
+    _print_scan(s, source.description)
+    console.print(sigma_line(cam, pl))
+    console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
 
-        def progress(done: int, total) -> None:
-            update(done, total=total)
 
-        s = measure_scan(source, cam, pl, out, fmt=fmt, ascii=ascii_ply, motion=motion, axis=axis, roi=roi_box,
-                         width_px=stripe_width, channel=channel, workers=workers, force=force, progress=progress,
-                         smooth_lines=smooth, **along_stripe(sigma_along))
+def _sensor_lasers(sensor: Path, laser: list[str] | None, inputs: list[str]) -> tuple[Sensor, list]:
+    """The sensor file and its lasers to measure, ``(name, frames glob or None)``: every one named in
+    the file; each with its frames, or one laser with the frames as arguments."""
+    if not laser:
+        raise LightplaneError("--sensor needs --laser NAME (frames as arguments) or --laser NAME=FRAMES per laser")
+    sens = Sensor.load(sensor)
+    lasers = [parse_laser(t) for t in laser]
+    for name, _ in lasers:
+        sens.plane(name, str(sensor))  # every laser named must be in the sensor file
+    with_glob = [g for _, g in lasers if g is not None]
+    if with_glob and len(with_glob) != len(lasers):
+        raise LightplaneError("give every --laser as NAME=FRAMES, or a single --laser NAME with the frames as arguments")
+    if not with_glob:
+        if len(lasers) != 1:
+            raise LightplaneError("several lasers need their frames each: --laser NAME=FRAMES")
+        if not inputs:
+            raise LightplaneError(f"no frames for laser {lasers[0][0]}: give them as arguments or --laser NAME=FRAMES")
+        lasers = [(lasers[0][0], None)]
+    elif inputs:
+        raise LightplaneError("frames given both as arguments and in --laser NAME=FRAMES")
+    return sens, lasers
 
-    console.print(f"{s.n_frames} frames ({source.description}), {s.n_points} points "
+
+def _single_camera(camera: Path | None, plane: Path | None, laser: list[str] | None, inputs: list[str]) -> Camera:
+    """The camera of a measurement with --camera and --plane (no sensor file)."""
+    if laser:
+        raise LightplaneError("--laser needs --sensor")
+    if camera is None or plane is None:
+        raise LightplaneError("give --camera and --plane, or --sensor with --laser")
+    if not inputs:
+        raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
+    return Camera.load(camera)
+
+
+def _print_lasers(ls, cam: Camera, sens: Sensor, lasers: list) -> None:
+    """What :func:`measure_lasers` did, per laser."""
+    for name, nf, nu, npts, skipped, ax, w in ls.lasers:
+        width = "estimated per frame" if w is None else f"{w:.2f} px"
+        console.print(f"laser {name}: {nf} frames, {npts} points ({npts / max(nu, 1):.0f} per frame), axis {ax}, "
+                      f"stripe width {width}" + (f", {len(skipped)} frames skipped" if skipped else ""))
+        for idx, fname, reason in skipped[:10]:
+            err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
+    console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
+    for name, _ in lasers:
+        console.print(f"laser {name}: " + sigma_line(cam, sens.planes[name]))
+
+
+def _print_scan(s, description: str) -> None:
+    """What :func:`measure_scan` did: frames, points, skipped frames, warnings."""
+    console.print(f"{s.n_frames} frames ({description}), {s.n_points} points "
                   f"({s.n_points / max(s.n_frames_used, 1):.0f} per frame), axis {s.axis}, "
                   f"stripe width {s.width_px:.2f} px, motion {s.motion['kind']}, {s.seconds:.1f} s "
                   f"({s.n_frames / max(s.seconds, 1e-9):.0f} frames/s)")
@@ -271,5 +311,3 @@ def measure_cmd(
             err_console.print(f"  frame {idx} ({name}): {reason}")
         if s.n_skipped > 10:
             err_console.print(f"  ... and {s.n_skipped - 10} more")
-    console.print(sigma_line(cam, pl))
-    console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Iterator, Optional
 
 import typer
 
 from lightplane.core.errors import LightplaneError
-from lightplane.cli._common import along_stripe, app, console, err_console, fail, handles_errors
+from lightplane.cli._common import app, console, err_console, fail, handles_errors
 from lightplane.cli.measure import parse_roi
 from lightplane.core.io import summarize_reasons
-from lightplane.measure.batch import measure_batch, read_manifest, require_extra
+from lightplane.measure.batch import BatchOptions, measure_batch, read_manifest, require_extra
+from lightplane.measure.options import MeasureOptions
+from lightplane.stripe.options import StripeOptions
 
 #: per-scan progress bars up to this many scans (then the overall bar only)
 MAX_SCAN_BARS = 12
@@ -47,9 +50,6 @@ def measure_batch_cmd(
     unreadable calibration, wrong frame size) is reported and the others go on; exit 2 only
     when no scan could be measured.
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-
     require_extra()
 
     if (local_workers is None) == (scheduler is None):
@@ -60,8 +60,24 @@ def measure_batch_cmd(
         raise LightplaneError(f"--chunk-frames must be >= 1, got {chunk_frames}")
     if axis not in ("auto", "columns", "rows"):
         raise LightplaneError(f"--axis must be auto, columns or rows, got {axis!r}")
-    roi_box = parse_roi(roi) if roi is not None else None
+    options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
+                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth)
     scans = read_manifest(manifest)
+    with _batch_progress(len(scans)) as progress:
+        r = measure_batch(scans, output, options, BatchOptions(chunk_frames=chunk_frames, ply=ply),
+                          scheduler=scheduler, local_workers=local_workers, progress=progress,
+                          on_dashboard=_print_dashboard)
+    _print_batch(r, scans)
+    console.print(f"wrote {Path(output) / 'points'} and {Path(output) / 'manifest.json'}")
+    if not any(s["status"] == "ok" for s in r.scans):
+        fail(f"no scan could be measured ({len(r.failed)} failed; see above and {Path(output) / 'manifest.json'})")
+
+
+@contextmanager
+def _batch_progress(n_scans: int) -> Iterator[Callable[[str, int, int], None]]:
+    """Transient progress bars: all scans' chunks, and each scan's up to :data:`MAX_SCAN_BARS` scans;
+    yields ``progress(scan_id, chunks_done, chunks_total)``."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=True) as bar:
@@ -71,21 +87,22 @@ def measure_batch_cmd(
 
         def progress(sid: str, done: int, total: int) -> None:
             state[sid] = (done, total)
-            if len(scans) <= MAX_SCAN_BARS:
+            if n_scans <= MAX_SCAN_BARS:
                 if sid not in per_scan:
                     per_scan[sid] = bar.add_task(f"scan {sid}", total=total)
                 bar.update(per_scan[sid], completed=done, total=total)
             bar.update(overall, completed=sum(d for d, _ in state.values()),
                        total=sum(t for _, t in state.values()))
 
-        def dashboard(link) -> None:
-            console.print(f"Dask dashboard: {link}" if link else "Dask dashboard: not available (install bokeh)")
+        yield progress
 
-        r = measure_batch(scans, output, scheduler=scheduler, local_workers=local_workers, chunk_frames=chunk_frames,
-                          axis=axis, roi=roi_box, width_px=stripe_width, channel=channel, ply=ply,
-                          progress=progress, on_dashboard=dashboard, smooth_lines=smooth,
-                          **along_stripe(sigma_along))
 
+def _print_dashboard(link) -> None:
+    console.print(f"Dask dashboard: {link}" if link else "Dask dashboard: not available (install bokeh)")
+
+
+def _print_batch(r, scans) -> None:
+    """What :func:`measure_batch` did: totals, skipped frames, failed scans."""
     ok = [s for s in r.scans if s["status"] == "ok"]
     console.print(f"{len(ok)} of {len(r.scans)} scans measured: {r.n_frames} frames, {r.n_points} points, "
                   f"{r.partitions_written} partitions written, {r.partitions_reused} already complete, "
@@ -96,9 +113,6 @@ def measure_batch_cmd(
                               + summarize_reasons([(name, why) for _, name, why in s["skipped"]]))
     for s in r.failed:
         err_console.print(f"failed: scan {s['id']} (manifest row {_row(scans, s['id'])}): {s['error']}")
-    console.print(f"wrote {Path(output) / 'points'} and {Path(output) / 'manifest.json'}")
-    if not ok:
-        fail(f"no scan could be measured ({len(r.failed)} failed; see above and {Path(output) / 'manifest.json'})")
 
 
 def _row(scans, sid: str) -> int:

@@ -11,10 +11,12 @@ from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import Channel, app, console, handles_errors, progress_bar
 from lightplane.cli.measure import parse_laser
 from lightplane.core.io import check_output, provenance
+from lightplane.measure.options import MeasureOptions
 from lightplane.measure.scan import open_frames, scan_points
 from lightplane.measure.sensor import Sensor
 from lightplane.motion.model import Motion
 from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
+from lightplane.stripe.options import StripeOptions
 
 
 @app.command("refine-turntable")
@@ -60,8 +62,8 @@ def refine_turntable_cmd(
         assert glob is not None  # checked above
         src = open_frames([glob], rot)
         with progress_bar(f"measuring {name}", src.n_frames):
-            recs, summ = scan_points(src, sens.camera, sens.planes[name], motion=Motion.none(), channel=channel,
-                                     workers=workers)
+            recs, summ = scan_points(src, sens.camera, sens.planes[name], MeasureOptions(StripeOptions(channel=channel)),
+                                     motion=Motion.none(), workers=workers)
         pts = np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
         console.print(f"scan {name}: {summ.n_frames} frames, {len(pts)} points"
                       + (f", {summ.n_skipped} frames skipped" if summ.skipped else ""))

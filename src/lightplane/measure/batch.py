@@ -44,13 +44,14 @@ import os
 import re
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.measure.options import MeasureOptions
 from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
 from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
@@ -62,7 +63,7 @@ from lightplane.plane.model import LightPlane
 from lightplane.version import __version__
 from lightplane.core.threads import frames_across_threads, with_blas_limited
 
-__all__ = ["BatchScan", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
+__all__ = ["BatchScan", "BatchOptions", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
            "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]
 
 DEFAULT_CHUNK_FRAMES = 200
@@ -195,7 +196,7 @@ def plan_chunks(n_frames: int, chunk_frames: int) -> list[tuple[int, int, int]]:
     return [(k, s, min(s + c, n_frames)) for k, s in enumerate(range(0, n_frames, c))]
 
 
-def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
+def _plan(scan: BatchScan, chunk_frames: int, record: dict) -> _Plan:
 
     pl = _Plan(scan)
     try:
@@ -226,7 +227,7 @@ def _plan(scan: BatchScan, chunk_frames: int, options: dict) -> _Plan:
         return pl
     assert pl.camera is not None and pl.plane is not None and pl.motion is not None  # read above, or returned
     base = {"layout": _LAYOUT, "camera": pl.camera.to_dict(), "plane": pl.plane.to_dict(),
-            "motion": pl.motion.to_dict(), "options": options, "versions": _code_versions(),
+            "motion": pl.motion.to_dict(), "options": record, "versions": _code_versions(),
             # every frame of the scan (name, size, mtime): the stripe width comes from its first readable frame
             "frames": pl.frames, "stats": pl.stats if pl.stats is not None else [_stat(q) for q in pl.frames]}
     if pl.motion.positions_mm is not None:
@@ -356,30 +357,29 @@ class _VideoChunk(FrameSource):
         self.src.close()
 
 
-def _prepare_task(frames: list, video: bool, camera, plane, motion, options: dict) -> dict:
+def _prepare_task(frames: list, video: bool, camera, plane, motion, options: MeasureOptions) -> dict:
     """Per scan, on a worker: the first readable frame checked against the camera, the
     profile axis and the stripe width, exactly as ``measure`` prepares a scan."""
     src = None
     try:  # a worker that does not see the files says so here, for the scan
         src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else ImageFiles(frames)
-        _, _, axis, width = _prepare(src, camera, plane, motion, options["axis"], options["width_px"],
-                                     options["channel"])
+        _, _, opts = _prepare(src, camera, plane, motion, options)
     except LightplaneError as e:
         return {"error": str(e)}
     finally:
         if src is not None:
             src.close()
-    return {"axis": axis, "width_px": width}
+    return {"axis": opts.axis, "width_px": opts.stripe.width_px}
 
 
 _PROCESSORS: "OrderedDict[str, object]" = OrderedDict()  # per worker process: processors with built tables
 
 
-def _processor(key: str, camera, plane, motion, axis: str, width_px, options: dict):
+def _processor(key: str, camera, plane, motion, axis: str, width_px, options: MeasureOptions):
     proc = _PROCESSORS.get(key)
     if proc is None:
-        proc = FrameProcessor(camera, plane, motion, axis=axis, roi=options["roi"], width_px=width_px,
-                              channel=options["channel"], **options["stripe"])
+        proc = FrameProcessor(camera, plane, motion,
+                              replace(options, axis=axis, stripe=replace(options.stripe, width_px=width_px)))
         _PROCESSORS[key] = proc
         while len(_PROCESSORS) > 4:  # lookup tables are ~30 MB each
             _PROCESSORS.popitem(last=False)
@@ -396,7 +396,7 @@ def _table(records: np.ndarray, meta: dict):
     return t.replace_schema_metadata({_META_KEY: json.dumps(meta).encode()})
 
 
-def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: dict) -> dict:
+def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureOptions) -> dict:
     """Measure one chunk and write its partition atomically; returns the chunk's summary."""
     import pyarrow.parquet as pq
 
@@ -507,24 +507,44 @@ def _partition_path(out_dir: Path, sid: str, k: int) -> Path:
     return out_dir / "points" / f"scan={sid}" / f"part-{k}.parquet"
 
 
+@dataclass(frozen=True)
+class BatchOptions:
+    """How :func:`measure_batch` runs: ``chunk_frames`` frames per task, ``ply`` (also one PLY per
+    scan, ``ply/<id>.ply``), ``retries`` of a failed task (a worker that died)."""
+
+    chunk_frames: int = DEFAULT_CHUNK_FRAMES
+    ply: bool = False
+    retries: int = 2
+
+    def __post_init__(self) -> None:
+        plan_chunks(1, self.chunk_frames)  # checks chunk_frames
+
+
+def _options_record(options: MeasureOptions) -> dict:
+    """The measurement options as a batch records them (JSON; the partitions' fingerprint)."""
+    roi, width = options.roi, options.stripe.width_px
+    return {"axis": options.axis, "roi": None if roi is None else [int(v) for v in roi],
+            "width_px": None if width is None else float(width), "channel": options.stripe.channel,
+            "stripe": options.changed()}
+
+
 @with_blas_limited
-def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: str | os.PathLike, *,
+def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: str | os.PathLike,
+                  options: MeasureOptions = MeasureOptions(), batch: BatchOptions = BatchOptions(), *,
                   client=None, scheduler: str | None = None, local_workers: int | None = None,
-                  chunk_frames: int = DEFAULT_CHUNK_FRAMES, axis: str = "auto", roi=None,
-                  width_px: float | None = None, channel: str | None = None, ply: bool = False,
-                  retries: int = 2, progress: Callable[[str, int, int], None] | None = None,
-                  on_dashboard: Callable[[str | None], None] | None = None, **stripe_options) -> BatchResult:
+                  progress: Callable[[str, int, int], None] | None = None,
+                  on_dashboard: Callable[[str | None], None] | None = None) -> BatchResult:
     """Measure every scan of ``manifest`` into a hive-partitioned Parquet dataset under ``out_dir``.
 
     The cluster: an existing ``client`` (``distributed.Client``), a ``scheduler`` address
     (``tcp://host:port``), or ``local_workers`` worker processes started here (a
-    LocalCluster, closed at the end).  ``chunk_frames`` frames per task.  ``axis``,
-    ``roi``, ``width_px``, ``channel`` and ``stripe_options`` (``smooth_lines``,
-    ``sigma_along_px``...) apply to every scan, as in ``measure``.  ``progress(scan_id,
-    chunks_done, chunks_total)`` after each chunk.  Partitions already complete and up
-    to date are kept (resume).  Returns a :class:`BatchResult`; ``manifest.json`` is
-    written in ``out_dir`` in any case.  Raises :class:`LightplaneError` only for a bad
-    manifest or output folder; a scan's own failure is recorded in its entry.
+    LocalCluster, closed at the end).  ``options``
+    (:class:`~lightplane.measure.options.MeasureOptions`) apply to every scan, as in
+    ``measure``; ``batch``: :class:`BatchOptions` (frames per task, PLY files, retries).
+    ``progress(scan_id, chunks_done, chunks_total)`` after each chunk.  Partitions already
+    complete and up to date are kept (resume).  Returns a :class:`BatchResult`;
+    ``manifest.json`` is written in ``out_dir`` in any case.  Raises :class:`LightplaneError`
+    only for a bad manifest or output folder; a scan's own failure is recorded in its entry.
     """
     t0 = time.perf_counter()
     require_extra()
@@ -534,18 +554,13 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
         raise LightplaneError(f"{out.parent}: output folder's parent does not exist")
     if out.exists() and not out.is_dir():
         raise LightplaneError(f"{out}: exists and is not a folder")
-    if axis not in ("auto", "columns", "rows"):
-        raise LightplaneError(f"axis must be auto, columns or rows, got {axis!r}")
     if sum(x is not None for x in (client, scheduler, local_workers)) != 1:
         raise LightplaneError("give exactly one of a client, a scheduler address or a number of local workers")
     if local_workers is not None and int(local_workers) < 1:
         raise LightplaneError(f"local workers must be >= 1, got {local_workers}")
-    plan_chunks(1, chunk_frames)  # checks chunk_frames
     (out / "points").mkdir(parents=True, exist_ok=True)
-    options = {"axis": axis, "roi": None if roi is None else [int(v) for v in roi],
-               "width_px": None if width_px is None else float(width_px), "channel": channel,
-               "stripe": dict(stripe_options)}
-    plans = [_plan(s, chunk_frames, options) for s in scans]
+    record = _options_record(options)
+    plans = [_plan(s, batch.chunk_frames, record) for s in scans]
 
     own_cluster = own_client = None
     try:
@@ -561,30 +576,29 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
         dashboard = getattr(client, "dashboard_link", None)
         if on_dashboard is not None:
             on_dashboard(dashboard)
-        entries = _run(client, plans, out, options, retries, progress)
+        entries = _run(client, plans, out, options, batch.retries, progress)
     finally:
         if own_client is not None:
             own_client.close()
         if own_cluster is not None:
             own_cluster.close()
-    if ply:
+    if batch.ply:
         for e, pl in zip(entries, plans):
             if e["status"] != "failed" and e["n_points"]:
                 e["ply"] = str(_write_ply(out, e, pl))
     result = BatchResult(out, entries, time.perf_counter() - t0, dashboard)
-    _write_manifest(out, result, options, chunk_frames, scans)
+    _write_manifest(out, result, record, batch.chunk_frames, scans)
     return result
 
 
-def _run(client, plans: list, out: Path, options: dict, retries: int, progress) -> list:
-    from distributed import as_completed
-
+def _run(client, plans: list, out: Path, options: MeasureOptions, retries: int, progress) -> list:
+    """Submit every chunk not yet complete, collect the chunks' summaries; one entry per scan."""
     import uuid
 
     # keys unique to this run: a key the scheduler still remembers from an earlier run would
     # give that run's result without running the task (and without rewriting a deleted partition)
     run = uuid.uuid4().hex[:8]
-    entries, prep_futs, chunk_meta = [], {}, {}
+    entries, futs, chunk_meta = [], {}, {}
     for i, pl in enumerate(plans):
         s = pl.scan
         e = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
@@ -595,38 +609,62 @@ def _run(client, plans: list, out: Path, options: dict, retries: int, progress) 
         if pl.error is not None:
             e["status"], e["error"] = "failed", pl.error
             continue
-        folder = out / "points" / f"scan={s.id}"
-        folder.mkdir(parents=True, exist_ok=True)
-        wanted = {_partition_path(out, s.id, k).name for k, _, _ in pl.chunks}
-        for q in folder.iterdir():  # partitions of an earlier, differently chunked run; temp files of a dead one
-            if q.is_file() and ((q.name.startswith("part-") and q.name not in wanted) or q.name.startswith(".part-")):
-                q.unlink()
-        todo, done = [], {}
-        for k, a, b in pl.chunks:
-            meta = _read_partition_meta(_partition_path(out, s.id, k)) if _partition_path(out, s.id, k).exists() else None
-            if meta is not None and meta.get("token") == pl.tokens[k]:
-                done[k] = meta
-            else:
-                todo.append((k, a, b))
+        done, todo = _partitions_done(out, pl)
         chunk_meta[i] = done
         e["partitions_reused"] = len(done)
         if todo:
-            common = (pl.camera, pl.plane, pl.motion)
-            prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
-                                 key=f"prepare-{s.id}-{pl.scan_token[:12]}-{run}")
-            prep_futs[i] = [prep]
-            for k, a, b in todo:
-                spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
-                        "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
-                        "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
-                f = client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
-                                  key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}-{run}")
-                prep_futs[i].append(f)
+            futs[i] = _submit_scan(client, pl, todo, out, options, retries, run)
         if progress is not None:
             progress(s.id, len(done), len(pl.chunks))
+    errors = _collect(futs, plans, entries, chunk_meta, progress)
+    for i, (pl, e) in enumerate(zip(plans, entries)):
+        if pl.error is None:
+            _summarize(e, pl, chunk_meta[i], out, errors.get(i))
+    return entries
 
-    owner = {f.key: i for i, fs in prep_futs.items() for f in fs[1:]}
-    all_chunks = [f for fs in prep_futs.values() for f in fs[1:]]
+
+def _partitions_done(out: Path, pl: _Plan) -> tuple[dict, list]:
+    """A scan's partitions complete and up to date (chunk -> its summary) and the chunks to measure;
+    partitions of an earlier, differently chunked run and temporary files of a dead one removed."""
+    s = pl.scan
+    folder = out / "points" / f"scan={s.id}"
+    folder.mkdir(parents=True, exist_ok=True)
+    wanted = {_partition_path(out, s.id, k).name for k, _, _ in pl.chunks}
+    for q in folder.iterdir():
+        if q.is_file() and ((q.name.startswith("part-") and q.name not in wanted) or q.name.startswith(".part-")):
+            q.unlink()
+    todo, done = [], {}
+    for k, a, b in pl.chunks:
+        meta = _read_partition_meta(_partition_path(out, s.id, k)) if _partition_path(out, s.id, k).exists() else None
+        if meta is not None and meta.get("token") == pl.tokens[k]:
+            done[k] = meta
+        else:
+            todo.append((k, a, b))
+    return done, todo
+
+
+def _submit_scan(client, pl: _Plan, todo: list, out: Path, options: MeasureOptions, retries: int, run: str) -> list:
+    """The scan's prepare task and one task per chunk of ``todo``: their futures, the prepare's first."""
+    s = pl.scan
+    common = (pl.camera, pl.plane, pl.motion)
+    prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
+                         key=f"prepare-{s.id}-{pl.scan_token[:12]}-{run}")
+    futs = [prep]
+    for k, a, b in todo:
+        spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
+                "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
+                "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
+        futs.append(client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
+                                  key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}-{run}"))
+    return futs
+
+
+def _collect(futs: dict, plans: list, entries: list, chunk_meta: dict, progress) -> dict[int, list]:
+    """Every chunk's result as it completes into ``chunk_meta``; the chunks' errors per scan."""
+    from distributed import as_completed
+
+    owner = {f.key: i for i, fs in futs.items() for f in fs[1:]}
+    all_chunks = [f for fs in futs.values() for f in fs[1:]]
     errors: dict[int, list] = {}
     for fut in as_completed(all_chunks):
         i = owner[fut.key]
@@ -642,33 +680,34 @@ def _run(client, plans: list, out: Path, options: dict, retries: int, progress) 
         if progress is not None:
             progress(plans[i].scan.id, len(chunk_meta[i]), len(plans[i].chunks))
         fut.release()
-    for fs in prep_futs.values():
+    for fs in futs.values():
         fs[0].release()
+    return errors
 
-    for i, (pl, e) in enumerate(zip(plans, entries)):
-        if pl.error is not None:
-            continue
-        metas = [chunk_meta[i][k] for k, _, _ in pl.chunks if k in chunk_meta[i]]
-        for m in metas:
-            e["partitions"].append({"path": str(_partition_path(out, pl.scan.id, m["chunk"]).relative_to(out)),
-                                    "chunk": m["chunk"], "frames": m["frames"], "n_points": m["n_points"]})
-            e["n_frames"] += m["n_frames"]
-            e["n_points"] += m["n_points"]
-            e["skipped"].extend(m["skipped"])
-            e["frames_without_points"] += m["frames_without_points"]
-            e["axis"], e["width_px"] = m["axis"], m["width_px"]
-        e["n_frames_used"] = e["n_frames"] - len(e["skipped"])
-        if i in errors:
-            e["status"], e["error"] = "failed", min(errors[i])[1]  # the first failing chunk's reason
-        elif pl.motion.n_frames is not None and pl.motion.n_frames != e["n_frames"]:
-            e["status"], e["error"] = "failed", (f"the positions give {pl.motion.n_frames} frames but the input "
-                                                 f"has {e['n_frames']}")
-        elif e["n_frames"] and e["n_frames"] == len(e["skipped"]):
-            e["status"], e["error"] = "failed", f"none of the {e['n_frames']} frames could be read"
-        elif e["n_points"] == 0:
-            e["status"], e["error"] = "failed", (f"no stripe found in any of the {e['n_frames_used']} readable "
-                                                 "frames (laser off, wrong --channel or --roi?)")
-    return entries
+
+def _summarize(e: dict, pl: _Plan, metas_by_chunk: dict, out: Path, errors: list | None) -> None:
+    """A scan's entry from its chunks' summaries (in chunk order) and errors: totals and status."""
+    assert pl.motion is not None  # only planned scans get this far
+    metas = [metas_by_chunk[k] for k, _, _ in pl.chunks if k in metas_by_chunk]
+    for m in metas:
+        e["partitions"].append({"path": str(_partition_path(out, pl.scan.id, m["chunk"]).relative_to(out)),
+                                "chunk": m["chunk"], "frames": m["frames"], "n_points": m["n_points"]})
+        e["n_frames"] += m["n_frames"]
+        e["n_points"] += m["n_points"]
+        e["skipped"].extend(m["skipped"])
+        e["frames_without_points"] += m["frames_without_points"]
+        e["axis"], e["width_px"] = m["axis"], m["width_px"]
+    e["n_frames_used"] = e["n_frames"] - len(e["skipped"])
+    if errors:
+        e["status"], e["error"] = "failed", min(errors)[1]  # the first failing chunk's reason
+    elif pl.motion.n_frames is not None and pl.motion.n_frames != e["n_frames"]:
+        e["status"], e["error"] = "failed", (f"the positions give {pl.motion.n_frames} frames but the input "
+                                             f"has {e['n_frames']}")
+    elif e["n_frames"] and e["n_frames"] == len(e["skipped"]):
+        e["status"], e["error"] = "failed", f"none of the {e['n_frames']} frames could be read"
+    elif e["n_points"] == 0:
+        e["status"], e["error"] = "failed", (f"no stripe found in any of the {e['n_frames_used']} readable "
+                                             "frames (laser off, wrong --channel or --roi?)")
 
 
 def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
@@ -708,8 +747,8 @@ def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
     return dest
 
 
-def _write_manifest(out: Path, result: BatchResult, options: dict, chunk_frames: int, scans) -> None:
-    prov = provenance([s.input for s in scans], {**options, "chunk_frames": int(chunk_frames)})
+def _write_manifest(out: Path, result: BatchResult, record: dict, chunk_frames: int, scans) -> None:
+    prov = provenance([s.input for s in scans], {**record, "chunk_frames": int(chunk_frames)})
     ok = [s for s in result.scans if s["status"] == "ok"]
     doc = {"format": "lightplane batch", "layout": _LAYOUT, "provenance": prov,
            "dataset": {"path": "points", "format": "parquet", "partitioning": "hive", "partition_key": "scan",

@@ -16,14 +16,12 @@ import numpy as np
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
-from lightplane.plane.triangulate import AXES, GRAZING_COS, points_sigma_mm, profile_axis, triangulate_normalized
+from lightplane.plane.triangulate import points_sigma_mm, profile_axis, triangulate_normalized
 from lightplane.measure._kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup, median_where
 from lightplane.plane.uncertainty import camera_share_status, point_error_basis
+from lightplane.measure.options import MAX_WIDTH_RATIO, MIN_WIDTH_RATIO, MeasureOptions
 from lightplane.stripe.extract import check_roi, extract_profile, extract_profiles
 
-#: defaults of the per-point stripe-width filter (:class:`ProfileMeasurer`): width / frame median
-MIN_WIDTH_RATIO = 0.8
-MAX_WIDTH_RATIO = 2.0
 #: fewer valid lines than this in a frame: no width filter (the median would mean little)
 WIDTH_FILTER_MIN_LINES = 20
 
@@ -52,7 +50,7 @@ class Profile:
     - ``axis`` ``"columns"`` or ``"rows"``;
     - ``width_rejected`` (N,) bool: a stripe centre was found and triangulated but
       dropped by the width filter (``min_width_ratio`` / ``max_width_ratio`` of
-      :class:`ProfileMeasurer`); None when the profile did not go through it.
+      :class:`~lightplane.measure.options.MeasureOptions`); None when the profile did not go through it.
     """
 
     points: np.ndarray
@@ -95,78 +93,55 @@ class ProfileMeasurer:
     Parameters
     ----------
     camera, plane : the calibration.
-    axis : ``"columns"`` (stripe roughly horizontal), ``"rows"`` or ``"auto"``
-        (:func:`profile_axis`).
-    roi : ``(x, y, width, height)`` px or None (whole image).
-    smooth_lines : 0 (default: every line's own centre) or an odd window ``>= 5``: the
-        sub-pixel centres along each run of consecutive valid lines are smoothed by a
-        quadratic Savitzky–Golay filter over that many lines (runs shorter than the
-        window are left alone).  Laser speckle gives each centre 0.1–0.3 px of
-        independent-ish noise (docs/conventions.md §Noise); a quadratic local fit averages it away
-        (noise × ~0.6 for 7 lines) without biasing curves of radius much larger than
-        the window (a quadratic is reproduced exactly).  It also blurs real detail
-        finer than the window (edges, steps): off for edge-sensitive measurement.
-    min_ray_cos : grazing-ray limit (``min_cos`` of :func:`triangulate_normalized`).
-    min_width_ratio, max_width_ratio : per-point quality filter on the stripe's width
-        (FWHM across the stripe, px).  A point whose width is below ``min_width_ratio``
-        or above ``max_width_ratio`` times the frame's typical width (median over its
-        valid lines, at least :data:`WIDTH_FILTER_MIN_LINES` of them) is dropped
-        (``valid`` False, ``width_rejected`` True).  Why: the light sheet has a
-        Gaussian thickness (σ = 0.2 mm in the renders), and its footprint is seen
-        foreshortened by cos(view angle).  A stripe much narrower than the frame's
-        typical one is a surface seen nearly edge-on (near a curved object's
-        silhouette); there the footprint's projection is compressed unevenly across
-        the stripe, so the intensity centre is not the sheet's mid-plane crossing and
-        the point lands inside the surface (clean rendered sphere, R 25.4 mm, true
-        plane, a σ 0.35 mm sheet — the bias grows as σ², ~3x smaller at 0.2 mm:
-        mean residual +0.004 mm for view angles < 60°, -0.015 mm at 60–70°,
-        -0.023 at 70–80°, -0.042 beyond 80°, where widths are 0.9, 0.8 and 0.7 × the
-        frame median).  A stripe much wider than typical is a surface nearly parallel
-        to the sheet, where the thickness is smeared across the surface.  Defaults
-        (0.8, 2.0) chosen on the rendered sphere / step / plane scans
-        (``benchmarks/bench_measure.py accuracy``); ``0`` and ``inf`` switch the
-        filter off.  No correction of the bias from the width is applied: the bias
-        depends on the local curvature and view angle together, which one width does
-        not determine.  Not caught: frames where the sheet meets a curved surface
-        at a low angle everywhere (the sphere's ends along the scan: stripe ~12 px
-        against ~7 px, points ~0.03 mm outside), since the reference is the frame's
-        own median; with them the clean sphere's fitted radius was still ~0.018 mm low
-        with the 0.35 mm sheet (~0.006 mm with 0.2 mm).
-    **stripe_options : passed to :func:`lightplane.stripe.extract.extract_profile`
-        (``width_px``, ``channel``, ``min_peak``, ``max_width_px``, ``min_cos`` — the
-        stripe's own limit on how obliquely it may cross a line, ...).
+    options : :class:`~lightplane.measure.options.MeasureOptions`: the stripe's options, the
+        profile axis and region, the smoothing of the centres, the grazing-ray limit, the
+        width filter (below).
+    lookup : the undistortion lookup tables (above) or the exact undistortion per frame.
+
+    The width filter (``options.min_width_ratio``, ``options.max_width_ratio``), a per-point
+    quality filter on the stripe's width (FWHM across the stripe, px).  A point whose width is below ``min_width_ratio``
+    or above ``max_width_ratio`` times the frame's typical width (median over its
+    valid lines, at least :data:`WIDTH_FILTER_MIN_LINES` of them) is dropped
+    (``valid`` False, ``width_rejected`` True).  Why: the light sheet has a
+    Gaussian thickness (σ = 0.2 mm in the renders), and its footprint is seen
+    foreshortened by cos(view angle).  A stripe much narrower than the frame's
+    typical one is a surface seen nearly edge-on (near a curved object's
+    silhouette); there the footprint's projection is compressed unevenly across
+    the stripe, so the intensity centre is not the sheet's mid-plane crossing and
+    the point lands inside the surface (clean rendered sphere, R 25.4 mm, true
+    plane, a σ 0.35 mm sheet — the bias grows as σ², ~3x smaller at 0.2 mm:
+    mean residual +0.004 mm for view angles < 60°, -0.015 mm at 60–70°,
+    -0.023 at 70–80°, -0.042 beyond 80°, where widths are 0.9, 0.8 and 0.7 × the
+    frame median).  A stripe much wider than typical is a surface nearly parallel
+    to the sheet, where the thickness is smeared across the surface.  Defaults
+    (0.8, 2.0) chosen on the rendered sphere / step / plane scans
+    (``benchmarks/bench_measure.py accuracy``); ``0`` and ``inf`` switch the
+    filter off.  No correction of the bias from the width is applied: the bias
+    depends on the local curvature and view angle together, which one width does
+    not determine.  Not caught: frames where the sheet meets a curved surface
+    at a low angle everywhere (the sphere's ends along the scan: stripe ~12 px
+    against ~7 px, points ~0.03 mm outside), since the reference is the frame's
+    own median; with them the clean sphere's fitted radius was still ~0.018 mm low
+    with the 0.35 mm sheet (~0.006 mm with 0.2 mm).
     """
 
-    def __init__(self, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
-                 lookup: bool = True, smooth_lines: int = 0, min_ray_cos: float = GRAZING_COS,
-                 min_width_ratio: float = MIN_WIDTH_RATIO, max_width_ratio: float = MAX_WIDTH_RATIO,
-                 **stripe_options) -> None:
+    def __init__(self, camera: Camera, plane: LightPlane, options: MeasureOptions = MeasureOptions(), *,
+                 lookup: bool = True) -> None:
         if not isinstance(camera, Camera):
             raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
         if not isinstance(plane, LightPlane):
             raise LightplaneError(f"plane must be a LightPlane, got {type(plane).__name__}")
-        if axis == "auto":
-            axis = profile_axis(plane)
-        if axis not in AXES:
-            raise LightplaneError(f"axis must be 'columns', 'rows' or 'auto', got {axis!r}")
-        if "axis" in stripe_options or "roi" in stripe_options:
-            raise LightplaneError("pass axis and roi to ProfileMeasurer itself")
+        if not isinstance(options, MeasureOptions):
+            raise LightplaneError(f"options must be a MeasureOptions, got {type(options).__name__}")
         self.camera = camera
         self.plane = plane
-        self.axis = axis
-
-        self.roi = check_roi(roi, camera.width, camera.height, min_size=3)
-        self.min_ray_cos = float(min_ray_cos)
-        k = int(smooth_lines)
-        if k != smooth_lines or k < 0 or (k and (k < 5 or k % 2 == 0)):
-            raise LightplaneError(f"smooth_lines must be 0 or an odd integer >= 5, got {smooth_lines!r}")
-        self.smooth_lines = k
-        lo, hi = float(min_width_ratio), float(max_width_ratio)
-        if not (0.0 <= lo < 1.0 < hi) or np.isnan(hi):
-            raise LightplaneError(f"need 0 <= min_width_ratio < 1 < max_width_ratio, got {min_width_ratio!r}, "
-                                  f"{max_width_ratio!r}")
-        self.min_width_ratio, self.max_width_ratio = lo, hi
-        self.stripe_options = dict(stripe_options)
+        self.options = options
+        self.axis = profile_axis(plane) if options.axis == "auto" else options.axis
+        self.roi = check_roi(options.roi, camera.width, camera.height, min_size=3)
+        self.min_ray_cos = float(options.min_ray_cos)
+        self.smooth_lines = int(options.smooth_lines)
+        self.min_width_ratio, self.max_width_ratio = float(options.min_width_ratio), float(options.max_width_ratio)
+        self.stripe = options.stripe
 
         #: None when the points' sigma includes the camera's share, else why not (one sentence)
         self.camera_share_missing = camera_share_status(camera, plane)
@@ -321,7 +296,7 @@ class ProfileMeasurer:
         self.camera.check_image(image)
         x, y, w, h = self.roi
         roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
-        sp = extract_profile(image, self.axis, roi=roi, **self.stripe_options)
+        sp = extract_profile(image, self.axis, self.stripe, roi=roi, parallel=self.options.parallel)
         uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
         prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width)
         return width_filter(prof, self.min_width_ratio, self.max_width_ratio)
@@ -336,9 +311,8 @@ class ProfileMeasurer:
         width, the numba backend); the numbers are those of frame by frame either way."""
         x, y, w, h = self.roi
         samples = h if self.axis == "columns" else w
-        opts = self.stripe_options
-        return (samples <= self.BATCH_MAX_SAMPLES and opts.get("width_px") is not None
-                and opts.get("backend", "numba") == "numba" and "parallel" not in opts)
+        return (samples <= self.BATCH_MAX_SAMPLES and self.stripe.width_px is not None
+                and self.stripe.backend == "numba" and self.options.parallel is None)
 
     def measure_many(self, images) -> list[Profile]:
         """:meth:`__call__` of each image; for a short roi (:attr:`batches`) the stripe profiles of
@@ -354,7 +328,7 @@ class ProfileMeasurer:
         x, y, w, h = self.roi
         roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
         out = []
-        for sp in extract_profiles(images, self.axis, roi=roi, **self.stripe_options):
+        for sp in extract_profiles(images, self.axis, self.stripe, roi=roi):
             uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
             out.append(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
                                     self.min_width_ratio, self.max_width_ratio))
@@ -438,15 +412,14 @@ def _array_key(a) -> tuple | None:
     return (a.dtype.str, a.shape, a.tobytes())
 
 
-def _profile_cache_key(image: np.ndarray, camera: Camera, plane: LightPlane, axis, roi, options: dict):
+def _profile_cache_key(image: np.ndarray, camera: Camera, plane: LightPlane, options: MeasureOptions):
     """A hashable fingerprint of everything a :class:`ProfileMeasurer` depends on (by value, not identity:
     an equal camera or plane built anew hits, a changed one never does); None when an option is unhashable."""
     try:
-        opts = tuple(sorted((k, v if not isinstance(v, np.ndarray) else _array_key(v)) for k, v in options.items()))
-        roi_key = None if roi is None else tuple(float(v) for v in roi)
+        roi_key = None if options.roi is None else tuple(float(v) for v in options.roi)
         key = (_array_key(camera.K), camera.model, _array_key(camera.dist), camera.width, camera.height,
                _array_key(plane.normal), float(plane.d), _array_key(plane.covariance),
-               tuple(image.shape), axis, roi_key, opts)
+               tuple(image.shape), roi_key, replace(options, roi=None))
         hash(key)
     except (TypeError, ValueError):
         return None
@@ -466,17 +439,17 @@ def clear_profile_cache() -> None:
         _profile_cache_stats.update(hits=0, misses=0)
 
 
-def _cached_measurer(image, camera, plane, axis, roi, options) -> ProfileMeasurer:
-    key = _profile_cache_key(image, camera, plane, axis, roi, options)
+def _cached_measurer(image, camera, plane, options: MeasureOptions) -> ProfileMeasurer:
+    key = _profile_cache_key(image, camera, plane, options)
     if key is None:
-        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)
+        return ProfileMeasurer(camera, plane, options)
     with _profile_cache_lock:
         m = _profile_cache.get(key)
         if m is not None:
             _profile_cache.move_to_end(key)
             _profile_cache_stats["hits"] += 1
             return m
-    m = ProfileMeasurer(camera, plane, axis=axis, roi=roi, **options)  # raises on bad input: nothing cached
+    m = ProfileMeasurer(camera, plane, options)  # raises on bad input: nothing cached
     with _profile_cache_lock:
         m = _profile_cache.setdefault(key, m)
         _profile_cache.move_to_end(key)
@@ -486,18 +459,17 @@ def _cached_measurer(image, camera, plane, axis, roi, options) -> ProfileMeasure
     return m
 
 
-def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axis: str = "auto", roi=None,
-                    cache: bool = True, **stripe_options) -> Profile:
+def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, options: MeasureOptions = MeasureOptions(),
+                    *, cache: bool = True) -> Profile:
     """3D profile of one stripe image (docs/method.md §Triangulation, §Stripe centres): points (mm, camera frame), σ, pixels.
 
-    One stripe centre per column (``axis="columns"``) or row (``"rows"``; ``"auto"``
-    picks from the plane, :func:`profile_axis`) within ``roi`` ``(x, y, width, height)``,
-    triangulated on ``plane``; ``stripe_options`` go to
-    :func:`lightplane.stripe.extract.extract_profile` (and the other keyword options of
-    :class:`ProfileMeasurer`).
+    One stripe centre per column (``options.axis="columns"``) or row (``"rows"``; ``"auto"``
+    picks from the plane, :func:`profile_axis`) within ``options.roi`` ``(x, y, width, height)``,
+    triangulated on ``plane``; ``options``: :class:`~lightplane.measure.options.MeasureOptions`
+    (its ``stripe`` options go to :func:`lightplane.stripe.extract.extract_profile`).
 
-    Same numbers, bit for bit, as ``ProfileMeasurer(camera, plane, axis=axis, roi=roi,
-    **stripe_options)(image)``: with ``cache=True`` (default) the measurer, and with it
+    Same numbers, bit for bit, as ``ProfileMeasurer(camera, plane, options)(image)``: with
+    ``cache=True`` (default) the measurer, and with it
     its undistortion lookup tables, is kept per (camera, plane, image shape, options),
     compared by value (:data:`PROFILE_CACHE_SIZE` of them, least recently used dropped;
     :func:`profile_cache_info`, :func:`clear_profile_cache`), so repeated calls on the
@@ -511,7 +483,8 @@ def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axi
     >>> pl = LightPlane([0, 1, -0.5], 100)         # stripe along the columns
     >>> v = np.arange(96.0)[:, None]
     >>> img = (200 * np.exp(-0.5 * ((v - 40.25) / 1.5) ** 2) + 0 * np.arange(128.0)).astype(np.uint8)
-    >>> prof = measure_profile(img, cam, pl, width_px=3.5)
+    >>> from lightplane.stripe.options import StripeOptions
+    >>> prof = measure_profile(img, cam, pl, MeasureOptions(StripeOptions(width_px=3.5)))
     >>> prof.axis, prof.n_valid > 100, bool(np.allclose(pl.signed_distance(prof.points[prof.valid]), 0, atol=1e-9))
     ('columns', True, True)
     """
@@ -522,6 +495,8 @@ def measure_profile(image: np.ndarray, camera: Camera, plane: LightPlane, *, axi
     if not isinstance(image, np.ndarray):
         raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
     camera.check_image(image)  # before the cache: a wrong-sized frame leaves no entry
+    if not isinstance(options, MeasureOptions):
+        raise LightplaneError(f"options must be a MeasureOptions, got {type(options).__name__}")
     if not cache:
-        return ProfileMeasurer(camera, plane, axis=axis, roi=roi, lookup=False, **stripe_options)(image)
-    return _cached_measurer(image, camera, plane, axis, roi, stripe_options)(image)
+        return ProfileMeasurer(camera, plane, options, lookup=False)(image)
+    return _cached_measurer(image, camera, plane, options)(image)

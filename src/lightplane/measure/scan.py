@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -35,13 +35,13 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import default_workers
+from lightplane.measure.options import CloudOutput, MeasureOptions
 from lightplane.measure.profile import ProfileMeasurer
 from lightplane.plane.triangulate import profile_axis
 from lightplane.motion.model import Motion, unit_direction  # noqa: F401  (re-exported: lightplane.measure.scan.Motion)
 from lightplane.plane.model import LightPlane
-from lightplane.measure.pointcloud import POINT_DTYPE, PointSpool, cloud_format, write_cloud
-from lightplane.core.io import (check_output, expand_inputs, provenance, rotation_code, too_few_images_message,
-    try_read_image)
+from lightplane.measure.pointcloud import POINT_DTYPE, PointSpool, write_cloud
+from lightplane.core.io import expand_inputs, provenance, rotation_code, too_few_images_message, try_read_image
 from lightplane.core.threads import enter_serial, frames_across_threads, serial_kernels
 from lightplane.stripe import kernels as K
 from lightplane.stripe.extract import estimate_width
@@ -249,9 +249,9 @@ class FrameResult:
 class FrameProcessor:
     """Frame → placed point records; picklable (sent once to each worker process)."""
 
-    def __init__(self, camera: Camera, plane: LightPlane, motion: Motion | None = None, *, axis: str = "auto",
-                 roi=None, **stripe_options) -> None:
-        self.measurer = ProfileMeasurer(camera, plane, axis=axis, roi=roi, **stripe_options)
+    def __init__(self, camera: Camera, plane: LightPlane, motion: Motion | None = None,
+                 options: MeasureOptions = MeasureOptions()) -> None:
+        self.measurer = ProfileMeasurer(camera, plane, options)
         self.motion = Motion.none() if motion is None else motion
 
     @property
@@ -536,7 +536,10 @@ def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
     raise LightplaneError(too_few_images_message("frames", 0, 1, skipped))
 
 
-def _prepare(source, camera, plane, motion, axis, width_px, channel):
+def _prepare(source, camera, plane, motion, options: MeasureOptions):
+    """A scan's checks before any frame is measured; the source (still yielding every frame), the
+    motion, and the options with the profile axis and the stripe width resolved (``width_px``
+    None: estimated on the first frame, None again when it shows no stripe)."""
     if not isinstance(camera, Camera):
         raise LightplaneError(f"camera must be a Camera, got {type(camera).__name__}")
     if not isinstance(plane, LightPlane):
@@ -547,26 +550,28 @@ def _prepare(source, camera, plane, motion, axis, width_px, channel):
         raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {source.n_frames}")
     first, source = _first_frame(source)
     camera.check_image(first, "the first frame")
-    axis = profile_axis(plane) if axis == "auto" else axis
+    axis = profile_axis(plane) if options.axis == "auto" else options.axis
+    width_px = options.stripe.width_px
     if width_px is None:
-        w = estimate_width(first, channel=channel, axis=axis)
+        w = estimate_width(first, channel=options.stripe.channel, axis=axis)
         width_px = float(w) if np.isfinite(w) else None
-    return source, motion, axis, width_px
+    return source, motion, replace(options, axis=axis, stripe=replace(options.stripe, width_px=width_px))
 
 
 @with_blas_limited
-def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motion: Motion | None = None,
-                axis: str = "auto", roi=None, width_px: float | None = None, channel: str | None = None,
-                workers: int | None = 1, executor: str = "auto", **stripe_options) -> tuple[np.ndarray, ScanSummary]:
+def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, options: MeasureOptions = MeasureOptions(),
+                *, motion: Motion | None = None, workers: int | None = 1,
+                executor: str = "auto") -> tuple[np.ndarray, ScanSummary]:
     """In-memory scan: all points as one :data:`POINT_DTYPE` array, and the summary.
 
-    For long scans use :func:`measure_scan` (streams to a file).  ``width_px`` None:
-    estimated once on the first frame and used for all frames.
+    For long scans use :func:`measure_scan` (streams to a file).  ``options``:
+    :class:`~lightplane.measure.options.MeasureOptions` (a stripe ``width_px`` of None is
+    estimated once on the first frame and used for all frames); ``workers``, ``executor``:
+    :func:`iter_scan`.
     """
     t0 = time.perf_counter()
-    source, motion, axis, width_px = _prepare(source, camera, plane, motion, axis, width_px, channel)
-    proc = FrameProcessor(camera, plane, motion, axis=axis, roi=roi, width_px=width_px, channel=channel,
-                          **stripe_options)
+    source, motion, opts = _prepare(source, camera, plane, motion, options)
+    proc = FrameProcessor(camera, plane, motion, opts)
     parts, skipped, n, empty = [], [], 0, 0
     for r in iter_scan(source, proc, workers=workers, executor=executor):
         n += 1
@@ -577,21 +582,23 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, *, motio
         empty += r.records.size == 0
         parts.append(r.records)
     recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
-    summ = ScanSummary(None, None, n, n - len(skipped), int(recs.size), tuple(skipped), int(empty), axis,
+    width_px = opts.stripe.width_px
+    summ = ScanSummary(None, None, n, n - len(skipped), int(recs.size), tuple(skipped), int(empty), opts.axis,
                        float("nan") if width_px is None else width_px, motion.to_dict(), time.perf_counter() - t0)
     return recs, summ
 
 
 @with_blas_limited
-def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_path: str | os.PathLike, *,
-                 fmt: str | None = None, ascii: bool = False, motion: Motion | None = None, axis: str = "auto",
-                 roi=None, width_px: float | None = None, channel: str | None = None, workers: int | None = None,
-                 force: bool = False, progress: Callable[[int, int | None], None] | None = None,
-                 comments: Sequence[str] = (), executor: str = "auto", **stripe_options) -> ScanSummary:
+def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_path: str | os.PathLike,
+                 options: MeasureOptions = MeasureOptions(), *, motion: Motion | None = None,
+                 output: CloudOutput = CloudOutput(), workers: int | None = None, executor: str = "auto",
+                 progress: Callable[[int, int | None], None] | None = None) -> ScanSummary:
     """Scan ``source`` into a point-cloud file (PLY/CSV/NPY, :func:`lightplane.measure.pointcloud.write_cloud`).
 
-    Streams: frames are processed by ``workers`` processes and the points spooled to a
-    temporary file beside ``out_path``; the output is written (atomically) only when
+    ``options``: :class:`~lightplane.measure.options.MeasureOptions` (as :func:`scan_points`);
+    ``output``: :class:`~lightplane.measure.options.CloudOutput` (format, ASCII PLY, overwrite,
+    extra comment lines).  Streams: frames are processed by ``workers`` processes and the points
+    spooled to a temporary file beside ``out_path``; the output is written (atomically) only when
     every frame has been processed, so a failure leaves nothing behind.
 
     Errors (:class:`LightplaneError`, nothing written): output exists without
@@ -602,28 +609,15 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
     """
     t0 = time.perf_counter()
     original = source
-    out = check_output(out_path, force)
-    fmt = cloud_format(out, fmt)
-    if ascii and fmt != "ply":
-        raise LightplaneError("--ascii applies to PLY output only")
+    out, fmt = output.target(out_path)
     try:
-        source, motion, axis, width_px = _prepare(source, camera, plane, motion, axis, width_px, channel)
-        proc = FrameProcessor(camera, plane, motion, axis=axis, roi=roi, width_px=width_px, channel=channel,
-                              **stripe_options)
+        source, motion, opts = _prepare(source, camera, plane, motion, options)
+        proc = FrameProcessor(camera, plane, motion, opts)
         if workers is None and source.n_frames is not None and source.n_frames < 64:
             workers = 1  # starting a pool costs more than it saves
-        skipped, n, empty = [], 0, 0
         with PointSpool(out.parent if str(out.parent) else None) as spool:
-            for r in iter_scan(source, proc, workers=workers, executor=executor):
-                n += 1
-                if r.error is not None:
-                    skipped.append((r.index, r.name, r.error))
-                else:
-                    assert r.records is not None  # a frame without an error has its records
-                    empty += r.records.size == 0
-                    spool.append(r.records)
-                if progress is not None:
-                    progress(n, source.n_frames)
+            n, skipped, empty = _spool_scan(iter_scan(source, proc, workers=workers, executor=executor), spool,
+                                            progress, source.n_frames)
             if motion.n_frames is not None and motion.n_frames != n:
                 raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
@@ -631,15 +625,8 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
             if spool.count == 0:
                 raise LightplaneError(f"no stripe found in any of the {n - len(skipped)} readable frames "
                                       "(laser off, wrong --channel or --roi?); nothing written")
-            opts = {"axis": axis, "roi": roi, "width_px": width_px, "channel": channel, "motion": motion.to_dict(),
-                    "frames": n, "skipped": len(skipped)}
-            prov = provenance([getattr(source, "description", "")], opts)
-            lines = [f"lightplane point cloud: x y z in mm ({motion.frame_description})",
-                     f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",
-                     f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
-                     f"options: {opts}",
-                     *(f"skipped frame {i} ({Path(nm).name}): {why}" for i, nm, why in skipped), *comments]
-            write_cloud(out, spool, fmt=fmt, ascii=ascii, force=force, comments=lines)
+            lines = _scan_comments(source, plane, motion, opts, n, skipped) + list(output.comments)
+            write_cloud(out, spool, fmt=fmt, ascii=output.ascii, force=output.force, comments=lines)
             n_points = spool.count
     finally:
         original.close()
@@ -647,6 +634,36 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
     if isinstance(original, VideoFrames) and original.n_frames is not None and n < original.n_frames:
         warnings.append(f"{original.path.name}: the video announces {original.n_frames} frames but only {n} "
                         f"could be decoded (a damaged frame ends a video stream)")
-    return ScanSummary(out, fmt, n, n - len(skipped), n_points, tuple(skipped), int(empty), axis,
+    width_px = opts.stripe.width_px
+    return ScanSummary(out, fmt, n, n - len(skipped), n_points, tuple(skipped), int(empty), opts.axis,
                        float("nan") if width_px is None else float(width_px), motion.to_dict(),
                        time.perf_counter() - t0, tuple(warnings))
+
+
+def _spool_scan(results: Iterator[FrameResult], spool: PointSpool, progress, total) -> tuple[int, list, int]:
+    """The frames' points into ``spool``; the number of frames, the skipped ones ``(index, name,
+    reason)`` and how many frames had no point.  ``progress(done, total)`` after each frame."""
+    skipped, n, empty = [], 0, 0
+    for r in results:
+        n += 1
+        if r.error is not None:
+            skipped.append((r.index, r.name, r.error))
+        else:
+            assert r.records is not None  # a frame without an error has its records
+            empty += r.records.size == 0
+            spool.append(r.records)
+        if progress is not None:
+            progress(n, total)
+    return n, skipped, int(empty)
+
+
+def _scan_comments(source, plane, motion, opts: MeasureOptions, n: int, skipped: list) -> list[str]:
+    """A scanned cloud's comment lines: frame, plane, provenance, options, skipped frames."""
+    record = {"axis": opts.axis, "roi": opts.roi, "width_px": opts.stripe.width_px, "channel": opts.stripe.channel,
+              "motion": motion.to_dict(), "frames": n, "skipped": len(skipped)}
+    prov = provenance([getattr(source, "description", "")], record)
+    return [f"lightplane point cloud: x y z in mm ({motion.frame_description})",
+            f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",
+            f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
+            f"options: {record}",
+            *(f"skipped frame {i} ({Path(nm).name}): {why}" for i, nm, why in skipped)]

@@ -35,9 +35,9 @@ from lightplane.core.errors import LightplaneError
 from lightplane.motion.model import Motion, Turntable, rigid_from_dict
 from lightplane.plane.model import LightPlane
 from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
-from lightplane.core.io import (check_output, provenance, read_json, summarize_reasons, too_few_images_message,
-    write_json)
-from lightplane.measure.pointcloud import PointSpool, cloud_format, write_cloud
+from lightplane.core.io import provenance, read_json, summarize_reasons, too_few_images_message, write_json
+from lightplane.measure.options import CloudOutput, MeasureOptions
+from lightplane.measure.pointcloud import PointSpool, write_cloud
 from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
 from lightplane.core.threads import with_blas_limited
 
@@ -226,26 +226,24 @@ class LaserScanSummary:
 
 
 @with_blas_limited
-def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera: Camera, out_path, *,
-                   motion: Motion | None = None, fmt: str | None = None, ascii: bool = False,
-                   force: bool = False, channel: str | None = None, width_px: float | None = None,
-                   workers: int | None = None, roi=None, axis: str = "auto",
-                   progress: Callable[[int, int | None], None] | None = None,
-                   comments: Sequence[str] = (), **stripe_options) -> LaserScanSummary:
+def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera: Camera, out_path,
+                   options: MeasureOptions = MeasureOptions(), *, motion: Motion | None = None,
+                   output: CloudOutput = CloudOutput(), workers: int | None = None,
+                   progress: Callable[[int, int | None], None] | None = None) -> LaserScanSummary:
     """Measure one frame sequence per laser (``(name, FrameSource, plane)``) into one cloud.
 
     Every point gets its laser's index (``laser``, :data:`LASER_POINT_DTYPE`; names in the
     file's comments) and its frame index within its laser's sequence; the same
-    ``motion`` places every laser's frames.  All inputs are checked (first frames, sizes,
-    frame counts against the motion) before any frame is measured; the file is written
+    ``motion`` places every laser's frames.  ``options``
+    (:class:`~lightplane.measure.options.MeasureOptions`) apply to every laser (a stripe
+    width of None is estimated on each laser's first frame); ``output``:
+    :class:`~lightplane.measure.options.CloudOutput`.  All inputs are checked (first frames,
+    sizes, frame counts against the motion) before any frame is measured; the file is written
     atomically at the end, so an error leaves nothing behind.
     """
 
     t0 = time.perf_counter()
-    out = check_output(out_path, force)
-    fmt = cloud_format(out, fmt)
-    if ascii and fmt != "ply":
-        raise LightplaneError("--ascii applies to PLY output only")
+    out, fmt = output.target(out_path)
     if not scans:
         raise LightplaneError("no laser to measure")
     names = [n for n, _, _ in scans]
@@ -254,61 +252,81 @@ def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera:
     if len(scans) > 255:
         raise LightplaneError("at most 255 lasers in one cloud")
     motion = Motion.none() if motion is None else motion
-    prepared = []
     try:
-        for name, source, plane in scans:
-            try:
-                src, mo, ax, w = _prepare(source, camera, plane, motion, axis, width_px, channel)
-            except LightplaneError as e:
-                raise LightplaneError(f"laser {name}: {e}") from None
-            proc = FrameProcessor(camera, plane, mo, axis=ax, roi=roi, width_px=w, channel=channel, **stripe_options)
-            prepared.append((name, src, proc, ax, w))
+        prepared = [_prepare_laser(name, source, camera, plane, motion, options) for name, source, plane in scans]
         total = sum((s.n_frames or 0) for _, s, _, _, _ in prepared) or None
         done = 0
+
+        def step() -> None:
+            nonlocal done
+            done += 1
+            if progress is not None:
+                progress(done, total)
+
         per_laser = []
         with PointSpool(out.parent if str(out.parent) else None, dtype=LASER_POINT_DTYPE) as spool:
             for li, (name, src, proc, ax, w) in enumerate(prepared):
-                n, skipped, count0 = 0, [], spool.count
-                nw = workers
-                if nw is None and src.n_frames is not None and src.n_frames < 64:
-                    nw = 1
-                for r in iter_scan(src, proc, workers=nw):
-                    n += 1
-                    done += 1
-                    if r.error is not None:
-                        skipped.append((r.index, r.name, r.error))
-                    elif r.records is not None and r.records.size:  # no error: the frame has its records
-                        rec = np.empty(r.records.size, LASER_POINT_DTYPE)
-                        for f in POINT_FIELDS:
-                            rec[f] = r.records[f]
-                        rec["laser"] = li
-                        spool.append(rec)
-                    if progress is not None:
-                        progress(done, total)
-                if motion.n_frames is not None and motion.n_frames != n:
-                    raise LightplaneError(f"laser {name}: the {motion.what} give {motion.n_frames} frames but the "
-                                          f"input has {n}")
-                if n == len(skipped):
-                    raise LightplaneError(f"laser {name}: " + too_few_images_message(
-                        "frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
-                if spool.count == count0:
-                    raise LightplaneError(f"laser {name}: no stripe found in any of its {n - len(skipped)} readable "
-                                          "frames (laser off, wrong --channel or --roi?); nothing written")
-                per_laser.append((name, n, n - len(skipped), spool.count - count0, tuple(skipped), ax, w))
-            opts = {"lasers": names, "axis": axis, "roi": roi, "width_px": width_px, "channel": channel,
-                    "motion": motion.to_dict()}
-            prov = provenance([getattr(s, "description", "") for _, s, _, _, _ in prepared], opts)
-            lines = [f"lightplane point cloud: x y z in mm ({motion.frame_description}); laser = index below",
-                     *(f"laser {i}: {n} ({nf} frames, {npt} points; plane {plane!r})"
-                       for i, ((n, nf, _, npt, _, _, _), (_, _, plane)) in enumerate(zip(per_laser, scans))),
-                     f"created: {prov['created_utc']}", f"command: {prov['command']}",
-                     f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
-                     f"options: {opts}",
-                     *(f"laser {n}: skipped frames: {summarize_reasons([(nm, why) for _, nm, why in sk])}"
-                       for n, _, _, _, sk, _, _ in per_laser if sk), *comments]
-            write_cloud(out, spool, fmt=fmt, ascii=ascii, force=force, comments=lines)
+                n, skipped, npts = _spool_laser(li, name, src, proc, spool, motion, workers, step)
+                per_laser.append((name, n, n - len(skipped), npts, tuple(skipped), ax, w))
+            lines = _lasers_comments(prepared, scans, per_laser, names, motion, options) + list(output.comments)
+            write_cloud(out, spool, fmt=fmt, ascii=output.ascii, force=output.force, comments=lines)
             n_points = spool.count
     finally:
         for _, s, _ in scans:
             s.close()
     return LaserScanSummary(out, fmt, tuple(per_laser), n_points, motion.to_dict(), time.perf_counter() - t0)
+
+
+def _prepare_laser(name: str, source, camera: Camera, plane: LightPlane, motion: Motion, options: MeasureOptions):
+    """One laser's scan checked and its frame processor: ``(name, source, processor, axis, width)``."""
+    try:
+        src, mo, opts = _prepare(source, camera, plane, motion, options)
+    except LightplaneError as e:
+        raise LightplaneError(f"laser {name}: {e}") from None
+    return name, src, FrameProcessor(camera, plane, mo, opts), opts.axis, opts.stripe.width_px
+
+
+def _spool_laser(li: int, name: str, src, proc, spool: PointSpool, motion: Motion, workers: int | None,
+                 step: Callable[[], None]) -> tuple[int, list, int]:
+    """Laser ``li``'s frames measured into ``spool`` (``step()`` after each frame); its number of
+    frames, skipped frames and points.  Raises for frame counts off the motion's, no readable frame,
+    no stripe."""
+    n, skipped, count0 = 0, [], spool.count
+    if workers is None and src.n_frames is not None and src.n_frames < 64:
+        workers = 1
+    for r in iter_scan(src, proc, workers=workers):
+        n += 1
+        if r.error is not None:
+            skipped.append((r.index, r.name, r.error))
+        elif r.records is not None and r.records.size:  # no error: the frame has its records
+            rec = np.empty(r.records.size, LASER_POINT_DTYPE)
+            for f in POINT_FIELDS:
+                rec[f] = r.records[f]
+            rec["laser"] = li
+            spool.append(rec)
+        step()
+    if motion.n_frames is not None and motion.n_frames != n:
+        raise LightplaneError(f"laser {name}: the {motion.what} give {motion.n_frames} frames but the "
+                              f"input has {n}")
+    if n == len(skipped):
+        raise LightplaneError(f"laser {name}: " + too_few_images_message(
+            "frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
+    if spool.count == count0:
+        raise LightplaneError(f"laser {name}: no stripe found in any of its {n - len(skipped)} readable "
+                              "frames (laser off, wrong --channel or --roi?); nothing written")
+    return n, skipped, spool.count - count0
+
+
+def _lasers_comments(prepared, scans, per_laser, names, motion: Motion, options: MeasureOptions) -> list[str]:
+    """A merged cloud's comment lines: the lasers, provenance, options, skipped frames."""
+    record = {"lasers": names, "axis": options.axis, "roi": options.roi, "width_px": options.stripe.width_px,
+              "channel": options.stripe.channel, "motion": motion.to_dict()}
+    prov = provenance([getattr(s, "description", "") for _, s, _, _, _ in prepared], record)
+    return [f"lightplane point cloud: x y z in mm ({motion.frame_description}); laser = index below",
+            *(f"laser {i}: {n} ({nf} frames, {npt} points; plane {plane!r})"
+              for i, ((n, nf, _, npt, _, _, _), (_, _, plane)) in enumerate(zip(per_laser, scans))),
+            f"created: {prov['created_utc']}", f"command: {prov['command']}",
+            f"versions: {' '.join(f'{k}={v}' for k, v in prov['versions'].items())}",
+            f"options: {record}",
+            *(f"laser {n}: skipped frames: {summarize_reasons([(nm, why) for _, nm, why in sk])}"
+              for n, _, _, _, sk, _, _ in per_laser if sk)]

@@ -110,6 +110,7 @@ from lightplane.stripe import kernels as K
 from lightplane.core.errors import LightplaneError
 from lightplane.core.threads import ensure_configured, in_serial_context, profile_parallel
 from lightplane.core.io import to_gray_float
+from lightplane.stripe.options import StripeOptions, StripePointsOptions, _check_width
 from lightplane.stripe.reference import profile_numpy
 
 __all__ = [
@@ -259,15 +260,6 @@ def sigma_for_width(width_px: float) -> float:
     return max(0.5 * float(width_px) / math.sqrt(3.0), _MIN_SIGMA_PX)
 
 
-def _check_width(width_px, name="width_px") -> float | None:
-    if width_px is None:
-        return None
-    w = float(width_px)
-    if not (np.isfinite(w) and 0.5 <= w <= 200.0):
-        raise LightplaneError(f"{name} must be a full stripe width in px between 0.5 and 200, got {width_px!r}")
-    return w
-
-
 def _fwhm_median(A: np.ndarray, min_peak: float, every: int = 4) -> tuple[float, int]:
     """Median raw FWHM (samples) at each line's highest sample, over every ``every``-th line
     of ``A[s, l]`` (row-major, or the transposed view of a row-major image), and the number
@@ -354,13 +346,8 @@ def _profile_numba(A, w0, w1, w2, params, parallel=True):
     return centre, normal, strength, intensity, width, status
 
 
-def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float | None = None,
-                    channel: str | None = None, roi=None, min_peak: float | None = None,
-                    max_width_px: float | None = None, sigma_px: float | None = None,
-                    sigma_along_px: float | None = None, continuity: bool = True, min_cos: float = 0.3,
-                    correct_curvature: bool = True,
-                    min_chroma: float | None = None, saturated_centre: bool = False,
-                    backend: str = "numba", parallel: bool | None = None) -> StripeProfile:
+def extract_profile(image: np.ndarray, axis: str = "columns", options: StripeOptions = StripeOptions(), *,
+                    roi=None, parallel: bool | None = None) -> StripeProfile:
     """One sub-pixel stripe centre per image column (``axis="columns"``) or row.
 
     Per line: the highest sample (and the highest one farther than twice the width
@@ -382,41 +369,10 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     image : (H, W) or (H, W, 3) uint8, uint16 or float array (BGR for colour).
     axis : ``"columns"`` for a roughly horizontal stripe (one centre per column),
         ``"rows"`` for a roughly vertical one.
-    width_px : full stripe width (FWHM) in px; estimated from the frame when None.
-    channel : ``"red"``, ``"green"``, ``"blue"``, ``"sum"`` (B + G + R) or None /
-        ``"gray"`` (weighted gray).
+    options : :class:`~lightplane.stripe.options.StripeOptions`: width, channel,
+        thresholds, scales, corrections, backend.
     roi : ``(x, y, width, height)`` px; only this region is searched; ``uv`` stays
         in full-image pixels.
-    min_peak : minimum contrast (peak minus the local minimum within ~1.5 widths),
-        in the image's grey levels; default 20/255 of full scale (20 for 8-bit).
-    max_width_px : lines whose stripe is wider (glare, blooming) are invalid;
-        default ``2.5 * width_px + 2``.
-    sigma_px : Gaussian scale; default :func:`sigma_for_width`.
-    sigma_along_px : Gaussian scale across the lines, i.e. along a stripe that
-        crosses them (default ``sigma_px``).  Larger values average laser speckle
-        along the stripe without widening its profile; a straight stripe's centre
-        stays unbiased at any tilt (the smoothing is point-symmetric).
-    min_cos : lines where the stripe normal makes ``|n . line direction| < min_cos``
-        are invalid (the stripe runs along them).
-    correct_curvature : remove the inward shift of curved stripes (see
-        :func:`extract_stripe`), curvature from the centres ``4 sigma`` lines away
-        (only where both are valid).
-    min_chroma : colour images only: a line is invalid (status ``WHITISH``)
-        where a pixel of its stripe (within ``width_px`` of the centre, brighter
-        than 30 % of the brightest there) has a colour saturation
-        ``(max - min) / max`` of its B, G, R below this.  A laser's light is
-        strongly coloured (a red laser's core may bloom into magenta, still
-        saturated); grey-white pixels on the stripe are glare or sensor blooming
-        (a specular hot spot), where the centre found is not the stripe's.  Off by
-        default (ambient white light on a raw frame lowers it too); 0.5 suits
-        background-subtracted frames.
-    saturated_centre : with ``min_chroma``: instead of dropping whitish lines,
-        centre them on the midpoint of the whitish run across the stripe (a
-        saturated core turns grey-white; its midpoint is the standard centre of a
-        saturated stripe), searched within ``w + 2`` px of the centre expected
-        from the valid lines around; status ``OK`` then.  Recovers a specular
-        hot spot in the laser's own channel (tests/test_stripe_real.py).
-    backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
     parallel : numba backend: ``None`` (default) splits the frame over numba's threads
         only when that pays and nests nothing: a large frame (at least
         ``threads.PARALLEL_MIN_PIXELS`` pixels and ``PARALLEL_MIN_LINES`` lines in the
@@ -433,80 +389,71 @@ def extract_profile(image: np.ndarray, axis: str = "columns", *, width_px: float
     >>> import numpy as np
     >>> v = np.arange(40.0)[:, None]
     >>> img = (200 * np.exp(-0.5 * ((v - 17.3) / 1.5) ** 2) + 0 * np.arange(30.0)).astype(np.uint8)
-    >>> prof = extract_profile(img, width_px=3.5)
+    >>> prof = extract_profile(img, options=StripeOptions(width_px=3.5))
     >>> bool(prof.valid.all()), round(float(np.median(prof.uv[:, 1])), 1)
     (True, 17.3)
     """
-    if backend not in ("numba", "numpy"):
-        raise LightplaneError(f"backend must be 'numba' or 'numpy', got {backend!r}")
-    A, setup = _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
-                              sigma_along_px, continuity, min_cos, parallel=parallel)
+    A, setup = _profile_setup(image, axis, options, roi, parallel=parallel)
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
-    if backend == "numba":
+    if options.backend == "numba":
         raw = _profile_numba(A, w0, w1, w2, params, parallel=setup["parallel"])
     else:
         raw = profile_numpy(A, w0, w1, w2, params)
-    return _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend, saturated_centre)
+    return _profile_finish(image, axis, raw, setup, options)
 
 
-def _profile_setup(image, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px, sigma_along_px,
-                   continuity, min_cos, parallel=None, prepared=None):
+def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prepared=None):
     """Sample-major array and the scales/thresholds of :func:`extract_profile`.
 
     ``prepared``: ``(A, full_scale, line0, sample0)`` already made (a stack's frame)."""
     if prepared is None:
-        img, fs = _channel_image(image, channel)
+        img, fs = _channel_image(image, options.channel)
         A, line0, sample0 = _lines_array(img, axis, roi)
     else:
         A, fs, line0, sample0 = prepared
     S, L = A.shape
     parallel = profile_parallel(L, S) if parallel is None else bool(parallel)
-    mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
-    w = _check_width(width_px)
+    mp = _default_min_peak(fs) if options.min_peak is None else float(options.min_peak)
+    w = _check_width(options.width_px)
     if w is None:
         # lines="rows": the image's own rows, read along memory (the same values as A's columns)
         E = img[line0:line0 + L, sample0:sample0 + S].T if prepared is None and axis == "rows" else A
         w, n = _fwhm_median(E, mp, every=max(1, L // 160))
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
-    sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
-    if not (np.isfinite(sigma) and 0.3 <= sigma <= 100):
-        raise LightplaneError(f"sigma_px must be between 0.3 and 100 px, got {sigma_px!r}")
-    sigma_al = sigma if sigma_along_px is None else float(sigma_along_px)
-    if not (np.isfinite(sigma_al) and 0.3 <= sigma_al <= 100):
-        raise LightplaneError(f"sigma_along_px must be between 0.3 and 100 px, got {sigma_along_px!r}")
+    # given scales are checked by StripeOptions; the derived ones lie within its bounds
+    sigma = sigma_for_width(w) if options.sigma_px is None else float(options.sigma_px)
+    sigma_al = sigma if options.sigma_along_px is None else float(options.sigma_along_px)
     w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
     R = (w0.size - 1) // 2
-    maxw = 2.5 * w + 2.0 if max_width_px is None else float(max_width_px)
+    maxw = 2.5 * w + 2.0 if options.max_width_px is None else float(options.max_width_px)
     params = dict(
         sep=int(math.ceil(2.0 * w + 2 * R)),
         min_peak=mp,
         tol=max(3.0, w),
-        continuity=bool(continuity),
+        continuity=bool(options.continuity),
         qpeak=int(math.ceil(0.5 * w)) + 1,
         half=int(math.ceil(1.5 * w)) + 3,
         max_width=maxw,
-        min_cos=float(min_cos),
+        min_cos=float(options.min_cos),
         xw=K.edge_kernels_cached(sigma_al),
     )
     setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, S=S, sigma=sigma,
-                 sigma_al=sigma_al, w=w, width_px=width_px, sigma_px=sigma_px, min_peak=min_peak, parallel=parallel,
-                 full_scale=fs)
+                 sigma_al=sigma_al, w=w, parallel=parallel, full_scale=fs)
     return A, setup
 
 
-def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, backend,
-                    saturated_centre=False) -> StripeProfile:
+def _profile_finish(image, axis, raw, setup, options: StripeOptions) -> StripeProfile:
     """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature)."""
     centre, normal, strength, intensity, width, status = raw
     line0, sample0, L = setup["line0"], setup["sample0"], setup["L"]
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
-    if min_chroma is not None:
-        status = _chroma_check(image, axis, centre, status, line0, sample0, float(min_chroma),
+    if options.min_chroma is not None:
+        status = _chroma_check(image, axis, centre, status, line0, sample0, float(options.min_chroma),
                                int(math.ceil(w)))
-        if saturated_centre:
+        if options.saturated_centre:
             centre, status = _whitish_centres(image, axis, centre, status, line0, sample0, setup["S"],
-                                              float(min_chroma), w, setup["params"]["max_width"])
+                                              float(options.min_chroma), w, setup["params"]["max_width"])
     valid = status == K.OK
     lines = np.arange(L, dtype=np.int64) + line0
     uv = np.full((L, 2), np.nan)
@@ -520,11 +467,11 @@ def _profile_finish(image, axis, raw, setup, min_chroma, correct_curvature, back
         uv[:, 1] = np.where(valid, lines, np.nan)
         nrm[:, 0] = normal[:, 1]
         nrm[:, 1] = normal[:, 0]
-    if correct_curvature:
+    if options.correct_curvature:
         # the inward shift comes from the smoothing along the stripe: sigma_along
         m = max(5, int(math.ceil(4.0 * sigma_al)))
         k = 1 if axis == "columns" else 0
-        if backend == "numba":
+        if options.backend == "numba":
             K.profile_curvature(uv, nrm, valid, sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, k)
         else:
             uv = _profile_curvature(uv, nrm, valid, sigma_al, m, k)
@@ -655,19 +602,16 @@ def release_batch_memory() -> None:
     _BATCH.release()
 
 
-def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = None, channel: str | None = None,
-                     roi=None, min_peak: float | None = None, max_width_px: float | None = None,
-                     sigma_px: float | None = None, sigma_along_px: float | None = None,
-                     continuity: bool = True, min_cos: float = 0.3, correct_curvature: bool = True,
-                     min_chroma: float | None = None, saturated_centre: bool = False,
+def extract_profiles(frames, axis: str = "columns", options: StripeOptions = StripeOptions(), *, roi=None,
                      parallel: bool | None = None) -> list[StripeProfile]:
     """:func:`extract_profile` of a stack of frames in one call: the ROI sensor's batch.
 
     ``frames``: (N, H, W) / (N, H, W, 3) array or a sequence of equally sized
     images (e.g. N x 64 x 1280 regions of interest).  The scales (``width_px``,
     estimated from the first frame when None) are shared by all frames; each result
-    equals ``extract_profile(frame, width_px=that width, ...)`` of that frame, bit for
-    bit.  The per-frame costs of a call (argument checks, kernel launches, Python)
+    equals ``extract_profile(frame, axis, replace(options, width_px=that width), roi=roi)``
+    of that frame, bit for bit (the numba kernels: ``options.backend`` must be ``"numba"``).
+    The per-frame costs of a call (argument checks, kernel launches, Python)
     are paid once per batch: one kernel runs the whole stack, frames across numba's
     threads with each frame serial (``parallel`` None: unless called inside
     :func:`lightplane.core.threads.serial_kernels`, where the batch runs on the calling
@@ -676,28 +620,29 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     alive (see :class:`_BatchBlock`; :func:`release_batch_memory`).
     """
     ensure_configured()  # OpenMP settings before the first parallel kernel
+    if options.backend != "numba":
+        raise LightplaneError(f"extract_profiles runs the numba kernels: backend must be 'numba', got {options.backend!r}")
     if isinstance(frames, np.ndarray) and frames.ndim not in (3, 4):
         raise LightplaneError(f"frames must be (N, H, W) or (N, H, W, 3), got shape {frames.shape}")
     if not isinstance(frames, np.ndarray):
         frames = list(frames)
     if len(frames) == 0:
         return []
-    A3, fs, line0, sample0 = _stack_lines(frames, axis, channel, roi)
+    A3, fs, line0, sample0 = _stack_lines(frames, axis, options.channel, roi)
     N, S, L = A3.shape
-    _, setup = _profile_setup(None, axis, width_px, channel, roi, min_peak, max_width_px, sigma_px,
-                               sigma_along_px, continuity, min_cos, parallel=False,
-                               prepared=(A3[0], float(fs[0]), line0, sample0))
+    _, setup = _profile_setup(None, axis, options, roi, parallel=False, prepared=(A3[0], float(fs[0]), line0, sample0))
     w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
-    mp = np.array([_default_min_peak(f) for f in fs]) if min_peak is None else np.full(N, float(min_peak))
+    mp = np.array([_default_min_peak(f) for f in fs]) if options.min_peak is None \
+        else np.full(N, float(options.min_peak))
     block, (centre, normal, strength, intensity, width, uv, status, valid) = _BATCH.take(N, L)
     par = (not in_serial_context() and N > 1) if parallel is None else bool(parallel)
     (K.profiles_batch if par else K.profiles_batch_serial)(
         A3, params["sep"], mp, params["continuity"], params["tol"], w0, w1, w2, params["xw"], params["qpeak"],
         params["half"], params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
-    if min_chroma is not None:   # colour checks need each frame's image: frame by frame (their own arrays)
+    if options.min_chroma is not None:   # colour checks need each frame's image: frame by frame (their own arrays)
         seq = [frames[i] for i in range(N)]
         return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
-                                setup, min_chroma, correct_curvature, "numba", saturated_centre) for f in range(N)]
+                                setup, options) for f in range(N)]
     # _profile_finish for the whole stack at once, frames across threads as the profiles were
     lines = np.arange(L, dtype=np.int64) + line0
     lines.setflags(write=False)   # shared by the frames' profiles
@@ -705,7 +650,7 @@ def extract_profiles(frames, axis: str = "columns", *, width_px: float | None = 
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
     m = max(5, int(math.ceil(4.0 * sigma_al)))
     (K.frames_points if par else K.frames_points_serial)(
-        centre, normal, status, lines, float(sample0), axis == "columns", bool(correct_curvature),
+        centre, normal, status, lines, float(sample0), axis == "columns", bool(options.correct_curvature),
         sigma_al**2 + CURVATURE_SIGMA2_EXTRA, m, uv, nrm, valid)
     _BATCH.keep(block)
     return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
@@ -892,14 +837,55 @@ class _Buffers(threading.local):
 _BUFFERS = _Buffers()
 
 
-def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.ndarray | None = None, *,
-                   channel: str | None = None, sigma_px: float | None = None,
-                   low: float | None = None, high: float | None = None,
-                   min_contrast: float | None = None, min_length: int = 10, min_chroma: float | None = None,
-                   border_px: int | None = None, correct_asymmetry: bool = False,
-                   correct_curvature: bool = True, sigma_along_px: float | None = None,
-                   suppress_weaker: float | None = 0.5,
-                   saturated_centre: bool | None = None) -> StripePoints:
+@dataclass(frozen=True)
+class _StripeScales:
+    """The scales and thresholds of one :func:`extract_stripe` call: width ``w`` (FWHM px),
+    ``sigma``, the smoothing along the curves ``sal``, the unit-contrast ridge response
+    ``resp``, the hysteresis thresholds ``hi``, ``lo`` and the least contrast ``mc``."""
+
+    w: float
+    sigma: float
+    sal: float
+    resp: float
+    hi: float
+    lo: float
+    mc: float
+
+
+@dataclass(frozen=True)
+class _RidgeMaps:
+    """Ridge points of :func:`extract_stripe`, per pixel (float32 (H, W), filled in place): the
+    centre ``su``, ``sv``, the normal ``snu``, ``snv`` and the strength ``sstr`` (0: no point)."""
+
+    su: np.ndarray
+    sv: np.ndarray
+    snu: np.ndarray
+    snv: np.ndarray
+    sstr: np.ndarray
+
+
+@dataclass(frozen=True)
+class _CurvePoints:
+    """Linked centre points of :func:`extract_stripe`, in curve order: ``uv``, ``nrm``, strength
+    ``st``, FWHM ``width``, backgrounds and peak ``bg`` (N, 3), curve index ``cid``."""
+
+    uv: np.ndarray
+    nrm: np.ndarray
+    st: np.ndarray
+    width: np.ndarray
+    bg: np.ndarray
+    cid: np.ndarray
+
+    def take(self, sel: np.ndarray, renumber: bool = True) -> "_CurvePoints":
+        """The points ``sel`` (index or mask); with ``renumber`` the curves numbered 0.. again."""
+        cid = self.cid[sel]
+        if renumber:
+            _, cid = np.unique(cid, return_inverse=True)
+        return _CurvePoints(self.uv[sel], self.nrm[sel], self.st[sel], self.width[sel], self.bg[sel], cid)
+
+
+def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePointsOptions(),
+                   mask: np.ndarray | None = None) -> StripePoints:
     """Centre points of all bright lines (Steger's method), linked into ordered curves.
 
     Five Gaussian-derivative images (``cv2.sepFilter2D``, pixel-integrated Gaussian
@@ -913,91 +899,97 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     Parameters
     ----------
     image : (H, W) or (H, W, 3) uint8 / uint16 / float.
-    width_px : full stripe width (FWHM) px; estimated (:func:`estimate_width`) when None.
+    options : :class:`~lightplane.stripe.options.StripePointsOptions`: width, channel,
+        scales, thresholds, corrections, saturated cores.
     mask : (H, W) bool, points only where True (e.g. inside the target's ellipse).
-    channel : ``"red"`` etc. or None for weighted gray.
-    sigma_px : default :func:`sigma_for_width`.
-    low, high : hysteresis thresholds on the ridge strength ``-lambda``
-        (grey levels / px^2); defaults: the response of a Gaussian stripe of width
-        ``width_px`` and contrast ``min_contrast`` (``high``) and half of it (``low``).
-    min_contrast : least stripe contrast (grey levels of the image as given);
-        default 20/255 of the full scale.
-    min_length : shortest curve kept, points.
-    min_chroma : colour images only: drop points with whitish pixels on their
-        stripe (glare, sensor bloom); see :func:`extract_profile`.
-    border_px : no points within this distance of the image border, where the
-        replicated border biases the derivatives; default ``ceil(2 sigma)``.
-    correct_asymmetry : remove the bar-model bias of stripes on asymmetric
-        backgrounds (module docstring).
-    correct_curvature : remove the inward shift ``sigma^2 kappa / 2`` of curved
-        stripes (module docstring), ``kappa`` from the linked curve.
-    sigma_along_px : smoothing of the centres along their curve (points, ~px): each
-        point's offset along its normal is replaced by the intercept of a local quadratic
-        fitted, with Gaussian weights of this scale, to its neighbours' offsets (window
-        truncated symmetrically at curve ends; the scale shrinks where the line bends, and
-        the part of a circle beyond the quadratic is taken off, so straight and curved
-        lines stay unbiased).  Default ``2 * width_px``: laser speckle on real photographs
-        is correlated over a few px along the stripe, and Steger's minimum scale
-        (``sigma_for_width``) does not average it (Ciclop board photos, inlier RMS about a
-        straight line: 0.35-0.38 px without, 0.29-0.33 px with it); unlike a larger
-        ``sigma_px`` it does not widen the profile across the stripe (no mixing of albedo
-        edges, no extra border).  0 turns it off.
-    suppress_weaker : drop a curve when, along its normal (``1.5 w + 2`` to ``12 w``
-        px away) for most of its points, a curve at least ``1 / suppress_weaker``
-        times stronger (median ridge strength) and twice as long runs alongside:
-        reflections and glow lines next to a laser stripe.  Default 0.5; None keeps all.
-    saturated_centre : centre saturated stripe cores on their whitish run (colour
-        cameras render a saturated laser core grey-white; its own channel dips
-        there).  Default (None): on for colour images with ``channel`` red, green
-        or blue.  Guarded (:func:`_stripe_cores`): the whitish run is at most
-        ``2.5 w + 2`` px across, as bright (B + G + R) as the stripe's typical peak in
-        its channel, and flanked on both sides by laser-coloured pixels within
-        ``w + 2`` px, so white ambient light on a raw frame does not qualify.
-        Chroma threshold: ``min_chroma`` or 0.5.
 
     Returns
     -------
     :class:`StripePoints` (possibly empty).
     """
     ensure_configured()  # OpenMP settings before the first parallel kernel
-    import cv2
-
-    img, fs = _channel_image(image, channel)
+    img, fs = _channel_image(image, options.channel)
     H, W = img.shape
+    mask = _stripe_mask(mask, (H, W))
+    sc = _stripe_scales(img, fs, options)
+    maps, regions = _ridge_maps(img, sc)
     if mask is not None:
-        mask = np.asarray(mask)
-        if mask.shape != (H, W):
-            raise LightplaneError(f"mask must have the image's shape {(H, W)}, got {mask.shape}")
-        mask = mask.astype(bool, copy=False)
-    gray = img          # uint8, uint16 or float32 (_channel_image); kernels read any of them
-    mc = _default_min_peak(fs) if min_contrast is None else float(min_contrast)
-    w = _check_width(width_px)
+        maps.sstr[~mask] = 0.0
+    # the replicated border biases the derivatives: no points within 2 sigma of it
+    b = int(math.ceil(2.0 * sc.sigma)) if options.border_px is None else int(options.border_px)
+    if b > 0:
+        maps.sstr[:b] = 0.0
+        maps.sstr[-b:] = 0.0
+        maps.sstr[:, :b] = 0.0
+        maps.sstr[:, -b:] = 0.0
+    core_map = _saturated_cores(image, img, options, maps, sc)
+    meta = {"low": sc.lo, "high": sc.hi, "width_px": sc.w}
+    empty = StripePoints(np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0),
+                         np.empty(0, np.int64), float(sc.sigma), meta)
+    strong = _hysteresis(maps.sstr, regions, sc.hi)
+    if strong is None:
+        return empty
+    pts, is_core, core_len = _linked_points(img, strong[0], strong[1], maps, core_map, sc)
+    pts = _stripe_curves(image, img, pts, is_core, core_len, sc, options)
+    if pts is None:
+        return empty
+    uv = pts.uv
+    if options.correct_asymmetry:
+        uv = _correct_asymmetry(img.astype(np.float32), uv, pts.nrm, pts.width, pts.bg, sc.sigma)
+    if sc.sal > 0:
+        uv = _smooth_along(uv, pts.nrm, pts.cid, sc.sal)
+    if options.correct_curvature:
+        uv = _correct_curvature(uv, pts.nrm, pts.cid, sc.sigma)
+    return StripePoints(uv=uv, normals=pts.nrm, strength=pts.st, width=pts.width, curve_id=pts.cid.astype(np.int64),
+                        sigma_px=float(sc.sigma), meta=meta)
+
+
+def _stripe_mask(mask, shape: tuple[int, int]) -> np.ndarray | None:
+    """``mask`` as a bool array of the image's ``shape`` (None stays None)."""
+    if mask is None:
+        return None
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise LightplaneError(f"mask must have the image's shape {shape}, got {mask.shape}")
+    return mask.astype(bool, copy=False)
+
+
+def _stripe_scales(gray: np.ndarray, fs: float, options: StripePointsOptions) -> _StripeScales:
+    """Width (given or estimated), scales and hysteresis thresholds of :func:`extract_stripe`."""
+    mc = _default_min_peak(fs) if options.min_contrast is None else float(options.min_contrast)
+    w = _check_width(options.width_px)
     if w is None:
         w = estimate_width(gray, min_peak=mc)
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
-    sigma = sigma_for_width(w) if sigma_px is None else float(sigma_px)
-    if not (np.isfinite(sigma) and 0.3 <= sigma <= 100):
-        raise LightplaneError(f"sigma_px must be between 0.3 and 100 px, got {sigma_px!r}")
-    sal = _default_sigma_along(w, sigma) if sigma_along_px is None else float(sigma_along_px)
+    # a given sigma_px is checked by StripePointsOptions; the derived one lies within its bounds
+    sigma = sigma_for_width(w) if options.sigma_px is None else float(options.sigma_px)
+    sal = _default_sigma_along(w, sigma) if options.sigma_along_px is None else float(options.sigma_along_px)
     if not (np.isfinite(sal) and 0 <= sal <= 100):
-        raise LightplaneError(f"sigma_along_px must be between 0 and 100 px, got {sigma_along_px!r}")
+        raise LightplaneError(f"sigma_along_px must be between 0 and 100 px, got {options.sigma_along_px!r}")
     resp = _ridge_response(w, sigma)
-    hi = 1.0 * mc * resp if high is None else float(high)
-    lo = 0.5 * hi if low is None else float(low)
+    hi = 1.0 * mc * resp if options.high is None else float(options.high)
+    lo = 0.5 * hi if options.low is None else float(options.low)
     if not (0 < lo <= hi):
         raise LightplaneError(f"need 0 < low <= high, got low={lo}, high={hi}")
+    return _StripeScales(w=w, sigma=sigma, sal=sal, resp=resp, hi=hi, lo=lo, mc=mc)
 
-    w0, w1, w2 = (k.astype(np.float32) for k in K.gaussian_derivative_kernels(sigma))
+
+def _ridge_maps(img: np.ndarray, sc: _StripeScales) -> tuple[_RidgeMaps, list]:
+    """The ridge points of the image's active regions (:func:`_active_regions`) into this
+    thread's buffers, and the regions ``(x0, y0, x1, y1)``."""
+    import cv2
+
+    H, W = img.shape
+    w0, w1, w2 = (k.astype(np.float32) for k in K.gaussian_derivative_kernels(sc.sigma))
     bufs = _BUFFERS.get((H, W))
     ru, rv, ruu, ruv, rvv, su, sv, snu, snv, sstr, x0, x1, x2 = bufs[:13]
-    index_map = _BUFFERS.index_map
     # separable: three row passes (value, 1st, 2nd derivative along u) on the image
     # as given (8-bit input is filtered fastest), then five column passes
     border = cv2.BORDER_REPLICATE
     src = img
     R = (w0.size - 1) // 2
-    regions = _active_regions(src, mc, R)
+    regions = _active_regions(src, sc.mc, R)
     if regions is None:                   # stripes everywhere: the whole image at once
         regions = [(0, 0, W, H)]
     else:
@@ -1010,7 +1002,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
             cv2.filter2D(sub, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
         for x, k, out in ((vx1, w0, vru), (vx0, w1, vrv), (vx2, w0, vruu), (vx1, w1, vruv), (vx0, w2, vrvv)):
             cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
-        K.ridge_points(vru, vrv, vruu, vruv, vrvv, lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
+        K.ridge_points(vru, vrv, vruu, vruv, vrvv, sc.lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
         # a region's inner edges (not the image's): the replicated border there is not the image
         m = R + 1
         if a0 > 0:
@@ -1021,30 +1013,32 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
             vsstr[:, -m:] = 0.0
         if b1 < H:
             vsstr[-m:] = 0.0
-    if mask is not None:
-        sstr[~mask] = 0.0
-    # the replicated border biases the derivatives: no points within 2 sigma of it
-    b = int(math.ceil(2.0 * sigma)) if border_px is None else int(border_px)
-    if b > 0:
-        sstr[:b] = 0.0
-        sstr[-b:] = 0.0
-        sstr[:, :b] = 0.0
-        sstr[:, -b:] = 0.0
+    return _RidgeMaps(su, sv, snu, snv, sstr), regions
 
-    sat = (image.ndim == 3 and channel in ("red", "green", "blue")) if saturated_centre is None \
-        else bool(saturated_centre)
-    core_map = None
-    if sat:
-        if image.ndim != 3 or channel not in ("red", "green", "blue"):
-            raise LightplaneError("saturated_centre needs a colour (H, W, 3) image and channel red, green or blue")
-        core_map = _stripe_cores(image, img, channel, sstr, su, sv, snu, snv, hi, w, resp,
-                                 0.5 if min_chroma is None else float(min_chroma))
 
-    meta = {"low": lo, "high": hi, "width_px": w}
-    empty = StripePoints(np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0),
-                         np.empty(0, np.int64), float(sigma), meta)
-    # connected sets of points, region by region (regions are disjoint)
-    pix_l, lab_l, n_lab = [], [], 0
+def _saturated_cores(image, img, options: StripePointsOptions, maps: _RidgeMaps, sc: _StripeScales):
+    """:func:`_stripe_cores` when ``saturated_centre`` is on (by default: a colour image and
+    channel red, green or blue), else None."""
+    channel = options.channel
+    sat = (image.ndim == 3 and channel in ("red", "green", "blue")) if options.saturated_centre is None \
+        else bool(options.saturated_centre)
+    if not sat:
+        return None
+    if image.ndim != 3 or channel not in ("red", "green", "blue"):
+        raise LightplaneError("saturated_centre needs a colour (H, W, 3) image and channel red, green or blue")
+    return _stripe_cores(image, img, channel, maps, sc.hi, sc.w, sc.resp,
+                         0.5 if options.min_chroma is None else float(options.min_chroma))
+
+
+def _hysteresis(sstr: np.ndarray, regions: list, hi: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Flat indices and strengths of the ridge points in 8-connected sets (region by region:
+    regions are disjoint) one of whose points reaches ``hi``; None when there are none."""
+    import cv2
+
+    W = sstr.shape[1]
+    pix_l: list[np.ndarray] = []
+    lab_l: list[np.ndarray] = []
+    n_lab = 0
     for (a0, b0, a1, b1) in regions:
         on = (sstr[b0:b1, a0:a1] > 0).view(np.uint8)
         n_r, labels = cv2.connectedComponents(on, connectivity=8, ltype=cv2.CV_32S)
@@ -1055,7 +1049,7 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
             lab_l.append(labels.ravel()[loc] + n_lab)
         n_lab += n_r
     if not pix_l:
-        return empty
+        return None
     pix = np.concatenate(pix_l)
     lab = np.concatenate(lab_l)
     st = sstr.ravel()[pix]
@@ -1064,20 +1058,29 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
     keep = maxs[lab] >= hi
     pix, st = pix[keep], st[keep]
     if pix.size == 0:
-        return empty
+        return None
+    return pix, st
+
+
+def _linked_points(gray, pix, st, maps: _RidgeMaps, core_map, sc: _StripeScales):
+    """The points ``pix`` linked into ordered curves, their normals (saturated cores': from their
+    neighbours), widths and backgrounds; also which are cores and the cores' run lengths."""
+    H, W = gray.shape
+    index_map = _BUFFERS.index_map
     pv, pu = np.divmod(pix, W)
     N = pix.size
     index_map.ravel()[pix] = np.arange(N)
     order = np.empty(N, np.int64)
     curve = np.empty(N, np.int64)
-    K.link_points(index_map, pu, pv, su, sv, order, curve, 2.9)
+    K.link_points(index_map, pu, pv, maps.su, maps.sv, order, curve, 2.9)
     index_map.ravel()[pix] = -1          # leave the shared buffer all -1 again
-    uv = np.column_stack([su.ravel()[pix], sv.ravel()[pix]]).astype(np.float64)[order]
-    nrm = np.column_stack([snu.ravel()[pix], snv.ravel()[pix]]).astype(np.float64)[order]
+    uv = np.column_stack([maps.su.ravel()[pix], maps.sv.ravel()[pix]]).astype(np.float64)[order]
+    nrm = np.column_stack([maps.snu.ravel()[pix], maps.snv.ravel()[pix]]).astype(np.float64)[order]
     st = st[order].astype(np.float64)
     cid = curve[order]
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     is_core = np.zeros(uv.shape[0], bool)
+    core_len = None
     if core_map is not None:
         core_len = core_map.ravel()[pix][order]
         is_core = np.isfinite(core_len)
@@ -1085,57 +1088,59 @@ def extract_stripe(image: np.ndarray, width_px: float | None = None, mask: np.nd
             nrm = _core_normals(uv, nrm, cid, is_core)
     width = np.empty(uv.shape[0])
     bg = np.empty((uv.shape[0], 3))
-    K.normal_profiles(gray, uv, nrm, 1.5 * w + 3.0 + 2.0 * sigma, 0.5, width, bg)
+    K.normal_profiles(gray, uv, nrm, 1.5 * sc.w + 3.0 + 2.0 * sc.sigma, 0.5, width, bg)
+    return _CurvePoints(uv, nrm, st, width, bg, cid), is_core, core_len
+
+
+def _stripe_curves(image, gray, pts: _CurvePoints, is_core, core_len, sc: _StripeScales,
+                   options: StripePointsOptions) -> _CurvePoints | None:
+    """The stripe points of ``pts`` (contrast, width, colour), their curves split where points were
+    dropped, curves shorter than ``min_length`` and overshadowed ones left out; None when none is left."""
+    H, W = gray.shape
+    w = sc.w
+    uv, nrm, width, bg = pts.uv, pts.nrm, pts.width, pts.bg
     # a stripe point: contrast above min_contrast, width near the stripe's (thin
     # residual edges of a background subtraction and broad glow are not stripes)
     contrast = bg[:, 2] - 0.5 * (bg[:, 0] + bg[:, 1])
-    keep = (contrast >= mc) & (width >= 0.4 * w) & (width <= 2.5 * w + 2.0)
+    keep = (contrast >= sc.mc) & (width >= 0.4 * w) & (width <= 2.5 * w + 2.0)
     if is_core.any():
         # a saturated core: its extent across the stripe is its width; the channel's profile dips there
         width[is_core] = core_len[is_core] * np.max(np.abs(nrm[is_core]), axis=1)
         keep |= is_core
-    if min_chroma is not None:
+    if options.min_chroma is not None:
         steps = np.arange(-int(math.ceil(w)), int(math.ceil(w)) + 1)
         cols = np.clip(np.round(uv[:, :1] + steps[None, :] * nrm[:, :1]).astype(np.int64), 0, W - 1)
         rows = np.clip(np.round(uv[:, 1:] + steps[None, :] * nrm[:, 1:]).astype(np.int64), 0, H - 1)
         if image.ndim != 3:
             raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
-        keep &= (_chroma(image, rows, cols) >= float(min_chroma)) | is_core
+        keep &= (_chroma(image, rows, cols) >= float(options.min_chroma)) | is_core
     idx = np.flatnonzero(keep)
     if idx.size == 0:
-        return empty
+        return None
     brk = np.ones(idx.size, bool)
-    brk[1:] = (np.diff(idx) != 1) | (np.diff(cid[idx]) != 0)      # split curves at dropped points
-    cid = np.cumsum(brk) - 1
-    uv, nrm, st, width, bg = uv[idx], nrm[idx], st[idx], width[idx], bg[idx]
-    counts = np.bincount(cid)
-    good = counts[cid] >= int(min_length)
+    brk[1:] = (np.diff(idx) != 1) | (np.diff(pts.cid[idx]) != 0)      # split curves at dropped points
+    pts = pts.take(idx, renumber=False)
+    pts = _CurvePoints(pts.uv, pts.nrm, pts.st, pts.width, pts.bg, np.cumsum(brk) - 1)
+    counts = np.bincount(pts.cid)
+    good = counts[pts.cid] >= int(options.min_length)
     if not good.any():
-        return empty
-    uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
-    _, cid = np.unique(cid, return_inverse=True)
-    if suppress_weaker is not None and float(suppress_weaker) > 0 and cid.size:
-        good = _drop_overshadowed(uv, nrm, st, cid, (H, W), _SHADOW_REACH_WIDTHS * w, 1.5 * w + 2.0,
-                                  1.0 / float(suppress_weaker))
+        return None
+    pts = pts.take(good)
+    sw = options.suppress_weaker
+    if sw is not None and float(sw) > 0 and pts.cid.size:
+        good = _drop_overshadowed(pts.uv, pts.nrm, pts.st, pts.cid, (H, W), _SHADOW_REACH_WIDTHS * w, 1.5 * w + 2.0,
+                                  1.0 / float(sw))
         if not good.all():
-            uv, nrm, st, width, bg, cid = uv[good], nrm[good], st[good], width[good], bg[good], cid[good]
-            _, cid = np.unique(cid, return_inverse=True)
-            if cid.size == 0:
-                return empty
-    if correct_asymmetry:
-        uv = _correct_asymmetry(gray.astype(np.float32), uv, nrm, width, bg, sigma)
-    if sal > 0:
-        uv = _smooth_along(uv, nrm, cid, sal)
-    if correct_curvature:
-        uv = _correct_curvature(uv, nrm, cid, sigma)
-    return StripePoints(uv=uv, normals=nrm, strength=st, width=width, curve_id=cid.astype(np.int64),
-                        sigma_px=float(sigma), meta=meta)
+            pts = pts.take(good)
+            if pts.cid.size == 0:
+                return None
+    return pts
 
 
 CURVATURE_SIGMA2_EXTRA = 1.0 / 12.0
 
 
-def _stripe_cores(image, img, channel, sstr, su, sv, snu, snv, hi, w, resp, min_chroma):
+def _stripe_cores(image, img, channel, maps: _RidgeMaps, hi, w, resp, min_chroma):
     """Put the centres of saturated (whitish) stripe cores into the ridge-point maps.
 
     Guarded so that only a laser's saturated core qualifies (:func:`K.saturated_core_runs`):
@@ -1150,6 +1155,7 @@ def _stripe_cores(image, img, channel, sstr, su, sv, snu, snv, hi, w, resp, min_
     """
     import cv2
 
+    sstr, su, sv, snu, snv = maps.sstr, maps.su, maps.sv, maps.snu, maps.snv
     strong = sstr >= hi
     if not strong.any():
         return None

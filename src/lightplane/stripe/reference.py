@@ -1,7 +1,7 @@
 """Pure-numpy implementation of the profile kernels in :mod:`lightplane.stripe.kernels`.
 
 Same algorithm, same clamped borders, same tie-breaking; vectorised over lines.
-Used by ``extract_profile(..., backend="numpy")`` and to check the numba kernels.
+Used by ``extract_profile`` with ``StripeOptions(backend="numpy")`` and to check the numba kernels.
 """
 
 from __future__ import annotations
@@ -132,54 +132,32 @@ def _ridge_normal_np(ruu, ruv, rvv):
     return lam, np.where(flip, -nu, nu), np.where(flip, -nv, nv)
 
 
-def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos):
+def centres_numpy(A, pos, w0, w1, w2, params):
+    """Vectorised :func:`_stripe_kernels.profile_centres`: the centre of each line of ``A`` near
+    its peak ``pos`` (-1: none), with the scales and limits of ``params`` (``xw``, ``qpeak``,
+    ``half``, ``min_peak``, ``max_width``, ``min_cos``)."""
+    xw, qpeak, half = params["xw"], params["qpeak"], params["half"]
+    min_peak, max_width, min_cos = params["min_peak"], params["max_width"], params["min_cos"]
     S, L = A.shape
     R = (w0.size - 1) // 2
-    ln = np.arange(L)
     has = pos >= 0
     p = np.where(has, pos, 0)
     # 1. midpoint of the half-level crossings around the highest sample
-    ii = np.arange(-R, R + 1)
     fw, best, bg, left, right = fwhm_numpy(A, p, half)
     with np.errstate(invalid="ignore"):
         cm = np.floor(0.5 * (left + right) + 0.5)
         use = np.isfinite(fw) & (np.abs(cm - p) <= qpeak)
     c = np.where(use, cm, p).astype(np.int64)
     edge = (c - 1 - R < 0) | (c + 1 + R > S - 1)
-    # 2. derivatives at c-1, c, c+1 from the local patch P[l, j, m, i]
+    # 2. derivatives at c-1, c, c+1 from the local patch
     RX = (xw.shape[2] - 1) // 2
-    jj = np.arange(-RX, RX + 1)
-    lines = np.clip(ln[:, None] + jj[None, :], 0, L - 1)                     # (L, 2RX+1)
+    ln = np.arange(L)
     re = np.minimum(np.minimum(ln, L - 1 - ln), RX)
-    x0, x1, x2 = xw[re, 0], xw[re, 1], xw[re, 2]                               # (L, 2RX+1) each
-    rows = c[:, None, None] + np.arange(-1, 2)[None, :, None] + ii[None, None, :]  # (L, 3, 2R+1)
-    P = A[np.clip(rows, 0, S - 1)[:, None, :, :], lines[:, :, None, None]].astype(np.float64)
-    b0 = P @ w0
-    b1 = P @ w1
-    b2 = P @ w2                                                               # (L, 2RX+1, 3)
-    rs = np.einsum("lj,ljm->lm", x0, b1)
-    rss = np.einsum("lj,ljm->lm", x0, b2)
-    rl = np.einsum("lj,ljm->lm", x1, b0)
-    rll = np.einsum("lj,ljm->lm", x2, b0)
-    rls = np.einsum("lj,ljm->lm", x1, b1)
-    intensity = np.einsum("lj,lj->l", x0, b0[:, :, 1])
+    rs, rss, rl, rll, rls, intensity = _patch_derivatives(A, c, w0, w1, w2, xw, re)
     lam, nl, ns = _ridge_normal_np(rll[:, 1], rls[:, 1], rss[:, 1])
     # 3. zero crossing
-    g = nl[:, None] * rl + ns[:, None] * rs
-    d = nl[:, None] * rls + ns[:, None] * rss
-    g0, g1, g2 = g.T
-    d0, d1, d2 = d.T
-    lo_ok = ((g0 > 0.0) != (g1 > 0.0)) | (g0 == 0.0)
-    hi_ok = ((g1 > 0.0) != (g2 > 0.0)) | (g2 == 0.0)
-    t_lo = _hermite_root_np(g0, d0, g1, d1)
-    t_hi = _hermite_root_np(g1, d1, g2, d2)
-    cc_lo = c - 1 + t_lo
-    cc_hi = c + t_hi
-    cc = np.where(lo_ok & hi_ok, np.where((1.0 - t_lo) < t_hi, cc_lo, cc_hi), np.where(lo_ok, cc_lo, cc_hi))
-    cc = np.where(g1 == 0.0, c.astype(float), cc)
-    crossing = (g1 == 0.0) | lo_ok | hi_ok
+    cc, crossing = _zero_crossing(c, nl[:, None] * rl + ns[:, None] * rs, nl[:, None] * rls + ns[:, None] * rss)
     width = fw * ns
-    too_wide = ~np.isfinite(fw) | (width > max_width)
     # clipped (flat) tops where Steger's ridge test fails: midpoint of the smoothed
     # half-level crossings (as in _stripe_kernels._line_finish)
     steger_fail = (lam >= 0.0) | (np.abs(ns) < min_cos) | ~crossing
@@ -206,14 +184,56 @@ def centres_numpy(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_
     normal = np.column_stack([nl, ns])
     strength = -lam
     # mirror what the numba kernel leaves in lines it gives up on
-    early = (status == K.NO_PEAK) & has
     nopeak = ~has
     width = np.where(ok | (status == K.TOO_WIDE), width, np.nan)
     for arr in (intensity, strength):
         arr[nopeak | edge] = np.nan
     normal[nopeak | edge] = np.nan
-    del early
     return centre, normal, strength, intensity, width, status
+
+
+def _patch_derivatives(A, c, w0, w1, w2, xw, re):
+    """Derivatives ``r_s, r_ss, r_l, r_ll, r_ls`` (L, 3) at samples ``c - 1, c, c + 1`` of each line
+    (``s`` along, ``l`` across the lines) and the smoothed value at ``c`` (L,), from the patch
+    ``P[l, j, m, i]`` around each centre (``re``: each line's kernel set across the lines)."""
+    S, L = A.shape
+    R = (w0.size - 1) // 2
+    RX = (xw.shape[2] - 1) // 2
+    ln = np.arange(L)
+    ii = np.arange(-R, R + 1)
+    jj = np.arange(-RX, RX + 1)
+    lines = np.clip(ln[:, None] + jj[None, :], 0, L - 1)                     # (L, 2RX+1)
+    x0, x1, x2 = xw[re, 0], xw[re, 1], xw[re, 2]                               # (L, 2RX+1) each
+    rows = c[:, None, None] + np.arange(-1, 2)[None, :, None] + ii[None, None, :]  # (L, 3, 2R+1)
+    P = A[np.clip(rows, 0, S - 1)[:, None, :, :], lines[:, :, None, None]].astype(np.float64)
+    b0 = P @ w0
+    b1 = P @ w1
+    b2 = P @ w2                                                               # (L, 2RX+1, 3)
+    rs = np.einsum("lj,ljm->lm", x0, b1)
+    rss = np.einsum("lj,ljm->lm", x0, b2)
+    rl = np.einsum("lj,ljm->lm", x1, b0)
+    rll = np.einsum("lj,ljm->lm", x2, b0)
+    rls = np.einsum("lj,ljm->lm", x1, b1)
+    intensity = np.einsum("lj,lj->l", x0, b0[:, :, 1])
+    return rs, rss, rl, rll, rls, intensity
+
+
+def _zero_crossing(c, g, d):
+    """The zero of ``g`` (L, 3) at samples ``c - 1, c, c + 1`` (slopes ``d``) next to ``c``:
+    the cubic Hermite root in the bracketing cell (the nearer one when both bracket), and
+    whether there is one."""
+    g0, g1, g2 = g.T
+    d0, d1, d2 = d.T
+    lo_ok = ((g0 > 0.0) != (g1 > 0.0)) | (g0 == 0.0)
+    hi_ok = ((g1 > 0.0) != (g2 > 0.0)) | (g2 == 0.0)
+    t_lo = _hermite_root_np(g0, d0, g1, d1)
+    t_hi = _hermite_root_np(g1, d1, g2, d2)
+    cc_lo = c - 1 + t_lo
+    cc_hi = c + t_hi
+    cc = np.where(lo_ok & hi_ok, np.where((1.0 - t_lo) < t_hi, cc_lo, cc_hi), np.where(lo_ok, cc_lo, cc_hi))
+    cc = np.where(g1 == 0.0, c.astype(float), cc)
+    crossing = (g1 == 0.0) | lo_ok | hi_ok
+    return cc, crossing
 
 
 def flat_numpy(A, p, fw, best, bg, half):
@@ -249,5 +269,4 @@ def flat_centre_numpy(A, lines, p, c, xw, re, qpeak, half):
 def profile_numpy(A, w0, w1, w2, params):
     p1, v1, p2, v2 = candidates_numpy(A, params["sep"])
     pos = choose_numpy(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
-    return centres_numpy(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
-                         params["max_width"], params["min_cos"])
+    return centres_numpy(A, pos, w0, w1, w2, params)
