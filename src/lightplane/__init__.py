@@ -26,9 +26,11 @@ from lightplane.plane.circle_pose import CirclePose, circle_poses
 from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, EllipseRefinementOptions, detect_ellipses,
                                 refine_ellipse, select_target)
 from lightplane.stripe.extract import StripePoints, StripeProfile, extract_profile, extract_stripe
+from lightplane.stripe.options import StripeOptions, StripePointsOptions
 from lightplane.plane.calibrate import calibrate_plane
 from lightplane.evaluate.crossratio import DistanceErrors, distance_errors
 from lightplane.plane.uncertainty import point_sigma_mm
+from lightplane.measure.options import CloudOutput, MeasureOptions
 from lightplane.measure.profile import Profile, ProfileMeasurer, measure_profile
 from lightplane.measure.pointcloud import read_cloud, write_cloud
 from lightplane.measure.scan import Motion, measure_scan
@@ -52,13 +54,17 @@ __all__ = [
     "EllipseRefinementOptions",
     "LightPlane",
     "LightplaneError",
+    "CloudOutput",
+    "MeasureOptions",
     "Motion",
     "Profile",
     "ProfileMeasurer",
     "PlaneCalibration",
     "SolverOptions",
     "MLOptions",
+    "StripeOptions",
     "StripePoints",
+    "StripePointsOptions",
     "StripeProfile",
     "__version__",
     "calibrate_plane",
