@@ -67,7 +67,7 @@ def main(argv: list[str]) -> int:
     from distributed import Client
 
     from lightplane import Camera, LightPlane
-    from lightplane.measure.batch import local_cluster, measure_batch, read_points
+    from lightplane.measure.batch import BatchOptions, local_cluster, measure_batch, read_points
     from lightplane.measure.scan import Motion, measure_scan, open_frames
 
     root = Path(os.environ.get("LIGHTPLANE_BENCH_CACHE", tempfile.gettempdir())) / "lightplane_bench_batch"
@@ -96,7 +96,7 @@ def main(argv: list[str]) -> int:
     def batch_once(n: int, k: int) -> float:
         out = work / f"b{n}-{k}"
         t = time.perf_counter()
-        r = measure_batch(manifest, out, client=clients[n], chunk_frames=a.chunk_frames)
+        r = measure_batch(manifest, out, batch=BatchOptions(chunk_frames=a.chunk_frames), client=clients[n])
         dt = time.perf_counter() - t
         assert not r.failed, r.failed
         return dt

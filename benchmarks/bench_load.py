@@ -114,11 +114,13 @@ def main() -> None:
     from bench_stripe import frame, roi_frame
 
     from lightplane.core import threads
-    from lightplane.plane.calibrate import calibrate_plane
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane
     from lightplane.plane.model import LightPlane
     from lightplane.measure.scan import ArrayFrames, measure_scan
     from lightplane.simulate.render import render_circle_dataset
+    from lightplane.measure.options import CloudOutput
     from lightplane.stripe.extract import estimate_width, extract_profile, extract_profiles
+    from lightplane.stripe.options import StripeOptions
 
     rng = np.random.default_rng(0)
     img = frame(rng)
@@ -134,21 +136,21 @@ def main() -> None:
 
     def measure(workers=None):
         t0 = time.perf_counter()
-        measure_scan(ArrayFrames(scan), ds.camera, plane, out_ply, force=True, workers=workers)
+        measure_scan(ArrayFrames(scan), ds.camera, plane, out_ply, workers=workers, output=CloudOutput(force=True))
         return (time.perf_counter() - t0) / len(scan)
 
     def calibrate(workers=None):
         t0 = time.perf_counter()
-        calibrate_plane(circ.images, circ.camera, 50.0, workers=workers)
+        calibrate_plane(circ.images, circ.camera, 50.0, options=PlaneCalibrationOptions(workers=workers))
         return time.perf_counter() - t0
 
     def roi_rate():
         t0 = time.perf_counter()
-        extract_profiles(roi, width_px=w_img)
+        extract_profiles(roi, options=StripeOptions(width_px=w_img))
         return roi.shape[0] / (time.perf_counter() - t0)
 
     extract_profile(img)  # compile / load the kernels, start numba's threads
-    extract_profiles(roi[:4], width_px=w_img)
+    extract_profiles(roi[:4], options=StripeOptions(width_px=w_img))
     print(threads.describe())
     print(f"profile frame 1280x960, stripe width {w_img:.2f} px; measure: {len(scan)} frames 1280x960 "
           f"(8 distinct sphere renders); calibrate-plane: 12 images 1280x960; ROI batch: 1000 x 1280x64")
@@ -162,14 +164,15 @@ def main() -> None:
             r = {}
             if k == 0:   # idle serial references, same run
                 ref["profile, width estimated"] = samples(lambda: extract_profile(img, parallel=False), args.repeat)
-                ref["profile, width given"] = samples(lambda: extract_profile(img, width_px=w_img, parallel=False),
-                                                      args.repeat)
+                ref["profile, width given"] = samples(
+                    lambda: extract_profile(img, options=StripeOptions(width_px=w_img), parallel=False), args.repeat)
                 ref["measure, per frame"] = np.array([measure(workers=1) for _ in range(args.runs)])
                 ref["calibrate-plane, 12 images"] = np.array([calibrate(workers=1) for _ in range(args.runs)])
             par = []
             r["profile, width estimated"] = samples(lambda: (par.append(threads.profile_parallel(1280, 960)),
                                                              extract_profile(img)), args.repeat)
-            r["profile, width given"] = samples(lambda: extract_profile(img, width_px=w_img), args.repeat)
+            r["profile, width given"] = samples(lambda: extract_profile(img, options=StripeOptions(width_px=w_img)),
+                                                args.repeat)
             r["measure, per frame"] = np.array([measure() for _ in range(args.runs)])
             r["calibrate-plane, 12 images"] = np.array([calibrate() for _ in range(args.runs)])
             r["roi"] = np.array([roi_rate() for _ in range(max(3, args.runs))])

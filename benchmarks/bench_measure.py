@@ -140,12 +140,13 @@ def calibrated_plane():
     return cal.plane
 
 
-def scan(kind: str, plane, ds, **options):
+def scan(kind: str, plane, ds, options=None):
+    from lightplane.measure.options import MeasureOptions
     from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 
     mo = ds.truth["motion"]
-    rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, plane, motion=Motion.linear(mo["step_mm"], mo["direction"]),
-                            workers=1, **options)
+    rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, plane, options or MeasureOptions(),
+                            motion=Motion.linear(mo["step_mm"], mo["direction"]), workers=1)
     # the static table (z = 600 mm in the camera frame) is not the object: drop it by its camera-frame depth
     zc = xyz(rec) + np.array(mo["direction"])[None, :] * mo["step_mm"] * rec["frame"][:, None].astype(float)
     obj = zc[:, 2] < 560.0
@@ -153,6 +154,8 @@ def scan(kind: str, plane, ds, **options):
 
 
 def accuracy() -> None:
+    from lightplane.measure.options import MeasureOptions
+
     planes = {}
     try:
         planes["calibrated"] = calibrated_plane()
@@ -165,11 +168,16 @@ def accuracy() -> None:
           "~0.23 mm of depth per px here), printed for information ==")
     accuracy_scans("realistic", planes)
     print("== the realistic scans with the centres smoothed along the stripe (measure --smooth 9; info) ==")
-    accuracy_scans("realistic", planes, smooth_lines=9)
+    accuracy_scans("realistic", planes, MeasureOptions(smooth_lines=9))
 
 
-def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
+def accuracy_scans(difficulty: str, planes: dict, options=None) -> None:
+    from dataclasses import replace
+
+    from lightplane.measure.options import MeasureOptions
     from lightplane.plane.model import LightPlane
+
+    options = options or MeasureOptions()
     from lightplane.simulate.render import render_scan_dataset
 
     planes = dict(planes)
@@ -186,9 +194,9 @@ def accuracy_scans(difficulty: str, planes: dict, **options) -> None:
         for label in ("calibrated", "true"):
             if label not in planes:
                 continue
-            p, summ = scan(kind, planes[label] if label == "calibrated" else tp, ds, **options)
+            p, summ = scan(kind, planes[label] if label == "calibrated" else tp, ds, options)
             if label == "true":  # what the per-point stripe-width filter (ProfileMeasurer's default) drops
-                p_all, _ = scan(kind, tp, ds, **{**options, "min_width_ratio": 0.0, "max_width_ratio": np.inf})
+                p_all, _ = scan(kind, tp, ds, replace(options, min_width_ratio=0.0, max_width_ratio=np.inf))
                 print(f"  {kind:6s} width filter dropped {len(p_all) - len(p)} of {len(p_all)} object points "
                       f"({100 * (len(p_all) - len(p)) / max(len(p_all), 1):.1f} %)", end="")
                 if kind == "sphere":
@@ -252,7 +260,9 @@ def speed_frames(n_distinct: int = 8):
 def speed(n_frames: int = 1200, repeats: int = 3) -> None:
     from lightplane.plane.model import LightPlane
     from lightplane.measure.scan import ArrayFrames, FrameProcessor, Motion, iter_scan
+    from lightplane.measure.options import MeasureOptions
     from lightplane.stripe.extract import estimate_width
+    from lightplane.stripe.options import StripeOptions
 
     print("== speed (1280x960 uint8 frames from memory; profile + triangulation + placement) ==")
     ds = speed_frames()
@@ -260,7 +270,8 @@ def speed(n_frames: int = 1200, repeats: int = 3) -> None:
     width = estimate_width(ds.images[0], axis="rows")
     frames = [ds.images[i % len(ds.images)] for i in range(n_frames)]
     t = time.perf_counter()
-    proc = FrameProcessor(ds.camera, plane, Motion.linear(0.1, [1, 0, 0]), width_px=width)
+    proc = FrameProcessor(ds.camera, plane, Motion.linear(0.1, [1, 0, 0]),
+                          MeasureOptions(StripeOptions(width_px=width)))
     proc.measurer.build_lookup()
     print(f"lookup tables: {time.perf_counter() - t:.2f} s (once per scan)")
     for workers in (1, 2):
@@ -291,7 +302,9 @@ def profile_speed(repeats: int = 15) -> None:
     from lightplane.measure.profile import clear_profile_cache, measure_profile
     from lightplane.plane.triangulate import profile_axis
     from lightplane.plane.model import LightPlane
+    from lightplane.measure.options import MeasureOptions
     from lightplane.stripe.extract import estimate_width, extract_profile
+    from lightplane.stripe.options import StripeOptions
 
     ds = speed_frames()
     cam, plane = ds.camera, LightPlane.from_dict(ds.truth["plane"])
@@ -310,7 +323,8 @@ def profile_speed(repeats: int = 15) -> None:
         "measure_profile cache=False": lambda im: measure_profile(im, cam, plane, cache=False),
         "extract_profile": lambda im: extract_profile(im, axis),
         "estimate_width": lambda im: estimate_width(im, axis=axis),
-        "measure_profile width_px, 1 thread": lambda im: measure_profile(im, cam, plane, width_px=width, parallel=False),
+        "measure_profile width_px, 1 thread": lambda im: measure_profile(
+            im, cam, plane, MeasureOptions(StripeOptions(width_px=width), parallel=False)),
     }
     for f in runs.values():
         f(frames[0])

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from lightplane.stripe.extract import extract_profile, extract_profiles, extract_stripe
+from lightplane.stripe.options import StripeOptions, StripePointsOptions
 from results import at_most, figure, record
 
 #: the rows recorded in benchmarks/results (row name -> figure id)
@@ -79,39 +80,41 @@ def main() -> None:
     from lightplane.core.threads import describe
 
     threads = numba.get_num_threads()
-    extract_profile(img, width_px=5.0, parallel=True)   # the first parallel kernel fixes numba's threading layer
+    extract_profile(img, options=StripeOptions(width_px=5.0), parallel=True)   # the first parallel kernel fixes numba's threading layer
     print(f"cpus {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}; {describe()}")
     rows = []
     blur = timeit(lambda: cv2.GaussianBlur(img, (0, 0), 1.44), args.repeat)
     rows.append(("cv2.GaussianBlur 1280x960 (reference)", blur, None))
-    rows.append(("extract_profile numba 1280x960", timeit(lambda: extract_profile(img, width_px=5.0), args.repeat), 1.0))
+    rows.append(("extract_profile numba 1280x960", timeit(lambda: extract_profile(img,
+                                                                                  options=StripeOptions(width_px=5.0)), args.repeat), 1.0))
     rows.append(("extract_profile numba 1280x960, width estimated",
                  timeit(lambda: extract_profile(img), args.repeat), 1.0))
-    rows.append(("extract_profile numba 1280x128", timeit(lambda: extract_profile(band, width_px=5.0), args.repeat),
+    rows.append(("extract_profile numba 1280x128", timeit(lambda: extract_profile(band,
+                                                                                  options=StripeOptions(width_px=5.0)), args.repeat),
                  1000.0 / 3000.0))
     rows.append(("extract_profile numba 1280x960, parallel=False",
-                 timeit(lambda: extract_profile(img, width_px=5.0, parallel=False), args.repeat), 1.0))
+                 timeit(lambda: extract_profile(img, options=StripeOptions(width_px=5.0), parallel=False), args.repeat), 1.0))
     rows.append(("extract_profile numba 1280x128, parallel=False",
-                 timeit(lambda: extract_profile(band, width_px=5.0, parallel=False), args.repeat), 1000.0 / 3000.0))
+                 timeit(lambda: extract_profile(band, options=StripeOptions(width_px=5.0), parallel=False), args.repeat), 1000.0 / 3000.0))
     roi = np.stack([roi_frame(rng) for _ in range(20)] * 25)   # 500 x 1280x64
-    med, mn = timeit(lambda: extract_profiles(roi, width_px=5.0), max(5, args.repeat // 20))
+    med, mn = timeit(lambda: extract_profiles(roi, options=StripeOptions(width_px=5.0)), max(5, args.repeat // 20))
     rows.append(("extract_profiles, 500 x 1280x64 ROI, per frame", (med / 500, mn / 500), 0.1))
     stack = np.stack([frame(rng) for _ in range(8)])
-    med, mn = timeit(lambda: extract_profiles(stack, width_px=5.0), max(5, args.repeat // 10))
+    med, mn = timeit(lambda: extract_profiles(stack, options=StripeOptions(width_px=5.0)), max(5, args.repeat // 10))
     rows.append(("extract_profiles, batch of 8 1280x960, per frame", (med / 8, mn / 8), 1.0))
     rows.append(("extract_profile numpy 1280x960",
-                 timeit(lambda: extract_profile(img, width_px=5.0, backend="numpy"), max(5, args.repeat // 20)), None))
-    rows.append(("extract_stripe 1280x960", timeit(lambda: extract_stripe(img, 5.0), max(10, args.repeat // 5)), 8.0))
+                 timeit(lambda: extract_profile(img, options=StripeOptions(width_px=5.0, backend="numpy")), max(5, args.repeat // 20)), None))
+    rows.append(("extract_stripe 1280x960", timeit(lambda: extract_stripe(img, StripePointsOptions(width_px=5.0)), max(10, args.repeat // 5)), 8.0))
     rows.append(("extract_stripe 1280x960, width estimated",
                  timeit(lambda: extract_stripe(img), max(10, args.repeat // 5)), 8.0))
     try:  # the same with one numba thread: robust when the machine is shared
         numba.set_num_threads(1)
         rows.append(("extract_profile numba 1280x960, 1 thread",
-                     timeit(lambda: extract_profile(img, width_px=5.0), args.repeat), 1.0))
+                     timeit(lambda: extract_profile(img, options=StripeOptions(width_px=5.0)), args.repeat), 1.0))
         rows.append(("extract_profile numba 1280x128, 1 thread",
-                     timeit(lambda: extract_profile(band, width_px=5.0), args.repeat), 1000.0 / 3000.0))
+                     timeit(lambda: extract_profile(band, options=StripeOptions(width_px=5.0)), args.repeat), 1000.0 / 3000.0))
         rows.append(("extract_stripe 1280x960, 1 numba thread",
-                     timeit(lambda: extract_stripe(img, 5.0), max(10, args.repeat // 5)), 8.0))
+                     timeit(lambda: extract_stripe(img, StripePointsOptions(width_px=5.0)), max(10, args.repeat // 5)), 8.0))
         numba.set_num_threads(threads)
     except Exception:  # pragma: no cover
         pass

@@ -25,6 +25,7 @@ import numpy as np
 from lightplane.simulate.render import render_circle_dataset
 from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
 from lightplane.stripe.extract import extract_profile, extract_stripe, sigma_for_width
+from lightplane.stripe.options import StripeOptions, StripePointsOptions
 from results import at_most, figure, record
 
 BAR_REALISTIC_PX = 0.1
@@ -52,10 +53,12 @@ def main() -> None:
                 sig = sigma_for_width(width)
                 runs = {
                     ("extract_stripe", "defaults"): lambda: extract_stripe(img).uv,
-                    ("extract_stripe", "sigma 1.5x"): lambda: extract_stripe(img, width, sigma_px=1.5 * sig).uv,
+                    ("extract_stripe", "sigma 1.5x"): lambda: extract_stripe(img,
+                                                                             StripePointsOptions(width_px=width, sigma_px=1.5 * sig)).uv,
                     ("extract_profile", "Steger minimum"): lambda: extract_profile(img, axis=axis, roi=roi).points,
-                    ("extract_profile", "sigma_along 2x"): lambda: extract_profile(
-                        img, axis=axis, roi=roi, width_px=width, sigma_along_px=2 * sig).points,
+                    ("extract_profile", "sigma_along 2x"): lambda: extract_profile(img, axis,
+                                                                                   StripeOptions(width_px=width, sigma_along_px=2 * sig),
+                                                                                   roi=roi).points,
                 }
                 for key, fn in runs.items():
                     e, gross = stripe_chord_errors(ds.camera, tg, fn(), width)

@@ -15,6 +15,8 @@ import pytest
 from lightplane import Camera, LightplaneError
 from lightplane.simulate.scene import (LENS_CAMERAS, default_plane, lens_camera, scheimpflug_camera,
                                           scheimpflug_focal_plane)
+from lightplane.measure.options import MeasureOptions
+from lightplane.stripe.options import StripeOptions
 
 
 def dense_grid(cam: Camera, nu: int = 161, nv: int = 121) -> np.ndarray:
@@ -293,7 +295,7 @@ def test_measurement_lookup_tables_with_every_model(model):
                                                 rng.integers(0, cam.height, 3000)])),
                      ("columns", np.column_stack([rng.integers(0, cam.width, 3000),
                                                    rng.uniform(-0.49, cam.height - 0.51, 3000)]))):
-        m = ProfileMeasurer(cam, plane, axis=axis, width_px=3.5)
+        m = ProfileMeasurer(cam, plane, MeasureOptions(StripeOptions(width_px=3.5), axis=axis))
         got, exact = m.normalized(uv.astype(float)), cam.undistort_points(uv.astype(float), normalized=True)
         assert m.has_lookup
         # in pixels of the undistorted image: through the Jacobian of K

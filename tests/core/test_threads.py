@@ -23,6 +23,8 @@ from lightplane.core import threads  # noqa: E402
 from lightplane.measure.profile import ProfileMeasurer  # noqa: E402
 from lightplane.measure.scan import ArrayFrames, FrameProcessor, iter_scan, scan_points  # noqa: E402
 from lightplane.stripe.extract import extract_profile, extract_profiles  # noqa: E402
+from lightplane.measure.options import MeasureOptions  # noqa: E402
+from lightplane.stripe.options import StripeOptions  # noqa: E402
 
 FIELDS = ("uv", "valid", "intensity", "strength", "width", "normals", "status", "lines")
 
@@ -56,15 +58,15 @@ def test_batched_profiles_identical_to_per_frame(axis):
     stack = roi_stack()
     if axis == "rows":
         stack = np.ascontiguousarray(stack.transpose(0, 2, 1))
-    batch = extract_profiles(stack, axis, width_px=5.0)
+    batch = extract_profiles(stack, axis, StripeOptions(width_px=5.0))
     assert len(batch) == len(stack)
     assert sum(p.valid.sum() for p in batch) > 0.5 * 8 * 300   # the stripe frames are found
     for f, img in enumerate(stack):
-        assert_same(batch[f], extract_profile(img, axis, width_px=5.0))
+        assert_same(batch[f], extract_profile(img, axis, StripeOptions(width_px=5.0)))
     # the width estimated on the first frame is the width of all
     est = extract_profiles(stack, axis)
     for f in (0, 5, 11):
-        assert_same(est[f], extract_profile(stack[f], axis, width_px=est[0].width_px))
+        assert_same(est[f], extract_profile(stack[f], axis, StripeOptions(width_px=est[0].width_px)))
 
 
 def test_batched_profiles_identical_other_types_roi_and_options():
@@ -75,17 +77,20 @@ def test_batched_profiles_identical_other_types_roi_and_options():
     f32 = u8.astype(np.float32) / 255.0
     roi = (20, 4, 250, 40)
     for stack in (u16, f32):
-        batch = extract_profiles(stack, width_px=5.0, roi=roi, continuity=False, sigma_along_px=3.0)
+        batch = extract_profiles(stack, options=StripeOptions(width_px=5.0, continuity=False, sigma_along_px=3.0),
+                                 roi=roi)
         for f, img in enumerate(stack):
-            assert_same(batch[f], extract_profile(img, width_px=5.0, roi=roi, continuity=False, sigma_along_px=3.0))
+            assert_same(batch[f], extract_profile(img,
+                                                  options=StripeOptions(width_px=5.0, continuity=False, sigma_along_px=3.0),
+                                                  roi=roi))
     # a list of colour frames with a channel goes frame by frame through the same conversions
     bgr = [cv2.merge([img // 4, img // 3, img]) for img in u8]
-    batch = extract_profiles(bgr, width_px=5.0, channel="red")
+    batch = extract_profiles(bgr, options=StripeOptions(width_px=5.0, channel="red"))
     for f, img in enumerate(bgr):
-        assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red"))
-    batch = extract_profiles(bgr, width_px=5.0, channel="red", min_chroma=0.3)
+        assert_same(batch[f], extract_profile(img, options=StripeOptions(width_px=5.0, channel="red")))
+    batch = extract_profiles(bgr, options=StripeOptions(width_px=5.0, channel="red", min_chroma=0.3))
     for f, img in enumerate(bgr):
-        assert_same(batch[f], extract_profile(img, width_px=5.0, channel="red", min_chroma=0.3))
+        assert_same(batch[f], extract_profile(img, options=StripeOptions(width_px=5.0, channel="red", min_chroma=0.3)))
 
 
 def test_batch_memory_reused_only_when_nothing_holds_it():
@@ -100,9 +105,9 @@ def test_batch_memory_reused_only_when_nothing_holds_it():
     def ptr(batch):
         return batch[0].intensity.__array_interface__["data"][0]
 
-    a = extract_profiles(stack, width_px=5.0)
+    a = extract_profiles(stack, options=StripeOptions(width_px=5.0))
     kept = [(p.uv.copy(), p.normals.copy(), p.status.copy()) for p in a]
-    b = extract_profiles(other, width_px=5.0)      # a is alive: new memory
+    b = extract_profiles(other, options=StripeOptions(width_px=5.0))      # a is alive: new memory
     assert not np.shares_memory(a[0].uv, b[0].uv)
     for p, (uv, nrm, st) in zip(a, kept):
         assert np.array_equal(p.uv, uv, equal_nan=True) and np.array_equal(p.normals, nrm, equal_nan=True)
@@ -110,17 +115,17 @@ def test_batch_memory_reused_only_when_nothing_holds_it():
     pb = ptr(b)
     one_view = b[3].width
     del b
-    c = extract_profiles(other, width_px=5.0)      # a view of b alive: still new memory
+    c = extract_profiles(other, options=StripeOptions(width_px=5.0))      # a view of b alive: still new memory
     assert ptr(c) != pb and not np.shares_memory(c[0].uv, one_view)
     pc = ptr(c)
     del c
-    d = extract_profiles(stack, width_px=5.0)      # nothing of c alive: its block again, right numbers
+    d = extract_profiles(stack, options=StripeOptions(width_px=5.0))      # nothing of c alive: its block again, right numbers
     assert ptr(d) == pc
     for p, (uv, nrm, st) in zip(d, kept):
         assert np.array_equal(p.uv, uv, equal_nan=True) and np.array_equal(p.status, st)
     del d
     release_batch_memory()
-    e = extract_profiles(stack, width_px=5.0)
+    e = extract_profiles(stack, options=StripeOptions(width_px=5.0))
     assert len(e) == len(stack)
 
 
@@ -138,12 +143,12 @@ def test_serial_and_parallel_kernels_give_the_same_numbers():
     stack = roi_stack(n=8, H=600, W=600)
     for img in stack[:3]:
         for w in (None, 5.0):
-            a = extract_profile(img, width_px=w, parallel=False)
-            assert_same(a, extract_profile(img, width_px=w, parallel=True))
-            assert_same(a, extract_profile(img, width_px=w))
+            a = extract_profile(img, options=StripeOptions(width_px=w), parallel=False)
+            assert_same(a, extract_profile(img, options=StripeOptions(width_px=w), parallel=True))
+            assert_same(a, extract_profile(img, options=StripeOptions(width_px=w)))
     small = roi_stack(n=6)
-    a = extract_profiles(small, width_px=5.0, parallel=False)
-    b = extract_profiles(small, width_px=5.0, parallel=True)
+    a = extract_profiles(small, options=StripeOptions(width_px=5.0), parallel=False)
+    b = extract_profiles(small, options=StripeOptions(width_px=5.0), parallel=True)
     for x, y in zip(a, b):
         assert_same(x, y)
 
@@ -161,7 +166,7 @@ def test_serial_profile_launches_no_parallel_kernel(monkeypatch):
     assert_same(ref, extract_profile(img, parallel=False))
     with threads.serial_kernels():
         assert_same(ref, extract_profile(img))
-        extract_profiles(roi_stack(n=3), width_px=5.0)
+        extract_profiles(roi_stack(n=3), options=StripeOptions(width_px=5.0))
 
 
 def test_threading_configuration_is_applied():
@@ -218,7 +223,7 @@ def test_import_changes_no_process_setting_and_blas_is_held_only_inside_lightpla
 def test_scan_worker_threads_run_serial_kernels():
     n_s, d_s = surface()
     frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0] for k in range(6)]
-    proc = FrameProcessor(CAM, PLANE, width_px=3.5)
+    proc = FrameProcessor(CAM, PLANE, None, MeasureOptions(StripeOptions(width_px=3.5)))
     seen = []
     run_batch = proc.run_batch
 
@@ -243,7 +248,7 @@ def test_measure_batches_a_short_roi_with_the_same_records():
     x0 = int(np.floor(u.min())) - 12
     roi = (x0, 0, int(np.ceil(u.max())) + 12 - x0, CAM.height)   # a short band across the stripe (axis rows)
     frames = [im for im, _ in imgs]
-    m = ProfileMeasurer(CAM, PLANE, roi=roi, width_px=3.5)
+    m = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5), roi=roi))
     assert m.axis == "rows" and m.batches
     many = m.measure_many(frames)
     for f, img in enumerate(frames):
@@ -252,12 +257,13 @@ def test_measure_batches_a_short_roi_with_the_same_records():
         assert np.array_equal(many[f].valid, one.valid)
         assert np.array_equal(many[f].sigma_mm, one.sigma_mm, equal_nan=True)
     assert sum(p.valid.sum() for p in many) > 5 * 300
-    whole = ProfileMeasurer(CAM, PLANE, width_px=3.5)
-    assert not whole.batches and not ProfileMeasurer(CAM, PLANE, roi=roi).batches   # no width: frame by frame
+    whole = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
+    assert not whole.batches and not ProfileMeasurer(CAM, PLANE, MeasureOptions(roi=roi)).batches   # no width: frame by frame
     # the scan uses it (one process, and worker threads) with the records of frame-by-frame processing
-    ref = np.concatenate([FrameProcessor(CAM, PLANE, roi=roi, width_px=3.5).process(i, f) for i, f in enumerate(frames)])
+    ref = np.concatenate([FrameProcessor(CAM, PLANE, None, MeasureOptions(StripeOptions(width_px=3.5), roi=roi)).process(i, f) for i, f in enumerate(frames)])
     for workers in (1, 2):
-        rec, _ = scan_points(ArrayFrames(frames), CAM, PLANE, roi=roi, width_px=3.5, workers=workers, executor="thread")
+        rec, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5), roi=roi),
+                             workers=workers, executor="thread")
         assert np.array_equal(rec.view(np.uint8), ref.view(np.uint8))
 
 

@@ -23,6 +23,7 @@ from lightplane.measure.batch import measure_batch, read_manifest, read_points  
 from lightplane.core.errors import LightplaneError  # noqa: E402
 from lightplane.measure.scan import Motion, measure_scan, open_frames  # noqa: E402
 from lightplane.simulate.render import render_scan_dataset  # noqa: E402
+from lightplane.measure.batch import BatchOptions  # noqa: E402
 
 N_FRAMES = 5
 STEP = 1.5
@@ -88,7 +89,7 @@ def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp
     reference = {**reference, "s4": reference["s2"]}
     for chunk in (2, 5):
         out = tmp_path / f"c{chunk}"
-        r = measure_batch(manifest, out, client=client, chunk_frames=chunk)
+        r = measure_batch(manifest, out, batch=BatchOptions(chunk_frames=chunk), client=client)
         assert not r.failed, r.failed
         n_parts = -(-N_FRAMES // chunk)
         for sid in ("s1", "s2", "s3", "s4"):
@@ -110,18 +111,18 @@ def test_identical_to_measure_whatever_the_chunking(data, client, reference, tmp
 
 def test_resume_rewrites_only_the_missing_partition(data, client, reference, tmp_path):
     out = tmp_path / "out"
-    measure_batch(data / "manifest.csv", out, client=client, chunk_frames=2)
+    measure_batch(data / "manifest.csv", out, batch=BatchOptions(chunk_frames=2), client=client)
     folder = out / "points" / "scan=s1"
     (folder / "part-1.parquet").unlink()
     before = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
-    r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=2)
+    r = measure_batch(data / "manifest.csv", out, batch=BatchOptions(chunk_frames=2), client=client)
     assert r.partitions_written == 1 and r.partitions_reused == 6
     after = {p: p.stat().st_mtime_ns for p in out.glob("points/*/part-*.parquet")}
     assert set(after) == set(before) | {folder / "part-1.parquet"}
     assert all(after[p] == t for p, t in before.items())  # the others were not touched
     assert same(read_points(out, "s1"), reference["s1"]) and same(read_points(out, "s2"), reference["s2"])
     # another chunking: nothing stale is kept
-    r = measure_batch(data / "manifest.csv", out, client=client, chunk_frames=3)
+    r = measure_batch(data / "manifest.csv", out, batch=BatchOptions(chunk_frames=3), client=client)
     assert r.partitions_written == 4 and r.partitions_reused == 1  # the video's one partition is still valid
     assert same(read_points(out, "s1"), reference["s1"])
     assert sorted(p.name for p in folder.iterdir()) == ["part-0.parquet", "part-1.parquet"]
@@ -210,7 +211,7 @@ def test_worker_killed_mid_run_loses_and_duplicates_nothing(data, client, refere
     stale.write_bytes(b"PAR1 half a file")
     client.register_plugin(plugin, name=plugin.name)
     try:
-        r = measure_batch(data / "manifest.csv", tmp_path / "out", client=client, chunk_frames=1)
+        r = measure_batch(data / "manifest.csv", tmp_path / "out", batch=BatchOptions(chunk_frames=1), client=client)
     finally:
         client.unregister_worker_plugin(plugin.name)
     assert (tmp_path / "killed").is_file(), "no worker was killed"

@@ -15,6 +15,8 @@ from lightplane import LightPlane, LightplaneError  # noqa: E402
 from lightplane.measure.profile import ProfileMeasurer, measure_profile
 from lightplane.plane.triangulate import points_sigma_mm, profile_axis  # noqa: E402
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points  # noqa: E402
+from lightplane.measure.options import MeasureOptions  # noqa: E402
+from lightplane.stripe.options import StripeOptions  # noqa: E402
 
 # stripe centres of a noise-free Gaussian stripe are good to ~0.01 px (stripe module's spec: 0.015 px);
 # rows within END_ROWS of the stripe's ends are biased by the abrupt end and excluded
@@ -32,7 +34,7 @@ def interior(valid: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def measurer() -> ProfileMeasurer:
-    return ProfileMeasurer(CAM, PLANE, width_px=3.5)
+    return ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
 
 
 def test_lookup_matches_exact_undistortion(measurer):
@@ -44,7 +46,7 @@ def test_lookup_matches_exact_undistortion(measurer):
     assert measurer.axis == "rows" and measurer.has_lookup
     assert err_px.max() < 1e-6
     # columns axis with a roi: same requirement
-    m = ProfileMeasurer(CAM, PLANE, axis="columns", roi=(40, 30, 500, 400))
+    m = ProfileMeasurer(CAM, PLANE, MeasureOptions(axis="columns", roi=(40, 30, 500, 400)))
     uvc = np.column_stack([rng.integers(40, 540, 4000), rng.uniform(30, 429, 4000)])
     assert np.max(np.abs(m.normalized(uvc) - CAM.undistort_points(uvc, normalized=True))) * CAM.fx < 1e-6
     # off the grid lines or NaN: exact undistortion / NaN, never a wrong table value
@@ -84,8 +86,8 @@ def test_lookup_kernel_equals_the_numpy_expressions(axis, roi):
     bit: on and off the grid lines, outside the roi, NaN, the last sample; and from tables built all at
     once the same numbers (a block's values do not depend on which blocks were built with it)."""
     rng = np.random.default_rng(5)
-    lazy = ProfileMeasurer(CAM, PLANE, axis=axis, roi=roi)
-    full = ProfileMeasurer(CAM, PLANE, axis=axis, roi=roi)
+    lazy = ProfileMeasurer(CAM, PLANE, MeasureOptions(axis=axis, roi=roi))
+    full = ProfileMeasurer(CAM, PLANE, MeasureOptions(axis=axis, roi=roi))
     full.build_lookup()
     x0, y0, w, h = lazy.roi
     nl, ns = (w, h) if axis == "columns" else (h, w)
@@ -111,7 +113,7 @@ def test_profile_axis_follows_the_plane():
 def test_measure_profile_points_on_surface_and_plane(measurer):
     n_s, d_s = surface()
     img, u_true = stripe_image(n_s, d_s)
-    prof = measure_profile(img, CAM, PLANE, width_px=3.5)
+    prof = measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     assert prof.axis == "rows" and len(prof) == CAM.height
     assert np.array_equal(prof.valid, np.isfinite(u_true))  # every stripe row, nothing else
     keep = interior(prof.valid)
@@ -145,7 +147,7 @@ def test_sigma_from_plane_covariance_matches_uncertainty_module():
     assert np.allclose(got, ref, rtol=1e-9, equal_nan=True)
     n_s, d_s = surface()
     img, _ = stripe_image(n_s, d_s)
-    prof = ProfileMeasurer(CAM, pl, width_px=3.5)(img)
+    prof = ProfileMeasurer(CAM, pl, MeasureOptions(StripeOptions(width_px=3.5)))(img)
     v = prof.valid
     assert np.allclose(prof.sigma_mm[v], point_sigma_mm(CAM, pl, prof.uv[v]), rtol=1e-6)
     assert np.all(prof.sigma_mm[v] > 0)
@@ -155,9 +157,9 @@ def test_bad_input_is_refused(measurer):
     with pytest.raises(LightplaneError, match="calibrated for 640x480"):
         measurer(np.zeros((240, 320), np.uint8))
     with pytest.raises(LightplaneError, match="axis"):
-        ProfileMeasurer(CAM, PLANE, axis="diagonal")
+        ProfileMeasurer(CAM, PLANE, MeasureOptions(axis="diagonal"))
     with pytest.raises(LightplaneError, match="roi"):
-        ProfileMeasurer(CAM, PLANE, roi=(600, 0, 100, 100))
+        ProfileMeasurer(CAM, PLANE, MeasureOptions(roi=(600, 0, 100, 100)))
     with pytest.raises(LightplaneError, match="camera"):
         measure_profile(np.zeros((480, 640)), "cam.json", PLANE)
 
@@ -166,9 +168,10 @@ def test_scan_places_frames_by_the_motion():
     n_s, d_s = surface()
     img, _ = stripe_image(n_s, d_s)
     frames = [img] * 4
-    base, _ = scan_points(ArrayFrames(frames[:1]), CAM, PLANE, width_px=3.5)
+    base, _ = scan_points(ArrayFrames(frames[:1]), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     step, direction = 0.75, np.array([1.0, 0.0, 0.2])
-    rec, summ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(step, direction), width_px=3.5)
+    rec, summ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                            motion=Motion.linear(step, direction))
     assert summ.n_frames == 4 and summ.n_points == 4 * base.size and not summ.skipped
     unit = direction / np.linalg.norm(direction)
     p0 = np.column_stack([base["x"], base["y"], base["z"]]).astype(float)
@@ -179,7 +182,8 @@ def test_scan_places_frames_by_the_motion():
         assert np.array_equal(r["v"], base["v"])
     # positions: only differences to the first row matter
     pos = np.array([[5.0, 1.0, 0.0], [5.0, 1.0, 0.0], [7.0, 1.0, 0.0], [5.0, 4.0, 0.0]])
-    rec2, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.from_positions(pos), width_px=3.5)
+    rec2, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                          motion=Motion.from_positions(pos))
     for i in range(4):
         r = rec2[rec2["frame"] == i]
         p = np.column_stack([r["x"], r["y"], r["z"]]).astype(float)
@@ -189,11 +193,12 @@ def test_scan_places_frames_by_the_motion():
 def test_scan_in_worker_processes_or_threads_gives_the_same_records():
     n_s, d_s = surface()
     frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0] for k in range(6)]
-    one, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(1.0, [1, 0, 0]), width_px=3.5)
-    two, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(1.0, [1, 0, 0]), width_px=3.5,
-                         workers=2)
-    threads, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.linear(1.0, [1, 0, 0]), width_px=3.5,
-                             workers=2, executor="thread")
+    one, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                         motion=Motion.linear(1.0, [1, 0, 0]))
+    two, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                         motion=Motion.linear(1.0, [1, 0, 0]), workers=2)
+    threads, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                             motion=Motion.linear(1.0, [1, 0, 0]), workers=2, executor="thread")
     assert one.size > 6 * 300
     assert np.array_equal(one.view(np.uint8), two.view(np.uint8))
     assert np.array_equal(one.view(np.uint8), threads.view(np.uint8))
@@ -224,8 +229,8 @@ def test_smoothing_along_the_profile_averages_noise_without_bias():
     rng = np.random.default_rng(11)
     noisy = clean + rng.normal(0, 3.0, clean.shape).astype(np.float32)  # independent centre noise per row
     rows = interior(np.isfinite(u_true))
-    raw = ProfileMeasurer(CAM, PLANE, width_px=3.5, lookup=False)
-    smooth = ProfileMeasurer(CAM, PLANE, width_px=3.5, lookup=False, smooth_lines=15)
+    raw = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)), lookup=False)
+    smooth = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5), smooth_lines=15), lookup=False)
 
     def rms_to_surface(prof):
         assert prof.valid[rows].all()
@@ -242,7 +247,7 @@ def test_smoothing_along_the_profile_averages_noise_without_bias():
     keep[idx[:15]] = keep[idx[-15:]] = False
     assert np.max(np.abs(a.points[keep] - b.points[keep])) < 2e-3
     with pytest.raises(LightplaneError, match="smooth_lines"):
-        ProfileMeasurer(CAM, PLANE, smooth_lines=4)
+        ProfileMeasurer(CAM, PLANE, MeasureOptions(smooth_lines=4))
 
 
 def test_wrong_size_frame_mid_scan_stops_worker_processes_cleanly():
@@ -250,7 +255,8 @@ def test_wrong_size_frame_mid_scan_stops_worker_processes_cleanly():
     img, _ = stripe_image(n_s, d_s)
     frames = [img] * 3 + [img[:240, :320]] + [img] * 3
     with pytest.raises(LightplaneError, match="calibrated for 640x480"):
-        scan_points(ArrayFrames(frames), CAM, PLANE, width_px=3.5, workers=2, executor="process")
+        scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)), workers=2,
+                    executor="process")
 
 
 def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
@@ -265,12 +271,13 @@ def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
     u = np.arange(CAM.width, dtype=float)[None, :]
     img = 10.0 + np.where(on[:, None], 200.0 * np.exp(-0.5 * ((u - u_c[:, None]) / sigma[:, None]) ** 2), 0.0)
     img = img.astype(np.float32)
-    off = ProfileMeasurer(CAM, PLANE, width_px=3.5, min_width_ratio=0.0, max_width_ratio=np.inf)(img)
+    off = ProfileMeasurer(CAM, PLANE,
+                          MeasureOptions(StripeOptions(width_px=3.5), min_width_ratio=0.0, max_width_ratio=np.inf))(img)
     assert not off.width_rejected.any()
     # lines 2 rows away from a width change: the smoothing scale blurs the boundary
     core = lambda m: m & ~np.convolve(~m & on, np.ones(7), "same").astype(bool)  # noqa: E731
     assert off.valid[core(narrow) | core(wide)].all()  # the extractor itself keeps them
-    prof = ProfileMeasurer(CAM, PLANE, width_px=3.5)(img)
+    prof = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))(img)
     assert prof.width_rejected[core(narrow)].all() and prof.width_rejected[core(wide)].all()
     assert not prof.valid[prof.width_rejected].any() and np.isnan(prof.points[prof.width_rejected]).all()
     # elsewhere (uniform width) nothing is dropped and the points are untouched
@@ -279,19 +286,20 @@ def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
     assert np.array_equal(prof.points[rest], off.points[rest], equal_nan=True)
     assert prof.n_valid == off.n_valid - int(prof.width_rejected.sum())
     # measure_profile filters the same way
-    assert np.array_equal(measure_profile(img, CAM, PLANE, width_px=3.5).width_rejected, prof.width_rejected)
+    assert np.array_equal(measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5))).width_rejected, prof.width_rejected)
 
 
 def test_width_filter_needs_enough_lines_and_valid_ratios():
     n_s, d_s = surface()
     img, u_c = stripe_image(n_s, d_s)
     img[np.flatnonzero(np.isfinite(u_c))[15:]] = 10.0  # keep only 15 stripe rows: too few for a median
-    m = ProfileMeasurer(CAM, PLANE, width_px=3.5, min_width_ratio=0.99, max_width_ratio=1.01)
+    m = ProfileMeasurer(CAM, PLANE,
+                        MeasureOptions(StripeOptions(width_px=3.5), min_width_ratio=0.99, max_width_ratio=1.01))
     prof = m(img)
     assert 0 < prof.n_valid < 20 and not prof.width_rejected.any()
     for lo, hi in ((-0.1, 2.0), (1.0, 2.0), (0.5, 1.0), (0.5, np.nan)):
         with pytest.raises(LightplaneError, match="width_ratio"):
-            ProfileMeasurer(CAM, PLANE, min_width_ratio=lo, max_width_ratio=hi)
+            ProfileMeasurer(CAM, PLANE, MeasureOptions(min_width_ratio=lo, max_width_ratio=hi))
 
 
 def test_profile_kernels_match_numpy():

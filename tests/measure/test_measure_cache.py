@@ -14,6 +14,8 @@ from _measure_synth import CAM, PLANE, stripe_image, surface  # noqa: E402
 from lightplane import Camera, LightPlane, LightplaneError  # noqa: E402
 from lightplane.measure import profile as M  # noqa: E402
 from lightplane.measure.profile import ProfileMeasurer, clear_profile_cache, measure_profile, profile_cache_info  # noqa: E402
+from lightplane.measure.options import MeasureOptions  # noqa: E402
+from lightplane.stripe.options import StripeOptions  # noqa: E402
 
 
 def same(a, b) -> bool:
@@ -48,46 +50,47 @@ def plane_with_cov(plane: LightPlane) -> LightPlane:
 def test_cached_equals_uncached_bit_for_bit(frames):
     pl = plane_with_cov(PLANE)
     for img in frames:
-        fresh = ProfileMeasurer(CAM, pl, width_px=3.5)(img)
-        assert same(measure_profile(img, CAM, pl, width_px=3.5), fresh)
+        fresh = ProfileMeasurer(CAM, pl, MeasureOptions(StripeOptions(width_px=3.5)))(img)
+        assert same(measure_profile(img, CAM, pl, MeasureOptions(StripeOptions(width_px=3.5))), fresh)
         # cache=False: exact undistortion instead of the tables, the same points to far below 1e-6 mm
-        exact = measure_profile(img, CAM, pl, width_px=3.5, cache=False)
+        exact = measure_profile(img, CAM, pl, MeasureOptions(StripeOptions(width_px=3.5)), cache=False)
         assert np.array_equal(exact.valid, fresh.valid) and np.array_equal(exact.uv, fresh.uv, equal_nan=True)
         assert np.nanmax(np.abs(exact.points - fresh.points)) < 1e-6
     assert profile_cache_info()["size"] == 1
     # a fully built table gives the same numbers as the lazily filled one
-    full = ProfileMeasurer(CAM, pl, width_px=3.5)
+    full = ProfileMeasurer(CAM, pl, MeasureOptions(StripeOptions(width_px=3.5)))
     full.build_lookup()
     assert full.lookup_complete
     for img in frames:
-        assert same(full(img), measure_profile(img, CAM, pl, width_px=3.5))
+        assert same(full(img), measure_profile(img, CAM, pl, MeasureOptions(StripeOptions(width_px=3.5))))
 
 
 def test_repeated_calls_do_not_rebuild(frames):
-    measure_profile(frames[0], CAM, PLANE, width_px=3.5)
+    measure_profile(frames[0], CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     info = profile_cache_info()
     assert (info["misses"], info["hits"], info["size"]) == (1, 0, 1)
     m = next(iter(M._profile_cache.values()))
     built = m.blocks_built
     assert 0 < built < m._built.size  # only the blocks the stripe needs
     for _ in range(3):
-        measure_profile(frames[0], CAM, PLANE, width_px=3.5)
+        measure_profile(frames[0], CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     assert m.blocks_built == built  # same frame: nothing built again
     assert profile_cache_info()["hits"] == 3
     # an equal camera and plane built anew (by value, not identity) hit the same entry
-    measure_profile(frames[0], copy_camera(CAM), LightPlane(PLANE.normal, PLANE.d), width_px=3.5)
+    measure_profile(frames[0], copy_camera(CAM), LightPlane(PLANE.normal, PLANE.d),
+                    MeasureOptions(StripeOptions(width_px=3.5)))
     assert profile_cache_info()["misses"] == 1 and m.blocks_built == built
 
 
 def test_changed_camera_plane_shape_or_options_miss(frames):
     img = frames[0]
-    base = measure_profile(img, CAM, PLANE, width_px=3.5)
+    base = measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     # another distortion: other tables, other points
     cam2 = copy_camera(CAM, dist=np.array(CAM.dist) * 1.05)
-    p2 = measure_profile(img, cam2, PLANE, width_px=3.5)
+    p2 = measure_profile(img, cam2, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     assert profile_cache_info()["misses"] == 2
     assert not np.array_equal(p2.points, base.points, equal_nan=True)
-    assert same(p2, ProfileMeasurer(cam2, PLANE, width_px=3.5)(img))
+    assert same(p2, ProfileMeasurer(cam2, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))(img))
     tabs = [m._xy for m in M._profile_cache.values()]
     assert tabs[0] is not tabs[1]
     blocks = M._profile_cache[next(iter(M._profile_cache))]._built
@@ -95,44 +98,48 @@ def test_changed_camera_plane_shape_or_options_miss(frames):
                               tabs[1][blocks.repeat(32, 0).repeat(64, 1)[: tabs[1].shape[0], : tabs[1].shape[1]]])
     # another focal length
     cam3 = copy_camera(CAM, K=np.array(CAM.K) * [[1.01], [1.01], [1]])
-    assert not np.array_equal(measure_profile(img, cam3, PLANE, width_px=3.5).points, base.points, equal_nan=True)
+    assert not np.array_equal(measure_profile(img, cam3, PLANE, MeasureOptions(StripeOptions(width_px=3.5))).points, base.points, equal_nan=True)
     # another plane (offset, then normal): other points, never the stale entry
     pl2 = LightPlane(PLANE.normal, PLANE.d * 1.01)
-    q = measure_profile(img, CAM, pl2, width_px=3.5)
-    assert same(q, ProfileMeasurer(CAM, pl2, width_px=3.5)(img))
+    q = measure_profile(img, CAM, pl2, MeasureOptions(StripeOptions(width_px=3.5)))
+    assert same(q, ProfileMeasurer(CAM, pl2, MeasureOptions(StripeOptions(width_px=3.5)))(img))
     assert not np.array_equal(q.points, base.points, equal_nan=True)
     n3 = PLANE.normal + [0.0, 0.01, 0.0]
     pl3 = LightPlane(n3, PLANE.d)
-    assert same(measure_profile(img, CAM, pl3, width_px=3.5), ProfileMeasurer(CAM, pl3, width_px=3.5)(img))
+    assert same(measure_profile(img, CAM, pl3, MeasureOptions(StripeOptions(width_px=3.5))), ProfileMeasurer(CAM, pl3,
+                                                                              MeasureOptions(StripeOptions(width_px=3.5)))(img))
     # a covariance added: sigma appears
-    s = measure_profile(img, CAM, plane_with_cov(PLANE), width_px=3.5)
+    s = measure_profile(img, CAM, plane_with_cov(PLANE), MeasureOptions(StripeOptions(width_px=3.5)))
     assert np.all(np.isnan(base.sigma_mm)) and np.isfinite(s.sigma_mm[s.valid]).all()
     # other options, roi, axis: other entries
-    r = measure_profile(img, CAM, PLANE, width_px=3.5, roi=(0, 20, CAM.width, CAM.height - 40))
+    r = measure_profile(img, CAM, PLANE,
+                        MeasureOptions(StripeOptions(width_px=3.5), roi=(0, 20, CAM.width, CAM.height - 40)))
     assert len(r) == CAM.height - 40
-    assert same(r, ProfileMeasurer(CAM, PLANE, width_px=3.5, roi=(0, 20, CAM.width, CAM.height - 40))(img))
-    assert same(measure_profile(img, CAM, PLANE, width_px=4.0), ProfileMeasurer(CAM, PLANE, width_px=4.0)(img))
+    assert same(r, ProfileMeasurer(CAM, PLANE,
+                                   MeasureOptions(StripeOptions(width_px=3.5), roi=(0, 20, CAM.width, CAM.height - 40)))(img))
+    assert same(measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=4.0))), ProfileMeasurer(CAM, PLANE,
+                                                                                MeasureOptions(StripeOptions(width_px=4.0)))(img))
     # a colour image of the same size: another shape, another entry
     n = profile_cache_info()["misses"]
-    measure_profile(np.repeat(img[..., None], 3, axis=2), CAM, PLANE, width_px=3.5)
+    measure_profile(np.repeat(img[..., None], 3, axis=2), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     assert profile_cache_info()["misses"] == n + 1
     assert profile_cache_info()["size"] <= M.PROFILE_CACHE_SIZE  # least recently used dropped
 
 
 def test_bad_input_is_not_cached(frames):
     with pytest.raises(LightplaneError):
-        measure_profile(frames[0], CAM, PLANE, axis="diagonal")
+        measure_profile(frames[0], CAM, PLANE, MeasureOptions(axis="diagonal"))
     with pytest.raises(LightplaneError):
-        measure_profile(frames[0], CAM, PLANE, smooth_lines=4)
+        measure_profile(frames[0], CAM, PLANE, MeasureOptions(smooth_lines=4))
     with pytest.raises(LightplaneError):
-        measure_profile(frames[0][:-1], CAM, PLANE, width_px=3.5)  # wrong size for the camera
+        measure_profile(frames[0][:-1], CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))  # wrong size for the camera
     assert profile_cache_info()["size"] == 0
 
 
 def test_tables_not_pickled_and_rebuilt_lazily(frames):
     import pickle
 
-    m = ProfileMeasurer(CAM, PLANE, width_px=3.5)
+    m = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))
     a = m(frames[0])
     m2 = pickle.loads(pickle.dumps(m))
     assert not m2.has_lookup and m.has_lookup

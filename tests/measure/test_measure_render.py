@@ -12,18 +12,19 @@ import numpy as np
 import pytest
 
 from lightplane import LightPlane
+from lightplane.measure.options import MeasureOptions
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 from lightplane.simulate.render import render_scan_dataset
 
 
-def measured(kind: str, difficulty: str, n_frames: int, step_mm: float, options=({},)):
-    """Points (frame 0 coordinates) for each dict of scan options in ``options``, and the truth's surfaces."""
+def measured(kind: str, difficulty: str, n_frames: int, step_mm: float, options=(MeasureOptions(),)):
+    """Points (frame 0 coordinates) for each of the scan options ``options``, and the truth's surfaces."""
     ds = render_scan_dataset(kind, n_frames=n_frames, step_mm=step_mm, seed=3, difficulty=difficulty)
     mo = ds.truth["motion"]
     out = []
     for opts in options:
-        rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, LightPlane.from_dict(ds.truth["plane"]),
-                                motion=Motion.linear(mo["step_mm"], mo["direction"]), **opts)
+        rec, summ = scan_points(ArrayFrames(ds.images), ds.camera, LightPlane.from_dict(ds.truth["plane"]), opts,
+                                motion=Motion.linear(mo["step_mm"], mo["direction"]))
         out.append(np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(float))
         assert summ.n_frames == n_frames and not summ.skipped
     return (*out, ds.truth["frames"][0]["surfaces"])
@@ -73,7 +74,8 @@ def sphere_fit(q: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def test_sphere_clean_radius_and_residual():
-    p, p_all, surf = measured("sphere", "clean", 7, 4.0, ({}, {"min_width_ratio": 0.0, "max_width_ratio": np.inf}))
+    p, p_all, surf = measured("sphere", "clean", 7, 4.0,
+                              (MeasureOptions(), MeasureOptions(min_width_ratio=0.0, max_width_ratio=np.inf)))
     c_true = np.asarray(surf["sphere"]["center_mm"], float)
     on = np.abs(np.linalg.norm(p - c_true, axis=1) - 25.4) < 1.0
     on_all = np.abs(np.linalg.norm(p_all - c_true, axis=1) - 25.4) < 1.0

@@ -21,6 +21,8 @@ from lightplane.core.errors import LightplaneError  # noqa: E402
 from lightplane.motion.model import Motion, Turntable, load_rigid, rotation_about  # noqa: E402
 from lightplane.measure.pointcloud import read_cloud  # noqa: E402
 from lightplane.measure.scan import ArrayFrames, scan_points  # noqa: E402
+from lightplane.measure.options import MeasureOptions  # noqa: E402
+from lightplane.stripe.options import StripeOptions  # noqa: E402
 
 RNG = np.random.default_rng(5)
 PTS = RNG.uniform(-50, 50, (20, 3)) + [0, 0, 450]
@@ -96,9 +98,9 @@ def test_scan_points_with_poses_equals_the_linear_scan():
     frames = [stripe_image(n_s, d_s, shift_px=0.3 * k)[0].astype(np.float32) for k in range(3)]
     lin = Motion.linear(1.5, [1, 0, 0])
     offs = np.array([lin.offset(i) for i in range(3)])
-    a, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=lin, width_px=3.5)
-    b, _ = scan_points(ArrayFrames(frames), CAM, PLANE, motion=Motion.from_poses(np.repeat(np.eye(3)[None], 3, 0), -offs),
-                       width_px=3.5)
+    a, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)), motion=lin)
+    b, _ = scan_points(ArrayFrames(frames), CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)),
+                       motion=Motion.from_poses(np.repeat(np.eye(3)[None], 3, 0), -offs))
     assert a.size > 100 and np.array_equal(a.view(np.uint8), b.view(np.uint8))
 
 

@@ -10,6 +10,8 @@ to 8 bits.  Error of a centre = signed distance of the point to the true line.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.special import erf
@@ -25,6 +27,7 @@ from lightplane.stripe.extract import (
     extract_stripe,
     sigma_for_width,
 )
+from lightplane.stripe.options import StripeOptions, StripePointsOptions
 
 AMPLITUDE = 200.0
 NOISE = 2.0
@@ -106,7 +109,7 @@ def test_profile_accuracy_curved(width):
     rng = np.random.default_rng(7 + width)
     dist = circle(203.7, 390.4, 300.0)
     img = render((200, 400), dist, width, rng=rng)
-    prof = extract_profile(img, width_px=width)
+    prof = extract_profile(img, options=StripeOptions(width_px=width))
     assert prof.valid.mean() >= 0.99
     e = errors(dist, prof.points)
     assert np.sqrt(np.mean(e**2)) <= RMS_MAX
@@ -117,8 +120,8 @@ def test_profile_rows_axis_matches_columns_on_transposed_image():
     rng = np.random.default_rng(3)
     dist = straight(0.12, (150.2, 80.4))
     img = render((160, 300), dist, 5, rng=rng)
-    a = extract_profile(img, axis="columns", width_px=5)
-    b = extract_profile(np.ascontiguousarray(img.T), axis="rows", width_px=5)
+    a = extract_profile(img, "columns", StripeOptions(width_px=5))
+    b = extract_profile(np.ascontiguousarray(img.T), "rows", StripeOptions(width_px=5))
     np.testing.assert_allclose(a.uv, b.uv[:, ::-1], atol=1e-9, equal_nan=True)
     np.testing.assert_array_equal(a.valid, b.valid)
 
@@ -146,9 +149,9 @@ def _profile_zoo():
 @pytest.mark.parametrize("width_px", [None, 5.0])
 def test_profile_numba_and_numpy_agree(name, width_px):
     img = _profile_zoo()[name]
-    a = extract_profile(img, width_px=width_px, backend="numba")
-    b = extract_profile(img, width_px=width_px, backend="numpy")
-    c = extract_profile(img, width_px=width_px, backend="numba", parallel=False)
+    a = extract_profile(img, options=StripeOptions(width_px=width_px, backend="numba"))
+    b = extract_profile(img, options=StripeOptions(width_px=width_px, backend="numpy"))
+    c = extract_profile(img, options=StripeOptions(width_px=width_px, backend="numba"), parallel=False)
     np.testing.assert_array_equal(a.uv, c.uv)
     np.testing.assert_array_equal(a.status, c.status)
     np.testing.assert_array_equal(a.status, b.status)
@@ -168,8 +171,8 @@ def test_profile_band_of_steep_narrow_stripe(theta):
     half = int(np.ceil(1.5 * 2.5)) + 3
     p = np.argmax(img, axis=0)
     assert max(np.ptp(p[l:l + 32]) for l in range(5, 120, 32)) > 2 * half   # the case is exercised
-    a = extract_profile(img, width_px=2.5)
-    b = extract_profile(img, width_px=2.5, backend="numpy")
+    a = extract_profile(img, options=StripeOptions(width_px=2.5))
+    b = extract_profile(img, options=StripeOptions(width_px=2.5, backend="numpy"))
     np.testing.assert_array_equal(a.status, b.status)
     assert a.valid.mean() > 0.9
     np.testing.assert_allclose(a.uv, b.uv, rtol=1e-7, atol=1e-6, equal_nan=True)
@@ -205,10 +208,10 @@ def test_profile_reflection_rejected_by_continuity():
     refl[:, ~cols] *= 0.3
     img = np.clip(np.round(img + refl), 0, 255).astype(np.uint8)
     for backend in ("numba", "numpy"):
-        prof = extract_profile(img, width_px=5, backend=backend)
+        prof = extract_profile(img, options=StripeOptions(width_px=5, backend=backend))
         assert prof.valid[cols].all()
         assert np.abs(errors(d1, prof.uv[cols])).max() < 0.1
-        off = extract_profile(img, width_px=5, backend=backend, continuity=False)
+        off = extract_profile(img, options=StripeOptions(width_px=5, backend=backend, continuity=False))
         # without it the reflection wins there (or the column is flagged)
         assert np.all(~off.valid[cols] | (np.abs(errors(d1, off.uv[cols])) > 50))
 
@@ -220,13 +223,13 @@ def test_profile_roi_and_channel_and_16bit():
     bgr = np.zeros(gray.shape + (3,), np.uint8)
     bgr[:, :, 2] = gray
     bgr[:, :, 1] = 255 - gray          # the red channel must be the one used
-    a = extract_profile(gray, width_px=5)
-    b = extract_profile(bgr, width_px=5, channel="red")
+    a = extract_profile(gray, options=StripeOptions(width_px=5))
+    b = extract_profile(bgr, options=StripeOptions(width_px=5, channel="red"))
     np.testing.assert_array_equal(a.uv, b.uv)
-    c = extract_profile(gray.astype(np.uint16) * 257, width_px=5)
+    c = extract_profile(gray.astype(np.uint16) * 257, options=StripeOptions(width_px=5))
     np.testing.assert_allclose(a.uv, c.uv, atol=1e-9)
     roi = (40, 20, 200, 90)
-    r = extract_profile(gray, width_px=5, roi=roi)
+    r = extract_profile(gray, options=StripeOptions(width_px=5), roi=roi)
     assert len(r) == 200 and r.lines[0] == 40
     # away from the roi's ends (where the across-line kernels are truncated) the same numbers
     inner = r.valid.copy()
@@ -238,10 +241,10 @@ def test_profile_roi_and_channel_and_16bit():
 def test_profile_batch_equals_single_frames():
     zoo = _profile_zoo()
     frames = [zoo["clean"], zoo["curved"], zoo["two_stripes"], zoo["noise_only"]]
-    batch = extract_profiles(np.stack(frames), width_px=5.0)
+    batch = extract_profiles(np.stack(frames), options=StripeOptions(width_px=5.0))
     assert len(batch) == 4
     for img, b in zip(frames, batch):
-        a = extract_profile(img, width_px=5.0)
+        a = extract_profile(img, options=StripeOptions(width_px=5.0))
         np.testing.assert_array_equal(a.status, b.status)
         np.testing.assert_array_equal(a.uv, b.uv)
     # the width is estimated once, from the first frame, and shared
@@ -259,11 +262,11 @@ def test_profile_bad_input():
     with pytest.raises(LightplaneError, match="roi"):
         extract_profile(img, roi=(50, 0, 20, 10))
     with pytest.raises(LightplaneError, match="backend"):
-        extract_profile(img, backend="cuda")
+        extract_profile(img, options=StripeOptions(backend="cuda"))
     with pytest.raises(LightplaneError, match="width_px"):
-        extract_profile(img, width_px=-3)
+        extract_profile(img, options=StripeOptions(width_px=-3))
     with pytest.raises(LightplaneError, match="channel"):
-        extract_profile(img, channel="red")
+        extract_profile(img, options=StripeOptions(channel="red"))
     with pytest.raises(LightplaneError, match="shape"):
         extract_profile(np.zeros((4, 5, 6, 7)))
     with pytest.raises(LightplaneError, match="NaN"):
@@ -306,12 +309,12 @@ def test_stripe_accuracy_curved(width):
     rng = np.random.default_rng(300 + width)
     dist = circle(100.3, 80.2, 70.0)
     img = render((170, 210), dist, width, rng=rng)
-    sp = extract_stripe(img, width_px=width)
+    sp = extract_stripe(img, StripePointsOptions(width_px=width))
     assert sp.n_curves == 1
     e = errors(dist, sp.uv)
     assert np.sqrt(np.mean(e**2)) <= RMS_MAX
     assert abs(e.mean()) <= BIAS_MAX
-    raw = errors(dist, extract_stripe(img, width_px=width, correct_curvature=False).uv)
+    raw = errors(dist, extract_stripe(img, StripePointsOptions(width_px=width, correct_curvature=False)).uv)
     assert raw.mean() < -0.5 * sp.sigma_px**2 / (2 * 70.0)   # the correction did something
 
 
@@ -319,7 +322,7 @@ def test_stripe_full_circle_is_one_ordered_curve():
     rng = np.random.default_rng(4)
     dist = circle(100.2, 80.3, 50.0)
     img = render((160, 200), dist, 4, rng=rng)
-    sp = extract_stripe(img, width_px=4)
+    sp = extract_stripe(img, StripePointsOptions(width_px=4))
     assert sp.n_curves == 1
     step = np.linalg.norm(np.diff(sp.uv, axis=0), axis=1)
     assert np.all(step < 2.0)
@@ -334,14 +337,14 @@ def test_stripe_mask_and_degenerate():
     img = render((160, 200), dist, 5, rng=rng)
     mask = np.zeros(img.shape, bool)
     mask[:, 50:120] = True
-    sp = extract_stripe(img, 5, mask)
+    sp = extract_stripe(img, StripePointsOptions(width_px=5), mask)
     assert len(sp) > 50 and np.all((sp.uv[:, 0] > 49) & (sp.uv[:, 0] < 120.5))
     for frame in (np.zeros((80, 90), np.uint8), np.full((80, 90), 255, np.uint8),
                   np.clip(rng.normal(40, 2, (80, 90)), 0, 255).astype(np.uint8)):
         sp = extract_stripe(frame)
         assert len(sp) == 0 and sp.uv.shape == (0, 2)
     with pytest.raises(LightplaneError, match="mask"):
-        extract_stripe(img, 5, np.ones((3, 3), bool))
+        extract_stripe(img, StripePointsOptions(width_px=5), np.ones((3, 3), bool))
 
 
 def test_stripe_two_stripes_two_curves():
@@ -349,7 +352,7 @@ def test_stripe_two_stripes_two_curves():
     d1 = straight(0.1, (100.0, 50.0))
     d2 = straight(-0.2, (100.0, 110.0))
     img = np.maximum(render((160, 200), d1, 5, rng=rng), render((160, 200), d2, 5, rng=rng))
-    sp = extract_stripe(img, 5)
+    sp = extract_stripe(img, StripePointsOptions(width_px=5))
     assert sp.n_curves == 2
     for k in range(2):
         c = sp.curve(k)
@@ -406,8 +409,8 @@ def test_asymmetry_correction_reduces_bar_bias():
     a = 0.4
     img = np.clip(np.round(img + a * AMPLITUDE * step), 0, 255).astype(np.uint8)
     sigma = 3.0
-    raw = extract_stripe(img, width, sigma_px=sigma)
-    cor = extract_stripe(img, width, sigma_px=sigma, correct_asymmetry=True)
+    raw = extract_stripe(img, StripePointsOptions(width_px=width, sigma_px=sigma))
+    cor = extract_stripe(img, StripePointsOptions(width_px=width, sigma_px=sigma, correct_asymmetry=True))
     e_raw = errors(dist, raw.uv).mean()
     e_cor = errors(dist, cor.uv).mean()
     expected = -sigma**2 * np.log(1 - a) / (2 * width / 2)  # towards the brighter side (+v)
@@ -447,8 +450,9 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
         width = float(np.median(extract_stripe(img).width))
         if speckle_settings:
             sig = sigma_for_width(width)
-            found = {"stripe": extract_stripe(img, width, sigma_px=1.5 * sig).uv,
-                     "profile": extract_profile(img, axis=axis, roi=roi, width_px=width, sigma_along_px=2 * sig).points}
+            found = {"stripe": extract_stripe(img, StripePointsOptions(width_px=width, sigma_px=1.5 * sig)).uv,
+                     "profile": extract_profile(img, axis, StripeOptions(width_px=width, sigma_along_px=2 * sig),
+                                                roi=roi).points}
         else:
             found = {"stripe": extract_stripe(img).uv, "profile": extract_profile(img, axis=axis, roi=roi).points}
         for name, pts in found.items():
@@ -488,12 +492,12 @@ def test_profile_saturated_centre_midpoint_of_whitish_run(backend):
     bgr = np.zeros((H, W, 3), np.uint8)
     bgr[:, :, 2] = np.clip(np.round(red), 0, 255)
     bgr[core] = 110
-    kw = dict(width_px=5, channel="red", min_chroma=0.5, backend=backend)
-    plain = extract_profile(bgr, **kw)
+    opts = StripeOptions(width_px=5, channel="red", min_chroma=0.5, backend=backend)
+    plain = extract_profile(bgr, options=opts)
     cols = plain.lines
     in_hot = (cols >= 120) & (cols < 180)
     assert plain.valid[in_hot].mean() < 0.2                        # flagged / lost without it
-    sat = extract_profile(bgr, saturated_centre=True, **kw)
+    sat = extract_profile(bgr, options=replace(opts, saturated_centre=True))
     assert sat.valid[in_hot].mean() >= 0.95
     far = (cols < 120 - 15) | (cols >= 180 + 15)       # beyond the curvature correction's reach
     np.testing.assert_array_equal(sat.uv[far], plain.uv[far])          # elsewhere unchanged
@@ -501,5 +505,6 @@ def test_profile_saturated_centre_midpoint_of_whitish_run(backend):
     assert np.all(np.abs(e) <= 0.55)
     assert abs(e.mean()) < 0.1
     # grey images or no min_chroma: the option does nothing
-    np.testing.assert_array_equal(extract_profile(bgr[:, :, 2], width_px=5, saturated_centre=True).uv,
-                                  extract_profile(bgr[:, :, 2], width_px=5).uv)
+    np.testing.assert_array_equal(extract_profile(bgr[:, :, 2],
+                                                  options=StripeOptions(width_px=5, saturated_centre=True)).uv,
+                                  extract_profile(bgr[:, :, 2], options=StripeOptions(width_px=5)).uv)

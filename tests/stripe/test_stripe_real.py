@@ -23,6 +23,7 @@ red stripe's extent; within the 1 px inlier band).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -32,6 +33,7 @@ import pytest
 from lightplane.camera.model import Camera
 from lightplane.core.io import read_image
 from lightplane.stripe.extract import extract_profile, extract_stripe
+from lightplane.stripe.options import StripeOptions, StripePointsOptions
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "ciclop" / "laser_segmentation_in_pattern"
 FRAMES = ["laser-0-255-255-8", "laser-0-255-255-8-x"]
@@ -97,7 +99,7 @@ def test_profile_sum_channel_is_one_straight_line(frames, frame, k):
     diff = frames[frame]
     v0 = _stripe_rows(diff)[k]
     roi = (COLUMNS[0], v0 - 40, COLUMNS[1] - COLUMNS[0], 80)
-    prof = extract_profile(diff, roi=roi, channel="sum", sigma_px=2.0, sigma_along_px=5.0)
+    prof = extract_profile(diff, options=StripeOptions(channel="sum", sigma_px=2.0, sigma_along_px=5.0), roi=roi)
     r, inl = _line_fit(prof.points)
     coverage = prof.valid.mean()
     rms = np.sqrt(np.mean(r[inl] ** 2))
@@ -113,7 +115,8 @@ def test_profile_red_channel_glare_flagged_not_stray(frames, frame, k):
     diff = frames[frame]
     v0 = _stripe_rows(diff)[k]
     roi = (COLUMNS[0], v0 - 40, COLUMNS[1] - COLUMNS[0], 80)
-    prof = extract_profile(diff, roi=roi, channel="red", min_chroma=0.5, sigma_px=2.0, sigma_along_px=5.0)
+    prof = extract_profile(diff, options=StripeOptions(channel="red", min_chroma=0.5, sigma_px=2.0, sigma_along_px=5.0),
+                           roi=roi)
     r, inl = _line_fit(prof.points)
     rms = np.sqrt(np.mean(r[inl] ** 2))
     assert inl.mean() >= 0.99                     # no stray points at all
@@ -125,7 +128,7 @@ def test_profile_red_channel_glare_flagged_not_stray(frames, frame, k):
     else:
         assert prof.valid.mean() >= MIN_COVERAGE  # ... and nothing else is lost
     # without the chroma test the hot spot would give stray centres on the glow
-    plain = extract_profile(diff, roi=roi, channel="red", sigma_px=2.0, sigma_along_px=5.0)
+    plain = extract_profile(diff, options=StripeOptions(channel="red", sigma_px=2.0, sigma_along_px=5.0), roi=roi)
     r2, inl2 = _line_fit(plain.points)
     if frame.endswith("-x") and k == 0:
         assert inl2.mean() < 0.97
@@ -137,8 +140,8 @@ def test_profile_red_channel_saturated_centre_meets_the_issue(frames, frame, k):
     diff = frames[frame]
     v0 = _stripe_rows(diff)[k]
     roi = (COLUMNS[0], v0 - 40, COLUMNS[1] - COLUMNS[0], 80)
-    kw = dict(roi=roi, channel="red", min_chroma=0.5, sigma_px=2.0, sigma_along_px=5.0, saturated_centre=True)
-    prof = extract_profile(diff, **kw)
+    opts = StripeOptions(channel="red", min_chroma=0.5, sigma_px=2.0, sigma_along_px=5.0, saturated_centre=True)
+    prof = extract_profile(diff, options=opts, roi=roi)
     r, inl = _line_fit(prof.points)
     coverage = prof.valid.mean()
     rms = np.sqrt(np.mean(r[inl] ** 2))
@@ -151,7 +154,8 @@ def test_profile_red_channel_saturated_centre_meets_the_issue(frames, frame, k):
         in_hot = (prof.lines >= HOT_SPOT[0]) & (prof.lines < HOT_SPOT[1])
         assert prof.valid[in_hot].mean() >= 0.9            # the hot spot is measured ...
         assert inl[hot].mean() >= MIN_INLIER_FRACTION      # ... on the line
-    np.testing.assert_allclose(prof.uv, extract_profile(diff, backend="numpy", **kw).uv, atol=1e-9)
+    np.testing.assert_allclose(prof.uv, extract_profile(diff, options=replace(opts, backend="numpy"), roi=roi).uv,
+                               atol=1e-9)
 
 
 @pytest.mark.parametrize("frame", FRAMES)
@@ -159,7 +163,7 @@ def test_extract_stripe_real(frames, frame):
     """extract_stripe over the whole frame: the two stripes are long curves, each one straight line."""
     diff = frames[frame]
     # sigma 2.5 px (above the w/sqrt(3) ~ 1.2-1.7 px of these 4-6 px stripes) averages speckle
-    sp = extract_stripe(diff, channel="red", min_chroma=0.5, sigma_px=2.5)
+    sp = extract_stripe(diff, StripePointsOptions(channel="red", min_chroma=0.5, sigma_px=2.5))
     rows = _stripe_rows(diff)
     for k, v0 in enumerate(rows):
         sel = (np.abs(sp.uv[:, 1] - v0) < 40) & (sp.uv[:, 0] >= COLUMNS[0]) & (sp.uv[:, 0] < COLUMNS[1])
@@ -204,7 +208,7 @@ def test_extract_stripe_defaults_on_board(frames, frame, k):
     pose = find_board_pose(off, CAMERA, BOARD, SQUARE_MM, channel="red")
     mask = board_polygon_mask(CAMERA, pose, BOARD, SQUARE_MM) > 0
     diff = frames[frame]
-    sp = extract_stripe(diff, channel="red")
+    sp = extract_stripe(diff, StripePointsOptions(channel="red"))
     ij = np.clip(np.round(sp.uv).astype(int), 0, [diff.shape[1] - 1, diff.shape[0] - 1])
     v0 = _stripe_rows(diff)[k]
     pts = sp.uv[mask[ij[:, 1], ij[:, 0]] & (np.abs(sp.uv[:, 1] - v0) < 40)]

@@ -24,6 +24,7 @@ import pytest
 
 from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
 from lightplane.stripe.extract import extract_profile, extract_stripe
+from lightplane.stripe.options import StripeOptions
 
 BIAS_MAX = 0.05
 RMS_MAX = 0.1
@@ -71,8 +72,8 @@ def test_saturated_stripe_centre_defaults(dtype, clip, amplitude, kind, fn):
 def test_flat_top_fallback_same_numbers_both_backends(backend):
     """The hot spot's clipped columns (Hessian ~0 on the plateau) are recovered by both backends alike."""
     img, truth = render_saturated(amplitude=hot_spot(8.0), noise=NOISE, rng=np.random.default_rng(3))
-    a = extract_profile(img, backend=backend)
-    b = extract_profile(img, backend="numba")
+    a = extract_profile(img, options=StripeOptions(backend=backend))
+    b = extract_profile(img, options=StripeOptions(backend="numba"))
     np.testing.assert_allclose(a.uv, b.uv, atol=1e-9)
     np.testing.assert_array_equal(a.status, b.status)
 
