@@ -54,6 +54,7 @@ from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camer
     camera_steps, camera_with_params, plane_noise_covers, point_sigma_mm, volume_sigma, working_volume_grid)
 from lightplane.stripe.extract import extract_stripe
 from lightplane.stripe.lasers import LaserSelector, no_stripe_message
+from lightplane.stripe.options import StripePointsOptions
 from lightplane.core.threads import with_blas_limited
 
 __all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
@@ -567,8 +568,9 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
         # whitish saturated cores (colour image + channel) takes the speckle dips of a colour stripe
         # on a bright white disc for cores and can drop the whole stripe (two-colour renders: one
         # stripe in 8 images lost)
-        sp = extract_stripe(crop if single else gray, width_px=width, mask=inside,
-                            channel=s.channel if single else None, min_contrast=contrast, sigma_along_px=0.0)
+        sp = extract_stripe(crop if single else gray,
+                            StripePointsOptions(width_px=width, channel=s.channel if single else None,
+                                                min_contrast=contrast, sigma_along_px=0.0), mask=inside)
         uv = sp.uv + off
         fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
         # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
