@@ -45,23 +45,26 @@ N_CIRCLES = 12
 
 
 def _chessboards(cache: Path, k: int, n: int = N_BOARDS) -> list:
-    from lightplane.simulate.render import render_chessboard_dataset, settings_tag
+    from dataclasses import replace
+
+    from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardOptions, render_chessboard_dataset, settings_tag
 
     f = cache / f"boards_{BOARD[0]}x{BOARD[1]}_n{n}_s{1000 + k}_{settings_tag()}.npz"
     if f.exists():
         return list(np.load(f)["images"])
-    ds = render_chessboard_dataset(n=n, seed=1000 + k, board=BOARD, square_mm=SQUARE_MM, difficulty="realistic")
+    ds = render_chessboard_dataset(n, 1000 + k, BoardOptions(
+        difficulty="realistic", capture=replace(CALIBRATION_CAPTURE, board=BOARD, square_mm=SQUARE_MM)))
     _save(f, ds.images)
     return list(ds.images)
 
 
 def _circles(cache: Path, k: int, n: int = N_CIRCLES) -> list:
-    from lightplane.simulate.render import render_circle_dataset, settings_tag
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset, settings_tag
 
     f = cache / f"circles_n{n}_s{2000 + k}_{settings_tag()}.npz"
     if f.exists():
         return list(np.load(f)["images"])
-    ds = render_circle_dataset(n=n, seed=2000 + k, difficulty="realistic")
+    ds = render_circle_dataset(n, 2000 + k, CircleOptions(difficulty="realistic"))
     _save(f, ds.images)
     return list(ds.images)
 
@@ -167,13 +170,14 @@ def _corner_truth_error(res, k: int) -> dict:
     import cv2
 
     from lightplane.simulate.scene import default_camera
+    from dataclasses import replace
+
     from lightplane.simulate.render import CALIBRATION_CAPTURE as CC
     from lightplane.simulate.render import board_corners, sample_board_poses
 
     cam_true = default_camera()
-    poses = sample_board_poses(N_BOARDS, np.random.default_rng(1000 + k), camera=cam_true, board=BOARD,
-                               square_mm=SQUARE_MM, distance_mm=CC["distance_mm"], tilt_deg=CC["tilt_deg"],
-                               centre_frac=CC["centre_frac"], spin_deg=CC["spin_deg"])
+    poses = sample_board_poses(N_BOARDS, np.random.default_rng(1000 + k), replace(CC, board=BOARD, square_mm=SQUARE_MM),
+                               camera=cam_true)
     obj = board_corners(BOARD, SQUARE_MM)
     cam = res.camera
     err, corr = [], []
@@ -288,7 +292,7 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     """Calibrate camera and plane from set ``k``; errors against the truth and predicted sigmas,
     two-step and (``joint``) with the joint refinement; and the plane solved with the true camera
     (the plane calibration's own share)."""
-    from lightplane.plane.calibrate import observe_images, solve_observations
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, observe_images, solve_observations
     from lightplane.camera.intrinsics import calibrate_camera
     from lightplane.plane.joint import refine_joint
     from lightplane.simulate.scene import default_camera, default_plane
@@ -298,7 +302,7 @@ def one_set(cache: Path, k: int, joint: bool = True, joint_white: bool = False) 
     cam_true, plane_true = default_camera(), default_plane()
     res = calibrate_camera(_chessboards(cache, k), BOARD, SQUARE_MM)
     cam = res.camera
-    obs = observe_images(_circles(cache, k), cam, 50.0, workers=2)
+    obs = observe_images(_circles(cache, k), cam, 50.0, PlaneCalibrationOptions(workers=2))
     cal = solve_observations(obs, cam, 50.0, "ml")
     vol = working_volume_grid(cam_true, plane_true, distance_mm=(380.0, 520.0))
     disp = float(res.options.get("covariance_dispersion") or 1.0)

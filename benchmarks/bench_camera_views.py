@@ -18,6 +18,7 @@ point sigmas with the camera's share, against the plane-only figure.  Median ove
 
 from __future__ import annotations
 
+from dataclasses import replace
 import argparse
 import json
 import time
@@ -41,8 +42,7 @@ from results import figure, record
 def one(board, n_views, corner_px, seed):
     rng = np.random.default_rng(seed)
     true = default_camera()
-    poses = sample_board_poses(n_views, rng, camera=true, board=board, square_mm=8.0, distance_mm=CC["distance_mm"],
-                               tilt_deg=CC["tilt_deg"], centre_frac=CC["centre_frac"], spin_deg=CC["spin_deg"])
+    poses = sample_board_poses(n_views, rng, replace(CC, board=board, square_mm=8.0), camera=true)
     obj = board_corners(board, 8.0).astype(np.float32)
     ip = [(true.project(obj.astype(float) @ R.T + t) + corner_px * rng.standard_normal((len(obj), 2)))
           .astype(np.float32) for R, t in poses]

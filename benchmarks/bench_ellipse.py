@@ -168,12 +168,12 @@ def bench_real(quick: bool, ext_python: str | None) -> list[dict]:
 
 def bench_render(quick: bool, ext_python: str | None) -> list[dict]:
     try:
-        from lightplane.simulate.render import render_circle_dataset
+        from lightplane.simulate.render import CircleOptions, render_circle_dataset
     except ImportError:
         print("renders: lightplane.simulate.render not available, skipped")
         return []
     n = 3 if quick else 6
-    ds = render_circle_dataset(n, seed=7, difficulty="realistic", polarity="light")
+    ds = render_circle_dataset(n, 7, CircleOptions(difficulty="realistic", polarity="light"))
     cam = ds.camera
     det_ms, ref_ms, sel_ms, tot_ms, cpu_ms = [], [], [], [], []
     for img in ds.images:
@@ -242,7 +242,7 @@ def bench_render(quick: bool, ext_python: str | None) -> list[dict]:
 
 def bench_default_vs_lsd(quick: bool) -> list[dict]:
     try:
-        from lightplane.simulate.render import render_circle_dataset
+        from lightplane.simulate.render import CircleOptions, render_circle_dataset
     except ImportError:
         print("default detection vs LSD: lightplane.simulate.render not available, skipped")
         return []
@@ -251,7 +251,7 @@ def bench_default_vs_lsd(quick: bool) -> list[dict]:
     from lightplane.ellipse.detect import auto_downscale
 
     n = 3 if quick else 6
-    ds = render_circle_dataset(n, seed=7, difficulty="realistic", polarity="light")
+    ds = render_circle_dataset(n, 7, CircleOptions(difficulty="realistic", polarity="light"))
     lsd = cv2.createLineSegmentDetector()
     grays = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) for img in ds.images]
     runs = {"lsd": lambda g: lsd.detect(g), "default": lambda g: detect_ellipses(g),
@@ -284,7 +284,7 @@ def bench_default_vs_lsd(quick: bool) -> list[dict]:
 
 def bench_curvature_bias(quick: bool) -> list[dict]:
     try:
-        from lightplane.simulate.render import render_circle_dataset
+        from lightplane.simulate.render import CircleOptions, render_circle_dataset
     except ImportError:
         print("curvature bias: lightplane.simulate.render not available, skipped")
         return []
@@ -294,7 +294,7 @@ def bench_curvature_bias(quick: bool) -> list[dict]:
     n = 3 if quick else 6
     print(f"curvature bias of the refined rim (realistic renders, {n} images per polarity; target |bias| <= 0.002 px):")
     for polarity in ("light", "dark"):
-        ds = render_circle_dataset(n, seed=11, difficulty="realistic", polarity=polarity)
+        ds = render_circle_dataset(n, 11, CircleOptions(difficulty="realistic", polarity=polarity))
         cam = ds.camera
         rows = {False: [], True: []}
         for img, tr in zip(ds.images, ds.truth["images"]):

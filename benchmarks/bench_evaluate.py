@@ -15,7 +15,7 @@ import numpy as np
 from lightplane import LightPlane
 from lightplane.plane.zhou import board_views_and_stripes, plane_from_board_stripes
 from lightplane.evaluate.crossratio import evaluate_views
-from lightplane.simulate.render import render_chessboard_dataset
+from lightplane.simulate.render import BoardOptions, render_chessboard_dataset
 from results import at_most, figure, record
 
 TARGET_IMAGE_MS = 500.0
@@ -33,7 +33,7 @@ def median_ms(fn, repeat: int) -> float:
 
 def main() -> None:
     n = 4
-    ds = render_chessboard_dataset(n, seed=1, with_stripe=True, laser_off=True, samples=4, edge_samples=8)
+    ds = render_chessboard_dataset(n, 1, BoardOptions(with_stripe=True, laser_off=True, samples=4, edge_samples=8))
     on = [im for im, nm in zip(ds.images, ds.names) if "_off" not in nm]
     off = [im for im, nm in zip(ds.images, ds.names) if "_off" in nm]
     truth = LightPlane.from_dict(ds.truth["plane"])

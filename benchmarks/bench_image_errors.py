@@ -37,13 +37,13 @@ def _observations(cache: Path, k: int, cam, observe_images) -> list:
 
     from bench_camera_uncertainty import _circles
 
-    from lightplane.plane.calibrate import ImageObservation
+    from lightplane.plane.calibrate import ImageObservation, PlaneCalibrationOptions
     from lightplane.simulate.render import settings_tag
 
     f = cache / f"obs_truecam_s{2000 + k}_{settings_tag()}.pkl"
     if f.exists():
         return [ImageObservation.from_record(r) for r in pickle.loads(f.read_bytes())]
-    obs = observe_images(_circles(cache, k), cam, 50.0, workers=1)
+    obs = observe_images(_circles(cache, k), cam, 50.0, PlaneCalibrationOptions(workers=1))
     f.write_bytes(pickle.dumps([o.to_record() for o in obs]))
     return obs
 
@@ -51,7 +51,7 @@ def _observations(cache: Path, k: int, cam, observe_images) -> list:
 def one_set(cache: Path, k: int) -> dict:
     from lightplane.plane.calibrate import observe_images, solve_observations
     from lightplane.plane.ml import _add_normals, _huber_weights, _Pose, _Problem
-    from lightplane.simulate.scene import default_camera, default_plane, sample_placements
+    from lightplane.simulate.scene import PlacementOptions, default_camera, default_plane, sample_placements
 
     cam, pl = default_camera(), default_plane()
     obs = _observations(cache, k, cam, observe_images)
@@ -60,7 +60,7 @@ def one_set(cache: Path, k: int) -> dict:
     used = [o for o in cal.images if o.used]
     rims = [np.asarray(o.rim_uv, float) for o in used]
     sts = [np.asarray(o.stripe_uv, float)[np.asarray(o.placement.stripe_inliers, bool)] for o in used]
-    truth = sample_placements(12, np.random.default_rng(2000 + k), camera=cam, plane=pl, diameter_mm=50.0)
+    truth = sample_placements(12, np.random.default_rng(2000 + k), PlacementOptions(diameter_mm=50.0), camera=cam, plane=pl)
     tp = []
     for o in used:
         c = o.placement.pose.center

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.plane.calibrate import calibrate_plane, calibrate_planes
+from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane, calibrate_planes
 from lightplane.camera.model import Camera
 from lightplane.cli.calibrate_plane import shared_pose_lines
 from lightplane.core.io import read_image
@@ -40,13 +40,13 @@ BARS = {"angle_deg": 0.01, "offset_mm": 0.02, "tri_rms_mm": 0.02}
 
 
 def _render(n: int, seed: int) -> Path:
-    from lightplane.simulate.render import render_circle_dataset, second_laser_plane, settings_tag
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset, second_laser_plane, settings_tag
 
     out = CACHE / f"circle2_realistic_n{n}_s{seed}_{settings_tag()}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
-        render_circle_dataset(n=n, seed=seed, difficulty="realistic",
-                              more_planes=[second_laser_plane()]).save(out, force=True)
+        render_circle_dataset(n, seed, CircleOptions(difficulty="realistic",
+                                                    more_planes=(second_laser_plane(),))).save(out, force=True)
     return out
 
 
@@ -63,13 +63,14 @@ def main() -> None:
     planes = {las["name"]: LightPlane.from_dict(las["plane"]) for las in truth["lasers"]}
     sels = parse_lasers(["laser0=red", "laser1=green"])
     t = time.perf_counter()
-    cals = calibrate_planes(files, cam, 50.0, sels, workers=1)
+    cals = calibrate_planes(files, cam, 50.0, sels, options=PlaneCalibrationOptions(workers=1))
     t_two = time.perf_counter() - t
     imgs = [read_image(f) for f in files]
     alone, t_alone = {}, 0.0
     for name, ch in (("laser0", 2), ("laser1", 1)):
         t = time.perf_counter()
-        alone[name] = calibrate_plane([np.ascontiguousarray(im[:, :, ch]) for im in imgs], cam, 50.0, workers=1)
+        alone[name] = calibrate_plane([np.ascontiguousarray(im[:, :, ch]) for im in imgs], cam, 50.0,
+                                      options=PlaneCalibrationOptions(workers=1))
         t_alone += time.perf_counter() - t
     print(f"{args.n} realistic two-laser renders (seed {args.seed}); angle deg, offset mm at the optical axis, "
           f"triangulation RMS mm over 380-520 mm, predicted sigma mm; bars {BARS}")

@@ -117,7 +117,7 @@ def main() -> None:
     from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane
     from lightplane.plane.model import LightPlane
     from lightplane.measure.scan import ArrayFrames, measure_scan
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
     from lightplane.measure.options import CloudOutput
     from lightplane.stripe.extract import estimate_width, extract_profile, extract_profiles
     from lightplane.stripe.options import StripeOptions
@@ -130,7 +130,7 @@ def main() -> None:
     ds = speed_frames()
     plane = LightPlane.from_dict(ds.truth["plane"])
     scan = [ds.images[i % len(ds.images)] for i in range(args.frames)]
-    circ = cached("circles12_realistic", lambda: render_circle_dataset(n=12, seed=0, difficulty="realistic"))
+    circ = cached("circles12_realistic", lambda: render_circle_dataset(12, 0, CircleOptions(difficulty="realistic")))
     tmp = Path(tempfile.mkdtemp(prefix="bench_load_"))
     out_ply = tmp / "scan.ply"
 

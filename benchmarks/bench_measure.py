@@ -5,7 +5,7 @@ by default).  Prints medians with units and the ratio to each target:
 
 - accuracy (renders, :func:`lightplane.simulate.render.render_scan_dataset`), with a light
   plane calibrated by :func:`lightplane.plane.calibrate.calibrate_plane` from rendered circle
-  images (``render_circle_dataset(n=12, difficulty="realistic")``), not the true plane:
+  images (``render_circle_dataset(12, options=CircleOptions(difficulty="realistic"))``), not the true plane:
   sphere radius within 0.02 mm of 25.4 mm with RMS residual <= 0.02 mm; gauge step
   10.000 ± 0.02 mm; tilted plane flatness RMS <= 0.015 mm.  All targets are checked on
   ``clean`` scans; on ``realistic`` scans (laser speckle) the radius and the step are,
@@ -130,9 +130,9 @@ def xyz(rec) -> np.ndarray:
 # ----------------------------------------------------------------------------- accuracy
 def calibrated_plane():
     from lightplane.plane.calibrate import calibrate_plane
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
 
-    ds = cached("circles12_realistic", lambda: render_circle_dataset(n=12, seed=0, difficulty="realistic"))
+    ds = cached("circles12_realistic", lambda: render_circle_dataset(12, 0, CircleOptions(difficulty="realistic")))
     t = time.perf_counter()
     cal = calibrate_plane(ds.images, ds.camera, 50.0, method="ml")
     print(f"calibrate_plane (ml) on 12 rendered circle images: {time.perf_counter() - t:.1f} s, "

@@ -28,14 +28,14 @@ def main() -> None:
 
     import numba
 
-    from lightplane.simulate.render import render_chessboard_dataset, render_circle_dataset, render_scan_dataset
+    from lightplane.simulate.render import CircleOptions, render_chessboard_dataset, render_circle_dataset, render_scan_dataset
 
     print(f"cores: {os.cpu_count()}, numba threads: {numba.get_num_threads()}")
-    render_circle_dataset(n=1, seed=99, difficulty="realistic")  # warm-up (JIT / cache load, ray maps)
+    render_circle_dataset(1, 99, CircleOptions(difficulty="realistic"))  # warm-up (JIT / cache load, ray maps)
     times = []
     for k in range(args.runs):
         t0 = time.perf_counter()
-        ds = render_circle_dataset(n=12, seed=k, difficulty="realistic")
+        ds = render_circle_dataset(12, k, CircleOptions(difficulty="realistic"))
         times.append(time.perf_counter() - t0)
         assert len(ds.images) == 12
     med = statistics.median(times)

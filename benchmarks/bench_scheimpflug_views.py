@@ -30,6 +30,7 @@ same plane in focus, distances scaled), and the capture with the tilt or the pri
 
 from __future__ import annotations
 
+from dataclasses import replace
 import argparse
 
 import numpy as np
@@ -59,10 +60,10 @@ DESIGNS = {
 }
 
 
-def poses(cam: Camera, n: int, seed: int, board=CAP["board"], dist=CAP["distance_mm"], tilt=CAP["tilt_deg"],
-          centre=CAP["centre_frac"]):
-    return sample_board_poses(n, np.random.default_rng(seed), camera=cam, board=board, square_mm=CAP["square_mm"],
-                              distance_mm=dist, tilt_deg=tilt, centre_frac=centre, spin_deg=CAP["spin_deg"])
+def poses(cam: Camera, n: int, seed: int, board=CAP.board, dist=CAP.distance_mm, tilt=CAP.tilt_deg,
+          centre=CAP.centre_frac):
+    return sample_board_poses(n, np.random.default_rng(seed),
+                              replace(CAP, board=board, distance_mm=dist, tilt_deg=tilt, centre_frac=centre), camera=cam)
 
 
 def normal_matrix(cam: Camera, views, board, flags: int, noise: float) -> str:

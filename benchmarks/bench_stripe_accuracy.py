@@ -22,7 +22,7 @@ import argparse
 
 import numpy as np
 
-from lightplane.simulate.render import render_circle_dataset
+from lightplane.simulate.render import CircleOptions, render_circle_dataset
 from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
 from lightplane.stripe.extract import extract_profile, extract_stripe, sigma_for_width
 from lightplane.stripe.options import StripeOptions, StripePointsOptions
@@ -43,7 +43,7 @@ def main() -> None:
     for level in args.levels.split(","):
         res: dict[tuple[str, str], list] = {}
         for seed in (0, 1):
-            ds = render_circle_dataset(n=12, seed=seed, difficulty=level)
+            ds = render_circle_dataset(12, seed, CircleOptions(difficulty=level))
             for img, im in zip(ds.images, ds.truth["images"]):
                 if not im["usable"]:
                     continue

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lightplane.simulate.saturated_stripe import hot_spot, render_saturated
+from lightplane.simulate.saturated_stripe import SaturatedStripe, hot_spot, render_saturated
 from lightplane.stripe.extract import extract_profile, extract_stripe
 from results import at_least, at_most, figure, record, within
 
@@ -52,7 +52,7 @@ def main() -> None:
                                                                 **kw)))
     worst: dict[str, list] = {}  # function -> [largest |bias|, largest RMS, conditions passing]
     for label, kw in conds:
-        img, truth = render_saturated(**kw)
+        img, truth = render_saturated(SaturatedStripe(**{k: v for k, v in kw.items() if k != "rng"}), rng=kw["rng"])
         for fn, (e, found) in errors(img, truth).items():
             rms = float(np.sqrt(np.mean(e**2)))
             ok = abs(e.mean()) <= 0.05 and rms <= 0.1

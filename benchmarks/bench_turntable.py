@@ -30,7 +30,7 @@ from lightplane import LightPlane
 from lightplane.motion.model import Motion, Turntable
 from lightplane.measure.scan import ArrayFrames, scan_points
 from lightplane.evaluate.shapes import fit_sphere
-from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
+from lightplane.simulate.turntable import TurntableScanOptions, render_turntable_board, render_turntable_scan
 from lightplane.camera.targets import parse_target
 from lightplane.motion.turntable import calibrate_turntable
 from results import at_most, figure, record, within
@@ -62,7 +62,7 @@ def run(difficulty: str) -> list[dict]:
                    statistic=stat),
             figure(f"axis_position_{difficulty}", f"turntable axis position error, {difficulty}", off, "mm",
                    statistic=stat)]
-    scan = render_turntable_scan(n_frames=N_FRAMES, seed=12, difficulty=difficulty)
+    scan = render_turntable_scan(N_FRAMES, 12, TurntableScanOptions(difficulty=difficulty))
     T = scan.truth
     o_t, B_t = true.basis()
     c_cam = o_t + B_t @ np.asarray(T["sphere"]["center_turntable_mm"])  # the sphere's centre at angle 0, camera frame

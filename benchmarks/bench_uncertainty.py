@@ -1,7 +1,7 @@
 """Benchmark: is the ML light plane's predicted uncertainty honest on realistic renders?
 
 For ``--seeds`` seeds x 2 polarities of 12-image realistic renders
-(``render_circle_dataset(n=12, seed=s, difficulty="realistic", polarity=p)``, true
+(``render_circle_dataset(12, s, CircleOptions(difficulty="realistic", polarity=p))``, true
 camera, 50 mm target), one set of image observations per data set is solved by
 ``calibrate_plane``'s ``ml`` chain under four configurations:
 
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.plane.calibrate import observe_images, solve_observations
+from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, observe_images, solve_observations
 from lightplane.camera.model import Camera
 from lightplane.evaluate.shapes import plane_accuracy
 from lightplane.plane.model import LightPlane
@@ -59,9 +59,9 @@ def _dataset(cache: Path, seed: int, polarity: str):
         z = np.load(f, allow_pickle=False)
         meta = json.loads(str(z["meta"]))
         return list(z["images"]), Camera.from_dict(meta["camera"]), LightPlane.from_dict(meta["plane"])
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
 
-    ds = render_circle_dataset(n=12, seed=seed, difficulty="realistic", polarity=polarity)
+    ds = render_circle_dataset(12, seed, CircleOptions(difficulty="realistic", polarity=polarity))
     cam = ds.camera
     meta = {"camera": cam.to_dict(), "plane": ds.truth["plane"]}
     cache.mkdir(parents=True, exist_ok=True)
@@ -79,7 +79,7 @@ def main() -> None:
     for seed in range(args.seeds):
         for pol in ("light", "dark"):
             images, cam, plane_true = _dataset(args.cache, seed, pol)
-            obs = observe_images(images, cam, 50.0, workers=1, stripe_bin="auto")
+            obs = observe_images(images, cam, 50.0, PlaneCalibrationOptions(workers=1, observe=ObserveOptions(stripe_bin="auto")))
             obs_raw = [replace(o, stripe_uv=o.stripe_raw_uv, stripe_bin=1) for o in obs]
             p_axis = plane_true.point_on_axis()
             for cname, kw in CONFIGS.items():

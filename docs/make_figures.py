@@ -31,7 +31,8 @@ import numpy as np
 
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.solvers import calibrate_plane_from_points
-from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
+from lightplane.simulate.scene import (PlacementOptions, default_camera, default_plane, sample_placements,
+                                       synthetic_observations)
 from lightplane.plane.uncertainty import rms_triangulation_error_mm, working_volume_grid
 
 OUT = Path(__file__).resolve().parent / "figures"
@@ -39,7 +40,8 @@ SIGMA_RIM, SIGMA_STRIPE, N_RIM, N_STRIPE = 0.06, 0.09, 1000, 30
 
 
 def trial(rng, n=12, tilt=(15.0, 55.0), dist=(380.0, 520.0), diameter=50.0, cam=None, plane=None, vol=None):
-    ps = sample_placements(n, rng, camera=cam, plane=plane, diameter_mm=diameter, distance_mm=dist, tilt_deg=tilt)
+    ps = sample_placements(n, rng, PlacementOptions(diameter_mm=diameter, distance_mm=dist, tilt_deg=tilt),
+                           camera=cam, plane=plane)
     rims, stripes = [], []
     for p in ps:
         r, s = synthetic_observations(cam, plane, p, n_rim=N_RIM, n_stripe=N_STRIPE)
@@ -125,9 +127,9 @@ def render_figures() -> None:
     from lightplane.plane.calibrate import calibrate_plane
     from lightplane.plane.model import LightPlane
     from lightplane.report.html import figure_residuals, figure_uncertainty
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
 
-    sets = {p: render_circle_dataset(n=6, seed=5, difficulty="realistic", polarity=p) for p in ("light", "dark")}
+    sets = {p: render_circle_dataset(6, 5, CircleOptions(difficulty="realistic", polarity=p)) for p in ("light", "dark")}
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.8))
     for ax, (p, ds) in zip(axes, sets.items()):
         ax.imshow(ds.images[1], cmap="gray", vmin=0, vmax=255)

@@ -34,4 +34,4 @@ def cached_circle_render(n: int = 5, seed: int = 11, difficulty: str = "realisti
     import lightplane.simulate.render as R
 
     return cached_render(f"circle_{difficulty}_{polarity}_n{n}_s{seed}",
-                         lambda: R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, polarity=polarity))
+                         lambda: R.render_circle_dataset(n, seed, R.CircleOptions(difficulty=difficulty, polarity=polarity)))

@@ -4,6 +4,7 @@ a cross-check, the camera JSON round trip, and ``calibrate-camera``'s output."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import subprocess
 import sys
@@ -27,9 +28,7 @@ CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
 def _scene(seed=0, n=16):
     cam = default_camera()
-    poses = sample_board_poses(n, np.random.default_rng(seed), camera=cam, board=BOARD, square_mm=8.0,
-                               distance_mm=CC["distance_mm"], tilt_deg=CC["tilt_deg"], centre_frac=0.8,
-                               spin_deg=30.0)
+    poses = sample_board_poses(n, np.random.default_rng(seed), replace(CC, board=BOARD, square_mm=8.0), camera=cam)
     obj = board_corners(BOARD, 8.0).astype(np.float64)
     return cam, obj, [cam.project(obj @ R.T + t) for R, t in poses]
 
@@ -174,9 +173,9 @@ def test_camera_json_round_trip_and_validation(tmp_path):
 
 
 def test_calibrate_camera_cli_prints_and_stores_the_covariance(tmp_path):
-    from lightplane.simulate.render import render_chessboard_dataset
+    from lightplane.simulate.render import BoardOptions, render_chessboard_dataset
 
-    ds = render_chessboard_dataset(n=5, seed=7, board=BOARD, square_mm=8.0, difficulty="realistic")
+    ds = render_chessboard_dataset(5, 7, BoardOptions(difficulty="realistic", capture=replace(CC, board=BOARD, square_mm=8.0)))
     ds.save(tmp_path / "cb")
     out = tmp_path / "cam.json"
     r = subprocess.run([sys.executable, "-m", "lightplane", "calibrate-camera", str(tmp_path / "cb" / "*.png"),

@@ -12,7 +12,7 @@ import pytest
 
 from lightplane.camera.model import Camera
 from lightplane.plane.model import LightPlane
-from lightplane.simulate.render import render_target_dataset
+from lightplane.simulate.render import BoardOptions, render_target_dataset
 from lightplane.camera.targets import Target
 
 CIRCLES = Target("circles", 9, 6, 8.0, dot_mm=4.0)
@@ -41,8 +41,8 @@ def board_args(t: Target) -> list[str]:
 def striped(request, tmp_path_factory):
     """6 poses of the board crossed by the laser: dark laser frames and lit pattern frames (laser off)."""
     t = request.param
-    ds = render_target_dataset(t, n=6, seed=5, difficulty="realistic", with_stripe=True, laser_off=True,
-                               dark_laser=True)
+    ds = render_target_dataset(t, 6, 5, BoardOptions(difficulty="realistic", with_stripe=True, laser_off=True,
+                                                  dark_laser=True))
     d = tmp_path_factory.mktemp(t.kind)
     ds.save(d)
     return t, ds, d
@@ -99,7 +99,7 @@ def test_cycle_form_and_evaluate(striped, tmp_path):
     target_file = tmp_path / "board.json"
     target_file.write_text(json.dumps(t.to_dict()))
     # evaluate needs the stripe on a lit board: render laser-on lit frames of the same poses
-    lit = render_target_dataset(t, n=4, seed=5, difficulty="realistic", with_stripe=True, laser_off=True)
+    lit = render_target_dataset(t, 4, 5, BoardOptions(difficulty="realistic", with_stripe=True, laser_off=True))
     e = tmp_path / "lit"
     lit.save(e)
     on = [e / v["file"] for v in lit.truth["views"]]
@@ -118,7 +118,7 @@ def test_cycle_form_and_evaluate(striped, tmp_path):
 
 def test_camera_calibration_circles_cli(tmp_path):
     """calibrate-camera with a circle grid: intrinsics within 3 OpenCV sigma of the renderer's camera."""
-    ds = render_target_dataset(Target("circles", 11, 8, 11.0, dot_mm=5.5), n=10, seed=3, difficulty="realistic")
+    ds = render_target_dataset(Target("circles", 11, 8, 11.0, dot_mm=5.5), 10, 3, BoardOptions(difficulty="realistic"))
     ds.save(tmp_path / "views")
     (tmp_path / "views" / "notes.png").write_text("not an image")
     out = tmp_path / "cam.json"
@@ -141,7 +141,7 @@ def test_charuco_partial_views_calibrate(tmp_path):
     from lightplane.camera.intrinsics import calibrate_camera
 
     t = Target("charuco", 11, 8, 12.0, 9.0, "DICT_4X4_50")
-    ds = render_target_dataset(t, n=6, seed=11, difficulty="realistic")
+    ds = render_target_dataset(t, 6, 11, BoardOptions(difficulty="realistic"))
     images = [im.copy() for im in ds.images]
     for k in (1, 4):  # cover the half of the board left of its centre in these views
         c = np.asarray(ds.truth["views"][k]["points_px"]).mean(axis=0)

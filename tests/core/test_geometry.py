@@ -7,6 +7,7 @@ import pytest
 
 from lightplane.core.errors import LightplaneError
 from lightplane.simulate.scene import (
+    PlacementOptions,
     PAPER_DISTANCE_MM,
     TargetPlacement,
     default_camera,
@@ -53,7 +54,7 @@ def test_sampled_placements_satisfy_constraints(which):
         cam, plane, dist, D = default_camera(), default_plane(), (380.0, 520.0), 50.0
     else:
         cam, plane, dist, D = paper_camera(), paper_plane(), PAPER_DISTANCE_MM, 70.0
-    ps = sample_placements(40, rng, camera=cam, plane=plane, diameter_mm=D, distance_mm=dist)
+    ps = sample_placements(40, rng, PlacementOptions(diameter_mm=D, distance_mm=dist), camera=cam, plane=plane)
     assert len(ps) == 40
     for tp in ps:
         dist_c = np.linalg.norm(tp.center)
@@ -116,4 +117,4 @@ def test_bad_input():
     far = TargetPlacement([500.0, 0, 400], [0, 0, -1], 10.0)
     assert far.chord(default_plane()) is None
     with pytest.raises(LightplaneError):
-        sample_placements(1, np.random.default_rng(0), distance_mm=(5000.0, 6000.0), max_tries=200)
+        sample_placements(1, np.random.default_rng(0), PlacementOptions(distance_mm=(5000.0, 6000.0), max_tries=200))

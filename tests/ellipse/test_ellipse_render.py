@@ -41,7 +41,7 @@ def _measure(ds):
 
 @pytest.mark.parametrize("difficulty,polarity,n,tol_px", [("clean", "light", 3, 0.02), ("realistic", "dark", 3, 0.05)])
 def test_refined_conic_and_poses_match_truth(difficulty, polarity, n, tol_px):
-    ds = render.render_circle_dataset(n, seed=21, difficulty=difficulty, polarity=polarity)
+    ds = render.render_circle_dataset(n, 21, render.CircleOptions(difficulty=difficulty, polarity=polarity))
     res, sel = _measure(ds)
     assert len(res) == n  # every image: target found, crossed, refined
     d = np.array([r[0] for r in res])
@@ -52,7 +52,7 @@ def test_refined_conic_and_poses_match_truth(difficulty, polarity, n, tol_px):
 
 @pytest.mark.parametrize("polarity", ["light", "dark"])
 def test_hard_renders_target_chosen_in_every_usable_image(polarity):
-    ds = render.render_circle_dataset(4, seed=5, difficulty="hard", polarity=polarity)
+    ds = render.render_circle_dataset(4, 5, render.CircleOptions(difficulty="hard", polarity=polarity))
     res, selections = _measure(ds)
     for sel, tr in selections:
         if not tr["usable"]:

@@ -8,6 +8,7 @@ put the ideal points within 0.01 mm and Zhou's plane within 0.01 deg.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 from types import SimpleNamespace
 
@@ -23,10 +24,11 @@ BOARD = (9, 6)
 
 @pytest.fixture(scope="module")
 def dataset():
-    from lightplane.simulate.render import render_chessboard_dataset
+    from lightplane.simulate.render import STRIPE_CAPTURE, BoardOptions, render_chessboard_dataset
 
-    ds = render_chessboard_dataset(5, seed=11, board=BOARD, square_mm=8.0, with_stripe=True, laser_off=True,
-                                   samples=4, edge_samples=8)
+    ds = render_chessboard_dataset(5, 11, BoardOptions(
+        capture=replace(STRIPE_CAPTURE, board=BOARD, square_mm=8.0), with_stripe=True, laser_off=True, samples=4,
+        edge_samples=8))
     on = [im for im, n in zip(ds.images, ds.names) if "_off" not in n]
     off = [im for im, n in zip(ds.images, ds.names) if "_off" in n]
     return ds, on, off
@@ -100,13 +102,13 @@ def test_zhou_plane_matches_truth(dataset, detected, detected_without_laser_off,
 def circle_plane(dataset):
     """The light plane calibrated the paper's way (lightplane.plane.calibrate.calibrate_plane) from 8
     rendered images of the circular target, same camera and plane as the chessboard renders."""
-    from lightplane.plane.calibrate import calibrate_plane
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
 
     ds, _, _ = dataset
     truth = LightPlane.from_dict(ds.truth["plane"])
-    circ = render_circle_dataset(8, seed=2, camera=ds.camera, plane=truth, diameter_mm=50.0)
-    return calibrate_plane(circ.images, circ.camera, 50.0, workers=1).plane
+    circ = render_circle_dataset(8, 2, CircleOptions(diameter_mm=50.0), camera=ds.camera, plane=truth)
+    return calibrate_plane(circ.images, circ.camera, 50.0, options=PlaneCalibrationOptions(workers=1)).plane
 
 
 def test_circle_and_zhou_side_by_side(dataset, detected, circle_plane):

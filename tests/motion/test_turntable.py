@@ -21,14 +21,14 @@ from lightplane.motion.model import Motion, Turntable
 from lightplane.measure.pointcloud import read_cloud
 from lightplane.measure.scan import ArrayFrames, scan_points
 from lightplane.evaluate.shapes import fit_sphere
-from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
+from lightplane.simulate.turntable import TurntableScanOptions, render_turntable_board, render_turntable_scan
 
 N = 6  # frames per laser
 
 
 @pytest.fixture(scope="module")
 def scan():
-    return render_turntable_scan(n_frames=N, seed=2, difficulty="clean")
+    return render_turntable_scan(N, 2, TurntableScanOptions(difficulty="clean"))
 
 
 def _xyz(rec):

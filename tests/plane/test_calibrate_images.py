@@ -12,7 +12,8 @@ import json
 import numpy as np
 import pytest
 
-from lightplane.plane.calibrate import calibrate_plane, observe_image, observe_images, solve_observations
+from lightplane.plane.calibrate import (PlaneCalibrationOptions, calibrate_plane, observe_image, observe_images,
+                                        solve_observations)
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
@@ -31,7 +32,7 @@ def render():
 @pytest.fixture(scope="module")
 def observations(render):
     _, cam, _, files, _ = render
-    return observe_images(files, cam, 50.0, workers=1)
+    return observe_images(files, cam, 50.0, PlaneCalibrationOptions(workers=1))
 
 
 def _tri_rms(cam, est, true):
@@ -89,19 +90,19 @@ def test_other_methods_agree(render, observations, method):
 def test_parallel_equals_serial(render, observations):
     _, cam, _, files, _ = render
     for executor in ("thread", "process"):
-        par = observe_images(files[:3], cam, 50.0, workers=2, executor=executor)
+        par = observe_images(files[:3], cam, 50.0, PlaneCalibrationOptions(workers=2, executor=executor))
         for a, b in zip(par, observations[:3]):
             assert np.array_equal(a.rim_uv, b.rim_uv) and np.array_equal(a.stripe_uv, b.stripe_uv)
 
 
 def test_stripeless_and_blank_images_rejected_with_reason(render):
     from lightplane.simulate.scene import TargetPlacement
-    from lightplane.simulate.render import render_circle_image
+    from lightplane.simulate.render import CircleOptions, render_circle_image
 
     _, cam, true, files, truth = render
     t0 = truth["images"][0]["target"]
     tp = TargetPlacement(t0["center_mm"], t0["normal"], 50.0)
-    dark = render_circle_image(cam, true, tp, np.random.default_rng(0), "realistic", laser=False)
+    dark = render_circle_image(cam, true, tp, np.random.default_rng(0), CircleOptions(difficulty="realistic"), laser=False)
     o = observe_image(dark, cam, 50.0)
     assert not o.ok and o.reason == "no stripe crossing the target"
     blank = np.full((cam.height, cam.width), 30, np.uint8)
@@ -141,7 +142,7 @@ def test_bad_input(render, tmp_path):
     junk.write_text("not an image")
     # an unreadable file is skipped with its reason (tests/test_bad_images.py); fatal only when too few remain
     with pytest.raises(LightplaneError, match=r"only 2 of 3 images usable, need at least 3: junk.png: not a readable"):
-        calibrate_plane([*files[:2], junk], cam, 50.0, workers=1)
+        calibrate_plane([*files[:2], junk], cam, 50.0, options=PlaneCalibrationOptions(workers=1))
     with pytest.raises(LightplaneError, match="no such file"):
         calibrate_plane([tmp_path / "missing.png"], cam, 50.0)
     small = np.zeros((480, 640), np.uint8)
@@ -149,11 +150,11 @@ def test_bad_input(render, tmp_path):
         calibrate_plane([small], cam, 50.0)
     blank = np.full((cam.height, cam.width), 30, np.uint8)
     with pytest.raises(LightplaneError, match=r"only 2 of 3 images usable, need at least 3: image\[2\]: no target"):
-        calibrate_plane([*files[:2], blank], cam, 50.0, workers=1)
+        calibrate_plane([*files[:2], blank], cam, 50.0, options=PlaneCalibrationOptions(workers=1))
 
 
 def test_placements_too_alike(render):
     """The same placement three times: the two-fold pose ambiguity cannot be resolved."""
     _, cam, _, files, _ = render
     with pytest.raises(LightplaneError, match="placements too alike|both chords fit the plane"):
-        calibrate_plane([files[0]] * 3, cam, 50.0, "global", workers=1)
+        calibrate_plane([files[0]] * 3, cam, 50.0, "global", PlaneCalibrationOptions(workers=1))

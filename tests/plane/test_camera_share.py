@@ -9,6 +9,7 @@ benchmarks/bench_camera_uncertainty.py.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
@@ -37,8 +38,7 @@ FLAGS = cv2.CALIB_FIX_K3
 def _camera(rng, n_views=10):
     """A camera calibrated from noisy synthetic corners, with its covariance."""
     true = default_camera()
-    poses = sample_board_poses(n_views, rng, camera=true, board=BOARD, square_mm=8.0, distance_mm=CC["distance_mm"],
-                               tilt_deg=CC["tilt_deg"], centre_frac=0.8, spin_deg=30.0)
+    poses = sample_board_poses(n_views, rng, replace(CC, board=BOARD, square_mm=8.0), camera=true)
     obj = board_corners(BOARD, 8.0).astype(np.float32)
     ip = [(true.project(obj.astype(float) @ R.T + t) + CORNER_PX * rng.standard_normal((len(obj), 2)))
           .astype(np.float32) for R, t in poses]

@@ -3,6 +3,7 @@ images) against the renderer's exact camera and plane, and bad input (exit 2, on
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 
 import numpy as np
@@ -20,8 +21,8 @@ def boards():
     import lightplane.simulate.render as R
 
     return cached_render("boards_9x7_realistic_n6_s21",
-                         lambda: R.render_chessboard_dataset(n=6, seed=21, board=(9, 7), square_mm=8.0,
-                                                             difficulty="realistic"))
+                         lambda: R.render_chessboard_dataset(6, 21, R.BoardOptions(
+                             difficulty="realistic", capture=replace(R.CALIBRATION_CAPTURE, board=(9, 7), square_mm=8.0))))
 
 
 def _run(circles, *extra):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements
-from lightplane.simulate.render import render_circle_image
+from lightplane.simulate.render import CircleOptions, render_circle_image
 
 SHEET_SIGMA_MM = 0.35
 
@@ -99,9 +99,10 @@ def clean_pinhole_render():
     cam = default_camera().pinhole()
     plane = default_plane()
     tp = sample_placements(1, np.random.default_rng(5), camera=cam, plane=plane)[0]
-    img = render_circle_image(cam, plane, tp, np.random.default_rng(1), "clean", "light", noise=False)
+    img = render_circle_image(cam, plane, tp, np.random.default_rng(1), CircleOptions(difficulty="clean", noise=False))
     # the same scene, laser off: the stripe's light (wide where the sheet grazes a surface) off the rim
-    dark = render_circle_image(cam, plane, tp, np.random.default_rng(1), "clean", "light", noise=False, laser=False)
+    dark = render_circle_image(cam, plane, tp, np.random.default_rng(1), CircleOptions(difficulty="clean", noise=False),
+                               laser=False)
     return cam, plane, tp, img, dark
 
 
@@ -130,7 +131,8 @@ def test_disc_edge_through_distorted_camera():
     cam = default_camera()
     plane = default_plane()
     tp = sample_placements(1, np.random.default_rng(11), camera=cam, plane=plane)[0]
-    img = render_circle_image(cam, plane, tp, np.random.default_rng(2), "clean", "light", noise=False, laser=False)
+    img = render_circle_image(cam, plane, tp, np.random.default_rng(2), CircleOptions(difficulty="clean", noise=False),
+                              laser=False)
     I = img.astype(np.float64)
     rim = cam.project(tp.rim_points(40000))  # dense distorted rim polyline (segments ~0.04 px)
     chord = tp.chord(plane)

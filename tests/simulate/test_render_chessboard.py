@@ -4,12 +4,13 @@ Zhang's calibration recovering the focal length."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
 
 from lightplane.simulate.scene import default_camera
-from lightplane.simulate.render import render_chessboard_dataset
+from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardCapture, BoardOptions, render_chessboard_dataset
 
 BOARD = (9, 6)
 
@@ -66,8 +67,9 @@ def _board_edge_residuals(img, camera, R, t, square_mm):
 
 def test_board_edges_on_projected_lines():
     cam = default_camera().pinhole()
-    ds = render_chessboard_dataset(n=2, seed=3, board=BOARD, square_mm=8.0, camera=cam, difficulty="clean",
-                                   noise=False)
+    ds = render_chessboard_dataset(2, 3, BoardOptions(difficulty="clean", noise=False,
+                                                    capture=replace(CALIBRATION_CAPTURE, board=BOARD, square_mm=8.0)),
+                                   camera=cam)
     sq = ds.truth["board"]["square_mm"]
     res = np.concatenate([_board_edge_residuals(img, cam, np.asarray(v["T_cam_board"]["R"]),
                                                 np.asarray(v["T_cam_board"]["t"]), sq)
@@ -82,8 +84,8 @@ def test_board_edges_on_projected_lines():
 @pytest.fixture(scope="module")
 def fifteen_boards():
     # the original small-board capture (the renderer's check)
-    return render_chessboard_dataset(n=15, seed=0, board=BOARD, square_mm=8.0, tilt_deg=(10.0, 45.0),
-                                     distance_mm=(330.0, 560.0), centre_frac=0.4, difficulty="clean")
+    return render_chessboard_dataset(15, 0, BoardOptions(difficulty="clean", capture=BoardCapture(
+        board=BOARD, square_mm=8.0, tilt_deg=(10.0, 45.0), distance_mm=(330.0, 560.0), centre_frac=0.4)))
 
 
 def _opencv_corners(img):

@@ -14,6 +14,8 @@ from lightplane.cli import app
 from lightplane.core.errors import LightplaneError
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements
 from lightplane.simulate.render import (
+    BoardOptions,
+    CircleOptions,
     render_chessboard_dataset,
     render_circle_dataset,
     render_circle_image,
@@ -93,16 +95,16 @@ def test_cli_renders_and_refuses_to_overwrite(tmp_path):
 
 
 def test_same_seed_same_bytes():
-    a = render_circle_dataset(n=2, seed=7, difficulty="hard")
-    b = render_circle_dataset(n=2, seed=7, difficulty="hard")
-    c = render_circle_dataset(n=1, seed=8, difficulty="hard")
+    a = render_circle_dataset(2, 7, CircleOptions(difficulty="hard"))
+    b = render_circle_dataset(2, 7, CircleOptions(difficulty="hard"))
+    c = render_circle_dataset(1, 8, CircleOptions(difficulty="hard"))
     assert all(np.array_equal(x, y) for x, y in zip(a.images, b.images))
     assert not np.array_equal(a.images[0], c.images[0])
     assert a.truth["images"][0]["target"]["center_mm"].tobytes() == b.truth["images"][0]["target"]["center_mm"].tobytes()
 
 
 def test_hard_level_truth():
-    ds = render_circle_dataset(n=3, seed=2, difficulty="hard")
+    ds = render_circle_dataset(3, 2, CircleOptions(difficulty="hard"))
     entries = ds.truth["images"]
     bad = [e for e in entries if not e["usable"]]
     assert len(bad) == 1 and bad[0]["target"]["chord_mm"] is None and "misses" in bad[0]["reason"]
@@ -126,8 +128,8 @@ def test_hard_level_truth():
 def test_clean_unsaturated_and_dark_polarity_levels():
     cam, plane = default_camera(), default_plane()
     tp = sample_placements(1, np.random.default_rng(0))[0]
-    light = render_circle_image(cam, plane, tp, np.random.default_rng(0), "clean", "light")
-    dark = render_circle_image(cam, plane, tp, np.random.default_rng(0), "clean", "dark")
+    light = render_circle_image(cam, plane, tp, np.random.default_rng(0), CircleOptions(difficulty="clean"))
+    dark = render_circle_image(cam, plane, tp, np.random.default_rng(0), CircleOptions(difficulty="clean", polarity="dark"))
     centre = np.round(cam.project(tp.center[None])[0]).astype(int)
     assert light.max() < 255 and dark.max() < 255
     # light disc on dark background vs dark disc on light board
@@ -137,7 +139,7 @@ def test_clean_unsaturated_and_dark_polarity_levels():
 
 
 def test_chessboard_stripe_and_laser_off_pairs():
-    ds = render_chessboard_dataset(n=2, seed=1, with_stripe=True, laser_off=True)
+    ds = render_chessboard_dataset(2, 1, BoardOptions(with_stripe=True, laser_off=True))
     assert ds.names == ["board_000.png", "board_000_off.png", "board_001.png", "board_001_off.png"]
     plane = default_plane()
     for k, v in enumerate(ds.truth["views"]):
@@ -163,7 +165,7 @@ def test_sphere_scan_truth():
 
 def test_api_bad_input():
     with pytest.raises(LightplaneError, match="difficulty"):
-        render_circle_dataset(n=1, difficulty="easy")
+        render_circle_dataset(1, options=CircleOptions(difficulty="easy"))
     with pytest.raises(LightplaneError, match="n must be"):
         render_circle_dataset(n=0)
     with pytest.raises(LightplaneError, match="kind"):
@@ -171,7 +173,7 @@ def test_api_bad_input():
 
 
 def test_dataset_save_round_trip(tmp_path):
-    ds = render_circle_dataset(n=1, seed=3, difficulty="clean")
+    ds = render_circle_dataset(1, 3, CircleOptions(difficulty="clean"))
     ds.save(tmp_path / "c")
     img = cv2.imread(str(tmp_path / "c" / "circle_000.png"), cv2.IMREAD_UNCHANGED)
     assert np.array_equal(img, ds.images[0])
@@ -204,7 +206,7 @@ def test_noise_matches_the_imaging_model(difficulty):
 
     cam, plane = default_camera(), default_plane()
     tp = sample_placements(1, np.random.default_rng(4))[0]
-    img = render_circle_image(cam, plane, tp, np.random.default_rng(0), difficulty, "light", laser=False).astype(float)
+    img = render_circle_image(cam, plane, tp, np.random.default_rng(0), CircleOptions(difficulty=difficulty), laser=False).astype(float)
     uv = np.round(cam.project(tp.center[None])[0]).astype(int)
     patch = img[uv[1] - 40:uv[1] + 40, uv[0] - 40:uv[0] + 40]
     # differences of horizontal neighbours: noise is added after the PSF, so it is white
@@ -270,7 +272,7 @@ def test_sphere_scan_stripe_triangulates_onto_the_sphere():
 
 
 def test_circle_laser_off_companions():
-    ds = render_circle_dataset(n=1, seed=5, difficulty="realistic", laser_off=True)
+    ds = render_circle_dataset(1, 5, CircleOptions(difficulty="realistic", laser_off=True))
     assert ds.names == ["circle_000.png", "circle_000_off.png"]
     on, off = ds.images[0].astype(int), ds.images[1].astype(int)
     chord = np.asarray(ds.truth["images"][0]["target"]["chord_mm"])

@@ -15,6 +15,7 @@ requires the right truth to explain the detections better than the wrong one.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import types
 
 import cv2
@@ -131,9 +132,10 @@ def test_dot_ellipse_centres_are_the_centres_of_the_projected_rims():
 def circle_sets():
     out = {}
     for kind, target in (("circles", ("circles", 7, 5, 12.0)), ("acircles", ("acircles", 4, 7, 10.0))):
-        out[kind] = R.render_target_dataset(target, n=2, seed=1, difficulty="realistic", camera=CAM)
-    out["biased"] = R.render_target_dataset(BIASED["target"], n=2, seed=2, difficulty="realistic", camera=CAM,
-                                            **{k: v for k, v in BIASED.items() if k != "target"})
+        out[kind] = R.render_target_dataset(target, 2, 1, R.BoardOptions(difficulty="realistic"), camera=CAM)
+    out["biased"] = R.render_target_dataset(BIASED["target"], 2, 2, R.BoardOptions(
+        difficulty="realistic", capture=replace(R.CALIBRATION_CAPTURE, **{k: v for k, v in BIASED.items() if k != "target"})),
+        camera=CAM)
     return out
 
 
@@ -167,7 +169,7 @@ def test_opencv_finds_the_circle_grids_at_their_ellipse_centres(circle_sets, kin
 
 def test_opencv_finds_the_charuco_board_with_the_true_ids():
     spec = R.target_spec("charuco")
-    ds = R.render_target_dataset(spec, n=2, seed=3, difficulty="realistic", camera=CAM)
+    ds = R.render_target_dataset(spec, 2, 3, R.BoardOptions(difficulty="realistic"), camera=CAM)
     det = cv2.aruco.CharucoDetector(R._charuco_layout(spec)["board"])
     for img, v in zip(ds.images, ds.truth["views"]):
         cc, cid, mc, mid = det.detectBoard(img)
@@ -188,8 +190,9 @@ def test_opencv_finds_the_charuco_board_with_the_true_ids():
 
 
 def test_chessboard_target_renders_as_render_chessboard_dataset():
-    a = R.render_target_dataset(("chessboard", 6, 4, 14.0), n=1, seed=5, difficulty="realistic", camera=CAM)
-    b = R.render_chessboard_dataset(n=1, seed=5, board=(6, 4), square_mm=14.0, difficulty="realistic", camera=CAM)
+    a = R.render_target_dataset(("chessboard", 6, 4, 14.0), 1, 5, R.BoardOptions(difficulty="realistic"), camera=CAM)
+    b = R.render_chessboard_dataset(1, 5, R.BoardOptions(
+        difficulty="realistic", capture=replace(R.CALIBRATION_CAPTURE, board=(6, 4), square_mm=14.0)), camera=CAM)
     assert np.array_equal(a.images[0], b.images[0])
     assert np.allclose(a.truth["views"][0]["points_px"], b.truth["views"][0]["corners_px"])
     ok, c = cv2.findChessboardCorners(a.images[0], (6, 4))
@@ -199,7 +202,7 @@ def test_chessboard_target_renders_as_render_chessboard_dataset():
 def test_render_target_dataset_saves_its_truth(tmp_path):
     import json
 
-    ds = R.render_target_dataset(("acircles", 3, 3, 20.0), n=1, seed=0, camera=CAM, samples=4, edge_samples=4)
+    ds = R.render_target_dataset(("acircles", 3, 3, 20.0), 1, 0, R.BoardOptions(samples=4, edge_samples=4), camera=CAM)
     ds.save(tmp_path / "ac")
     truth = json.loads((tmp_path / "ac" / "truth.json").read_text())
     assert truth["scene"] == "target" and truth["target"]["kind"] == "acircles"

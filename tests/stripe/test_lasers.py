@@ -45,9 +45,9 @@ def cached_two_laser_render(n: int = N_IMAGES, seed: int = 5, difficulty: str = 
 
     def make():
         if kind == "crossed":
-            return R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[R.second_laser_plane()])
-        return R.render_circle_dataset(n=n, seed=seed, difficulty=difficulty, more_planes=[mirrored_plane()],
-                                       colour=False, distance_mm=(395.0, 435.0))
+            return R.render_circle_dataset(n, seed, R.CircleOptions(difficulty=difficulty, more_planes=(R.second_laser_plane(),)))
+        return R.render_circle_dataset(n, seed, R.CircleOptions(difficulty=difficulty, more_planes=(mirrored_plane(),),
+                                                          colour=False, distance_mm=(395.0, 435.0)))
 
     return cached_render(f"circle2_{kind}_{difficulty}_n{n}_s{seed}", make)
 
@@ -63,10 +63,10 @@ def render():
 
 @pytest.fixture(scope="module")
 def two_planes(render):
-    from lightplane.plane.calibrate import calibrate_planes
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_planes
 
     _, cam, _, files, _ = render
-    return calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "b=green"]), workers=1)
+    return calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "b=green"]), options=PlaneCalibrationOptions(workers=1))
 
 
 # ----------------------------------------------------------------------------- selectors
@@ -176,20 +176,20 @@ def test_same_ellipse_and_rim_for_both_lasers(render, two_planes):
 def test_image_without_one_lasers_stripe_is_skipped_for_that_laser(render):
     """A colour image whose green channel shows no stripe (replaced by the laser-free blue
     channel) is skipped for laser b with the reason, and still used for laser a."""
-    from lightplane.plane.calibrate import calibrate_planes
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_planes
     from lightplane.core.io import read_image
 
     _, cam, _, files, _ = render
     imgs = [read_image(f) for f in files[:4]]
     imgs[1] = imgs[1].copy()
     imgs[1][:, :, 1] = imgs[1][:, :, 0]
-    cals = calibrate_planes(imgs, cam, 50.0, parse_lasers(["a=red", "b=green"]), "global", workers=1)
+    cals = calibrate_planes(imgs, cam, 50.0, parse_lasers(["a=red", "b=green"]), "global", PlaneCalibrationOptions(workers=1))
     assert [o.used for o in cals["a"].images] == [True] * 4
     assert [o.used for o in cals["b"].images] == [True, False, True, True]
     assert cals["b"].images[1].reason == "no stripe crossing the target"
     # a laser whose stripe is in no image: an error naming it, nothing solved
     with pytest.raises(LightplaneError, match="laser c .blue.: its stripe was found in none of its 4 images"):
-        calibrate_planes(imgs, cam, 50.0, parse_lasers(["a=red", "c=blue"]), "global", workers=1)
+        calibrate_planes(imgs, cam, 50.0, parse_lasers(["a=red", "c=blue"]), "global", PlaneCalibrationOptions(workers=1))
 
 
 # ----------------------------------------------------------------------------- command line
@@ -236,18 +236,18 @@ def test_cli_colour_selector_on_gray_images(tmp_path):
 def test_frames_selector_gives_each_laser_its_images(render):
     """``frames:`` parts: each laser gets the images whose names match; images shared by both
     are observed once for both (same rim points), the others for one laser only."""
-    from lightplane.plane.calibrate import calibrate_planes
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_planes
 
     _, cam, _, files, _ = render
     sels = parse_lasers(["a=red+frames:circle_00[0-3].png", "b=green+frames:circle_00[2-5].png"])
-    cals = calibrate_planes(files, cam, 50.0, sels, "global", workers=1)
+    cals = calibrate_planes(files, cam, 50.0, sels, "global", PlaneCalibrationOptions(workers=1))
     assert [Path(o.source).name for o in cals["a"].images] == [f"circle_00{i}.png" for i in range(4)]
     assert [Path(o.source).name for o in cals["b"].images] == [f"circle_00{i}.png" for i in range(2, 6)]
     assert all(o.used for c in cals.values() for o in c.images)
     assert np.array_equal(cals["a"].images[2].rim_uv, cals["b"].images[0].rim_uv)
     with pytest.raises(LightplaneError, match=re.escape("laser c (green+frames:none_*.png): none of the 6 images is "
                                                         "one of its frames")):
-        calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "c=green+frames:none_*.png"]), workers=1)
+        calibrate_planes(files, cam, 50.0, parse_lasers(["a=red", "c=green+frames:none_*.png"]), options=PlaneCalibrationOptions(workers=1))
 
 
 def test_two_stripes_told_apart_by_region():
@@ -258,7 +258,7 @@ def test_two_stripes_told_apart_by_region():
     uncertainty.  Measured: left 5/5 used, 0.0011 deg, -0.0025 mm, 0.0062 mm; right 4/5 (its
     chord in circle_000 is 0.42 of the diameter, at the rim: "no stripe crossing the target"),
     0.0057 deg, -0.0003 mm, 0.0090 mm."""
-    from lightplane.plane.calibrate import calibrate_planes, uncertainty_summary
+    from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_planes, uncertainty_summary
     from lightplane.plane.uncertainty import rms_point_sigma_mm, rms_triangulation_error_mm, working_volume_grid
 
     folder = cached_two_laser_render(n=5, seed=4, kind="mirrored")
@@ -267,7 +267,7 @@ def test_two_stripes_told_apart_by_region():
     files = [folder / im["file"] for im in truth["images"]]
     half = f"{cam.cx:.0f}"
     sels = parse_lasers([f"left=0,0,{half},{cam.height}", f"right={half},0,{cam.width},{cam.height}"])
-    cals = calibrate_planes(files, cam, 50.0, sels, workers=1)
+    cals = calibrate_planes(files, cam, 50.0, sels, options=PlaneCalibrationOptions(workers=1))
     for (name, cal), las in zip(cals.items(), truth["lasers"]):
         true = LightPlane.from_dict(las["plane"])
         assert cal.n_used >= 4, [o.reason for o in cal.images]

@@ -442,7 +442,7 @@ def test_renders_of_the_simulator(difficulty, speckle_settings, rms_max, bias_ma
     render = pytest.importorskip("lightplane.simulate.render")
     from lightplane.simulate.truth import profile_axis_and_roi, stripe_chord_errors
 
-    ds = render.render_circle_dataset(n=8, seed=0, difficulty=difficulty)
+    ds = render.render_circle_dataset(8, 0, render.CircleOptions(difficulty=difficulty))
     errs = {"stripe": [], "profile": []}
     for img, im in zip(ds.images, ds.truth["images"]):
         tg = im["target"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -12,11 +13,12 @@ import typer
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import (app, console, dictionary_option, dot_option, handles_errors, marker_option, parse_board,
                       progress_bar, target_option)
-from lightplane.camera.targets import parse_target
+from lightplane.camera.targets import Target, parse_target
 from lightplane.plane.model import LightPlane
-from lightplane.simulate.render import (check_output_dir, render_chessboard_dataset, render_circle_dataset,
-    render_scan_dataset, render_target_dataset, second_laser_plane)
-from lightplane.simulate.turntable import render_turntable_board, render_turntable_scan
+from lightplane.simulate.render import (CALIBRATION_CAPTURE, STRIPE_CAPTURE, BoardOptions, CircleOptions, Dataset,
+                                        check_output_dir, render_chessboard_dataset, render_circle_dataset,
+                                        render_scan_dataset, render_target_dataset, second_laser_plane)
+from lightplane.simulate.turntable import TurntableScanOptions, render_turntable_board, render_turntable_scan
 
 SCENES = ("circle", "chessboard", "target", "scan", "turntable", "turntable-board")
 
@@ -69,73 +71,104 @@ def render_cmd(
         raise LightplaneError(f"--square must be positive, got {square} mm")
     if step is not None and not step > 0:
         raise LightplaneError(f"--step must be positive, got {step} mm")
-    tgt = None
+    req = _Request(scene, n, seed, difficulty, polarity, diameter, stripe, laser_off, dark_laser, kind, step, lasers,
+                   turntable_step, square)
     if scene == "target":
-        tgt = parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot,
-                           target_file=target_file)
-        cols_rows = None
-    else:
-        cols_rows = parse_board(board) if board is not None else None
+        req = replace(req, target=parse_target(board, square, marker_mm=marker, dictionary=dictionary, dot_mm=dot,
+                                               target_file=target_file))
+    elif board is not None:
+        req = replace(req, board=parse_board(board))
     # fail before the long render: the folder must be writable and hold no result files
     check_output_dir(out, ["camera.json", "truth.json"], force)
-
     t0 = time.perf_counter()
     with progress_bar(f"rendering {scene}", n) as update:
-
-        def progress(i: int, total: int) -> None:
-            update(i, total=total)
-
-        if scene == "circle":
-            ds = render_circle_dataset(n=12 if n is None else n, seed=seed, difficulty=difficulty or "realistic",
-                                       polarity=polarity, diameter_mm=diameter, laser_off=laser_off,
-                                       progress=progress,
-                                       more_planes=[second_laser_plane()] if lasers == 2 else [])
-        elif scene == "target":
-            ds = render_target_dataset(tgt, n=(6 if stripe else 30) if n is None else n, seed=seed,
-                                       difficulty=difficulty or "realistic", with_stripe=stripe, laser_off=laser_off,
-                                       dark_laser=dark_laser, progress=progress)
-        elif scene == "chessboard":
-            ds = render_chessboard_dataset(n=20 if n is None else n, seed=seed, board=cols_rows, square_mm=square,
-                                           with_stripe=stripe, laser_off=laser_off, difficulty=difficulty or "clean",
-                                           progress=progress)
-        elif scene == "turntable":
-            ds = render_turntable_scan(n_frames=24 if n is None else n, step_deg=turntable_step, seed=seed,
-                                       difficulty=difficulty or "clean", lasers=2 if lasers is None else lasers,
-                                       progress=progress)
-        elif scene == "turntable-board":
-            k = 7 if n is None else n
-            ds = render_turntable_board(angles_deg=np.linspace(-40.0, 40.0, k) if k > 1 else [0.0], seed=seed,
-                                        difficulty=difficulty or "clean")
-        else:
-            ds = render_scan_dataset(kind=kind, n_frames=n, step_mm=step, seed=seed,
-                                     difficulty=difficulty or "realistic", progress=progress)
+        ds = _render(req, lambda i, total: update(i, total=total))
     elapsed = time.perf_counter() - t0
     ds.save(out, force=force)
     cam = ds.camera
     console.print(f"rendered {len(ds.images)} {scene} image(s) of {cam.width}x{cam.height} px in {elapsed:.1f} s "
                   f"(seed {seed}, difficulty {ds.truth.get('difficulty')})")
-    if scene == "circle":
+    _describe(req, ds)
+    console.print(f"wrote {out}/ (images, camera.json, truth.json)")
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What the command was asked to render (its options as given)."""
+
+    scene: str
+    n: int | None
+    seed: int
+    difficulty: str | None
+    polarity: str
+    diameter: float
+    stripe: bool
+    laser_off: bool
+    dark_laser: bool
+    kind: str
+    step: float | None
+    lasers: int | None
+    turntable_step: float | None
+    square: float | None
+    board: tuple[int, int] | None = None
+    target: Target | None = None
+
+
+def _render(req: _Request, progress) -> Dataset:
+    """The data set of ``req``: its scene's options object, then the scene's renderer."""
+    n, seed = req.n, req.seed
+    if req.scene == "circle":
+        circle = CircleOptions(difficulty=req.difficulty or "realistic", polarity=req.polarity,
+                               diameter_mm=req.diameter, laser_off=req.laser_off,
+                               more_planes=(second_laser_plane(),) if req.lasers == 2 else ())
+        return render_circle_dataset(12 if n is None else n, seed, circle, progress=progress)
+    if req.scene == "target":
+        opts = BoardOptions(difficulty=req.difficulty or "realistic", with_stripe=req.stripe, laser_off=req.laser_off,
+                            dark_laser=req.dark_laser)
+        return render_target_dataset(req.target, (6 if req.stripe else 30) if n is None else n, seed, opts,
+                                     progress=progress)
+    if req.scene == "chessboard":
+        design = STRIPE_CAPTURE if req.stripe else CALIBRATION_CAPTURE
+        capture = replace(design, board=design.board if req.board is None else req.board,
+                          square_mm=design.square_mm if req.square is None else req.square)
+        opts = BoardOptions(difficulty=req.difficulty or "clean", capture=capture, with_stripe=req.stripe,
+                            laser_off=req.laser_off)
+        return render_chessboard_dataset(20 if n is None else n, seed, opts, progress=progress)
+    if req.scene == "turntable":
+        tt = TurntableScanOptions(difficulty=req.difficulty or "clean", step_deg=req.turntable_step,
+                                  lasers=2 if req.lasers is None else req.lasers)
+        return render_turntable_scan(24 if n is None else n, seed, tt, progress=progress)
+    if req.scene == "turntable-board":
+        k = 7 if n is None else n
+        return render_turntable_board(angles_deg=np.linspace(-40.0, 40.0, k) if k > 1 else [0.0], seed=seed,
+                                      difficulty=req.difficulty or "clean")
+    return render_scan_dataset(kind=req.kind, n_frames=n, step_mm=req.step, seed=seed,
+                               difficulty=req.difficulty or "realistic", progress=progress)
+
+
+def _describe(req: _Request, ds: Dataset) -> None:
+    """Print what was rendered, per scene."""
+    if req.scene == "circle":
         bad = [e["file"] for e in ds.truth["images"] if not e["usable"]]
-        console.print(f"target diameter {diameter:g} mm, polarity {polarity}; "
+        console.print(f"target diameter {req.diameter:g} mm, polarity {req.polarity}; "
                       f"{len(ds.truth['images']) - len(bad)} usable" + (f", unusable: {', '.join(bad)}" if bad else ""))
 
         for las in ds.truth.get("lasers", []):
             console.print(f"  {las['name']} ({las['channel']} channel): plane {LightPlane.from_dict(las['plane'])}")
-    elif scene == "chessboard":
+    elif req.scene == "chessboard":
         b = ds.truth["board"]
         console.print(f"board {b['inner_corners'][0]}x{b['inner_corners'][1]} inner corners, square {b['square_mm']:g} mm"
-                      + (", laser stripe on" if stripe else ""))
-    elif scene == "target":
-        assert tgt is not None  # parsed above for this scene
-        console.print(f"board: {tgt.describe()}" + (", laser stripe on" if stripe else "")
-                      + (" (dark laser frames)" if dark_laser and stripe else ""))
-    elif scene == "turntable":
+                      + (", laser stripe on" if req.stripe else ""))
+    elif req.scene == "target":
+        assert req.target is not None  # parsed for this scene
+        console.print(f"board: {req.target.describe()}" + (", laser stripe on" if req.stripe else "")
+                      + (" (dark laser frames)" if req.dark_laser and req.stripe else ""))
+    elif req.scene == "turntable":
         t = ds.truth
         console.print(f"turntable scan of a {t['sphere']['radius_mm']:g} mm sphere: {len(t['angles_deg'])} frames per laser, "
                       f"{t['step_deg']:g} deg per frame, lasers {', '.join(t['lasers'])}; true axis in truth.json")
-    elif scene == "turntable-board":
+    elif req.scene == "turntable-board":
         console.print(f"chessboard 9x6, 8 mm, standing on the turntable at {len(ds.images)} angles; true axis in truth.json")
     else:
         m = ds.truth["motion"]
-        console.print(f"scan of a {kind}: {m['n_frames']} frames, {m['step_mm']:g} mm per frame")
-    console.print(f"wrote {out}/ (images, camera.json, truth.json)")
+        console.print(f"scan of a {req.kind}: {m['n_frames']} frames, {m['step_mm']:g} mm per frame")

@@ -50,7 +50,7 @@ from lightplane.plane.ml import crlb
 from lightplane.plane.solvers import SolverOptions, calibrate_plane_from_points
 from lightplane.plane.triangulate import triangulate_normalized
 from lightplane.plane.uncertainty import point_jacobian, working_volume_grid
-from lightplane.simulate.scene import (PAPER_DISTANCE_MM, paper_camera, paper_plane, sample_placements,
+from lightplane.simulate.scene import (PAPER_DISTANCE_MM, PlacementOptions, paper_camera, paper_plane, sample_placements,
     synthetic_observations)
 
 __all__ = ["FACTORS", "METHODS", "GROSS_DEG", "FactorSpec", "StudyResult", "run_factor", "write_csv",
@@ -157,6 +157,45 @@ def _bound(cov: np.ndarray, true: LightPlane, vol_xy: np.ndarray) -> dict:
             "angle_deg": float(np.trace(cov[:3, :3])) * np.degrees(1) ** 2, "offset_mm": var[3], "tri_rms_mm": tri2}
 
 
+def _score_methods(camera: Camera, plane: LightPlane, diam: float, rims: list, stripes: list, placements: list,
+                   methods: Sequence[str], vol_xy: np.ndarray) -> dict:
+    """One trial's outcome per method: its errors (:func:`_errors`), ``"failed"`` (an error raised, or a
+    gross answer) or ``"wrong"`` (a used placement with the wrong one of its two poses)."""
+    out: dict = {}
+    for m in methods:
+        try:
+            res = calibrate_plane_from_points(camera, diam, rims, stripes, method=m,
+                                              options=SolverOptions(strict=False), min_placements=2)
+        except LightplaneError:
+            out[m] = "failed"
+            continue
+        if _wrong_choice(res, placements):
+            out[m] = "wrong"
+            continue
+        e = _errors(res.plane, plane, vol_xy)
+        out[m] = "failed" if e["angle_deg"] > GROSS_DEG else e
+    return out
+
+
+def _level_rows(base: dict, methods: Sequence[str], trials: int, per: dict, failed: dict, wrong: dict,
+                bounds: list) -> list[dict]:
+    """The rows of one level: per method the RMS and median of each metric over its good trials, and the bound."""
+    rows = []
+    for m in methods:
+        row = dict(base, method=m, trials=trials, failed=failed[m] + wrong[m], wrong_choice=wrong[m])
+        for key in _METRICS:
+            v = np.array([e[key] for e in per[m]], dtype=float)
+            row[key] = float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
+            row[key + "_median"] = float(np.median(v)) if len(v) else float("nan")
+        rows.append(row)
+    row = dict(base, method="crlb", trials=trials, failed=0, wrong_choice=0)
+    for key in _METRICS:
+        row[key] = float(np.sqrt(np.mean([b[key] for b in bounds])))
+        row[key + "_median"] = float("nan")
+    rows.append(row)
+    return rows
+
+
 def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200, n_stripe: int = 300,
                camera: Camera | None = None, plane: LightPlane | None = None,
                methods: Sequence[str] = METHODS, progress: Callable[[int], None] | None = None) -> StudyResult:
@@ -206,27 +245,20 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
             rng_geo = np.random.default_rng([int(seed), f_index, t])
             rng = np.random.default_rng([int(seed), f_index, t, k + 1])
             n_draw = max(spec.levels) if spec.variable == "n_placements" else n_pl
-            placements = sample_placements(n_draw, rng_geo, camera=camera, plane=plane, diameter_mm=diam,
-                                           distance_mm=PAPER_DISTANCE_MM)[:n_pl]
+            placements = sample_placements(n_draw, rng_geo, PlacementOptions(diameter_mm=diam,
+                                                                              distance_mm=PAPER_DISTANCE_MM),
+                                           camera=camera, plane=plane)[:n_pl]
             obs = [synthetic_observations(camera, plane, p, n_rim=n_rim, n_stripe=n_stripe, sigma_px=sigma, rng=rng)
                    for p in placements]
             rims = [o[0] for o in obs]
             stripes = [o[1] for o in obs]
-            for m in methods:
-                try:
-                    res = calibrate_plane_from_points(camera, diam, rims, stripes, method=m,
-                                                      options=SolverOptions(strict=False), min_placements=2)
-                except LightplaneError:
+            for m, e in _score_methods(camera, plane, diam, rims, stripes, placements, methods, vol_xy).items():
+                if e == "failed":
                     failed[m] += 1
-                    continue
-                if _wrong_choice(res, placements):
+                elif e == "wrong":
                     wrong[m] += 1
-                    continue
-                e = _errors(res.plane, plane, vol_xy)
-                if e["angle_deg"] > GROSS_DEG:
-                    failed[m] += 1
-                    continue
-                per[m].append(e)
+                else:
+                    per[m].append(e)
             if sigma > 0:
                 cov = crlb(camera, 0.5 * diam, placements, plane, n_rim, n_stripe, sigma)
                 bounds.append(_bound(cov, plane, vol_xy))
@@ -235,18 +267,7 @@ def run_factor(factor: str, *, trials: int = 40, seed: int = 0, n_rim: int = 200
             if progress is not None:
                 progress(1)
         base = {"factor": factor, "level": level, "n_placements": n_pl, "sigma_px": sigma, "diameter_mm": diam}
-        for m in methods:
-            row = dict(base, method=m, trials=int(trials), failed=failed[m] + wrong[m], wrong_choice=wrong[m])
-            for key in _METRICS:
-                v = np.array([e[key] for e in per[m]], dtype=float)
-                row[key] = float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
-                row[key + "_median"] = float(np.median(v)) if len(v) else float("nan")
-            rows.append(row)
-        row = dict(base, method="crlb", trials=int(trials), failed=0, wrong_choice=0)
-        for key in _METRICS:
-            row[key] = float(np.sqrt(np.mean([b[key] for b in bounds])))
-            row[key + "_median"] = float("nan")
-        rows.append(row)
+        rows += _level_rows(base, methods, int(trials), per, failed, wrong, bounds)
     return StudyResult(spec, rows, int(trials), int(seed), int(n_rim), int(n_stripe))
 
 

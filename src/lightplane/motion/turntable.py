@@ -211,6 +211,38 @@ def _consistent_order(Rs: np.ndarray, ts: np.ndarray, obj: np.ndarray, target) -
     return changed
 
 
+def _board_poses(images, names: list, camera: Camera, target, channel: str | None, reasons: dict | None,
+                 progress) -> tuple[list, dict]:
+    """The board's pose in every image where it is found, and the reason for every other image."""
+    poses, skipped = [], {}
+    for i, (img, name) in enumerate(zip(images, names)):
+        if img is None:
+            skipped[name] = (reasons or {}).get(name, "not a readable image")
+        else:
+            try:
+                poses.append(find_board_pose(img, camera, target, name=name, channel=channel))
+            except LightplaneError as e:
+                msg = str(e)
+                if "calibrated for" in msg:  # a camera mismatch is not a bad image
+                    raise
+                skipped[name] = msg.split(": ", 1)[1] if msg.startswith(name + ": ") else msg
+        if progress is not None:
+            progress(i)
+    return poses, skipped
+
+
+def _table_origin(circ, point: np.ndarray, X: np.ndarray, board_height_mm: float | None) -> tuple[np.ndarray, str]:
+    """The turntable frame's origin on the axis and its description: at the level of the board points'
+    centroid (``point``), or on the table's top ``board_height_mm`` below the board's lowest points."""
+    if board_height_mm is None:
+        return point, "on the axis at the level of the board points' centroid"
+    if not np.isfinite(board_height_mm):
+        raise LightplaneError(f"the board height must be a finite number of mm, got {board_height_mm!r}")
+    lowest = float(np.min((X[0] - point) @ circ.direction))
+    point = point + (lowest - float(board_height_mm)) * circ.direction
+    return point, f"on the table's top: the board's lowest points {board_height_mm:g} mm above it"
+
+
 def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: str | None = None,
                         min_images: int = 4, reasons: dict | None = None, board_height_mm: float | None = None,
                         progress=None) -> TurntableCalibration:
@@ -233,21 +265,7 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     if len(names) != len(images):
         raise LightplaneError(f"{len(images)} images but {len(names)} names")
     min_images = max(4, int(min_images))
-    poses, used, skipped = [], [], {}
-    for i, (img, name) in enumerate(zip(images, names)):
-        if img is None:
-            skipped[name] = (reasons or {}).get(name, "not a readable image")
-        else:
-            try:
-                poses.append(find_board_pose(img, camera, target, name=name, channel=channel))
-                used.append(name)
-            except LightplaneError as e:
-                msg = str(e)
-                if "calibrated for" in msg:  # a camera mismatch is not a bad image
-                    raise
-                skipped[name] = msg.split(": ", 1)[1] if msg.startswith(name + ": ") else msg
-        if progress is not None:
-            progress(i)
+    poses, skipped = _board_poses(images, names, camera, target, channel, reasons, progress)
     if len(poses) < min_images:
         raise LightplaneError(too_few_images_message("images", len(poses), min_images, list(skipped.items())))
     if any(p.ids is not None for p in poses):
@@ -276,14 +294,7 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
                     "t_cam_board_mm": ts[j].tolist(), "reordered": j in flipped})
     for name, why in skipped.items():
         per.append({"name": name, "used": False, "reason": why})
-    point = circ.at(ref)
-    origin = "on the axis at the level of the board points' centroid"
-    if board_height_mm is not None:
-        if not np.isfinite(board_height_mm):
-            raise LightplaneError(f"the board height must be a finite number of mm, got {board_height_mm!r}")
-        lowest = float(np.min((X[0] - point) @ circ.direction))
-        point = point + (lowest - float(board_height_mm)) * circ.direction
-        origin = f"on the table's top: the board's lowest points {board_height_mm:g} mm above it"
+    point, origin = _table_origin(circ, circ.at(ref), X, board_height_mm)
     meta = {
         "method": "board circles (axis); rotations between poses (check)",
         "n_images": len(poses), "angle_span_deg": span,

@@ -95,6 +95,32 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
     ``images``: see :func:`figure_overlays`; ``provenance``: what produced the plane
     (:func:`lightplane.core.io.provenance`), shown at the foot (default: ``cal.plane.meta``'s).
     """
+    parts = [f"<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>{html.escape(title or 'lightplane report')}"
+             f"</title><style>{_CSS}</style></head><body>",
+             f"<h1>{html.escape(title or 'Light-plane calibration report')}</h1>",
+             "<h2>Result</h2>", _kv(_result_rows(cal, plane_true))]
+    if cal.warnings:
+        parts.append("<ul>" + "".join(f"<li class=warn>{html.escape(w)}</li>" for w in cal.warnings) + "</ul>")
+    parts += ["<h2>Images</h2>", _images_table(cal)]
+    if figures:
+        parts += _figure_parts(cal, images, plane_true)
+    for s in extra_sections:
+        parts.append(f"<h2>{html.escape(s.title)}</h2>")
+        if s.rows:
+            parts.append(_kv(s.rows))
+        if s.html:
+            parts.append(s.html)
+        for png, cap in s.figures:
+            parts.append(_img_tag(png, cap))
+    prov = provenance
+    if prov is None:
+        prov = cal.plane.meta.get("provenance") if isinstance(cal.plane.meta, dict) else None
+    parts.append(f"<p class=small>lightplane report; {html.escape(str(prov or ''))}</p></body></html>")
+    return "\n".join(parts)
+
+
+def _result_rows(cal, plane_true) -> list[tuple[str, str]]:
+    """The result table: the plane, the method, the images, the noise, the uncertainty, the truth."""
     cam = cal.camera
     unc = uncertainty_summary(cal, cam) if cam is not None else {}
     a, b, c = cal.plane.normal
@@ -111,30 +137,7 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
                                             + ("" if nm.get("image_dispersion_applied") else " (not applied)")
                                             if nm.get("image_dispersion") is not None else "")))
     if unc:
-        rows += [("normal σ (two principal directions)",
-                  f"{unc['normal_sigma_deg'][0]:.4f} deg, {unc['normal_sigma_deg'][1]:.4f} deg"),
-                 ("offset d σ", f"{unc['d_sigma_mm']:.4f} mm")]
-        if "working_distance_mm" in unc:
-            rows.append(("working distance (plane on the optical axis)", f"{unc['working_distance_mm']:.1f} mm"))
-        if "normal_sigma_with_camera_deg" in unc:
-            rows += [("with the camera's share: normal σ",
-                      f"{unc['normal_sigma_with_camera_deg'][0]:.4f} deg, {unc['normal_sigma_with_camera_deg'][1]:.4f} deg"),
-                     ("with the camera's share: offset d σ", f"{unc['d_sigma_with_camera_mm']:.4f} mm")]
-        if "point_sigma_axis_mm" in unc:
-            rows.append(("σ of a triangulated point there (camera frame; all sources the files carry)",
-                         f"{unc['point_sigma_axis_mm'] * 1e3:.2f} µm (plane calibration only: "
-                         f"{unc['point_sigma_axis_plane_only_mm'] * 1e3:.2f} µm)"))
-        if "point_sigma_rms_mm" in unc:
-            lo, hi = unc["distance_range_mm"]
-            cov = unc["covers"]
-            rows += [(f"RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm, camera frame",
-                      f"{unc['point_sigma_rms_mm'] * 1e3:.2f} µm — {cov['point_sigma_rms_mm']}"),
-                     ("RMS shape σ there (after the best rigid motion)",
-                      f"{unc['shape_sigma_rms_mm'] * 1e3:.2f} µm — {cov['shape_sigma_rms_mm']}"),
-                     ("RMS point σ, plane calibration only", f"{unc['plane_only_sigma_rms_mm'] * 1e3:.2f} µm"),
-                     ("which σ applies", cov["which"])]
-        if unc.get("camera_share", "included") != "included":
-            rows.append(("camera's share", unc["camera_share"]))
+        rows += _uncertainty_rows(unc)
     else:
         rows.append(("uncertainty", f"not available for method '{cal.method}' (use 'ml')"))
     if cal.ambiguity is not None:
@@ -145,13 +148,40 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
         off = float(cal.plane.signed_distance(plane_true.point_on_axis()[None])[0])
         rows += [("vs truth: normal angle", f"{ang:.4f} deg"),
                  ("vs truth: offset at the optical axis", f"{off:+.4f} mm")]
-    parts = [f"<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>{html.escape(title or 'lightplane report')}"
-             f"</title><style>{_CSS}</style></head><body>",
-             f"<h1>{html.escape(title or 'Light-plane calibration report')}</h1>",
-             "<h2>Result</h2>", _kv(rows)]
-    if cal.warnings:
-        parts.append("<ul>" + "".join(f"<li class=warn>{html.escape(w)}</li>" for w in cal.warnings) + "</ul>")
-    # per-image table
+    return rows
+
+
+def _uncertainty_rows(unc: dict) -> list[tuple[str, str]]:
+    """The rows of :func:`lightplane.plane.calibrate.uncertainty_summary`'s entries."""
+    rows = [("normal σ (two principal directions)",
+             f"{unc['normal_sigma_deg'][0]:.4f} deg, {unc['normal_sigma_deg'][1]:.4f} deg"),
+            ("offset d σ", f"{unc['d_sigma_mm']:.4f} mm")]
+    if "working_distance_mm" in unc:
+        rows.append(("working distance (plane on the optical axis)", f"{unc['working_distance_mm']:.1f} mm"))
+    if "normal_sigma_with_camera_deg" in unc:
+        rows += [("with the camera's share: normal σ",
+                  f"{unc['normal_sigma_with_camera_deg'][0]:.4f} deg, {unc['normal_sigma_with_camera_deg'][1]:.4f} deg"),
+                 ("with the camera's share: offset d σ", f"{unc['d_sigma_with_camera_mm']:.4f} mm")]
+    if "point_sigma_axis_mm" in unc:
+        rows.append(("σ of a triangulated point there (camera frame; all sources the files carry)",
+                     f"{unc['point_sigma_axis_mm'] * 1e3:.2f} µm (plane calibration only: "
+                     f"{unc['point_sigma_axis_plane_only_mm'] * 1e3:.2f} µm)"))
+    if "point_sigma_rms_mm" in unc:
+        lo, hi = unc["distance_range_mm"]
+        cov = unc["covers"]
+        rows += [(f"RMS point σ over the targets' range {lo:.0f}–{hi:.0f} mm, camera frame",
+                  f"{unc['point_sigma_rms_mm'] * 1e3:.2f} µm — {cov['point_sigma_rms_mm']}"),
+                 ("RMS shape σ there (after the best rigid motion)",
+                  f"{unc['shape_sigma_rms_mm'] * 1e3:.2f} µm — {cov['shape_sigma_rms_mm']}"),
+                 ("RMS point σ, plane calibration only", f"{unc['plane_only_sigma_rms_mm'] * 1e3:.2f} µm"),
+                 ("which σ applies", cov["which"])]
+    if unc.get("camera_share", "included") != "included":
+        rows.append(("camera's share", unc["camera_share"]))
+    return rows
+
+
+def _images_table(cal) -> str:
+    """The per-image table: status, reason, points, residuals, pose candidate, distance, time."""
     head = ("<tr><th>#</th><th>image</th><th>status</th><th>reason</th><th>rim points</th>"
             "<th>stripe centres (solver points)</th><th>rim RMS (px)</th><th>stripe RMS (px)</th><th>chord to plane RMS (µm)</th>"
             "<th>pose candidate</th><th>distance (mm)</th><th>time (s)</th></tr>")
@@ -168,41 +198,32 @@ def render_report_html(cal, *, images: Sequence | None = None, plane_true=None,
             f"<td class=num>{_f(None if p is None else p.chord_rms_mm * 1e3, '.1f')}</td>"
             f"<td class=num>{'–' if p is None or p.candidate is None else p.candidate}</td>"
             f"<td class=num>{_f(dist, '.1f')}</td><td class=num>{o.seconds:.2f}</td></tr>")
-    parts += ["<h2>Images</h2>", "<table>" + head + "".join(trs) + "</table>"]
-    if figures:
-        png, blanks = _overlays(cal, images)
-        parts += ["<h2>Targets and stripes</h2>", _img_tag(png, "Per-image overlays (axes in px)")]
-        if blanks:
-            parts.append("<p class=small>Image not found (or changed since the calibration): "
-                         + html.escape(", ".join(blanks)) + "; its points are drawn on a blank canvas "
-                         "of the image's size.</p>")
-        parts += ["<h2>Target poses and light plane</h2>",
-                  _img_tag(figure_poses_3d(cal, plane_true), "3D view, camera frame (mm)")]
-        if any(o.placement is not None for o in cal.images):
-            parts += ["<h2>Residuals</h2>", _img_tag(figure_residuals(cal), "Residuals per image (px, µm)")]
-        u = figure_uncertainty(cal)
-        if u is not None:
-            parts += ["<h2>Uncertainty of measured points</h2>",
-                      "<p class=small>σ (µm) of a point triangulated at each pixel, from the plane's covariance "
-                      "only: it covers the image noise of the calibration images (rim and stripe, white or "
-                      "correlated along the curves, and errors shared within an image where the plane file applies "
-                      "the images' dispersion); it does not include the noise of the measured stripe centre "
-                      "itself, errors of the camera intrinsics, systematic edge or stripe biases, a wrong "
-                      "diameter or a non-flat target.</p>",
-                      _img_tag(u, "Point σ map (µm) over the image (px)")]
-    for s in extra_sections:
-        parts.append(f"<h2>{html.escape(s.title)}</h2>")
-        if s.rows:
-            parts.append(_kv(s.rows))
-        if s.html:
-            parts.append(s.html)
-        for png, cap in s.figures:
-            parts.append(_img_tag(png, cap))
-    prov = provenance
-    if prov is None:
-        prov = cal.plane.meta.get("provenance") if isinstance(cal.plane.meta, dict) else None
-    parts.append(f"<p class=small>lightplane report; {html.escape(str(prov or ''))}</p></body></html>")
-    return "\n".join(parts)
+    return "<table>" + head + "".join(trs) + "</table>"
+
+
+def _figure_parts(cal, images: Sequence | None, plane_true) -> list[str]:
+    """The figures: overlays, 3D poses, residuals, the point σ map."""
+    png, blanks = _overlays(cal, images)
+    parts = ["<h2>Targets and stripes</h2>", _img_tag(png, "Per-image overlays (axes in px)")]
+    if blanks:
+        parts.append("<p class=small>Image not found (or changed since the calibration): "
+                     + html.escape(", ".join(blanks)) + "; its points are drawn on a blank canvas "
+                     "of the image's size.</p>")
+    parts += ["<h2>Target poses and light plane</h2>",
+              _img_tag(figure_poses_3d(cal, plane_true), "3D view, camera frame (mm)")]
+    if any(o.placement is not None for o in cal.images):
+        parts += ["<h2>Residuals</h2>", _img_tag(figure_residuals(cal), "Residuals per image (px, µm)")]
+    u = figure_uncertainty(cal)
+    if u is not None:
+        parts += ["<h2>Uncertainty of measured points</h2>",
+                  "<p class=small>σ (µm) of a point triangulated at each pixel, from the plane's covariance "
+                  "only: it covers the image noise of the calibration images (rim and stripe, white or "
+                  "correlated along the curves, and errors shared within an image where the plane file applies "
+                  "the images' dispersion); it does not include the noise of the measured stripe centre "
+                  "itself, errors of the camera intrinsics, systematic edge or stripe biases, a wrong "
+                  "diameter or a non-flat target.</p>",
+                  _img_tag(u, "Point σ map (µm) over the image (px)")]
+    return parts
 
 
 def write_report(out_dir: str | os.PathLike, cal, *, images: Sequence | None = None, plane_true=None,

@@ -35,9 +35,7 @@ from __future__ import annotations
 
 import os
 from functools import lru_cache
-from typing import Sequence
-from dataclasses import dataclass
-from typing import TypedDict
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,12 +46,17 @@ from lightplane.camera.targets import board_object_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.simulate import render_core as rc
-from lightplane.simulate.scene import TargetPlacement, default_camera, default_plane, sample_placements
+from lightplane.simulate.scene import (PlacementOptions, TargetPlacement, default_camera, default_plane,
+                                       sample_placements)
 from lightplane.core.io import atomic_write, provenance, write_json
 
 __all__ = [
     "DIFFICULTIES",
     "Imaging",
+    "RenderOptions",
+    "CircleOptions",
+    "BoardCapture",
+    "BoardOptions",
     "Dataset",
     "laser_source",
     "render_circle_image",
@@ -150,6 +153,58 @@ def _check_n(n: int, name: str = "n") -> int:
     if n_int < 1 or n_int != n:
         raise LightplaneError(f"{name} must be an integer >= 1, got {n!r}")
     return n_int
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How the images of a rendered data set are formed.
+
+    ``difficulty``: one of :data:`DIFFICULTIES` (its :class:`Imaging`); ``noise=False`` leaves
+    out shot and read noise (quantisation stays): for self-consistency checks;
+    ``samples`` / ``edge_samples``: S x S stratified samples per pixel (>= 4), F x F on
+    material edges.
+    """
+
+    difficulty: str = "realistic"
+    noise: bool = True
+    samples: int = 4
+    edge_samples: int = 16
+
+    def __post_init__(self) -> None:
+        _check_choice(self.difficulty, DIFFICULTIES, "difficulty")
+        if int(self.samples) < 4:
+            raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {self.samples}")
+
+    @property
+    def imaging(self) -> Imaging:
+        """The image-formation settings of :attr:`difficulty`."""
+        return _IMAGING[self.difficulty]
+
+
+@dataclass(frozen=True)
+class CircleOptions(RenderOptions):
+    """A circle-target scene (:func:`render_circle_dataset`, :func:`render_circle_image`).
+
+    ``polarity``: ``light`` (a light disc in front of a dark background plane) or ``dark`` (a
+    dark printed disc on a light square board); ``diameter_mm``: the disc; ``distance_mm``: the
+    range of the discs' distances; ``laser_off``: also a laser-off image of every scene;
+    ``more_planes``: the light planes of up to two more lasers; ``colour``: with more lasers,
+    BGR images (laser k in channel red, green, blue), else gray images holding every stripe.
+    """
+
+    polarity: str = "light"
+    diameter_mm: float = 50.0
+    distance_mm: tuple[float, float] = (380.0, 520.0)
+    laser_off: bool = False
+    more_planes: tuple[LightPlane, ...] = ()
+    colour: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_choice(self.polarity, POLARITIES, "polarity")
+        object.__setattr__(self, "more_planes", tuple(self.more_planes))
+        if len(self.more_planes) > 2:
+            raise LightplaneError(f"at most 3 lasers (one per colour channel), got {1 + len(self.more_planes)}")
 
 
 def laser_source(plane: LightPlane) -> np.ndarray:
@@ -280,61 +335,76 @@ def _circle_patches(placement: TargetPlacement, polarity: str, background_z_mm: 
     return np.array(rows)
 
 
+def _circle_clutter(camera: Camera, placement: TargetPlacement, rng: np.random.Generator, polarity: str,
+                    bg_z: float) -> list[dict]:
+    """The clutter of a circle scene: on the background (light polarity) or printed on the board (dark)."""
+    if polarity == "light":
+        return _sample_clutter(camera, placement, rng, np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, bg_z]), polarity)
+    # printed marks on the board, a hair in front of its plane
+    return _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity,
+                           max_offset_mm=2.6 * placement.radius_mm, basis=placement.basis())
+
+
+def _more_lasers_image(camera: Camera, plane: LightPlane, options: CircleOptions, patches: np.ndarray,
+                       rad: np.ndarray, power_of, rng: np.random.Generator, nrng: np.random.Generator,
+                       salt: int, ambient: float) -> tuple[np.ndarray, list[float]]:
+    """The image of a scene lit by more lasers, and every laser's power.
+
+    Light adds up, so each laser's stripe is the radiance with it on minus the radiance with
+    every laser off (same scene, same samples); ``rad`` is the radiance with the first laser
+    on, ``power_of()`` draws the next laser's power."""
+    imaging = options.imaging
+    S, F = options.samples, options.edge_samples
+    off = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(plane, imaging, 0.0, rng),
+                             ambient, samples=S, edge_samples=F, salt=salt)
+    stripes = [rad - off]
+    powers = []
+    for pl in options.more_planes:
+        pw = power_of()
+        powers.append(pw)
+        r = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(pl, imaging, pw, rng),
+                               ambient, samples=S, edge_samples=F, salt=salt)
+        stripes.append(r - off)
+    if options.colour:
+        # BGR: laser k in channel red, green, blue (k = 0, 1, 2); a channel without a laser
+        # shows the scene alone
+        chans = [off.copy(), off.copy(), off.copy()]
+        for k, st in enumerate(stripes):
+            chans[2 - k] = chans[2 - k] + st
+        return np.dstack([_finish(c, camera, imaging, nrng, noise=options.noise) for c in chans]), powers
+    return _finish(off + sum(stripes), camera, imaging, nrng, noise=options.noise), powers
+
+
 def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
-                   difficulty: str, polarity: str, *, noise: bool = True, saturate: bool = False,
-                   clutter: bool | None = None, laser: bool = True, samples: int = 4,
-                   edge_samples: int = 16, noise_rng: np.random.Generator | None = None,
-                   more_planes: tuple = (), colour: bool = True) -> tuple[np.ndarray, dict]:
-    imaging = _IMAGING[difficulty]
-    levels = _LIGHT if polarity == "light" else _DARK
+                   options: CircleOptions, *, saturate: bool = False, clutter: bool | None = None,
+                   laser: bool = True, noise_rng: np.random.Generator | None = None) -> tuple[np.ndarray, dict]:
+    imaging = options.imaging
+    levels = _LIGHT if options.polarity == "light" else _DARK
     bg_z = float(placement.center[2] + rng.uniform(80.0, 150.0))
     if clutter is None:
-        clutter = difficulty == "hard"
-    items: list[dict] = []
-    if clutter:
-        if polarity == "light":
-            items = _sample_clutter(camera, placement, rng, np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, bg_z]), polarity)
-        else:
-            # printed marks on the board, a hair in front of its plane
-            items = _sample_clutter(camera, placement, rng, placement.normal, placement.center, polarity,
-                                    max_offset_mm=2.6 * placement.radius_mm, basis=placement.basis())
+        clutter = options.difficulty == "hard"
+    items = _circle_clutter(camera, placement, rng, options.polarity, bg_z) if clutter else []
     jit = imaging.exposure_jitter
     ambient = levels["ambient"] * (1.0 + rng.uniform(-jit, jit))
-    power = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
-    patches = _circle_patches(placement, polarity, bg_z, items)
+
+    def power_of() -> float:
+        return levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
+
+    power = power_of()
+    patches = _circle_patches(placement, options.polarity, bg_z, items)
     laser_row = _laser_row(plane, imaging, power, rng)
     salt = int(rng.integers(0, 2**31 - 1))
     rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser_row, ambient,
-                             samples=samples, edge_samples=edge_samples, salt=salt)
-    powers = [power]
-    if more_planes:
-        # more lasers: light adds up, so each laser's stripe is the radiance with it on minus
-        # the radiance with every laser off (same scene, same samples)
-        off = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(plane, imaging, 0.0, rng),
-                                 ambient, samples=samples, edge_samples=edge_samples, salt=salt)
-        stripes = [rad - off]
-        for pl in more_planes:
-            pw = levels["laser"] * (1.0 + rng.uniform(-jit, jit)) * (3.5 if saturate else 1.0) * float(laser)
-            powers.append(pw)
-            r = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(pl, imaging, pw, rng),
-                                   ambient, samples=samples, edge_samples=edge_samples, salt=salt)
-            stripes.append(r - off)
-        nrng = rng if noise_rng is None else noise_rng
-        if colour:
-            # BGR: laser k in channel red, green, blue (k = 0, 1, 2); a channel without a laser
-            # shows the scene alone
-            chans = [off.copy(), off.copy(), off.copy()]
-            for k, st in enumerate(stripes):
-                chans[2 - k] = chans[2 - k] + st
-            img = np.dstack([_finish(c, camera, imaging, nrng, noise=noise) for c in chans])
-        else:
-            img = _finish(off + sum(stripes), camera, imaging, nrng, noise=noise)
+                             samples=options.samples, edge_samples=options.edge_samples, salt=salt)
+    nrng = rng if noise_rng is None else noise_rng
+    if options.more_planes:
+        img, more = _more_lasers_image(camera, plane, options, patches, rad, power_of, rng, nrng, salt, ambient)
     else:
-        img = _finish(rad, camera, imaging, rng if noise_rng is None else noise_rng, noise=noise)
+        img = _finish(rad, camera, imaging, nrng, noise=options.noise)
     info = {
         "background_plane": {"normal": [0.0, 0.0, -1.0], "d": bg_z},
         "ambient_dn": ambient,
-        "laser_power_dn": power if not more_planes else powers,
+        "laser_power_dn": power if not options.more_planes else [power, *more],
         "saturated_stripe": bool(saturate),
         "clutter": [{k: v for k, v in c.items() if k not in ("size_px",)} for c in items],
     }
@@ -342,27 +412,20 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
 
 
 def render_circle_image(camera: Camera, plane: LightPlane, placement: TargetPlacement, rng: np.random.Generator,
-                        difficulty: str = "realistic", polarity: str = "light", *, noise: bool = True,
-                        saturate: bool = False, clutter: bool | None = None, laser: bool = True,
-                        samples: int = 4, edge_samples: int = 16) -> np.ndarray:
+                        options: CircleOptions = CircleOptions(), *, saturate: bool = False,
+                        clutter: bool | None = None, laser: bool = True) -> np.ndarray:
     """Render one image ``(H, W) uint8`` of a circular target crossed by the laser stripe.
 
-    ``polarity="light"``: a light disc in front of a dark background plane (80–150 mm
-    behind it); ``"dark"``: a dark printed disc on a light square board (the target's
-    plane).  The stripe lights every surface it meets (the disc shadows the
-    background).  ``noise=False`` leaves out shot and read noise (quantisation stays):
-    for self-consistency checks.  ``saturate`` raises the laser power 3.5x so the
-    stripe saturates on bright surfaces; ``clutter`` (default: only for ``hard``) adds
-    2–4 ellipses and rectangles; ``laser=False`` renders the same scene with the laser
-    off (same random draws).  ``samples``/``edge_samples``: S x S samples per pixel
-    (>= 4) and F x F on material edges.
+    ``options``: the scene and the image formation (:class:`CircleOptions`; its
+    ``diameter_mm``, ``distance_mm`` and ``laser_off`` are the data set's: the disc is
+    ``placement``).  ``polarity="light"``: a light disc in front of a dark background plane
+    (80–150 mm behind it); ``"dark"``: a dark printed disc on a light square board (the
+    target's plane).  The stripe lights every surface it meets (the disc shadows the
+    background).  ``saturate`` raises the laser power 3.5x so the stripe saturates on
+    bright surfaces; ``clutter`` (default: only for ``hard``) adds 2–4 ellipses and
+    rectangles; ``laser=False`` renders the same scene with the laser off (same random draws).
     """
-    _check_choice(difficulty, DIFFICULTIES, "difficulty")
-    _check_choice(polarity, POLARITIES, "polarity")
-    if int(samples) < 4:
-        raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {samples}")
-    img, _ = _render_circle(camera, plane, placement, rng, difficulty, polarity, noise=noise, saturate=saturate,
-                            clutter=clutter, laser=laser, samples=samples, edge_samples=edge_samples)
+    img, _ = _render_circle(camera, plane, placement, rng, options, saturate=saturate, clutter=clutter, laser=laser)
     return img
 
 
@@ -486,13 +549,63 @@ def _missing_placement(camera: Camera, plane: LightPlane, tp: TargetPlacement, m
     return None
 
 
-def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realistic", polarity: str = "light",
-                          camera: Camera | None = None, plane: LightPlane | None = None, diameter_mm: float = 50.0,
-                          *, laser_off: bool = False, noise: bool = True, progress=None,
-                          more_planes: Sequence[LightPlane] = (), colour: bool = True,
-                          distance_mm: tuple[float, float] = (380.0, 520.0)) -> Dataset:
+def _circle_placements(n: int, rng: np.random.Generator, camera: Camera, plane: LightPlane,
+                       options: CircleOptions) -> tuple[list[TargetPlacement], int]:
+    """The data set's placements (each crossed by every laser's stripe), and the index of the
+    one moved off the sheet (``hard``; -1 otherwise)."""
+    design = PlacementOptions(diameter_mm=options.diameter_mm, distance_mm=options.distance_mm)
+    placements = sample_placements(n, rng, design, camera=camera, plane=plane)
+    for i in range(n):
+        for _ in range(100000):
+            if all(_chord_fraction(placements[i], pl) >= 0.4 for pl in options.more_planes):
+                break
+            placements[i] = sample_placements(1, rng, design, camera=camera, plane=plane)[0]
+        else:
+            raise LightplaneError("render_circle_dataset: no placement found that every laser's stripe crosses")
+    miss_index = -1
+    if options.difficulty == "hard":
+        miss_index = int(rng.integers(0, n))
+        moved = None
+        for _ in range(50):
+            moved = _missing_placement(camera, plane, placements[miss_index])
+            if moved is not None:
+                break
+            placements[miss_index] = sample_placements(1, rng, PlacementOptions(diameter_mm=options.diameter_mm),
+                                                       camera=camera, plane=plane)[0]
+        if moved is None:
+            raise LightplaneError("render_circle_dataset: could not place a target off the light sheet")
+        placements[miss_index] = moved
+    return placements, miss_index
+
+
+def _circle_truth(n: int, seed: int, plane: LightPlane, options: CircleOptions, per_image: list[dict]) -> dict:
+    o = options
+    return {
+        "scene": "circle",
+        "units": "mm; pixels (OpenCV convention, pixel centre (0, 0)); conics in undistorted pixels",
+        "frame": "camera",
+        "plane": plane.to_dict(),
+        "laser_source_mm": laser_source(plane),
+        **({"lasers": [{"name": f"laser{k}", "channel": ("red", "green", "blue")[k] if o.colour else "gray",
+                        "plane": pl.to_dict(), "laser_source_mm": laser_source(pl)}
+                       for k, pl in enumerate((plane, *o.more_planes))]} if o.more_planes else {}),
+        "difficulty": o.difficulty,
+        "polarity": o.polarity,
+        "imaging": o.imaging.__dict__,
+        "seed": seed,
+        "options": {"n": n, "seed": seed, "difficulty": o.difficulty, "polarity": o.polarity,
+                    "diameter_mm": o.diameter_mm, "laser_off": o.laser_off, "lasers": 1 + len(o.more_planes),
+                    "colour": o.colour, "distance_mm": list(o.distance_mm)},
+        "images": per_image,
+    }
+
+
+def render_circle_dataset(n: int = 12, seed: int = 0, options: CircleOptions = CircleOptions(), *,
+                          camera: Camera | None = None, plane: LightPlane | None = None,
+                          progress=None) -> Dataset:
     """``n`` images of a circular target (docs/conventions.md §Default sensor placements) crossed by the stripe.
 
+    ``options``: the scene and the image formation (:class:`CircleOptions`).
     Truth (``Dataset.truth``): ``plane``; per image ``file``, ``target`` (centre and
     normal in mm, camera frame; rim conic in undistorted px; chord endpoints in mm),
     ``usable`` and ``reason``, and scene details (background plane, clutter, exposure).
@@ -509,55 +622,26 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
     the red channel, the next in green, then blue (a channel without a laser shows the
     scene alone; each channel has its own noise, no crosstalk); else gray images holding
     every stripe.  The truth then lists ``lasers`` (name, channel, plane) and each image's
-    ``chords_mm`` per laser.  ``distance_mm``: the range of the discs' distances.
+    ``chords_mm`` per laser.
     """
     n = _check_n(n)
-    more_planes = tuple(more_planes)
-    if len(more_planes) > 2:
-        raise LightplaneError(f"at most 3 lasers (one per colour channel), got {1 + len(more_planes)}")
-    _check_choice(difficulty, DIFFICULTIES, "difficulty")
-    _check_choice(polarity, POLARITIES, "polarity")
     camera = default_camera() if camera is None else camera
     plane = default_plane() if plane is None else plane
-    rng = np.random.default_rng(seed)
-    placements = sample_placements(n, rng, camera=camera, plane=plane, diameter_mm=diameter_mm, distance_mm=distance_mm)
-    for i in range(n):
-        for _ in range(100000):
-            if all(_chord_fraction(placements[i], pl) >= 0.4 for pl in more_planes):
-                break
-            placements[i] = sample_placements(1, rng, camera=camera, plane=plane, diameter_mm=diameter_mm,
-                                              distance_mm=distance_mm)[0]
-        else:
-            raise LightplaneError("render_circle_dataset: no placement found that every laser's stripe crosses")
-    miss_index = -1
-    if difficulty == "hard":
-        miss_index = int(rng.integers(0, n))
-        moved = None
-        for _ in range(50):
-            moved = _missing_placement(camera, plane, placements[miss_index])
-            if moved is not None:
-                break
-            placements[miss_index] = sample_placements(1, rng, camera=camera, plane=plane, diameter_mm=diameter_mm)[0]
-        if moved is None:
-            raise LightplaneError("render_circle_dataset: could not place a target off the light sheet")
-        placements[miss_index] = moved
+    placements, miss_index = _circle_placements(n, np.random.default_rng(seed), camera, plane, options)
     images, names, per_image = [], [], []
     for i, tp in enumerate(placements):
         img_rng = np.random.default_rng([seed, i])
-        saturate = difficulty == "hard" and i % 2 == 1 and i != miss_index
-        img, info = _render_circle(camera, plane, tp, img_rng, difficulty, polarity, noise=noise, saturate=saturate,
-                                   more_planes=more_planes, colour=colour)
+        saturate = options.difficulty == "hard" and i % 2 == 1 and i != miss_index
+        img, info = _render_circle(camera, plane, tp, img_rng, options, saturate=saturate)
         name = f"circle_{i:03d}.png"
         entry: dict[str, object] = {"file": name, "target": _placement_truth(camera, plane, tp)}
         off_name = f"circle_{i:03d}_off.png"
-        if more_planes:
-            entry["chords_mm"] = {f"laser{k}": tp.chord(pl) for k, pl in enumerate((plane, *more_planes))}
-        if laser_off:
+        if options.more_planes:
+            entry["chords_mm"] = {f"laser{k}": tp.chord(pl) for k, pl in enumerate((plane, *options.more_planes))}
+        if options.laser_off:
             # the same scene (same draws), laser off, its own noise
-            off, _ = _render_circle(camera, plane, tp, np.random.default_rng([seed, i]), difficulty, polarity,
-                                    noise=noise, saturate=saturate, laser=False,
-                                    noise_rng=np.random.default_rng([seed, i, 1]), more_planes=more_planes,
-                                    colour=colour)
+            off, _ = _render_circle(camera, plane, tp, np.random.default_rng([seed, i]), options, saturate=saturate,
+                                    laser=False, noise_rng=np.random.default_rng([seed, i, 1]))
             entry["file_laser_off"] = off_name
         if i == miss_index:
             entry.update(usable=False, reason="stripe misses the target")
@@ -566,31 +650,13 @@ def render_circle_dataset(n: int = 12, seed: int = 0, difficulty: str = "realist
         entry["scene"] = info
         images.append(img)
         names.append(name)
-        if laser_off:
+        if options.laser_off:
             images.append(off)
             names.append(off_name)
         per_image.append(entry)
         if progress is not None:
             progress(i + 1, n)
-    truth = {
-        "scene": "circle",
-        "units": "mm; pixels (OpenCV convention, pixel centre (0, 0)); conics in undistorted pixels",
-        "frame": "camera",
-        "plane": plane.to_dict(),
-        "laser_source_mm": laser_source(plane),
-        **({"lasers": [{"name": f"laser{k}", "channel": ("red", "green", "blue")[k] if colour else "gray",
-                        "plane": pl.to_dict(), "laser_source_mm": laser_source(pl)}
-                       for k, pl in enumerate((plane, *more_planes))]} if more_planes else {}),
-        "difficulty": difficulty,
-        "polarity": polarity,
-        "imaging": _IMAGING[difficulty].__dict__,
-        "seed": seed,
-        "options": {"n": n, "seed": seed, "difficulty": difficulty, "polarity": polarity, "diameter_mm": diameter_mm,
-                    "laser_off": laser_off, "lasers": 1 + len(more_planes), "colour": colour,
-                    "distance_mm": list(distance_mm)},
-        "images": per_image,
-    }
-    return Dataset(images, names, camera, truth)
+    return Dataset(images, names, camera, _circle_truth(n, seed, plane, options, per_image))
 
 
 # ----------------------------------------------------------------------------- chessboard
@@ -645,69 +711,40 @@ def _board_stripe(plane: LightPlane, R: np.ndarray, t: np.ndarray, board: tuple[
     return q @ R.T + t
 
 
-def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | None = None,
-                       board: tuple[int, int] = (9, 6), square_mm: float = 8.0,
-                       distance_mm: tuple[float, float] = (330.0, 560.0), tilt_deg: tuple[float, float] = (10.0, 45.0),
-                       plane: LightPlane | None = None, min_stripe_frac: float = 0.5,
-                       margin_px: float = 15.0, centre_frac: float = 0.4, spin_deg: float = 30.0,
-                       max_tries: int = 20000, outline: tuple[float, float, float, float] | None = None,
-                       centre_mm: tuple[float, float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Random chessboard poses ``(R_cam_board (3, 3), t_cam_board (3,) mm)``, whole board in view.
+@dataclass(frozen=True)
+class BoardCapture:
+    """A capture design: the board's inner corners and square, and the pose ranges of :func:`sample_board_poses`.
 
-    The board (inner corners ``board = (cols, rows)``, plus a white margin of one
-    square) faces the camera, its centre on the ray of a pixel drawn uniformly from the
-    central ``centre_frac`` of the image's width and height, at ``distance_mm`` from the
-    camera, tilted by ``tilt_deg`` about a random in-plane axis and turned by up to
-    ``±spin_deg`` about its normal; poses whose board outline leaves the image (less
-    ``margin_px``) are redrawn.  With ``plane``, only poses where the stripe crosses the
-    inner-corner area over at least ``min_stripe_frac`` of the board's width (or height)
-    are kept.  :data:`CALIBRATION_CAPTURE` holds the design used for camera calibration.
-    Other targets (circle grids, ChArUco): ``outline = (u0, u1, v0, v1)``, the board's
-    rectangle in its frame (mm), and ``centre_mm``, the point put on the drawn ray
-    (default: the chessboard's, from ``board`` and ``square_mm``).
+    The board (inner corners ``board = (cols, rows)``, ``square_mm``) faces the camera, its
+    centre on the ray of a pixel drawn uniformly from the central ``centre_frac`` of the
+    image's width and height, at ``distance_mm`` from the camera, tilted by ``tilt_deg``
+    about a random in-plane axis and turned by up to ``±spin_deg`` about its normal; poses
+    whose board outline leaves the image (less ``margin_px``) are redrawn, and with a light
+    plane those whose stripe crosses less than ``min_stripe_frac`` of the board's width (or
+    height); at most ``max_tries`` draws.  The defaults are :data:`STRIPE_CAPTURE`.
     """
-    camera = default_camera() if camera is None else camera
-    cols, rows = board
-    u0, u1, v0, v1 = _board_outline(board, square_mm, square_mm) if outline is None else outline
-    outline_b = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
-    if centre_mm is None:
-        centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
-    else:
-        centre_b = np.array([float(centre_mm[0]), float(centre_mm[1]), 0.0])
-    out: list[tuple[np.ndarray, np.ndarray]] = []
-    for _ in range(max_tries):
-        if len(out) == n:
-            break
-        lo, hi = 0.5 - centre_frac / 2, 0.5 + centre_frac / 2
-        uv = rng.uniform([lo * camera.width, lo * camera.height], [hi * camera.width, hi * camera.height])
-        ray = camera.rays(uv[None])[0]
-        dist = rng.uniform(*distance_mm)
-        C = ray / np.linalg.norm(ray) * dist
-        phi = rng.uniform(0, 2 * np.pi)
-        tilt = np.deg2rad(rng.uniform(*tilt_deg))
-        spin = np.deg2rad(rng.uniform(-spin_deg, spin_deg))
-        R = _rotation([np.cos(phi), np.sin(phi), 0.0], tilt) @ _rotation([0, 0, 1.0], spin)
-        t = C - R @ centre_b
-        corners_cam = outline_b @ R.T + t
-        if np.any(corners_cam[:, 2] <= 50):
-            continue
-        # board must face the camera: its z axis points away from the camera
-        if R[:, 2] @ C <= 0:
-            continue
-        uvc = camera.project(corners_cam)
-        if not (np.all(np.isfinite(uvc)) and np.all(camera.in_image(uvc, margin=margin_px))):
-            continue
-        if plane is not None:
-            seg = _board_stripe(plane, R, t, board, square_mm)
-            if seg is None:
-                continue
-            if np.linalg.norm(seg[1] - seg[0]) < min_stripe_frac * (min(cols, rows) - 1) * square_mm:
-                continue
-        out.append((R, t))
-    if len(out) < n:
-        raise LightplaneError(f"sample_board_poses: could only place {len(out)} of {n} boards in view "
-                              f"(board {cols}x{rows}, square {square_mm} mm, distance {distance_mm} mm)")
-    return out
+
+    board: tuple[int, int] = (9, 6)
+    square_mm: float = 8.0
+    distance_mm: tuple[float, float] = (330.0, 560.0)
+    tilt_deg: tuple[float, float] = (10.0, 45.0)
+    centre_frac: float = 0.4
+    spin_deg: float = 30.0
+    margin_px: float = 15.0
+    min_stripe_frac: float = 0.5
+    max_tries: int = 20000
+
+    def __post_init__(self) -> None:
+        cols, rows = int(self.board[0]), int(self.board[1])
+        if cols < 2 or rows < 2:
+            raise LightplaneError(f"board needs at least 2x2 inner corners, got {self.board}")
+        if not self.square_mm > 0:
+            raise LightplaneError(f"square_mm must be positive, got {self.square_mm}")
+        object.__setattr__(self, "board", (cols, rows))
+        object.__setattr__(self, "distance_mm", (self.distance_mm[0], self.distance_mm[1]))
+        object.__setattr__(self, "tilt_deg", (self.tilt_deg[0], self.tilt_deg[1]))
+        object.__setattr__(self, "centre_frac", float(self.centre_frac))
+        object.__setattr__(self, "spin_deg", float(self.spin_deg))
 
 
 #: Chessboard capture designed for Zhang calibration of the default 16 mm camera (field
@@ -719,23 +756,112 @@ def sample_board_poses(n: int, rng: np.random.Generator, *, camera: Camera | Non
 #: distortion (a shift of the principal point is nearly a rotation of the camera plus
 #: p1, p2): OpenCV's std of cx, cy is ~0.35, 0.25 px with 20 views (1.9, 1.3 px for the
 #: old 15 views of a 9x6 board); see benchmarks/bench_calibrate.py.
-class BoardCapture(TypedDict):
-    """A capture design: the board's inner corners and square, and the pose ranges of :func:`sample_board_poses`."""
-
-    board: tuple[int, int]
-    square_mm: float
-    distance_mm: tuple[float, float]
-    tilt_deg: tuple[float, float]
-    centre_frac: float
-    spin_deg: float
-
-
-CALIBRATION_CAPTURE: BoardCapture = {"board": (15, 11), "square_mm": 8.0, "distance_mm": (350.0, 650.0),
-                       "tilt_deg": (25.0, 55.0), "centre_frac": 0.8, "spin_deg": 30.0}
+CALIBRATION_CAPTURE = BoardCapture(board=(15, 11), square_mm=8.0, distance_mm=(350.0, 650.0), tilt_deg=(25.0, 55.0),
+                                   centre_frac=0.8, spin_deg=30.0)
 #: Capture of boards crossed by the stripe (Zhou's method, cross ratios): a small board
 #: near the image centre, where the stripe is.
-STRIPE_CAPTURE: BoardCapture = {"board": (9, 6), "square_mm": 8.0, "distance_mm": (330.0, 560.0),
-                  "tilt_deg": (10.0, 45.0), "centre_frac": 0.4, "spin_deg": 30.0}
+STRIPE_CAPTURE = BoardCapture(board=(9, 6), square_mm=8.0, distance_mm=(330.0, 560.0), tilt_deg=(10.0, 45.0),
+                              centre_frac=0.4, spin_deg=30.0)
+
+
+def _board_pose(rng: np.random.Generator, camera: Camera, capture: BoardCapture,
+                centre_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One drawn pose ``(R, t)`` of the board and its centre ``C`` (camera frame, mm)."""
+    lo, hi = 0.5 - capture.centre_frac / 2, 0.5 + capture.centre_frac / 2
+    uv = rng.uniform([lo * camera.width, lo * camera.height], [hi * camera.width, hi * camera.height])
+    ray = camera.rays(uv[None])[0]
+    dist = rng.uniform(*capture.distance_mm)
+    C = ray / np.linalg.norm(ray) * dist
+    phi = rng.uniform(0, 2 * np.pi)
+    tilt = np.deg2rad(rng.uniform(*capture.tilt_deg))
+    spin = np.deg2rad(rng.uniform(-capture.spin_deg, capture.spin_deg))
+    R = _rotation([np.cos(phi), np.sin(phi), 0.0], tilt) @ _rotation([0, 0, 1.0], spin)
+    return R, C - R @ centre_b, C
+
+
+def _board_pose_ok(camera: Camera, capture: BoardCapture, plane: LightPlane | None, outline_b: np.ndarray,
+                   R: np.ndarray, t: np.ndarray, C: np.ndarray) -> bool:
+    """Whether a drawn pose faces the camera with the whole board in view (and, with ``plane``, the
+    stripe across enough of it)."""
+    corners_cam = outline_b @ R.T + t
+    if np.any(corners_cam[:, 2] <= 50):
+        return False
+    # board must face the camera: its z axis points away from the camera
+    if R[:, 2] @ C <= 0:
+        return False
+    uvc = camera.project(corners_cam)
+    if not (np.all(np.isfinite(uvc)) and np.all(camera.in_image(uvc, margin=capture.margin_px))):
+        return False
+    if plane is not None:
+        cols, rows = capture.board
+        seg = _board_stripe(plane, R, t, capture.board, capture.square_mm)
+        if seg is None:
+            return False
+        if np.linalg.norm(seg[1] - seg[0]) < capture.min_stripe_frac * (min(cols, rows) - 1) * capture.square_mm:
+            return False
+    return True
+
+
+def sample_board_poses(n: int, rng: np.random.Generator, capture: BoardCapture = STRIPE_CAPTURE, *,
+                       camera: Camera | None = None, plane: LightPlane | None = None,
+                       outline: tuple[float, float, float, float] | None = None,
+                       centre_mm: tuple[float, float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Random chessboard poses ``(R_cam_board (3, 3), t_cam_board (3,) mm)``, whole board in view.
+
+    ``capture``: the board and the pose ranges (:class:`BoardCapture`; the board has a white
+    margin of one square around its inner corners).  With ``plane``, only poses where the
+    stripe crosses the inner-corner area over at least ``capture.min_stripe_frac`` of the
+    board's width (or height) are kept.  :data:`CALIBRATION_CAPTURE` holds the design used
+    for camera calibration.  Other targets (circle grids, ChArUco): ``outline = (u0, u1, v0,
+    v1)``, the board's rectangle in its frame (mm), and ``centre_mm``, the point put on the
+    drawn ray (default: the chessboard's, from ``capture.board`` and ``capture.square_mm``).
+    """
+    camera = default_camera() if camera is None else camera
+    cols, rows = capture.board
+    square_mm = capture.square_mm
+    u0, u1, v0, v1 = _board_outline(capture.board, square_mm, square_mm) if outline is None else outline
+    outline_b = np.array([[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]])
+    if centre_mm is None:
+        centre_b = np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0])
+    else:
+        centre_b = np.array([float(centre_mm[0]), float(centre_mm[1]), 0.0])
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    for _ in range(capture.max_tries):
+        if len(out) == n:
+            break
+        R, t, C = _board_pose(rng, camera, capture, centre_b)
+        if _board_pose_ok(camera, capture, plane, outline_b, R, t, C):
+            out.append((R, t))
+    if len(out) < n:
+        raise LightplaneError(f"sample_board_poses: could only place {len(out)} of {n} boards in view "
+                              f"(board {cols}x{rows}, square {square_mm} mm, distance {capture.distance_mm} mm)")
+    return out
+
+
+@dataclass(frozen=True)
+class BoardOptions(RenderOptions):
+    """A board scene (:func:`render_chessboard_dataset`, :func:`render_target_dataset`).
+
+    ``capture``: the pose design (:class:`BoardCapture`; None: :data:`CALIBRATION_CAPTURE`
+    without the stripe, :data:`STRIPE_CAPTURE` with it); the chessboard data set also takes
+    its board and square from it.  ``with_stripe``: the laser is on and every board is posed
+    so that the stripe crosses its points; ``laser_off``: with the stripe, also the same pose
+    with the laser off (``*_off.png``); ``dark_laser`` (targets): the laser frames with 3 %
+    of the ambient light.
+    """
+
+    difficulty: str = "clean"
+    capture: BoardCapture | None = None
+    with_stripe: bool = False
+    laser_off: bool = False
+    dark_laser: bool = False
+
+    @property
+    def design(self) -> BoardCapture:
+        """The capture design used: :attr:`capture`, or the default of the stripe setting."""
+        if self.capture is not None:
+            return self.capture
+        return STRIPE_CAPTURE if self.with_stripe else CALIBRATION_CAPTURE
 
 
 def _laser_truth(plane: LightPlane, with_stripe: bool, difficulty: str, imaging, seed: int) -> dict:
@@ -745,14 +871,40 @@ def _laser_truth(plane: LightPlane, with_stripe: bool, difficulty: str, imaging,
             "with_stripe": bool(with_stripe), "difficulty": difficulty, "imaging": imaging.__dict__, "seed": seed}
 
 
-def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int] | None = None,
-                              square_mm: float | None = None, with_stripe: bool = False, *,
-                              laser_off: bool = False, difficulty: str = "clean",
-                              camera: Camera | None = None, plane: LightPlane | None = None, noise: bool = True,
-                              samples: int = 4, edge_samples: int = 16, distance_mm: tuple[float, float] | None = None,
-                              tilt_deg: tuple[float, float] | None = None, centre_frac: float | None = None,
+def _render_board_view(camera: Camera, plane: LightPlane, patches: np.ndarray, img_rng: np.random.Generator,
+                       options: BoardOptions, texels: np.ndarray | None = None
+                       ) -> tuple[list[tuple[str, np.ndarray]], float, float]:
+    """The images of one board pose: ``[(suffix, image)]`` (``""``, and ``"_off"`` for the laser-off
+    companion), the ambient light and the laser power drawn for it."""
+    imaging = options.imaging
+    jit = imaging.exposure_jitter
+    ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
+    power = 180.0 * (1.0 + img_rng.uniform(-jit, jit))
+    salt = int(img_rng.integers(0, 2**31 - 1))
+    stripe = options.with_stripe
+    variants = [("", power if stripe else 0.0, 0.03 if (options.dark_laser and stripe) else 1.0)]
+    if options.laser_off and stripe:
+        variants.append(("_off", 0.0, 1.0))
+    out = []
+    for suffix, pw, amb in variants:
+        laser = _laser_row(plane, imaging, pw, img_rng)
+        rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient * amb,
+                                 samples=options.samples, edge_samples=options.edge_samples, salt=salt, texels=texels)
+        out.append((suffix, _finish(rad, camera, imaging, img_rng, noise=options.noise)))
+    return out, ambient, power
+
+
+def _board_patches(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None) -> np.ndarray:
+    """The board and the grey background 250 mm behind it."""
+    bg = rc.make_patch([0, 0, float(t[2] + 250.0)], [1, 0, 0], [0, 1, 0], albedo=_BACKGROUND_ALBEDO)
+    return np.array([_target_patch(spec, R, t, layout), bg])
+
+
+def render_chessboard_dataset(n: int = 20, seed: int = 0, options: BoardOptions = BoardOptions(), *,
+                              camera: Camera | None = None, plane: LightPlane | None = None,
                               progress=None) -> Dataset:
-    """``n`` views of a chessboard (``board`` inner corners ``(cols, rows)``, ``square_mm``).
+    """``n`` views of a chessboard (``options.design``: its ``board`` inner corners ``(cols, rows)``,
+    ``square_mm`` and the pose ranges, see :class:`BoardOptions`).
 
     The board: ``(cols + 1) x (rows + 1)`` squares, the first one dark, a white margin of
     one square, in the board frame of OpenCV (inner corners at ``(i, j, 0) * square``,
@@ -760,82 +912,60 @@ def render_chessboard_dataset(n: int = 20, seed: int = 0, board: tuple[int, int]
     so the stripe crosses its corners (for Zhou's method and the cross-ratio check,
     docs/method.md §Zhou baseline, §Cross-ratio check); ``laser_off`` adds, for each view, a companion image of the same pose with
     the laser off (``board_XXX_off.png``).
-    ``board``, ``square_mm``, ``distance_mm`` (board centre), ``tilt_deg`` and
-    ``centre_frac`` (see :func:`sample_board_poses`) left as None take
-    :data:`CALIBRATION_CAPTURE` without the stripe and :data:`STRIPE_CAPTURE` with it.
     Truth per view: ``T_cam_board`` (``R``, ``t`` mm), the corners projected (distorted and
     undistorted px), and with the stripe the 3-D segment of the plane across the corner area.
     """
-    design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
-    board = design["board"] if board is None else board
-    square_mm = design["square_mm"] if square_mm is None else square_mm
-    distance_mm = design["distance_mm"] if distance_mm is None else (distance_mm[0], distance_mm[1])
-    tilt_deg = design["tilt_deg"] if tilt_deg is None else (tilt_deg[0], tilt_deg[1])
-    centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
+    design = options.design
     n = _check_n(n)
-    _check_choice(difficulty, DIFFICULTIES, "difficulty")
-    cols, rows = int(board[0]), int(board[1])
-    if cols < 2 or rows < 2:
-        raise LightplaneError(f"board needs at least 2x2 inner corners, got {board}")
-    if not square_mm > 0:
-        raise LightplaneError(f"square_mm must be positive, got {square_mm}")
+    if options.dark_laser:
+        raise LightplaneError("dark_laser: render_target_dataset renders dark laser frames (a chessboard target "
+                              "there gives the same images)")
+    (cols, rows), square_mm = design.board, design.square_mm
     camera = default_camera() if camera is None else camera
     plane = default_plane() if plane is None else plane
-    imaging = _IMAGING[difficulty]
     rng = np.random.default_rng(seed)
-    poses = sample_board_poses(n, rng, camera=camera, board=(cols, rows), square_mm=square_mm,
-                               distance_mm=distance_mm, tilt_deg=tilt_deg, centre_frac=centre_frac,
-                               spin_deg=design["spin_deg"], plane=plane if with_stripe else None)
+    poses = sample_board_poses(n, rng, design, camera=camera, plane=plane if options.with_stripe else None)
     obj = board_corners((cols, rows), square_mm)
-    u0, u1, v0, v1 = _board_outline((cols, rows), square_mm, square_mm)
+    spec = TargetSpec("chessboard", cols, rows, square_mm)
     images, names, views = [], [], []
     for i, (R, t) in enumerate(poses):
-        img_rng = np.random.default_rng([seed, i])
-        patch = rc.make_patch(t, R[:, 0], R[:, 1], shape=rc.SHAPE_RECT, region=(u0, u1, v0, v1), albedo=0.86,
-                              layer=1, checker=(square_mm, cols + 1, rows + 1, 0.06))
-        bg_z = float(t[2] + 250.0)
-        bg = rc.make_patch([0, 0, bg_z], [1, 0, 0], [0, 1, 0], albedo=0.25)
-        patches = np.array([patch, bg])
-        jit = imaging.exposure_jitter
-        ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
-        power = 180.0 * (1.0 + img_rng.uniform(-jit, jit))
-        variants = [("", power if with_stripe else 0.0)]
-        if laser_off and with_stripe:
-            variants.append(("_off", 0.0))
+        shots, ambient, power = _render_board_view(camera, plane, _board_patches(spec, R, t, None),
+                                                   np.random.default_rng([seed, i]), options)
         entry: dict[str, object] = {"T_cam_board": {"R": R, "t": t}, "corners_px": camera.project(obj @ R.T + t),
-                 "corners_undistorted_px": camera.project(obj @ R.T + t, distort=False),
-                 "ambient_dn": ambient}
-        salt = int(img_rng.integers(0, 2**31 - 1))
-        for suffix, pw in variants:
-            laser = _laser_row(plane, imaging, pw, img_rng)
-            rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient,
-                                     samples=samples, edge_samples=edge_samples, salt=salt)
-            img = _finish(rad, camera, imaging, img_rng, noise=noise)
-            name = f"board_{i:03d}{suffix}.png"
+                                    "corners_undistorted_px": camera.project(obj @ R.T + t, distort=False),
+                                    "ambient_dn": ambient}
+        for suffix, img in shots:
             images.append(img)
-            names.append(name)
-            entry["file" if suffix == "" else "file_laser_off"] = name
-        if with_stripe:
+            names.append(f"board_{i:03d}{suffix}.png")
+            entry["file" if suffix == "" else "file_laser_off"] = names[-1]
+        if options.with_stripe:
             entry["laser_power_dn"] = power
             entry["stripe_on_board_mm"] = _board_stripe(plane, R, t, (cols, rows), square_mm)
         views.append(entry)
         if progress is not None:
             progress(i + 1, n)
-    truth = {
+    return Dataset(images, names, camera, _chessboard_truth(n, seed, plane, options, obj, views))
+
+
+def _chessboard_truth(n: int, seed: int, plane: LightPlane, options: BoardOptions, obj: np.ndarray,
+                      views: list[dict]) -> dict:
+    d = options.design
+    (cols, rows), square_mm = d.board, d.square_mm
+    return {
         "scene": "chessboard",
         "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
         "frame": "camera",
         "board": {"inner_corners": [cols, rows], "square_mm": square_mm, "squares": [cols + 1, rows + 1],
                   "first_square": "dark", "margin_mm": square_mm,
                   "corners_board_mm": obj, "corner_order": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)",
-                  "outline_board_mm": [u0, u1, v0, v1]},
-        **_laser_truth(plane, with_stripe, difficulty, imaging, seed),
+                  "outline_board_mm": list(_board_outline((cols, rows), square_mm, square_mm))},
+        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed),
         "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
-                    "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
-                    "with_stripe": with_stripe, "laser_off": laser_off, "difficulty": difficulty},
+                    "distance_mm": list(d.distance_mm), "tilt_deg": list(d.tilt_deg), "centre_frac": d.centre_frac,
+                    "with_stripe": options.with_stripe, "laser_off": options.laser_off,
+                    "difficulty": options.difficulty},
         "views": views,
     }
-    return Dataset(images, names, camera, truth)
 
 
 # ----------------------------------------------------------------------------- other targets
@@ -1099,26 +1229,62 @@ def dot_image_centres(camera: Camera, R: np.ndarray, t: np.ndarray, centres_mm: 
             "projected_centres_px": camera.project(centres_cam)}
 
 
-def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = "clean", *,
-                          camera: Camera | None = None, noise: bool = True, samples: int = 4, edge_samples: int = 16,
-                          distance_mm: tuple[float, float] | None = None, tilt_deg: tuple[float, float] | None = None,
-                          centre_frac: float | None = None, spin_deg: float | None = None,
-                          with_stripe: bool = False, laser_off: bool = False, dark_laser: bool = False,
-                          plane: LightPlane | None = None, progress=None) -> Dataset:
+def _target_view_truth(camera: Camera, spec: TargetSpec, obj: np.ndarray, R: np.ndarray, t: np.ndarray,
+                       layout: dict | None, ambient: float) -> dict[str, object]:
+    """A target view's truth: its pose and its points projected (with the dots' image centres, the markers)."""
+    pc = obj @ R.T + t
+    points_px = camera.project(pc)
+    entry: dict[str, object] = {"T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
+                                "points_px": points_px, "points_undistorted_px": camera.project(pc, distort=False),
+                                "ambient_dn": ambient}
+    if spec.kind in ("circles", "acircles"):
+        dot = spec.dot_diameter_mm
+        assert dot is not None  # a circle grid
+        dc = dot_image_centres(camera, R, t, obj, 0.5 * dot)
+        entry.update({k: v for k, v in dc.items() if k != "projected_centres_px"})
+        entry["centre_bias_px"] = np.linalg.norm(dc["ellipse_centres_px"] - points_px, axis=1)
+    if layout is not None:
+        mc = layout["marker_corners_mm"]
+        entry["marker_ids"] = layout["marker_ids"]
+        entry["marker_corners_px"] = camera.project(mc.reshape(-1, 3) @ R.T + t).reshape(-1, 4, 2)
+    return entry
+
+
+def _target_info(spec: TargetSpec, obj: np.ndarray, outline: np.ndarray, layout: dict | None) -> dict[str, object]:
+    """The truth's description of the target: its points, their order, its outline and albedos."""
+    order = {"chessboard": "inner corners (i, j) * square, id j * cols + i",
+             "charuco": "chessboard corners ((i + 1), (j + 1)) * square (OpenCV's CharucoBoard frame), "
+                        "id j * (cols - 1) + i",
+             "circles": "dot centres (i, j) * pitch, id j * cols + i",
+             "acircles": "dot centres ((2 i + j mod 2), j) * pitch, id j * cols + i"}[spec.kind]
+    tinfo: dict[str, object] = {**spec.to_dict(), "object_points_mm": obj, "point_order": order,
+                                "outline_board_mm": outline, "board_albedo": _BOARD_ALBEDO, "ink_albedo": _INK_ALBEDO}
+    if spec.kind in ("circles", "acircles"):
+        tinfo["dot_diameter_mm"] = spec.dot_diameter_mm
+    if layout is not None:
+        tinfo.update(marker_ids=layout["marker_ids"], marker_corners_mm=layout["marker_corners_mm"],
+                     texel_mm=layout["cell_mm"])
+    return tinfo
+
+
+def render_target_dataset(target, n: int = 30, seed: int = 0, options: BoardOptions = BoardOptions(), *,
+                          camera: Camera | None = None, plane: LightPlane | None = None,
+                          progress=None) -> Dataset:
     """``n`` views of a calibration target (chessboard, circle grid, asymmetric circle grid or
     ChArUco board) in the calibration-capture style, with exact truth.
 
     ``target``: see :func:`target_spec` (a ``lightplane.camera.targets.Target``, a dict, a tuple or a
     :data:`TARGET_CAPTURES` name).  The board (white, albedo 0.86, ink 0.06, with a margin of
-    one square or pitch) is posed as by :func:`sample_board_poses` with
-    :data:`CALIBRATION_CAPTURE`'s distances, tilts, centring and spin (override with the
-    keywords), whole in view, 250 mm in front of a grey background, laser off.  A chessboard
-    target gives the same images as :func:`render_chessboard_dataset` with the same seed.
+    one square or pitch) is posed as by :func:`sample_board_poses` with the distances, tilts,
+    centring and spin of ``options.design`` (:class:`BoardOptions`: :data:`CALIBRATION_CAPTURE`
+    unless given; its board and square are the target's), whole in view, 250 mm in front of a
+    grey background, laser off.  A chessboard target gives the same images as
+    :func:`render_chessboard_dataset` with the same seed.
     Circle dots are exact discs, ChArUco boards OpenCV's own layout (bit-exact texture).
 
     ``with_stripe``: the laser is on and every board is posed so that the stripe crosses
-    its points (:data:`STRIPE_CAPTURE`'s distances, tilts and centring unless overridden;
-    for Zhou's method and the cross-ratio check); ``laser_off`` adds, per view, the same
+    its points (:data:`STRIPE_CAPTURE`'s distances, tilts and centring unless a capture is
+    given; for Zhou's method and the cross-ratio check); ``laser_off`` adds, per view, the same
     pose with the laser off (``*_off.png``: a laser-off frame or a lit pattern frame);
     ``dark_laser`` renders the laser frames with 3 % of the ambient light (dark,
     low-exposure laser frames in which the board cannot be found, as FabScan takes them).
@@ -1131,93 +1297,49 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, difficulty: str = 
     ``(M, 4, 2)``.
     """
     spec = target_spec(target)
-    design = STRIPE_CAPTURE if with_stripe else CALIBRATION_CAPTURE
-    distance_mm = design["distance_mm"] if distance_mm is None else (distance_mm[0], distance_mm[1])
-    tilt_deg = design["tilt_deg"] if tilt_deg is None else (tilt_deg[0], tilt_deg[1])
-    centre_frac = design["centre_frac"] if centre_frac is None else float(centre_frac)
-    spin_deg = design["spin_deg"] if spin_deg is None else float(spin_deg)
     n = _check_n(n)
-    _check_choice(difficulty, DIFFICULTIES, "difficulty")
     camera = default_camera() if camera is None else camera
-    imaging = _IMAGING[difficulty]
     obj = target_object_points(spec)
     outline = _target_outline(spec)
     centre = 0.5 * (obj[:, :2].min(axis=0) + obj[:, :2].max(axis=0))
     layout = _charuco_layout(spec) if spec.kind == "charuco" else None
     texels = None if layout is None else layout["texels"]
     plane = default_plane() if plane is None else plane  # laser off: its row still takes the chessboard's draws
-    rng = np.random.default_rng(seed)
     # the stripe check clips to [0, (cols-1) s] x [0, (rows-1) s]: the points' rectangle of each kind
     stripe_box = {"acircles": (2 * spec.cols, spec.rows), "charuco": (spec.cols + 1, spec.rows + 1)}.get(
         spec.kind, (spec.cols, spec.rows))
-    poses = sample_board_poses(n, rng, camera=camera, board=stripe_box, square_mm=spec.square_mm,
-                               distance_mm=distance_mm, tilt_deg=tilt_deg, centre_frac=centre_frac,
-                               spin_deg=spin_deg, outline=tuple(outline), centre_mm=tuple(centre),
-                               plane=plane if with_stripe else None)
+    capture = replace(options.design, board=stripe_box, square_mm=spec.square_mm)
+    poses = sample_board_poses(n, np.random.default_rng(seed), capture, camera=camera,
+                               plane=plane if options.with_stripe else None, outline=tuple(outline),
+                               centre_mm=tuple(centre))
     images, names, views = [], [], []
     for i, (R, t) in enumerate(poses):
-        img_rng = np.random.default_rng([seed, i])
-        bg = rc.make_patch([0, 0, float(t[2] + 250.0)], [1, 0, 0], [0, 1, 0], albedo=_BACKGROUND_ALBEDO)
-        patches = np.array([_target_patch(spec, R, t, layout), bg])
-        jit = imaging.exposure_jitter
-        ambient = 150.0 * (1.0 + img_rng.uniform(-jit, jit))
-        power = 180.0 * (1.0 + img_rng.uniform(-jit, jit))
-        salt = int(img_rng.integers(0, 2**31 - 1))
-        variants = [("", power if with_stripe else 0.0, 0.03 if (dark_laser and with_stripe) else 1.0)]
-        if laser_off and with_stripe:
-            variants.append(("_off", 0.0, 1.0))
+        shots, ambient, power = _render_board_view(camera, plane, _board_patches(spec, R, t, layout),
+                                                   np.random.default_rng([seed, i]), options, texels)
         files = {}
-        for suffix, pw, amb in variants:
-            laser = _laser_row(plane, imaging, pw, img_rng)
-            rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient * amb,
-                                     samples=samples, edge_samples=edge_samples, salt=salt, texels=texels)
-            images.append(_finish(rad, camera, imaging, img_rng, noise=noise))
-            name = f"{spec.kind}_{i:03d}{suffix}.png"
-            names.append(name)
-            files["file" if suffix == "" else "file_laser_off"] = name
-        pc = obj @ R.T + t
-        points_px = camera.project(pc)
-        entry: dict[str, object] = {**files, "T_cam_board": {"R": R, "t": t}, "ids": np.arange(len(obj)),
-                                    "points_px": points_px, "points_undistorted_px": camera.project(pc, distort=False),
-                                    "ambient_dn": ambient}
-        if spec.kind in ("circles", "acircles"):
-            dot = spec.dot_diameter_mm
-            assert dot is not None  # a circle grid
-            dc = dot_image_centres(camera, R, t, obj, 0.5 * dot)
-            entry.update({k: v for k, v in dc.items() if k != "projected_centres_px"})
-            entry["centre_bias_px"] = np.linalg.norm(dc["ellipse_centres_px"] - points_px, axis=1)
-        if layout is not None:
-            mc = layout["marker_corners_mm"]
-            entry["marker_ids"] = layout["marker_ids"]
-            entry["marker_corners_px"] = camera.project(mc.reshape(-1, 3) @ R.T + t).reshape(-1, 4, 2)
-        if with_stripe:
+        for suffix, img in shots:
+            images.append(img)
+            names.append(f"{spec.kind}_{i:03d}{suffix}.png")
+            files["file" if suffix == "" else "file_laser_off"] = names[-1]
+        entry: dict[str, object] = {**files, **_target_view_truth(camera, spec, obj, R, t, layout, ambient)}
+        if options.with_stripe:
             entry["laser_power_dn"] = power
             entry["stripe_on_board_mm"] = _board_stripe(plane, R, t, stripe_box, spec.square_mm)
         views.append(entry)
         if progress is not None:
             progress(i + 1, n)
-    order = {"chessboard": "inner corners (i, j) * square, id j * cols + i",
-             "charuco": "chessboard corners ((i + 1), (j + 1)) * square (OpenCV's CharucoBoard frame), "
-                        "id j * (cols - 1) + i",
-             "circles": "dot centres (i, j) * pitch, id j * cols + i",
-             "acircles": "dot centres ((2 i + j mod 2), j) * pitch, id j * cols + i"}[spec.kind]
-    tinfo: dict[str, object] = {**spec.to_dict(), "object_points_mm": obj, "point_order": order, "outline_board_mm": outline,
-             "board_albedo": _BOARD_ALBEDO, "ink_albedo": _INK_ALBEDO}
-    if spec.kind in ("circles", "acircles"):
-        tinfo["dot_diameter_mm"] = spec.dot_diameter_mm
-    if layout is not None:
-        tinfo.update(marker_ids=layout["marker_ids"], marker_corners_mm=layout["marker_corners_mm"],
-                     texel_mm=layout["cell_mm"])
+    d = options.design
     truth = {
         "scene": "target",
         "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
         "frame": "camera",
-        "target": tinfo,
-        **_laser_truth(plane, with_stripe, difficulty, imaging, seed),
-        "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": difficulty,
-                    "distance_mm": list(distance_mm), "tilt_deg": list(tilt_deg), "centre_frac": centre_frac,
-                    "spin_deg": spin_deg, "samples": samples, "edge_samples": edge_samples, "noise": noise,
-                    "with_stripe": with_stripe, "laser_off": laser_off, "dark_laser": dark_laser},
+        "target": _target_info(spec, obj, outline, layout),
+        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed),
+        "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": options.difficulty,
+                    "distance_mm": list(d.distance_mm), "tilt_deg": list(d.tilt_deg), "centre_frac": d.centre_frac,
+                    "spin_deg": d.spin_deg, "samples": options.samples, "edge_samples": options.edge_samples,
+                    "noise": options.noise, "with_stripe": options.with_stripe, "laser_off": options.laser_off,
+                    "dark_laser": options.dark_laser},
         "views": views,
     }
     return Dataset(images, names, camera, truth)

@@ -15,21 +15,51 @@ background.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
 
-def render_saturated(shape=(80, 400), *, width_px=5.0, amplitude=2.0, clip=255.0, dtype=np.uint8,
-                     theta=0.06, v0=40.3, blur_px=0.7, noise=0.01, background=0.05, halo=None,
-                     secondary=None, subtract=False, rng=None, ss=4):
-    """Image and ``truth(u)``: the row where the centre line crosses column ``u``.
+@dataclass(frozen=True)
+class SaturatedStripe:
+    """A synthetic saturated stripe (:func:`render_saturated`).
 
-    ``noise``, ``background``: fractions of ``clip``; ``halo = (height, fwhm_px,
-    offset_px)``, height a fraction of ``clip``, centred ``offset_px`` off the
-    centre line along its normal; ``secondary = (height, distance_px)``, height a fraction of ``clip``.
+    ``shape``: image ``(H, W)``; ``width_px``: the stripe's FWHM; ``amplitude``: times ``clip``
+    (a number, or a function of the column ``u``: :func:`hot_spot`); ``clip``, ``dtype``: the
+    clipping level and the image type; ``theta``: the centre line's direction angle, ``v0``:
+    its row at the middle column; ``blur_px``: optical blur (Gaussian σ); ``noise``,
+    ``background``: fractions of ``clip``; ``halo = (height, fwhm_px, offset_px)``, height a
+    fraction of ``clip``, centred ``offset_px`` off the centre line along its normal;
+    ``secondary = (height, distance_px)``, height a fraction of ``clip``; ``subtract``: a
+    laser-off frame subtracted; ``ss``: ``ss x ss`` samples per pixel.
     """
+
+    shape: tuple[int, int] = (80, 400)
+    width_px: float = 5.0
+    amplitude: float | Callable = 2.0
+    clip: float = 255.0
+    dtype: type = np.uint8
+    theta: float = 0.06
+    v0: float = 40.3
+    blur_px: float = 0.7
+    noise: float = 0.01
+    background: float = 0.05
+    halo: tuple[float, float, float] | None = None
+    secondary: tuple[float, float] | None = None
+    subtract: bool = False
+    ss: int = 4
+
+
+def render_saturated(stripe: SaturatedStripe = SaturatedStripe(), rng: np.random.Generator | None = None):
+    """Image and ``truth(u)``: the row where the centre line crosses column ``u`` (``stripe``:
+    :class:`SaturatedStripe`; ``rng`` for the noise, default seeded 0)."""
     import cv2
 
     rng = np.random.default_rng(0) if rng is None else rng
+    shape, width_px, amplitude, clip, dtype = stripe.shape, stripe.width_px, stripe.amplitude, stripe.clip, stripe.dtype
+    theta, v0, blur_px, noise, background = stripe.theta, stripe.v0, stripe.blur_px, stripe.noise, stripe.background
+    halo, secondary, subtract, ss = stripe.halo, stripe.secondary, stripe.subtract, stripe.ss
     H, W = shape
     n = np.array([-np.sin(theta), np.cos(theta)])
     o = (np.arange(ss) + 0.5) / ss - 0.5
@@ -47,7 +77,7 @@ def render_saturated(shape=(80, 400), *, width_px=5.0, amplitude=2.0, clip=255.0
             if secondary is not None:
                 sa, sd = secondary
                 acc += sa * np.exp(-0.5 * ((d - sd) / s) ** 2)
-    img = clip * acc / ss**2
+    img: np.ndarray = clip * acc / ss**2
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     bg = background * clip * (1.0 + 0.5 * np.sin(u / 37.0 + v / 23.0))

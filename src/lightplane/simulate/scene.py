@@ -45,6 +45,7 @@ __all__ = [
     "paper_plane",
     "PAPER_DISTANCE_MM",
     "TargetPlacement",
+    "PlacementOptions",
     "sample_placements",
     "synthetic_observations",
 ]
@@ -300,24 +301,94 @@ class TargetPlacement:
         return C / np.linalg.norm(C)
 
 
-def sample_placements(
-    n: int,
-    rng: np.random.Generator,
-    *,
-    camera: Camera | None = None,
-    plane: LightPlane | None = None,
-    diameter_mm: float = 50.0,
-    distance_mm: tuple[float, float] = (380.0, 520.0),
-    tilt_deg: tuple[float, float] = (15.0, 55.0),
-    min_chord_frac: float = 0.4,
-    margin_px: float = 20.0,
-    max_tries: int = 100000,
-) -> list[TargetPlacement]:
+@dataclass(frozen=True)
+class PlacementOptions:
+    """The design of random disc placements (:func:`sample_placements`).
+
+    ``diameter_mm``: the disc; ``distance_mm``: the range of the centres' distances;
+    ``tilt_deg``: the range of the disc normal's angle to the line of sight; ``min_chord_frac``:
+    the stripe's shortest chord across the disc, as a fraction of the diameter; ``margin_px``:
+    the rim stays this far inside the image; ``max_tries``: draws before giving up.
+    """
+
+    diameter_mm: float = 50.0
+    distance_mm: tuple[float, float] = (380.0, 520.0)
+    tilt_deg: tuple[float, float] = (15.0, 55.0)
+    min_chord_frac: float = 0.4
+    margin_px: float = 20.0
+    max_tries: int = 100000
+
+    def __post_init__(self) -> None:
+        if not (self.diameter_mm > 0):
+            raise LightplaneError(f"diameter_mm must be positive, got {self.diameter_mm}")
+        if not (0.0 <= self.min_chord_frac < 1.0):
+            raise LightplaneError(f"min_chord_frac must be in [0, 1), got {self.min_chord_frac}")
+
+
+def _draw_placement(rng: np.random.Generator, camera: Camera, plane: LightPlane,
+                    options: PlacementOptions) -> TargetPlacement | None:
+    """One drawn placement, or None when the draw is rejected (see :func:`sample_placements`)."""
+    lo, hi = float(options.distance_mm[0]), float(options.distance_mm[1])
+    t_lo, t_hi = np.deg2rad(options.tilt_deg[0]), np.deg2rad(options.tilt_deg[1])
+    diameter_mm, margin_px = options.diameter_mm, options.margin_px
+    h_max = 0.5 * diameter_mm * np.sqrt(1.0 - options.min_chord_frac**2)
+    # a point of the light plane seen somewhere in the image, at an admissible distance
+    uv = rng.uniform([margin_px, margin_px], [camera.width - 1 - margin_px, camera.height - 1 - margin_px])
+    ray = camera.rays(uv[None, :])[0]
+    den = plane.normal @ ray
+    if abs(den) < 1e-9:
+        return None
+    s = -plane.d / den
+    if s <= 0:
+        return None
+    P = s * ray
+    if not (lo <= np.linalg.norm(P) <= hi):
+        return None
+    # disc normal: the line of sight towards the camera, tilted
+    view = -_unit(P)
+    a1, a2 = _perpendicular_basis(view)
+    phi = rng.uniform(0.0, 2.0 * np.pi)
+    axis = np.cos(phi) * a1 + np.sin(phi) * a2
+    tilt = rng.uniform(t_lo, t_hi)
+    # Rodrigues' rotation of `view` about `axis` (axis ⟂ view)
+    N = np.cos(tilt) * view + np.sin(tilt) * np.cross(axis, view)
+    # shift the centre within the disc plane, perpendicular to the stripe line
+    line_dir = np.cross(N, plane.normal)
+    if np.linalg.norm(line_dir) < 1e-6:
+        return None
+    across = _unit(np.cross(N, line_dir))
+    C = P + rng.uniform(-h_max, h_max) * across
+    if not (lo <= np.linalg.norm(C) <= hi):
+        return None
+    # re-tilt from the line of sight to the final centre (same axis angle and tilt),
+    # so that the tilt is exactly the angle between normal and line of sight
+    view = -_unit(C)
+    a1, a2 = _perpendicular_basis(view)
+    axis = np.cos(phi) * a1 + np.sin(phi) * a2
+    N = np.cos(tilt) * view + np.sin(tilt) * np.cross(axis, view)
+    try:
+        tp = TargetPlacement(C, N, diameter_mm)
+    except LightplaneError:
+        return None
+    chord = tp.chord(plane)
+    if chord is None or np.linalg.norm(chord[1] - chord[0]) < options.min_chord_frac * diameter_mm:
+        return None
+    rim = tp.rim_points(72)
+    if np.any(rim[:, 2] <= 0):
+        return None
+    uv_rim = camera.project(rim)
+    if not np.all(np.isfinite(uv_rim)) or not np.all(camera.in_image(uv_rim, margin=margin_px)):
+        return None
+    return tp
+
+
+def sample_placements(n: int, rng: np.random.Generator, options: PlacementOptions = PlacementOptions(), *,
+                      camera: Camera | None = None, plane: LightPlane | None = None) -> list[TargetPlacement]:
     """Draw ``n`` random disc placements that satisfy docs/conventions.md §Default sensor.
 
-    Each placement: a point P on the light plane, seen in the image, at a distance in
-    ``distance_mm``; the disc centre C shifted from P within the disc plane,
-    perpendicular to the stripe, by up to ``r sqrt(1 - min_chord_frac²)``; the disc
+    Each placement (``options``: :class:`PlacementOptions`): a point P on the light plane, seen
+    in the image, at a distance in ``distance_mm``; the disc centre C shifted from P within the
+    disc plane, perpendicular to the stripe, by up to ``r sqrt(1 - min_chord_frac²)``; the disc
     normal is the line of sight from C towards the camera tilted by an angle
     uniform in ``tilt_deg`` about a uniformly random axis perpendicular to it.  The
     chord is then checked to be at least ``min_chord_frac`` of the diameter.  Rejected and redrawn unless the centre's
@@ -331,72 +402,19 @@ def sample_placements(
     plane = default_plane() if plane is None else plane
     if int(n) < 0:
         raise LightplaneError(f"n must be >= 0, got {n}")
-    if not (diameter_mm > 0):
-        raise LightplaneError(f"diameter_mm must be positive, got {diameter_mm}")
-    if not (0.0 <= min_chord_frac < 1.0):
-        raise LightplaneError(f"min_chord_frac must be in [0, 1), got {min_chord_frac}")
-    lo, hi = float(distance_mm[0]), float(distance_mm[1])
-    t_lo, t_hi = np.deg2rad(tilt_deg[0]), np.deg2rad(tilt_deg[1])
-    r = 0.5 * diameter_mm
-    h_max = r * np.sqrt(1.0 - min_chord_frac**2)
     out: list[TargetPlacement] = []
     tries = 0
     while len(out) < int(n):
         tries += 1
-        if tries > max_tries:
+        if tries > options.max_tries:
             raise LightplaneError(
-                f"sample_placements: could not place {n} discs within {max_tries} draws "
-                f"(distance {distance_mm} mm, tilt {tilt_deg} deg, diameter {diameter_mm} mm): "
+                f"sample_placements: could not place {n} discs within {options.max_tries} draws "
+                f"(distance {options.distance_mm} mm, tilt {options.tilt_deg} deg, diameter {options.diameter_mm} mm): "
                 "is the light plane in view at those distances?"
             )
-        # a point of the light plane seen somewhere in the image, at an admissible distance
-        uv = rng.uniform([margin_px, margin_px], [camera.width - 1 - margin_px, camera.height - 1 - margin_px])
-        ray = camera.rays(uv[None, :])[0]
-        den = plane.normal @ ray
-        if abs(den) < 1e-9:
-            continue
-        s = -plane.d / den
-        if s <= 0:
-            continue
-        P = s * ray
-        if not (lo <= np.linalg.norm(P) <= hi):
-            continue
-        # disc normal: the line of sight towards the camera, tilted
-        view = -_unit(P)
-        a1, a2 = _perpendicular_basis(view)
-        phi = rng.uniform(0.0, 2.0 * np.pi)
-        axis = np.cos(phi) * a1 + np.sin(phi) * a2
-        tilt = rng.uniform(t_lo, t_hi)
-        # Rodrigues' rotation of `view` about `axis` (axis ⟂ view)
-        N = np.cos(tilt) * view + np.sin(tilt) * np.cross(axis, view)
-        # shift the centre within the disc plane, perpendicular to the stripe line
-        line_dir = np.cross(N, plane.normal)
-        if np.linalg.norm(line_dir) < 1e-6:
-            continue
-        across = _unit(np.cross(N, line_dir))
-        C = P + rng.uniform(-h_max, h_max) * across
-        if not (lo <= np.linalg.norm(C) <= hi):
-            continue
-        # re-tilt from the line of sight to the final centre (same axis angle and tilt),
-        # so that the tilt is exactly the angle between normal and line of sight
-        view = -_unit(C)
-        a1, a2 = _perpendicular_basis(view)
-        axis = np.cos(phi) * a1 + np.sin(phi) * a2
-        N = np.cos(tilt) * view + np.sin(tilt) * np.cross(axis, view)
-        try:
-            tp = TargetPlacement(C, N, diameter_mm)
-        except LightplaneError:
-            continue
-        chord = tp.chord(plane)
-        if chord is None or np.linalg.norm(chord[1] - chord[0]) < min_chord_frac * diameter_mm:
-            continue
-        rim = tp.rim_points(72)
-        if np.any(rim[:, 2] <= 0):
-            continue
-        uv_rim = camera.project(rim)
-        if not np.all(np.isfinite(uv_rim)) or not np.all(camera.in_image(uv_rim, margin=margin_px)):
-            continue
-        out.append(tp)
+        tp = _draw_placement(rng, camera, plane, options)
+        if tp is not None:
+            out.append(tp)
     return out
 
 

@@ -13,6 +13,8 @@ turntable frame of :meth:`lightplane.motion.model.Turntable.basis`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from lightplane.camera.model import Camera
@@ -21,10 +23,11 @@ from lightplane.motion.model import Turntable, rotation_about
 from lightplane.plane.model import LightPlane
 from lightplane.simulate import render_core as rc
 from lightplane.simulate.scene import default_camera, default_plane
-from lightplane.simulate.render import _IMAGING, DIFFICULTIES, Dataset, _check_choice, _check_n, _finish, _laser_row, laser_source
+from lightplane.simulate.render import (_IMAGING, DIFFICULTIES, Dataset, RenderOptions, _check_choice, _check_n, _finish,
+                                        _laser_row, laser_source)
 from lightplane.simulate.render import _charuco_layout, _target_patch, target_object_points, target_spec
 
-__all__ = ["default_turntable", "mirrored_plane", "render_turntable_scan", "render_turntable_board"]
+__all__ = ["default_turntable", "mirrored_plane", "TurntableScanOptions", "render_turntable_scan", "render_turntable_board"]
 
 TABLE_RADIUS_MM = 70.0
 
@@ -63,48 +66,33 @@ def _angles(n: int, step_deg: float | None, start_deg: float) -> tuple[float, np
     return step, start_deg + step * np.arange(n)
 
 
-def render_turntable_scan(n_frames: int = 24, step_deg: float | None = None, seed: int = 0, *,
-                          difficulty: str = "clean", lasers: int = 2, radius_mm: float = 20.0,
-                          offset_mm: float = 12.0, start_deg: float = 0.0, camera: Camera | None = None,
-                          plane: LightPlane | None = None, table: Turntable | None = None, noise: bool = True,
-                          progress=None) -> Dataset:
-    """A sphere on a turntable, one frame per angle and laser (``laser0_000.png``, ``laser1_000.png``...).
+@dataclass(frozen=True)
+class TurntableScanOptions(RenderOptions):
+    """A turntable scan (:func:`render_turntable_scan`) and its image formation.
 
-    The sphere (``radius_mm``) rests on the table's top, its centre ``offset_mm`` from the
-    axis (so every frame sees a different slice); frame ``k`` is at ``start_deg + k ·
-    step_deg`` (default step: one turn over ``n_frames``).  ``lasers`` 1 or 2: each laser
-    has its own frames (one laser on at a time).  Truth: the axis (``turntable``), the
-    angle of every frame, each laser's plane, the sphere's centre in the turntable frame
-    and per frame in the camera frame.
+    ``step_deg``: degrees per frame (None: one turn over the frames), frame ``k`` at
+    ``start_deg + k · step_deg``; ``lasers``: 1 or 2 (each laser has its own frames);
+    ``radius_mm``: the sphere, resting on the table's top, its centre ``offset_mm`` from the axis.
     """
-    _check_choice(difficulty, DIFFICULTIES, "difficulty")
-    n_frames = _check_n(n_frames, "n_frames")
-    if lasers not in (1, 2):
-        raise LightplaneError(f"lasers must be 1 or 2, got {lasers}")
-    camera = default_camera() if camera is None else camera
-    plane = default_plane() if plane is None else plane
-    table = default_turntable(plane) if table is None else table
-    planes = [plane, mirrored_plane(plane, table.point_mm)][:lasers]
-    step, angles = _angles(n_frames, step_deg, start_deg)
-    o, B = table.basis()
-    q = np.array([offset_mm, 0.0, radius_mm])  # sphere centre, turntable frame
-    imaging = _IMAGING[difficulty]
-    patches = np.array([_table_patch(table)])
-    images, names, frames = [], [], []
-    for li, pl in enumerate(planes):
-        for k, ang in enumerate(angles):
-            rng = np.random.default_rng([seed, li, k])
-            c = o + B @ (rotation_about([0, 0, 1.0], np.deg2rad(ang)) @ q)
-            spheres = np.array([rc.make_sphere(c, radius_mm, 0.7)])
-            laser = _laser_row(pl, imaging, 220.0, rng)
-            rad = rc.render_radiance(camera, patches, spheres, laser, 4.0, salt=int(rng.integers(0, 2**31 - 1)))
-            images.append(_finish(rad, camera, imaging, rng, noise=noise))
-            names.append(f"laser{li}_{k:03d}.png")
-            if li == 0:
-                frames.append({"angle_deg": float(ang), "sphere_center_cam_mm": c})
-            if progress is not None:
-                progress(len(images), n_frames * len(planes))
-    truth = {
+
+    difficulty: str = "clean"
+    step_deg: float | None = None
+    start_deg: float = 0.0
+    lasers: int = 2
+    radius_mm: float = 20.0
+    offset_mm: float = 12.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.lasers not in (1, 2):
+            raise LightplaneError(f"lasers must be 1 or 2, got {self.lasers}")
+
+
+def _turntable_scan_truth(table: Turntable, planes: list[LightPlane], n_frames: int, step: float,
+                          angles: np.ndarray, seed: int, options: TurntableScanOptions, frames: list[dict]) -> dict:
+    o = options
+    q = np.array([o.offset_mm, 0.0, o.radius_mm])
+    return {
         "scene": "turntable_scan",
         "units": "mm; degrees; pixels (OpenCV convention)",
         "frame": "camera; the object in the turntable frame (lightplane.motion.model.Turntable.basis)",
@@ -112,14 +100,54 @@ def render_turntable_scan(n_frames: int = 24, step_deg: float | None = None, see
         "lasers": {f"laser{i}": {"plane": p.to_dict(), "source_mm": laser_source(p),
                                  "files": [f"laser{i}_{k:03d}.png" for k in range(n_frames)]}
                    for i, p in enumerate(planes)},
-        "step_deg": step, "start_deg": float(start_deg), "angles_deg": angles,
-        "sphere": {"radius_mm": radius_mm, "center_turntable_mm": q},
+        "step_deg": step, "start_deg": float(o.start_deg), "angles_deg": angles,
+        "sphere": {"radius_mm": o.radius_mm, "center_turntable_mm": q},
         "table_radius_mm": TABLE_RADIUS_MM,
-        "difficulty": difficulty, "imaging": imaging.__dict__, "seed": seed,
-        "options": {"n_frames": n_frames, "step_deg": step, "start_deg": start_deg, "lasers": lasers,
-                    "radius_mm": radius_mm, "offset_mm": offset_mm, "seed": seed, "difficulty": difficulty},
+        "difficulty": o.difficulty, "imaging": o.imaging.__dict__, "seed": seed,
+        "options": {"n_frames": n_frames, "step_deg": step, "start_deg": o.start_deg, "lasers": o.lasers,
+                    "radius_mm": o.radius_mm, "offset_mm": o.offset_mm, "seed": seed, "difficulty": o.difficulty},
         "frames": frames,
     }
+
+
+def render_turntable_scan(n_frames: int = 24, seed: int = 0, options: TurntableScanOptions = TurntableScanOptions(),
+                          *, camera: Camera | None = None, plane: LightPlane | None = None,
+                          table: Turntable | None = None, progress=None) -> Dataset:
+    """A sphere on a turntable, one frame per angle and laser (``laser0_000.png``, ``laser1_000.png``...).
+
+    ``options`` (:class:`TurntableScanOptions`): the sphere (``radius_mm``) rests on the
+    table's top, its centre ``offset_mm`` from the axis (so every frame sees a different
+    slice); frame ``k`` is at ``start_deg + k · step_deg`` (default step: one turn over
+    ``n_frames``).  ``lasers`` 1 or 2: each laser has its own frames (one laser on at a
+    time).  Truth: the axis (``turntable``), the angle of every frame, each laser's plane,
+    the sphere's centre in the turntable frame and per frame in the camera frame.
+    """
+    n_frames = _check_n(n_frames, "n_frames")
+    camera = default_camera() if camera is None else camera
+    plane = default_plane() if plane is None else plane
+    table = default_turntable(plane) if table is None else table
+    planes = [plane, mirrored_plane(plane, table.point_mm)][:options.lasers]
+    step, angles = _angles(n_frames, options.step_deg, options.start_deg)
+    o, B = table.basis()
+    q = np.array([options.offset_mm, 0.0, options.radius_mm])  # sphere centre, turntable frame
+    imaging = options.imaging
+    patches = np.array([_table_patch(table)])
+    images, names, frames = [], [], []
+    for li, pl in enumerate(planes):
+        for k, ang in enumerate(angles):
+            rng = np.random.default_rng([seed, li, k])
+            c = o + B @ (rotation_about([0, 0, 1.0], np.deg2rad(ang)) @ q)
+            spheres = np.array([rc.make_sphere(c, options.radius_mm, 0.7)])
+            laser = _laser_row(pl, imaging, 220.0, rng)
+            rad = rc.render_radiance(camera, patches, spheres, laser, 4.0, samples=options.samples,
+                                     edge_samples=options.edge_samples, salt=int(rng.integers(0, 2**31 - 1)))
+            images.append(_finish(rad, camera, imaging, rng, noise=options.noise))
+            names.append(f"laser{li}_{k:03d}.png")
+            if li == 0:
+                frames.append({"angle_deg": float(ang), "sphere_center_cam_mm": c})
+            if progress is not None:
+                progress(len(images), n_frames * len(planes))
+    truth = _turntable_scan_truth(table, planes, n_frames, step, angles, seed, options, frames)
     return Dataset(images, names, camera, truth)
 
 
