@@ -37,7 +37,7 @@ from lightplane.measure.scan import Motion, measure_scan
 from lightplane.camera.targets import Detection, Target, parse_target
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.plane.zhou import calibrate_plane_board
-from lightplane.evaluate.crossratio import evaluate_images
+from lightplane.evaluate.crossratio import EvaluateOptions, evaluate_images
 
 __all__ = [
     "Camera",
@@ -47,6 +47,7 @@ __all__ = [
     "calibrate_camera",
     "calibrate_plane_board",
     "evaluate_images",
+    "EvaluateOptions",
     "parse_target",
     "DistanceErrors",
     "Ellipse",

@@ -14,8 +14,8 @@ import pytest
 from lightplane import LightPlane
 from lightplane.camera.board_pose import pose_from_corners
 from lightplane.core.errors import LightplaneError
-from lightplane.evaluate.crossratio import (cross_ratio, cross_ratio_points, evaluate_views, first_point_pairs,
-                                 point_from_cross_ratio)
+from lightplane.evaluate.crossratio import (CrossRatioOptions, cross_ratio, cross_ratio_points, evaluate_views,
+                                           first_point_pairs, point_from_cross_ratio)
 
 from _board_scenes import BOARD, CAM, PLANE1, R1, SQ, T1, rot, scene, vertical_plane
 
@@ -33,7 +33,7 @@ def test_cross_ratio_formula_roundtrip():
 def test_ideal_points_exact_rows(corners_used):
     corners, stripe, ideal = scene(R1, T1, PLANE1)
     cr = cross_ratio_points(CAM.undistort_points(corners), BOARD, CAM.undistort_points(stripe), square_mm=SQ,
-                            corners_used=corners_used)
+                            options=CrossRatioOptions(corners_used=corners_used))
     assert cr.family == "rows"
     np.testing.assert_array_equal(cr.line_index, np.arange(6))
     np.testing.assert_allclose(cr.p_board_mm, ideal, atol=1e-8)
@@ -56,7 +56,7 @@ def test_ideal_points_exact_with_corners_left_out():
     ok[[0, 1, 2, 3, 4, 5]] = False  # row 0 keeps only three corners
     for mode in ("three", "all"):
         cr = cross_ratio_points(CAM.undistort_points(corners), BOARD, CAM.undistort_points(stripe), square_mm=SQ,
-                                corners_used=mode, corner_ok=ok)
+                                options=CrossRatioOptions(corners_used=mode), corner_ok=ok)
         np.testing.assert_array_equal(cr.line_index, np.arange(6))
         np.testing.assert_allclose(cr.p_board_mm, ideal, atol=1e-8)
     ok[6] = False  # row 0: two corners left -> that row is skipped
@@ -77,7 +77,7 @@ def test_ideal_points_exact_columns():
     np.testing.assert_allclose(cr.p_board_mm, ideal, atol=1e-8)
     # forcing the other family finds no crossing (the stripe is along the rows)
     rows = cross_ratio_points(CAM.undistort_points(corners), BOARD, CAM.undistort_points(stripe), square_mm=SQ,
-                              lines="rows")
+                              options=CrossRatioOptions(lines="rows"))
     assert len(rows) < len(cr)
 
 
@@ -90,7 +90,7 @@ def test_ideal_points_noise():
         c = CAM.undistort_points(corners + rng.normal(0, 0.05, corners.shape))
         s = CAM.undistort_points(stripe + rng.normal(0, 0.1, stripe.shape))
         for mode in err:
-            cr = cross_ratio_points(c, BOARD, s, square_mm=SQ, corners_used=mode)
+            cr = cross_ratio_points(c, BOARD, s, square_mm=SQ, options=CrossRatioOptions(corners_used=mode))
             err[mode].append(cr.p_board_mm[:, 0] - ideal[:, 0])
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
     # one corner's 0.05 px is ~0.019 mm; the all-corner fit averages 9 of them
@@ -147,6 +147,6 @@ def test_bad_arguments():
     with pytest.raises(LightplaneError, match="corners_uv_undist has"):
         cross_ratio_points(corners[:-1], BOARD, stripe, square_mm=SQ)
     with pytest.raises(LightplaneError, match="lines"):
-        cross_ratio_points(corners, BOARD, stripe, square_mm=SQ, lines="diagonal")
+        cross_ratio_points(corners, BOARD, stripe, square_mm=SQ, options=CrossRatioOptions(lines="diagonal"))
     with pytest.raises(LightplaneError, match="square_mm"):
         cross_ratio_points(corners, BOARD, stripe, square_mm=-1)

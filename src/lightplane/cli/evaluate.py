@@ -16,7 +16,7 @@ from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
 from lightplane.cli.calibrate_plane_board import read_laser_frames
 from lightplane.camera.model import Camera
-from lightplane.evaluate.crossratio import evaluate_images
+from lightplane.evaluate.crossratio import EvaluateOptions, Evaluation, evaluate_images
 from lightplane.plane.model import LightPlane
 
 
@@ -58,17 +58,35 @@ def evaluate_cmd(
         raise LightplaneError("no images given (no files matched)")
     imgs, _, bgs, bg_files, skipped = read_laser_frames(files, None, background, rotate)
     keep = [k for k, f in enumerate(files) if str(f) not in skipped]
+    options = EvaluateOptions(lines=lines, corners_used=corners_used, stripe_width_px=stripe_width, channel=channel)
 
     with progress_bar("board poses and stripes", len(keep)) as update:
-        ev = evaluate_images([imgs[k] for k in keep], cam, planes, board=target,
+        ev = evaluate_images([imgs[k] for k in keep], cam, planes, board=target, options=options,
                              background_images=None if bgs is None else (bgs if len(bgs) == 1 else
                                                                          [bgs[k] for k in keep]),
-                             labels=labels, image_names=[str(files[k]) for k in keep], stripe_width_px=stripe_width,
-                             channel=channel, lines=lines, corners_used=corners_used, skipped=skipped,
+                             labels=labels, image_names=[str(files[k]) for k in keep], skipped=skipped,
                              progress=lambda i: update(i + 1))
-    used_names = list(ev.view_names)
+    _print_evaluation(ev, labels, plane, len(files), target)
+    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(), "lines": lines, "corners": corners_used,
+            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate, "camera": str(camera),
+            "background": [str(f) for f in bg_files]}
+    if json_out is not None:
+        d = ev.to_dict()
+        d["planes"] = {str(p): d["planes"][lab] for p, lab in zip(plane, labels)}
+        d["images"] = [str(f) for f in files]
+        d["units"] = "mm"
+        d["provenance"] = provenance([*files, *plane], opts)
+        atomic_write(json_out, dumps_json(d), force=force)
+        console.print(f"wrote {json_out}")
+    if csv_out is not None:
+        atomic_write(csv_out, _csv_table(ev, labels), force=force)
+        console.print(f"wrote {csv_out}")
 
-    # the paper's Table 2: dm1, dm2, ... and Δ(dt, dm1), ... ; short headers keep it within 80 columns
+
+def _print_evaluation(ev: Evaluation, labels: list[str], plane: List[Path], n_files: int, target: Target) -> None:
+    """The paper's Table 2 (dm1, dm2, ... and Δ(dt, dm1), ...; short headers keep it within 80 columns), then the
+    planes, the crossings, the skipped images and each plane's RMS."""
+    used_names = list(ev.view_names)
     t = Table(title="Cross-ratio evaluation, paper Table 2 layout (all distances in mm)", show_edge=False)
     for c in ("No.", "image", "pair", "dt"):
         t.add_column(c, justify="left" if c == "image" else "right")
@@ -84,7 +102,7 @@ def evaluate_cmd(
     console.print(t)
     for k, (lab, p) in enumerate(zip(labels, plane)):
         console.print(f"  dm{k + 1}, Δ{k + 1} = dt - dm{k + 1}: {p}")
-    console.print(f"{len(ev.ideal_board_mm)} stripe crossings in {len(set(ev.view_index.tolist()))} of {len(files)} "
+    console.print(f"{len(ev.ideal_board_mm)} stripe crossings in {len(set(ev.view_index.tolist()))} of {n_files} "
                   f"images, {len(ev.pairs)} pairs (each image's first crossing with the others); "
                   f"board: {target.describe()}")
     for name, why in ev.skipped.items():
@@ -93,25 +111,16 @@ def evaluate_cmd(
         console.print(f"{lab}: RMS Δ {e.rms_mm:.4f} mm, max |Δ| {e.max_abs_mm:.4f} mm; 3D point error vs the "
                       f"board pose: RMS {float((pe**2).mean() ** 0.5):.4f} mm")
 
-    opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(), "lines": lines, "corners": corners_used,
-            "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate, "camera": str(camera),
-            "background": [str(f) for f in bg_files]}
-    if json_out is not None:
-        d = ev.to_dict()
-        d["planes"] = {str(p): d["planes"][lab] for p, lab in zip(plane, labels)}
-        d["images"] = [str(f) for f in files]
-        d["units"] = "mm"
-        d["provenance"] = provenance([*files, *plane], opts)
-        atomic_write(json_out, dumps_json(d), force=force)
-        console.print(f"wrote {json_out}")
-    if csv_out is not None:
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["no", "image", "i", "j", "dt_mm", *[f"dm_mm[{lab}]" for lab in labels],
-                    *[f"delta_mm[{lab}]" for lab in labels]])
-        for k, (i, j) in enumerate(ev.pairs):
-            w.writerow([k + 1, used_names[ev.view_index[i]], i + 1, j + 1, f"{ev.errors[0].dt_mm[k]:.6f}",
-                        *[f"{e.dm_mm[k]:.6f}" for e in ev.errors], *[f"{e.delta_mm[k]:.6f}" for e in ev.errors]])
-        w.writerow(["rms", "", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.6f}" for e in ev.errors]])
-        atomic_write(csv_out, buf.getvalue(), force=force)
-        console.print(f"wrote {csv_out}")
+
+def _csv_table(ev: Evaluation, labels: list[str]) -> str:
+    """The table as CSV (mm)."""
+    used_names = list(ev.view_names)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["no", "image", "i", "j", "dt_mm", *[f"dm_mm[{lab}]" for lab in labels],
+                *[f"delta_mm[{lab}]" for lab in labels]])
+    for k, (i, j) in enumerate(ev.pairs):
+        w.writerow([k + 1, used_names[ev.view_index[i]], i + 1, j + 1, f"{ev.errors[0].dt_mm[k]:.6f}",
+                    *[f"{e.dm_mm[k]:.6f}" for e in ev.errors], *[f"{e.delta_mm[k]:.6f}" for e in ev.errors]])
+    w.writerow(["rms", "", "", "", "", *[""] * len(labels), *[f"{e.rms_mm:.6f}" for e in ev.errors]])
+    return buf.getvalue()

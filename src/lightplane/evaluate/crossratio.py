@@ -46,6 +46,8 @@ __all__ = [
     "distance_errors",
     "cross_ratio",
     "point_from_cross_ratio",
+    "CrossRatioOptions",
+    "EvaluateOptions",
     "CrossRatioPoints",
     "cross_ratio_points",
     "first_point_pairs",
@@ -172,6 +174,45 @@ def _line_map(X: np.ndarray, s: np.ndarray) -> tuple[float, float, float]:
 
 
 @dataclass(frozen=True)
+class CrossRatioOptions:
+    """How the stripe's crossings with the target's lines of points are found (:func:`cross_ratio_points`).
+
+    ``lines``: ``"rows"``, ``"columns"`` or ``"auto"`` (the family the stripe crosses more
+    often; ties go to the steeper crossing).  ``corners_used``: ``"three"`` — the paper's
+    construction with A, B, C = first, middle and last corner of the line; ``"all"`` — a
+    least-squares 1D homography through every corner of the line (the same map, less
+    sensitive to corner noise).  ``window_px``: half-width of the band around a corner line
+    in which stripe points are used; default: all of them.  The stripe on a flat board is
+    straight in undistorted pixels, so one line through all its centres is both the most
+    precise and the only choice that always bridges the dark squares on either side of a
+    corner line, where the stripe is faint or missing.  Give a band (e.g. 1.5 square
+    spacings) for a board that is not flat.  ``min_angle_deg``: crossings flatter than this
+    are skipped (ill-conditioned).  ``min_stripe_points``: fewest stripe points for one crossing.
+    """
+
+    lines: str = "auto"
+    corners_used: str = "all"
+    window_px: float | None = None
+    min_angle_deg: float = 15.0
+    min_stripe_points: int = 4
+
+    def __post_init__(self) -> None:
+        if self.lines not in ("rows", "columns", "auto"):
+            raise LightplaneError(f"lines must be 'rows', 'columns' or 'auto', got {self.lines!r}")
+        if self.corners_used not in ("three", "all"):
+            raise LightplaneError(f"corners_used must be 'three' or 'all', got {self.corners_used!r}")
+
+
+@dataclass(frozen=True)
+class EvaluateOptions(CrossRatioOptions):
+    """:class:`CrossRatioOptions` and the stripe extraction of :func:`evaluate_images`:
+    ``stripe_width_px`` (None: estimated) and the laser's colour ``channel`` (None: gray)."""
+
+    stripe_width_px: float | None = None
+    channel: str | None = None
+
+
+@dataclass(frozen=True)
 class CrossRatioPoints:
     """Ideal points where the stripe crosses lines of chessboard corners.
 
@@ -197,8 +238,7 @@ class CrossRatioPoints:
 
 
 def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe: np.ndarray, square_mm: float,
-               family: str, corners_used: str, window_px: float | None, min_angle_deg: float,
-               min_stripe_points: int) -> CrossRatioPoints:
+               family: str, options: CrossRatioOptions) -> CrossRatioPoints:
     """Crossings of the stripe with the lattice lines: ``grid`` (ny, nx, 2) points (undistorted px),
     ``okg`` (ny, nx) which of them exist and are usable, lattice point (x, y) at
     ``origin_mm + (x, y)·square_mm`` on the board."""
@@ -207,6 +247,7 @@ def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe:
         lines = [(grid[j], okg[j]) for j in range(rows)]
     else:
         lines = [(grid[:, i], okg[:, i]) for i in range(cols)]
+    window_px, min_stripe_points = options.window_px, options.min_stripe_points
     half_window = np.inf if window_px is None else float(window_px)
     pts, uvs, idx, angles, counts = [], [], [], [], []
     for li, (full_line, line_ok) in enumerate(lines):
@@ -236,13 +277,13 @@ def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe:
                 break
             q = q[keep]
         angle = float(np.degrees(np.arctan2(abs(qd[1]), abs(qd[0]))))
-        if angle < min_angle_deg:
+        if angle < options.min_angle_deg:
             continue
         s_d = qm[0] - qm[1] * qd[0] / qd[1]  # where the stripe line meets h = 0
         s_lo, s_hi = s_c[0] - step * X[0], s_c[-1] + step * (len(full_line) - 1 - X[-1])  # the full line
         if not (s_lo - step <= s_d <= s_hi + step):
             continue
-        if corners_used == "three":
+        if options.corners_used == "three":
             ia, ib, ic = 0, (len(line) - 1) // 2, len(line) - 1
             x_d = float(point_from_cross_ratio(cross_ratio(s_c[ia], s_c[ib], s_c[ic], s_d), X[ia], X[ib], X[ic]))
         else:
@@ -268,10 +309,8 @@ def _crossings(grid: np.ndarray, okg: np.ndarray, origin_mm: np.ndarray, stripe:
 
 
 def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: np.ndarray, *,
-                       square_mm: float | None = None, lines: str = "auto", corners_used: str = "all",
-                       window_px: float | None = None, min_angle_deg: float = 15.0,
-                       min_stripe_points: int = 4, corner_ok: np.ndarray | None = None,
-                       ids=None) -> CrossRatioPoints:
+                       square_mm: float | None = None, options: CrossRatioOptions = CrossRatioOptions(),
+                       corner_ok: np.ndarray | None = None, ids=None) -> CrossRatioPoints:
     """Ideal points where the stripe crosses the target's lines of points (paper §4.3, Eq. 16).
 
     The lines are the rows and columns of the target's lattice
@@ -290,19 +329,8 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
     stripe_uv_undist : (N, 2) float
         Stripe centre points in undistorted pixels, on the board only (mask first).
     square_mm : float, the square size (with a (cols, rows) board).
-    lines : "rows", "columns" or "auto" (the family the stripe crosses more often;
-        ties go to the steeper crossing).
-    corners_used : "three" — the paper's construction with A, B, C = first, middle
-        and last corner of the line; "all" — a least-squares 1D homography through
-        every corner of the line (the same map, less sensitive to corner noise).
-    window_px : half-width of the band around a corner line in which stripe points
-        are used; default: all of them.  The stripe on a flat board is straight in
-        undistorted pixels, so one line through all its centres is both the most
-        precise and the only choice that always bridges the dark squares on either
-        side of a corner line, where the stripe is faint or missing.  Give a band
-        (e.g. 1.5 square spacings) for a board that is not flat.
-    min_angle_deg : crossings flatter than this are skipped (ill-conditioned).
-    min_stripe_points : fewest stripe points for one crossing.
+    options : :class:`CrossRatioOptions` (the line family, the corners used, the stripe
+        band, the flattest crossing, the fewest stripe points).
     corner_ok : (N,) bool, points to use (e.g. not those the stripe runs over);
         a line needs three usable points.  Default: all.
 
@@ -310,10 +338,6 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
     -------
     CrossRatioPoints (possibly empty: the caller decides whether that is an error).
     """
-    if lines not in ("rows", "columns", "auto"):
-        raise LightplaneError(f"lines must be 'rows', 'columns' or 'auto', got {lines!r}")
-    if corners_used not in ("three", "all"):
-        raise LightplaneError(f"corners_used must be 'three' or 'all', got {corners_used!r}")
     if square_mm is not None and not (np.isfinite(square_mm) and square_mm > 0):
         raise LightplaneError(f"square_mm must be positive, got {square_mm}")
     target = as_target(board, square_mm)  # checks the board
@@ -339,10 +363,9 @@ def cross_ratio_points(corners_uv_undist: np.ndarray, board, stripe_uv_undist: n
     grid[lat[:, 1], lat[:, 0]] = corners
     okg[lat[:, 1], lat[:, 0]] = ok & np.all(np.isfinite(corners), axis=1)
     def crossings(family: str) -> CrossRatioPoints:
-        return _crossings(grid, okg, target.lattice_origin_mm, stripe, float(target.square_mm), family,
-                          corners_used=corners_used, window_px=window_px, min_angle_deg=min_angle_deg,
-                          min_stripe_points=min_stripe_points)
+        return _crossings(grid, okg, target.lattice_origin_mm, stripe, float(target.square_mm), family, options)
 
+    lines = options.lines
     if lines != "auto":
         if lines == "columns" and ny < 3:
             raise LightplaneError("lines='columns' needs at least 3 rows of corners")
@@ -420,7 +443,7 @@ class Evaluation:
 
 def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence, stripes: Sequence[np.ndarray], *,
                    board, square_mm: float | None = None, labels: Sequence[str] | None = None,
-                   lines: str = "auto", corners_used: str = "all", view_names: Sequence[str] | None = None
+                   options: CrossRatioOptions = CrossRatioOptions(), view_names: Sequence[str] | None = None
                    ) -> Evaluation:
     """Cross-ratio evaluation from detected boards and stripe points (paper §4.3).
 
@@ -433,6 +456,7 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
         :func:`lightplane.plane.zhou.find_board`).
     stripes : per view, (N, 2) stripe centres in distorted pixels, on the board.
     board : a :class:`lightplane.camera.targets.Target`, or (cols, rows) chessboard inner corners with ``square_mm``.
+    options : :class:`CrossRatioOptions`, how the crossings are found.
 
     Raises LightplaneError when the stripe crosses no corner line in any view, or
     when no view gives two points (no pair to measure).
@@ -453,9 +477,8 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
     for k, (view, stripe) in enumerate(zip(views, stripes)):
         corners_u = camera.undistort_points(view.corners_uv)
         stripe_u = camera.undistort_points(as_points(stripe, 2, "stripe")) if len(stripe) else np.zeros((0, 2))
-        cr = cross_ratio_points(corners_u, board, stripe_u, square_mm=square_mm, lines=lines,
-                                corners_used=corners_used, corner_ok=getattr(view, "corner_ok", None),
-                                ids=getattr(view, "ids", None))
+        cr = cross_ratio_points(corners_u, board, stripe_u, square_mm=square_mm, options=options,
+                                corner_ok=getattr(view, "corner_ok", None), ids=getattr(view, "ids", None))
         diag.append({"view": names[k], "n_points": len(cr), "family": cr.family,
                      "lines": cr.line_index.tolist()})
         if len(cr) == 0:
@@ -489,17 +512,17 @@ def evaluate_views(camera: Camera, planes: Sequence[LightPlane], views: Sequence
 
 
 def evaluate_images(images: Sequence, camera: Camera, planes: Sequence[LightPlane], *,
-                    board, square_mm: float | None = None, background_images: Sequence[np.ndarray] | None = None,
-                    labels: Sequence[str] | None = None, image_names: Sequence[str] | None = None,
-                    stripe_width_px: float | None = None, channel: str | None = None, lines: str = "auto",
-                    corners_used: str = "all", skipped: dict | None = None, progress=None) -> Evaluation:
+                    board, square_mm: float | None = None, options: EvaluateOptions = EvaluateOptions(),
+                    background_images: Sequence[np.ndarray] | None = None, labels: Sequence[str] | None = None,
+                    image_names: Sequence[str] | None = None, skipped: dict | None = None,
+                    progress=None) -> Evaluation:
     """Cross-ratio evaluation from images of a board with the stripe (paper §4.3).
 
     Per image: the board (a :class:`lightplane.camera.targets.Target`, or (cols, rows) chessboard
     inner corners with ``square_mm``) is found and its pose solved, stripe centres are
     extracted inside the board (after subtracting the laser-off ``background_images``
-    when given: :func:`lightplane.plane.zhou.find_board_views`), then
-    :func:`evaluate_views`.  Images where the board is not found or the stripe is
+    when given: :func:`lightplane.plane.zhou.find_board_views`; ``options.stripe_width_px`` and
+    ``options.channel``), then :func:`evaluate_views` (with ``options``: :class:`EvaluateOptions`).  Images where the board is not found or the stripe is
     missing are skipped with their reason (``Evaluation.skipped``, with the caller's
     ``skipped``); fewer than one usable image raises LightplaneError saying why.
     ``progress(i)`` is called after each image.
@@ -507,11 +530,11 @@ def evaluate_images(images: Sequence, camera: Camera, planes: Sequence[LightPlan
 
     target = as_target(board, square_mm)
     v = find_board_views(images, camera, target, background_images=background_images, image_names=image_names,
-                         stripe_width_px=stripe_width_px, channel=channel, skip=True, min_stripe_points=2,
-                         progress=progress)
+                         stripe_width_px=options.stripe_width_px, channel=options.channel, skip=True,
+                         min_stripe_points=2, progress=progress)
     why = {**(skipped or {}), **v.skipped}
     if not v.poses:
         raise LightplaneError(too_few_images_message("images", 0, 1, why.items()))
-    ev = evaluate_views(camera, planes, v.poses, v.stripes, board=target, labels=labels,
-                        lines=lines, corners_used=corners_used, view_names=v.names)
+    ev = evaluate_views(camera, planes, v.poses, v.stripes, board=target, labels=labels, options=options,
+                        view_names=v.names)
     return replace(ev, skipped=why, view_names=tuple(v.names))
