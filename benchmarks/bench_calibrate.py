@@ -56,26 +56,26 @@ N_BOARDS = 30
 
 
 def _circles(difficulty: str, polarity: str) -> Path:
-    from lightplane.simulate.render import render_circle_dataset
+    from lightplane.simulate.render import CircleOptions, render_circle_dataset
 
     from lightplane.simulate.render import settings_tag
 
     out = CACHE / f"circle_{difficulty}_{polarity}_n12_s0_{settings_tag()}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
-        render_circle_dataset(n=12, seed=0, difficulty=difficulty, polarity=polarity).save(out, force=True)
+        render_circle_dataset(12, 0, CircleOptions(difficulty=difficulty, polarity=polarity)).save(out, force=True)
     return out
 
 
 def _boards(seed: int, n: int = N_BOARDS) -> Path:
-    from lightplane.simulate.render import render_chessboard_dataset
+    from lightplane.simulate.render import BoardOptions, render_chessboard_dataset
 
     from lightplane.simulate.render import settings_tag
 
     out = CACHE / f"boards_capture_realistic_n{n}_s{seed}_{settings_tag()}"
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
-        render_chessboard_dataset(n=n, seed=seed, difficulty="realistic").save(out, force=True)
+        render_chessboard_dataset(n, seed, BoardOptions(difficulty="realistic")).save(out, force=True)
     return out
 
 

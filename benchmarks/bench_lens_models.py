@@ -41,6 +41,7 @@ rays are compared with the true ones as they are and after the best rotation,
 
 from __future__ import annotations
 
+from dataclasses import replace
 import argparse
 import time
 
@@ -56,7 +57,8 @@ from lightplane.camera.lens import coeff_names
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points
 from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
 from lightplane.simulate.scene import default_plane, lens_camera, scheimpflug_camera
-from lightplane.simulate.render import (CALIBRATION_CAPTURE, render_chessboard_dataset, render_circle_dataset,
+from lightplane.simulate.render import (CALIBRATION_CAPTURE, BoardOptions, CircleOptions, render_chessboard_dataset,
+                                        render_circle_dataset,
                                         render_scan_dataset)
 from results import at_most, figure, record, within
 
@@ -107,11 +109,12 @@ def opencv_sigma_check(cal, flags: int) -> str:
 def intrinsics(rig: str, n: int, seed: int, refine="saddle") -> dict:
     cam, model, flags = rig_camera(rig)
     cap = CALIBRATION_CAPTURE
-    ds = render_chessboard_dataset(n, seed=seed, camera=cam, difficulty="realistic",
-                                   distance_mm=BOARD_DISTANCE_MM.get(model))
+    dist = BOARD_DISTANCE_MM.get(model)
+    ds = render_chessboard_dataset(n, seed, BoardOptions(
+        difficulty="realistic", capture=cap if dist is None else replace(cap, distance_mm=dist)), camera=cam)
     t0 = time.perf_counter()
     held = (float(np.rad2deg(cam.dist[12])), float(np.rad2deg(cam.dist[13]))) if rig == "tilted_held" else None
-    cal = calibrate_camera(ds.images, cap["board"], cap["square_mm"], model=model, flags=flags, tilt_deg=held,
+    cal = calibrate_camera(ds.images, cap.board, cap.square_mm, model=model, flags=flags, tilt_deg=held,
                            refine=True if refine == "saddle" else refine)
     dt = time.perf_counter() - t0
     truth = np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.dist])
@@ -163,7 +166,7 @@ def plane(model: str, seed: int, camera: Camera | None = None) -> dict:
     then also the triangulation error after the best rigid alignment, which a rotation of the
     camera frame does not change)."""
     cam, pl = lens_camera(model), default_plane()
-    ds = render_circle_dataset(12, seed=seed, difficulty="realistic", camera=cam, plane=pl)
+    ds = render_circle_dataset(12, seed, CircleOptions(difficulty="realistic"), camera=cam, plane=pl)
     use = cam if camera is None else camera
     t0 = time.perf_counter()
     cal = calibrate_plane(ds.images, use, 50.0, "ml")

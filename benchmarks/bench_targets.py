@@ -39,15 +39,15 @@ NAMES = ("fx", "fy", "cx", "cy")
 
 
 def _render(kind: str, n: int, seed: int) -> Path:
-    from lightplane.simulate.render import (TARGET_CAPTURES, render_chessboard_dataset, render_target_dataset,
+    from lightplane.simulate.render import (TARGET_CAPTURES, BoardOptions, render_chessboard_dataset, render_target_dataset,
                                             settings_tag)
 
     if kind == "chessboard":  # bench_calibrate.py's renders (the same images)
         out = CACHE / f"boards_capture_realistic_n{n}_s{seed}_{settings_tag()}"
-        make = lambda: render_chessboard_dataset(n=n, seed=seed, difficulty="realistic")  # noqa: E731
+        make = lambda: render_chessboard_dataset(n, seed, BoardOptions(difficulty="realistic"))  # noqa: E731
     else:
         out = CACHE / f"target_{kind}_realistic_n{n}_s{seed}_{settings_tag()}"
-        make = lambda: render_target_dataset(TARGET_CAPTURES[kind], n=n, seed=seed, difficulty="realistic")  # noqa: E731
+        make = lambda: render_target_dataset(TARGET_CAPTURES[kind], n, seed, BoardOptions(difficulty="realistic"))  # noqa: E731
     if not (out / "truth.json").exists():
         print(f"rendering {out.name} ...", flush=True)
         t0 = time.perf_counter()

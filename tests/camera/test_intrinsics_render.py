@@ -15,14 +15,14 @@ import pytest
 
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.camera.corners import _detect_board, find_board
-from lightplane.simulate.render import CALIBRATION_CAPTURE, render_chessboard_dataset
+from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardOptions, render_chessboard_dataset
 
 N_VIEWS = 10  # half the default capture, to keep the test fast: std grows by ~sqrt(2)
 
 
 @pytest.fixture(scope="module")
 def boards():
-    return render_chessboard_dataset(n=N_VIEWS, seed=5, difficulty="realistic")
+    return render_chessboard_dataset(N_VIEWS, 5, BoardOptions(difficulty="realistic"))
 
 
 def _corner_errors(ds):
@@ -47,7 +47,7 @@ def _oriented(c, t):
 
 
 def test_default_capture_is_the_calibration_design(boards):
-    assert tuple(boards.truth["board"]["inner_corners"]) == CALIBRATION_CAPTURE["board"]
+    assert tuple(boards.truth["board"]["inner_corners"]) == CALIBRATION_CAPTURE.board
     cam = boards.camera
     uv = np.concatenate([np.asarray(v["corners_px"]) for v in boards.truth["views"]])
     # the corners spread over the whole image: every image corner has board corners within
@@ -59,7 +59,7 @@ def test_default_capture_is_the_calibration_design(boards):
     cells = np.floor(uv / [cam.width / 4, cam.height / 4]).astype(int)
     assert len({tuple(c) for c in cells}) == 16
     tilts = [np.degrees(np.arccos(abs(np.asarray(v["T_cam_board"]["R"])[2, 2]))) for v in boards.truth["views"]]
-    assert min(tilts) >= CALIBRATION_CAPTURE["tilt_deg"][0] - 1e-9 and max(tilts) > 40
+    assert min(tilts) >= CALIBRATION_CAPTURE.tilt_deg[0] - 1e-9 and max(tilts) > 40
 
 
 def test_refined_corners_on_truth(boards):

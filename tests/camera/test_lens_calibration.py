@@ -4,6 +4,7 @@ camera of lightplane.simulate.scene.lens_camera), the over-parameterisation warn
 
 from __future__ import annotations
 
+from dataclasses import replace
 import functools
 import json
 
@@ -16,9 +17,9 @@ from lightplane import Camera
 from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.camera.lens import coeff_names
 from lightplane.simulate.scene import lens_camera
-from lightplane.simulate.render import CALIBRATION_CAPTURE, render_chessboard_dataset
+from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardOptions, render_chessboard_dataset
 
-BOARD, SQUARE = CALIBRATION_CAPTURE["board"], CALIBRATION_CAPTURE["square_mm"]
+BOARD, SQUARE = CALIBRATION_CAPTURE.board, CALIBRATION_CAPTURE.square_mm
 
 
 def half(cam: Camera) -> Camera:
@@ -33,13 +34,14 @@ def half(cam: Camera) -> Camera:
 @pytest.fixture(scope="module")
 def tilted_boards():
     cam = half(lens_camera("tilted"))
-    return cam, render_chessboard_dataset(8, seed=5, camera=cam, difficulty="clean")
+    return cam, render_chessboard_dataset(8, 5, BoardOptions(difficulty="clean"), camera=cam)
 
 
 @pytest.fixture(scope="module")
 def fisheye_boards():
     cam = half(lens_camera("fisheye"))
-    return cam, render_chessboard_dataset(8, seed=6, camera=cam, difficulty="clean", distance_mm=(110.0, 200.0))
+    return cam, render_chessboard_dataset(8, 6, BoardOptions(
+        difficulty="clean", capture=replace(CALIBRATION_CAPTURE, distance_mm=(110.0, 200.0))), camera=cam)
 
 
 def _check_within_sigma(truth: Camera, cal, k: float = 3.5) -> None:
@@ -112,7 +114,8 @@ def test_saddle_fit_in_the_lens_frame_is_unbiased():
     from lightplane.camera.corners import find_board, fit_corners, lens_bend
 
     cam = lens_camera("rational")
-    ds = render_chessboard_dataset(3, seed=2, camera=cam, difficulty="clean", distance_mm=(180.0, 330.0))
+    ds = render_chessboard_dataset(3, 2, BoardOptions(
+        difficulty="clean", capture=replace(CALIBRATION_CAPTURE, distance_mm=(180.0, 330.0))), camera=cam)
     err: dict[str, list] = {"straight": [], "lens": []}
     radial = []
     for img, view in zip(ds.images, ds.truth["views"]):
@@ -216,11 +219,9 @@ def _synthetic_tilted(zero_p: bool, seed: int = 1, sigma_px: float = 0.006):
     from lightplane.simulate.scene import scheimpflug_camera
     from lightplane.simulate.render import board_corners, sample_board_poses
 
-    cap = CALIBRATION_CAPTURE
     cam = scheimpflug_camera(dist=(-0.08, 0.12, 0.0, 0.0, 0.0) if zero_p else (-0.08, 0.12, 4e-4, -3e-4, 0.0))
     rng = np.random.default_rng(seed)
-    poses = sample_board_poses(20, rng, camera=cam, board=BOARD, square_mm=SQUARE, distance_mm=cap["distance_mm"],
-                               tilt_deg=cap["tilt_deg"], centre_frac=cap["centre_frac"], spin_deg=cap["spin_deg"])
+    poses = sample_board_poses(20, rng, CALIBRATION_CAPTURE, camera=cam)
     obj = board_corners(BOARD, SQUARE)
     objs = [obj.astype(np.float32) for _ in poses]
     ims = [(cam.project(obj @ R.T + t) + rng.normal(0, sigma_px, (len(obj), 2))).astype(np.float32).reshape(-1, 1, 2)
