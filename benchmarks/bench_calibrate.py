@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightplane.plane.calibrate import calibrate_plane, observe_images, solve_observations
+from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane, observe_images, solve_observations
 from lightplane.camera.model import Camera
 from lightplane.evaluate.shapes import plane_accuracy
 from lightplane.core.io import expand_inputs, read_image
@@ -82,12 +82,12 @@ def _boards(seed: int, n: int = N_BOARDS) -> Path:
 def _calibrated_camera(boards: Path):
     import cv2
 
-    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 
     truth = json.loads((boards / "truth.json").read_text())
     imgs = [read_image(boards / v["file"]) for v in truth["views"]]
     return calibrate_camera(imgs, tuple(truth["board"]["inner_corners"]), truth["board"]["square_mm"],
-                            flags=cv2.CALIB_FIX_K3)
+                            options=CameraCalibrationOptions(flags=cv2.CALIB_FIX_K3))
 
 
 def main() -> None:
@@ -128,7 +128,7 @@ def main() -> None:
         plane_true = LightPlane.from_dict(truth["plane"])
         files = expand_inputs([folder / "*.png"])
         for cam_label, cam in (("true", cam_true), ("chessbd", cam_cal)):
-            obs = observe_images(files, cam, 50.0, workers=1)
+            obs = observe_images(files, cam, 50.0, PlaneCalibrationOptions(workers=1))
             for method in ("ml", "global", "paper"):
                 try:
                     cal = solve_observations(obs, cam, 50.0, method)
@@ -175,7 +175,7 @@ def main() -> None:
         ts = []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            calibrate_plane(files, cam, 50.0, "ml", workers=workers, executor=executor)
+            calibrate_plane(files, cam, 50.0, "ml", PlaneCalibrationOptions(workers=workers, executor=executor))
             ts.append(time.perf_counter() - t0)
         med = float(np.median(ts))
         print(f"  workers={workers} {executor:<8} {med:6.2f} s  ({med / 3.0:.2f}x the 3 s target)")

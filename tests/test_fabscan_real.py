@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightplane.plane.zhou import calibrate_plane_board
-from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.plane.zhou import BoardFrames, calibrate_plane_board
+from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 from lightplane.core.io import read_image
 from lightplane.plane.model import LightPlane
 from lightplane.core.geometry import tls_line
@@ -80,7 +80,8 @@ def fabscan(shared_data):
 @pytest.fixture(scope="module")
 def camera_cal(fabscan):
     t = time.perf_counter()
-    cal = calibrate_camera([_calib(fabscan, i) for i in CAMERA_FRAMES], BOARD, SQUARE_MM, rotate_deg=ROTATE)
+    cal = calibrate_camera([_calib(fabscan, i) for i in CAMERA_FRAMES], BOARD, SQUARE_MM,
+                           options=CameraCalibrationOptions(rotate_deg=ROTATE))
     return cal, time.perf_counter() - t
 
 
@@ -114,8 +115,8 @@ def planes(fabscan, camera_cal):
     for laser in (0, 1):
         idx = [68 + 3 * k + laser for k in range(17)]
         dark = [read_image(_calib(fabscan, i), rotate_deg=ROTATE) for i in idx]
-        out[laser] = calibrate_plane_board(dark, cam, BOARD, SQUARE_MM, pattern_images=lit,
-                                           image_names=[f"{i:03d}" for i in idx])
+        out[laser] = calibrate_plane_board(BoardFrames(dark, pattern_images=lit, names=[f"{i:03d}" for i in idx]), cam,
+                                           BOARD, SQUARE_MM)
     return cam, out
 
 

@@ -21,13 +21,14 @@ from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
 from lightplane.plane.solvers import PlaneCalibration, SolverOptions, calibrate_plane_from_points
 from lightplane.plane.ml import MLOptions
+from lightplane.plane.joint import JointOptions
 from lightplane.plane.triangulate import triangulate
 from lightplane.plane.circle_pose import CirclePose, circle_poses
 from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, EllipseRefinementOptions, detect_ellipses,
                                 refine_ellipse, select_target)
 from lightplane.stripe.extract import StripePoints, StripeProfile, extract_profile, extract_stripe
 from lightplane.stripe.options import StripeOptions, StripePointsOptions
-from lightplane.plane.calibrate import calibrate_plane
+from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, calibrate_plane
 from lightplane.evaluate.crossratio import DistanceErrors, distance_errors
 from lightplane.plane.uncertainty import point_sigma_mm
 from lightplane.measure.options import CloudOutput, MeasureOptions
@@ -35,8 +36,9 @@ from lightplane.measure.profile import Profile, ProfileMeasurer, measure_profile
 from lightplane.measure.pointcloud import read_cloud, write_cloud
 from lightplane.measure.scan import Motion, measure_scan
 from lightplane.camera.targets import Detection, Target, parse_target
-from lightplane.camera.intrinsics import calibrate_camera
-from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.camera.corners import CornerFitOptions
+from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
+from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_board
 from lightplane.evaluate.crossratio import EvaluateOptions, evaluate_images
 
 __all__ = [
@@ -45,6 +47,8 @@ __all__ = [
     "Detection",
     "Target",
     "calibrate_camera",
+    "CameraCalibrationOptions",
+    "CornerFitOptions",
     "calibrate_plane_board",
     "evaluate_images",
     "EvaluateOptions",
@@ -63,6 +67,11 @@ __all__ = [
     "PlaneCalibration",
     "SolverOptions",
     "MLOptions",
+    "ObserveOptions",
+    "PlaneCalibrationOptions",
+    "BoardFrames",
+    "BoardPlaneOptions",
+    "JointOptions",
     "StripeOptions",
     "StripePoints",
     "StripePointsOptions",

@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from lightplane.plane.calibrate import calibrate_plane
+from lightplane.plane.calibrate import PlaneCalibrationOptions, calibrate_plane
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
@@ -27,7 +27,7 @@ def cal_and_truth():
     cam = Camera.load(folder / "camera.json")
     files = [folder / im["file"] for im in truth["images"]]
     blank = np.full((cam.height, cam.width), 30, np.uint8)
-    cal = calibrate_plane([*files, blank], cam, 50.0, workers=1)
+    cal = calibrate_plane([*files, blank], cam, 50.0, options=PlaneCalibrationOptions(workers=1))
     return cal, LightPlane.from_dict(truth["plane"])
 
 

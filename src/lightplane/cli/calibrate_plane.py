@@ -11,11 +11,10 @@ from rich.table import Table
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.cli._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
-from lightplane.camera.intrinsics import calibrate_camera
 from lightplane.camera.model import Camera
 from lightplane.cli._common import target_from_options
-from lightplane.plane.calibrate import calibrate_plane, calibrate_planes, uncertainty_summary
-from lightplane.plane.joint import refine_joint
+from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, uncertainty_summary
+from lightplane.plane.joint import JointCameraImages, calibrate_light_planes
 from lightplane.plane.uncertainty import (camera_param_names, camera_params, camera_uncertainty_summary,
     joint_dispersion_phrase)
 from lightplane.report.html import write_report
@@ -75,12 +74,53 @@ def calibrate_plane_cmd(
     if joint is None and camera is None:
         raise LightplaneError("give --camera FILE (or --joint-camera GLOB with --board, --square and --camera-out)")
     sels = parse_lasers(laser, channel)
+    outputs, reports = _checked_outputs(output, report, sels, force)
+    cam = None if camera is None else Camera.load(camera)  # None: --joint-camera calibrates it
+    opts = PlaneCalibrationOptions(observe=ObserveOptions(distance_range_mm=(near, far), channel=channel),
+                                   workers=workers)
+    first = ("chessboard images", len(joint[0])) if joint is not None else ("images", len(files))
+    with progress_bar(*first) as update:
+        run = calibrate_light_planes([str(f) for f in files], cam, diameter, method, opts, lasers=sels,
+                                     joint_camera=None if joint is None else
+                                     JointCameraImages([str(f) for f in joint[0]], joint[1]),
+                                     progress=lambda stage, i, n: update(i, total=n, label=stage))
+    results = _print_run(run, joint, sels)
+    options: dict = {"camera": None if camera is None else str(camera), "diameter_mm": diameter, "method": method,
+               "channel": channel, "distance_range_mm": [near, far]}
+    if sels is not None:
+        options["lasers"] = [x.to_dict() for x in sels]
+    inputs = [*map(str, files)] + ([str(camera)] if camera is not None else [])
+    if joint is not None:
+        options.update({"joint_camera": joint_camera, "board": joint[1].spec, "square_mm": joint[1].square_mm,
+                        "camera_out": str(camera_out)})
+        inputs += [str(f) for f in joint[0]]
+    prov = provenance(inputs, options)
+    if run.joint is not None and run.intrinsics is not None:
+        assert camera_out is not None  # checked by _joint_inputs
+        _save_joint_camera(run.joint, run.intrinsics, camera_out, force, prov)
+    for name, cal in run.planes.items():
+        # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
+        extra = {**({"laser": name} if name is not None else {}), **cal.to_dict(), "uncertainty": results[name],
+                 "provenance": prov, "report_inputs": cal.report_inputs()}
+        cal.plane.save(outputs[name], force=force, extra=extra)
+        console.print(f"wrote {outputs[name]}")
+    if report is not None:
+        for name, cal in run.planes.items():
+            rep = reports[name]
+            if name is not None and len(reports) > 1:
+                rep.parent.mkdir(exist_ok=True)
+            path = write_report(rep, cal, force=force, provenance=prov)
+            console.print(f"wrote {path}")
+
+
+def _checked_outputs(output: Path, report: Path | None, sels, force: bool) -> tuple[dict, dict]:
+    """The plane file and report folder of each laser, every one checked before any work: nothing is
+    written on bad input."""
     names: list[str | None] = [x.name for x in sels] if sels else [None]
     outputs: dict[str | None, Path] = {None: output}
     if sels:
         outputs = {n: f for n, f in output_paths(output, [x.name for x in sels]).items()}
     reports = {n: (report if n is None or len(names) == 1 else report / n) for n in names} if report is not None else {}
-    # every output is checked before any work: nothing is written on bad input
     if len(set(map(str, outputs.values()))) < len(outputs):
         raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
     for out in outputs.values():
@@ -95,86 +135,51 @@ def calibrate_plane_cmd(
                 raise LightplaneError(f"{rep}: exists and is not a folder")
             if rep.exists():
                 check_output(rep / "index.html", force)
-    intr = None
-    if joint is not None:
-        board_files, target = joint
-        with progress_bar("chessboard images", len(board_files)) as update:
-            intr = calibrate_camera([str(f) for f in board_files], target, progress=lambda i, n: update(i))
+    return outputs, reports
+
+
+def _print_run(run, joint, sels) -> dict:
+    """The camera (joint), the two-step and joint results and every laser's plane on the console; returns
+    each plane's uncertainty summary."""
+    if run.intrinsics is not None and joint is not None:
+        intr, (board_files, target) = run.intrinsics, joint
         cam = intr.camera
         console.print(f"camera from {len(intr.used)} of {len(board_files)} chessboard views ({target.spec}): "
                       f"fx {cam.fx:.2f} px, fy {cam.fy:.2f} px, cx {cam.cx:.2f} px, cy {cam.cy:.2f} px, "
                       f"RMS reprojection {intr.rms_px:.3f} px")
         for name, why in intr.skipped.items():
             console.print(f"  skipped {name}: {why}")
-    else:
-        assert camera is not None  # checked above
-        cam = Camera.load(camera)
-
-    with progress_bar("images", len(files)) as update:
-        if sels is None:
-            cals = {None: calibrate_plane([str(f) for f in files], cam, diameter, method, workers=workers,
-                                          channel=channel, distance_range_mm=(near, far),
-                                          progress=lambda i, n: update(i))}
-        else:
-            cals = calibrate_planes([str(f) for f in files], cam, diameter, sels, method, workers=workers,
-                                    distance_range_mm=(near, far), progress=lambda i, n: update(i))
-    jc = None
-    if intr is not None:
         console.print("[bold]two-step[/bold] (camera from the chessboards alone, then the plane with it):")
-        _print_calibration(cals[None], cam)
-        jc = refine_joint(intr, cals[None])
-        _print_joint(intr.camera, jc)
-        cals = {None: jc.plane_cal}
-        cam = jc.camera
+        _print_calibration(run.two_step, cam)
+        _print_joint(intr.camera, run.joint)
         console.print("[bold]joint refinement[/bold]:")
     results: dict[str | None, dict] = {}
-    for name, cal in cals.items():
+    for name, cal in run.planes.items():
         if name is not None:
             sel = next(x for x in sels if x.name == name)
             console.print(f"[bold]laser {name}[/bold] ({sel.text}): {cal.n_used} of {len(cal.images)} images used")
-        results[name] = _print_calibration(cal, cam)
+        results[name] = _print_calibration(cal, run.camera)
     if sels is not None and len(sels) > 1:
-        for line in shared_pose_lines(cals):
+        for line in shared_pose_lines(run.planes):
             console.print(line)
+    return results
 
-    options: dict = {"camera": None if camera is None else str(camera), "diameter_mm": diameter, "method": method,
-               "channel": channel, "distance_range_mm": [near, far]}
-    if sels is not None:
-        options["lasers"] = [x.to_dict() for x in sels]
-    inputs = [*map(str, files)] + ([str(camera)] if camera is not None else [])
-    if joint is not None:
-        options.update({"joint_camera": joint_camera, "board": joint[1].spec, "square_mm": joint[1].square_mm,
-                        "camera_out": str(camera_out)})
-        inputs += [str(f) for f in joint[0]]
-    prov = provenance(inputs, options)
-    if jc is not None and intr is not None:
-        assert camera_out is not None  # checked by _joint_inputs
-        r = jc.result
-        jc.camera.save_json(camera_out, force=force, extra={
-            "calibration": {**intr.to_dict(), "joint_refinement": {
-                "covariance_covers": "the corner noise (from the camera calibration's residuals) and the rim and "
-                                     "stripe noise of the circle images (the plane calibration's noise model), board "
-                                     "and target poses and the plane marginalised"
-                                     + (", " + joint_dispersion_phrase(r.dispersion) if r.dispersion_applied else ""),
-                "joint_dispersion": r.dispersion, "joint_dispersion_applied": r.dispersion_applied,
-                "target_images_used": [o.source for o in jc.plane_cal.images if o.used],
-                "corner_rms_px": r.corner_rms_px, "rim_rms_px": r.rim_rms_px, "stripe_rms_px": r.stripe_rms_px,
-                "cost_start": r.cost_start, "cost": r.cost, "evaluations": r.nfev, "converged": r.converged}},
-            "provenance": prov})
-        console.print(f"wrote {camera_out}")
-    for name, cal in cals.items():
-        # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
-        extra = {**({"laser": name} if name is not None else {}), **cal.to_dict(), "uncertainty": results[name],
-                 "provenance": prov, "report_inputs": cal.report_inputs()}
-        cal.plane.save(outputs[name], force=force, extra=extra)
-        console.print(f"wrote {outputs[name]}")
-    if report is not None:
-        for name, cal in cals.items():
-            rep = reports[name]
-            if name is not None and len(names) > 1:
-                rep.parent.mkdir(exist_ok=True)
-            path = write_report(rep, cal, force=force, provenance=prov)
-            console.print(f"wrote {path}")
+
+def _save_joint_camera(jc, intr, camera_out: Path, force: bool, prov: dict) -> None:
+    """The joint camera file: the refined intrinsics with their covariance and the joint refinement's record."""
+    r = jc.result
+    jc.camera.save_json(camera_out, force=force, extra={
+        "calibration": {**intr.to_dict(), "joint_refinement": {
+            "covariance_covers": "the corner noise (from the camera calibration's residuals) and the rim and "
+                                 "stripe noise of the circle images (the plane calibration's noise model), board "
+                                 "and target poses and the plane marginalised"
+                                 + (", " + joint_dispersion_phrase(r.dispersion) if r.dispersion_applied else ""),
+            "joint_dispersion": r.dispersion, "joint_dispersion_applied": r.dispersion_applied,
+            "target_images_used": [o.source for o in jc.plane_cal.images if o.used],
+            "corner_rms_px": r.corner_rms_px, "rim_rms_px": r.rim_rms_px, "stripe_rms_px": r.stripe_rms_px,
+            "cost_start": r.cost_start, "cost": r.cost, "evaluations": r.nfev, "converged": r.converged}},
+        "provenance": prov})
+    console.print(f"wrote {camera_out}")
 
 
 def shared_pose_lines(cals: dict) -> list[str]:

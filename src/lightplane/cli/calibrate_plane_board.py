@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import List, Optional
 
 import numpy as np
 import typer
@@ -16,7 +16,7 @@ from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, progress_bar, takes_target)
 from lightplane.camera.model import Camera
 from lightplane.core.io import try_read_image
-from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
 
@@ -207,31 +207,13 @@ def calibrate_plane_board_cmd(
         slots = laser_slots(len(files), pattern_files, cycle)
         chosen = {n: i for n, i in select_laser_frames(sels, lasers, slots, cycle, pattern_files).items()}
     imgs, pats, bgs, bg_files, skipped = read_laser_frames(lasers, patterns, background, rotate, cycle)
-    names = [str(f) for f in lasers]
     by_name: dict[str | None, LaserSelector] = {x.name: x for x in sels or []}
-    results: dict[str | None, Any] = {}
-    pose_cache: dict = {}  # each pattern frame's board found once for all lasers
-    for lname, idx in chosen.items():
-        sel = by_name.get(lname)
-        keep = [k for k in idx if names[k] not in skipped]
-        label = "board poses and stripes" + ("" if lname is None else f", laser {lname}")
-        with progress_bar(label, len(keep)) as update:
-            try:
-                res = calibrate_plane_board([imgs[k] for k in keep], cam, target,
-                                            background_images=None if bgs is None else
-                                            (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
-                                            pattern_images=None if pats is None else [pats[k] for k in keep],
-                                            image_names=[names[k] for k in keep], stripe_width_px=stripe_width,
-                                            channel=channel if sel is None else sel.channel,
-                                            skipped={names[k]: skipped[names[k]] for k in idx if names[k] in skipped},
-                                            progress=lambda i: update(i + 1),
-                                            region_px=None if sel is None else sel.region,
-                                            pose_cache=pose_cache)
-            except LightplaneError as e:
-                if sel is None:
-                    raise
-                raise LightplaneError(f"laser {sel.describe()}: {e}") from None
-        results[lname] = res
+    frames = BoardFrames(imgs, pattern_images=pats, background_images=bgs, names=[str(f) for f in lasers],
+                         skipped=skipped)
+    with progress_bar("board poses and stripes") as update:
+        results = calibrate_plane_boards(frames, cam, target, {n: (i, by_name.get(n)) for n, i in chosen.items()},
+                                         BoardPlaneOptions(stripe_width_px=stripe_width, channel=channel),
+                                         progress=lambda label, i, n: update(i, total=n, label=label))
     opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
             "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],

@@ -39,7 +39,7 @@ from lightplane.core.geometry import robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
 from lightplane.camera.targets import as_target
 from lightplane.core.io import too_few_images_message
-from lightplane.plane.zhou import find_board_views
+from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, find_board_views
 
 __all__ = [
     "DistanceErrors",
@@ -529,9 +529,9 @@ def evaluate_images(images: Sequence, camera: Camera, planes: Sequence[LightPlan
     """
 
     target = as_target(board, square_mm)
-    v = find_board_views(images, camera, target, background_images=background_images, image_names=image_names,
-                         stripe_width_px=options.stripe_width_px, channel=options.channel, skip=True,
-                         min_stripe_points=2, progress=progress)
+    v = find_board_views(BoardFrames(images, background_images=background_images, names=image_names), camera, target,
+                         options=BoardPlaneOptions(stripe_width_px=options.stripe_width_px, channel=options.channel),
+                         min_stripe_points=2, skip=True, progress=progress)
     why = {**(skipped or {}), **v.skipped}
     if not v.poses:
         raise LightplaneError(too_few_images_message("images", 0, 1, why.items()))

@@ -46,7 +46,7 @@ from lightplane.plane.solvers import (PlacementResult, PlaneCalibration, SolverO
                             check_calibration_args)
 from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
 from lightplane.core.threads import enter_serial, frames_across_threads
-from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, detect_ellipses, expected_axis_range_px,
+from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, RefinedEllipse, detect_ellipses, expected_axis_range_px,
     refine_ellipse, select_target, stripe_crossing)
 from lightplane.plane.circle_pose import CirclePose
 from lightplane.plane.solvers import Ambiguity
@@ -57,7 +57,7 @@ from lightplane.stripe.lasers import LaserSelector, no_stripe_message
 from lightplane.stripe.options import StripePointsOptions
 from lightplane.core.threads import with_blas_limited
 
-__all__ = ["ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
+__all__ = ["ObserveOptions", "PlaneCalibrationOptions", "ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
            "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
            "default_workers", "propagate_camera"]
 
@@ -418,10 +418,64 @@ def stripe_width_along(gray: np.ndarray, p0: np.ndarray, p1: np.ndarray, *, n: i
     return float(np.median(widths)), float(np.median(heights))
 
 
-def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
-                  distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
-                  stripe_width_px: float | None = None, margin_px: float | None = None,
-                  min_stripe_points: int = 20, stripe_bin: int | str = "auto") -> ImageObservation:
+@dataclass(frozen=True)
+class ObserveOptions:
+    """Options of the per-image observation (:func:`observe_image`, :func:`observe_image_lasers`).
+
+    Checked on construction; ``distance_range_mm`` is kept as two floats.
+
+    - ``distance_range_mm``: (near, far) distances (mm) at which the target may be: the
+      target's major semi-axis must lie in ``f r / far .. f r / near`` (+-15 %).
+    - ``channel``: colour channel of the laser (``"red"``...) or None (weighted gray).
+    - ``stripe_width_px``: stripe FWHM (px); estimated when None.
+    - ``margin_px``: stripe points closer than this to the rim are dropped (the rim's
+      intensity step biases them); default ``max(4, 1.5 FWHM)``.
+    - ``min_stripe_points``: fewer stripe centres on the target's chord -> rejected.
+    - ``stripe_bin``: ``"auto"`` or an int k >= 1: the solver gets the averages of k consecutive
+      stripe centres along the chord (at least 12 of them); ``"auto"`` takes
+      ``k = (sigma_stripe / sigma_rim)²`` (robust line-fit scatter over the rim fit's RMS).
+      History: the joint ML refinement once weighed rim and stripe points with one common
+      sigma, and this averaging made the stripe points as noisy as the rim's, which
+      lowered ``ml``'s triangulation error by 10-25 %.  :func:`lightplane.plane.ml.refine_ml`
+      now weighs each point type by its own long-run variance (sigma² times the
+      integrated autocorrelation time: speckle makes a stripe's centres correlated along
+      it, tau ~ 6 for raw centres on the realistic renders), so the averaging is no
+      longer needed for accuracy.  Measured on 10 seeds x 2 polarities of 12-image
+      realistic renders (benchmarks/bench_uncertainty.py): ``auto`` and ``1`` give the
+      same errors (RMS triangulation 0.0043 vs 0.0046 mm, angle 0.0023 vs 0.0025 deg)
+      and equally honest predicted sigmas (predicted / actual 0.95 vs 0.91); ``auto``
+      stays the default because its solve is ~15 % faster (130 vs 153 ms).  ``1`` gives
+      the solver the raw centres.  The chord is straight, so averaging along it loses
+      nothing but resolution of the noise's correlation.
+    """
+
+    distance_range_mm: tuple[float, float] = (200.0, 1500.0)
+    channel: str | None = None
+    stripe_width_px: float | None = None
+    margin_px: float | None = None
+    min_stripe_points: int = 20
+    stripe_bin: int | str = "auto"
+
+    def __post_init__(self):
+        try:
+            lo, hi = float(self.distance_range_mm[0]), float(self.distance_range_mm[1])
+        except (TypeError, ValueError, IndexError):
+            lo, hi = float("nan"), float("nan")
+        if not (0 < lo < hi):
+            raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, "
+                                  f"got {self.distance_range_mm}")
+        object.__setattr__(self, "distance_range_mm", (lo, hi))
+        if self.stripe_bin != "auto":
+            try:
+                k = int(self.stripe_bin)
+            except (TypeError, ValueError):
+                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {self.stripe_bin!r}") from None
+            if k < 1:
+                raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {self.stripe_bin!r}")
+
+
+def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0,
+                  options: ObserveOptions | None = None) -> ImageObservation:
     """Find the target's rim points and the stripe points on it in one image (docs/method.md §Ellipse, §Stripe centres).
 
     Parameters
@@ -429,48 +483,21 @@ def observe_image(source, camera: Camera, diameter_mm: float, index: int = 0, *,
     source : file path, or (H, W) / (H, W, 3) array (8/16-bit or float).
     camera : the camera (its image size is checked; rim points are undistorted for the conic).
     diameter_mm : target diameter (mm), for the plausible ellipse size.
-    distance_range_mm : (near, far) distances (mm) at which the target may be: the
-        target's major semi-axis must lie in ``f r / far .. f r / near`` (+-15 %).
-    channel : colour channel of the laser (``"red"``...) or None (weighted gray).
-    stripe_width_px : stripe FWHM (px); estimated when None.
-    margin_px : stripe points closer than this to the rim are dropped (the rim's
-        intensity step biases them); default ``max(4, 1.5 FWHM)``.
-    min_stripe_points : fewer stripe centres on the target's chord -> rejected.
-    stripe_bin : ``"auto"`` or an int k >= 1: the solver gets the averages of k consecutive
-        stripe centres along the chord (at least 12 of them); ``"auto"`` takes
-        ``k = (sigma_stripe / sigma_rim)²`` (robust line-fit scatter over the rim fit's RMS).
-        History: the joint ML refinement once weighed rim and stripe points with one common
-        sigma, and this averaging made the stripe points as noisy as the rim's, which
-        lowered ``ml``'s triangulation error by 10-25 %.  :func:`lightplane.plane.ml.refine_ml`
-        now weighs each point type by its own long-run variance (sigma² times the
-        integrated autocorrelation time: speckle makes a stripe's centres correlated along
-        it, tau ~ 6 for raw centres on the realistic renders), so the averaging is no
-        longer needed for accuracy.  Measured on 10 seeds x 2 polarities of 12-image
-        realistic renders (benchmarks/bench_uncertainty.py): ``auto`` and ``1`` give the
-        same errors (RMS triangulation 0.0043 vs 0.0046 mm, angle 0.0023 vs 0.0025 deg)
-        and equally honest predicted sigmas (predicted / actual 0.95 vs 0.91); ``auto``
-        stays the default because its solve is ~15 % faster (130 vs 153 ms).  ``1`` gives
-        the solver the raw centres.  The chord is straight, so averaging along it loses
-        nothing but resolution of the noise's correlation.
+    options : :class:`ObserveOptions`, optional (meanings there; defaults when omitted).
 
     Returns an :class:`ImageObservation` (``ok=False`` with a reason when the image
     cannot be used, its file unreadable included).  Raises :class:`LightplaneError` only
     for an image whose size differs from the camera's (a wrong camera, not a bad image).
     """
-    return observe_image_lasers(source, camera, diameter_mm, index, lasers=None,
-                                distance_range_mm=distance_range_mm, channel=channel,
-                                stripe_width_px=stripe_width_px, margin_px=margin_px,
-                                min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)[0]
+    return observe_image_lasers(source, camera, diameter_mm, index, None, options)[0]
 
 
-def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int = 0, *, lasers=None,
-                         distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
-                         stripe_width_px: float | None = None, margin_px: float | None = None,
-                         min_stripe_points: int = 20, stripe_bin: int | str = "auto") -> list[ImageObservation]:
+def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int = 0, lasers=None,
+                         options: ObserveOptions | None = None) -> list[ImageObservation]:
     """:func:`observe_image` for several lasers whose stripes cross the target in the same image.
 
     ``lasers``: :class:`lightplane.stripe.lasers.LaserSelector` s (colour channel and/or image region
-    per laser), or None for one laser seen in ``channel`` (exactly :func:`observe_image`).
+    per laser), or None for one laser seen in ``options.channel`` (exactly :func:`observe_image`).
     The target is found once: the ellipses are detected in the image, the target is the
     ellipse most lasers' stripes cross (each laser's stripe looked for in its own channel and
     region), refined once; rim points near any laser's chord are dropped, so every laser's
@@ -479,10 +506,10 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
     observation per laser (in order); a laser whose stripe misses the target gets
     ``ok=False`` with the reason while the others are kept.
     """
-
+    opts = ObserveOptions() if options is None else options
     t0 = time.perf_counter()
     single = lasers is None
-    sels = [LaserSelector("", channel)] if single else [s for s in lasers]
+    sels = [LaserSelector("", opts.channel)] if single else [s for s in lasers]
     img, name, problem = _load(source, index)
     if img is None:
         return [ImageObservation(index=index, source=name, ok=False, reason=problem,
@@ -494,16 +521,64 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
     for s in sels:
         s.check_image(img, name)
     shape = tuple(img.shape[:2])
+    found = _find_target(img, camera, diameter_mm, sels, single, opts.distance_range_mm)
+    if isinstance(found, _NoTarget):
+        return [ImageObservation(index=index, source=name, ok=False, reason=why, shape=shape,
+                                 seconds=time.perf_counter() - t0, ellipse=found.ellipse,
+                                 n_candidates=found.n_candidates) for why in found.reasons]
+    per_laser = _laser_stripes(img, camera, sels, single, found, opts)
+    # rim points where a stripe meets the rim are disturbed by its light (every laser's stripe)
+    rim = found.ref.edge_points_px
+    for chord, _, fwhm in per_laser:
+        if chord is not None and len(rim):
+            far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
+            if far.sum() >= 0.5 * len(rim):
+                rim = rim[far]
+    out = []
+    for chord, uv, _ in per_laser:
+        raw = uv
+        uv, k = _binned(camera, uv, found.ref.residual_rms_px, opts.stripe_bin)
+        obs = ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
+                               seconds=time.perf_counter() - t0, ellipse=found.ref.image_ellipse,
+                               conic_undistorted=found.ref.conic, rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw,
+                               stripe_bin=k, chord_px=chord, rim_fit_rms_px=found.ref.residual_rms_px,
+                               n_candidates=found.n_candidates)
+        if len(raw) == 0:
+            obs = replace(obs, ok=False, reason="no stripe crossing the target")
+        elif len(raw) < opts.min_stripe_points:
+            obs = replace(obs, ok=False, reason=f"too few stripe points ({len(raw)})")
+        out.append(obs)
+    return out
 
-    def reject(reason: str, **kw) -> ImageObservation:
-        return ImageObservation(index=index, source=name, ok=False, reason=reason, shape=shape,
-                                seconds=time.perf_counter() - t0, **kw)
 
+@dataclass(frozen=True)
+class _NoTarget:
+    """Why no target was found, per laser, and what was found on the way."""
+
+    reasons: list
+    ellipse: Ellipse | None = None
+    n_candidates: int = 0
+
+
+@dataclass(frozen=True)
+class _Target:
+    """The target found once for all lasers: its refined ellipse, each laser's stripe crossing (or
+    None) and the ellipses detected."""
+
+    ref: RefinedEllipse
+    crossings: list
+    n_candidates: int
+
+
+def _find_target(img: np.ndarray, camera: Camera, diameter_mm: float, sels: list, single: bool,
+                 distance_range_mm: tuple[float, float]) -> _Target | _NoTarget:
+    """Detect the ellipses, choose the one most lasers' stripes cross and refine it (``single``: one
+    laser, no selectors)."""
     lo, hi = expected_axis_range_px(camera, diameter_mm, distance_range_mm)
     # the minor semi-axis of a disc tilted by up to ~70 deg is >= a cos 70 deg
     ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(0.35 * lo, 6.0), max_axis_px=hi))
     if not ellipses:
-        return [reject("no target ellipse found") for _ in sels]
+        return _NoTarget(["no target ellipse found" for _ in sels])
     # one laser with no region: its stripe is looked for in the image as given (as always)
     views = [img] if single or (len(sels) == 1 and sels[0].region is None) else [s.view(img) for s in sels]
     picks = [select_target(v, ellipses, axis_range_px=(lo, hi), min_chord_fraction=0.15) for v in views]
@@ -513,8 +588,8 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
                "no plausible ellipse": f"no target ellipse found (none of {len(ellipses)} ellipses has a "
                                        f"plausible size for a {diameter_mm:g} mm disc at "
                                        f"{distance_range_mm[0]:g}-{distance_range_mm[1]:g} mm)"}
-        return [reject(why.get(p.reason, p.reason or "no target ellipse found"), n_candidates=len(ellipses))
-                for p in picks]
+        return _NoTarget([why.get(p.reason, p.reason or "no target ellipse found") for p in picks],
+                         n_candidates=len(ellipses))
     # the target: the ellipse most lasers' stripes cross (ties: the first laser's choice)
     best = max(dict.fromkeys(chosen), key=chosen.count)
     target = ellipses[best]
@@ -528,12 +603,16 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
     try:
         ref = refine_ellipse(img, target, camera)
     except LightplaneError as e:
-        return [reject(f"target ellipse could not be refined ({e})", ellipse=target, n_candidates=len(ellipses))
-                for _ in sels]
-    e_img = ref.image_ellipse
+        return _NoTarget([f"target ellipse could not be refined ({e})" for _ in sels], target, len(ellipses))
+    return _Target(ref, crossings, len(ellipses))
 
-    # stripe: Steger on a crop around the target, inside the ellipse shrunk by a margin
-    h, w = shape
+
+def _laser_stripes(img: np.ndarray, camera: Camera, sels: list, single: bool, found: _Target,
+                   opts: ObserveOptions) -> list:
+    """Per laser ``(chord, stripe centres on the target (distorted px), FWHM)``: Steger on a crop around
+    the target, inside the ellipse shrunk by a margin."""
+    e_img = found.ref.image_ellipse
+    h, w = img.shape[:2]
     u0, v0, u1, v1 = e_img.bbox()
     pad = 12
     cu0, cv0 = max(int(math.floor(u0)) - pad, 0), max(int(math.floor(v0)) - pad, 0)
@@ -542,86 +621,75 @@ def observe_image_lasers(source, camera: Camera, diameter_mm: float, index: int 
     off = np.array([cu0, cv0], dtype=np.float64)
     local = type(e_img).from_params(e_img.centre - off, e_img.a, e_img.b, e_img.angle)
     inside_all = local.mask(crop.shape[:2], shrink_px=2.0)
-    per_laser: list[tuple] = []  # (chord, stripe centres, fwhm, -) per laser
-    for s, cr in zip(sels, crossings):
+    per_laser: list[tuple] = []
+    for s, cr in zip(sels, found.crossings):
         chord = None if cr is None else cr.chord_px
-        inside = inside_all
-        region = s.region_mask(crop.shape[:2], (cu0, cv0))
-        if region is not None:
-            inside = inside & region
-        width, contrast = stripe_width_px, None
-        gray = s.outside_removed(to_gray_float(crop, s.channel), (cu0, cv0))
-        if chord is not None:
-            w_est, height = stripe_width_along(gray, chord[0] - off, chord[1] - off)
-            if width is None and np.isfinite(w_est):
-                width = float(np.clip(w_est, 2.0, 40.0))
-            if np.isfinite(height):
-                # a stripe on a dark disc is faint: threshold relative to what this stripe shows
-                contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
         if chord is None and not single:
-            per_laser.append((None, np.zeros((0, 2)), 5.0, 1.0))
+            per_laser.append((None, np.zeros((0, 2)), 5.0))
             continue
-        # no along-stripe smoothing: the joint fit averages hundreds of centres itself, and its noise
-        # model (white or correlated along the curve, measured from the residuals) was validated on
-        # unsmoothed centres (benchmarks/bench_uncertainty.py)
-        # several lasers: the stripe is read in its own channel alone; extract_stripe's centring of
-        # whitish saturated cores (colour image + channel) takes the speckle dips of a colour stripe
-        # on a bright white disc for cores and can drop the whole stripe (two-colour renders: one
-        # stripe in 8 images lost)
-        sp = extract_stripe(crop if single else gray,
-                            StripePointsOptions(width_px=width, channel=s.channel if single else None,
-                                                min_contrast=contrast, sigma_along_px=0.0), mask=inside)
-        uv = sp.uv + off
-        fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
-        # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
-        margin = max(3.0, 3.0 * float(sp.sigma_px) + 1.0) if margin_px is None else float(margin_px)
-        if len(uv):
-            uv = uv[_distance_inside(e_img, uv) >= margin]
-        if len(uv) and s.region is not None:
-            uv = uv[s.in_region(uv)]
-        if len(uv) and chord is not None:
-            # keep the stripe's line through the target (clutter, reflections, rim fragments)
-            uv = uv[np.abs(_line_distance(uv, chord[0], chord[1])) <= max(3.0, 0.6 * fwhm + 2.0)]
-        if len(uv) >= 3:
-            und = camera.undistort_points(uv)
-            uv = uv[_robust_line(und, 0.5)]
-        per_laser.append((chord, uv, fwhm, 1.0))
-    # rim points where a stripe meets the rim are disturbed by its light (every laser's stripe)
-    rim = ref.edge_points_px
-    for chord, _, fwhm, _ in per_laser:
-        if chord is not None and len(rim):
-            far = np.abs(_line_distance(rim, chord[0], chord[1])) > fwhm + 3.0
-            if far.sum() >= 0.5 * len(rim):
-                rim = rim[far]
-    out = []
-    for chord, uv, fwhm, _ in per_laser:
-        raw = uv
-        k = 1
-        if len(uv) >= 3:
-            if stripe_bin == "auto":
-                und = camera.undistort_points(uv)
-                m, _, nrm = tls_line(und)
-                r = (und - m) @ nrm
-                s_stripe = robust_sigma(r)
-                k = int(np.clip(round((s_stripe / max(ref.residual_rms_px, 1e-3)) ** 2), 1, 50))
-            else:
-                try:
-                    k = int(stripe_bin)
-                except (TypeError, ValueError):
-                    raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}") from None
-                if k < 1:
-                    raise LightplaneError(f"stripe_bin must be 'auto' or an integer >= 1, got {stripe_bin!r}")
-            uv, k = _bin_along_line(uv, k, min_bins=12)
-        obs = ImageObservation(index=index, source=name, ok=True, reason="", shape=shape,
-                               seconds=time.perf_counter() - t0, ellipse=e_img, conic_undistorted=ref.conic,
-                               rim_uv=rim, stripe_uv=uv, stripe_raw_uv=raw, stripe_bin=k, chord_px=chord,
-                               rim_fit_rms_px=ref.residual_rms_px, n_candidates=len(ellipses))
-        if len(raw) == 0:
-            obs = replace(obs, ok=False, reason="no stripe crossing the target")
-        elif len(raw) < min_stripe_points:
-            obs = replace(obs, ok=False, reason=f"too few stripe points ({len(raw)})")
-        out.append(obs)
-    return out
+        uv, fwhm = _stripe_on_target(camera, crop, off, inside_all, e_img, s, chord, single, opts)
+        per_laser.append((chord, uv, fwhm))
+    return per_laser
+
+
+def _stripe_on_target(camera: Camera, crop: np.ndarray, off: np.ndarray, inside_all: np.ndarray, e_img, s,
+                      chord, single: bool, opts: ObserveOptions) -> tuple[np.ndarray, float]:
+    """One laser's stripe centres (distorted px) on the target in ``crop`` (at ``off``) and its FWHM (px)."""
+    cu0, cv0 = int(off[0]), int(off[1])
+    inside = inside_all
+    region = s.region_mask(crop.shape[:2], (cu0, cv0))
+    if region is not None:
+        inside = inside & region
+    width, contrast = opts.stripe_width_px, None
+    gray = s.outside_removed(to_gray_float(crop, s.channel), (cu0, cv0))
+    if chord is not None:
+        w_est, height = stripe_width_along(gray, chord[0] - off, chord[1] - off)
+        if width is None and np.isfinite(w_est):
+            width = float(np.clip(w_est, 2.0, 40.0))
+        if np.isfinite(height):
+            # a stripe on a dark disc is faint: threshold relative to what this stripe shows
+            contrast = float(np.clip(0.35 * height, 2.0 / 255.0 * _full_scale(crop), None))
+    # no along-stripe smoothing: the joint fit averages hundreds of centres itself, and its noise
+    # model (white or correlated along the curve, measured from the residuals) was validated on
+    # unsmoothed centres (benchmarks/bench_uncertainty.py)
+    # several lasers: the stripe is read in its own channel alone; extract_stripe's centring of
+    # whitish saturated cores (colour image + channel) takes the speckle dips of a colour stripe
+    # on a bright white disc for cores and can drop the whole stripe (two-colour renders: one
+    # stripe in 8 images lost)
+    sp = extract_stripe(crop if single else gray,
+                        StripePointsOptions(width_px=width, channel=s.channel if single else None,
+                                            min_contrast=contrast, sigma_along_px=0.0), mask=inside)
+    uv = sp.uv + off
+    fwhm = float(width) if width is not None else float(sp.meta.get("width_px", 5.0))
+    # the rim's intensity step inside Steger's kernel (about 3 sigma) shifts the centres
+    margin = max(3.0, 3.0 * float(sp.sigma_px) + 1.0) if opts.margin_px is None else float(opts.margin_px)
+    if len(uv):
+        uv = uv[_distance_inside(e_img, uv) >= margin]
+    if len(uv) and s.region is not None:
+        uv = uv[s.in_region(uv)]
+    if len(uv) and chord is not None:
+        # keep the stripe's line through the target (clutter, reflections, rim fragments)
+        uv = uv[np.abs(_line_distance(uv, chord[0], chord[1])) <= max(3.0, 0.6 * fwhm + 2.0)]
+    if len(uv) >= 3:
+        und = camera.undistort_points(uv)
+        uv = uv[_robust_line(und, 0.5)]
+    return uv, fwhm
+
+
+def _binned(camera: Camera, uv: np.ndarray, rim_rms_px: float, stripe_bin: int | str) -> tuple[np.ndarray, int]:
+    """The solver's stripe points: averages of k consecutive centres (:func:`_bin_along_line`), k from
+    ``stripe_bin`` (``"auto"``: the stripe's robust line scatter over the rim fit's RMS, squared)."""
+    if len(uv) < 3:
+        return uv, 1
+    if stripe_bin == "auto":
+        und = camera.undistort_points(uv)
+        m, _, nrm = tls_line(und)
+        r = (und - m) @ nrm
+        s_stripe = robust_sigma(r)
+        k = int(np.clip(round((s_stripe / max(rim_rms_px, 1e-3)) ** 2), 1, 50))
+    else:
+        k = int(stripe_bin)
+    return _bin_along_line(uv, k, min_bins=12)
 
 
 def _process_worker_init() -> None:
@@ -632,45 +700,68 @@ def _process_worker_init() -> None:
 
 
 def _observe_task(args):
-    source, camera, diameter_mm, index, kw = args
+    source, camera, diameter_mm, index, lasers, options = args
     try:
-        if kw.get("lasers") is not None:
-            return observe_image_lasers(source, camera, diameter_mm, index, **kw)
-        return observe_image(source, camera, diameter_mm, index, **{k: v for k, v in kw.items() if k != "lasers"})
+        if lasers is not None:
+            return observe_image_lasers(source, camera, diameter_mm, index, lasers, options)
+        return observe_image(source, camera, diameter_mm, index, options)
     except LightplaneError as e:
         return e
 
 
-def _checked_inputs(images, distance_range_mm) -> tuple[list, tuple[float, float]]:
+def _checked_inputs(images) -> list:
     """The calibration commands' cheap checks, before any work: the images as a list (one
     path or array becomes a list of one; none is an error; a missing file is an error, a
-    folder or a bad file is skipped later with its reason) and the distance range."""
+    folder or a bad file is skipped later with its reason)."""
     if isinstance(images, (str, os.PathLike, np.ndarray)):
         images = [images]
     images = list(images)
     if not images:
         raise LightplaneError("no images given")
-    lo, hi = float(distance_range_mm[0]), float(distance_range_mm[1])
-    if not (0 < lo < hi):
-        raise LightplaneError(f"distance_range_mm must be (near, far) with 0 < near < far, got {distance_range_mm}")
     for i, src in enumerate(images):
         if isinstance(src, (str, os.PathLike)):
             if not Path(src).exists():  # a mistyped name
                 raise LightplaneError(f"{src}: no such file")
         elif not isinstance(src, np.ndarray):
             raise LightplaneError(f"images[{i}] must be a file path or an image array, got {type(src).__name__}")
-    return images, (lo, hi)
+    return images
 
 
 # ------------------------------------------------------------------------ public
+@dataclass(frozen=True)
+class PlaneCalibrationOptions:
+    """Options of the light-plane calibration from images (:func:`calibrate_plane`, :func:`calibrate_planes`,
+    :func:`observe_images`).  Checked on construction.
+
+    - ``observe``: :class:`ObserveOptions`, the per-image observation's.
+    - ``solver``: :class:`~lightplane.plane.solvers.SolverOptions`, the plane solver's.
+    - ``min_placements``: fewest used placements accepted (>= 3 for a checked result).
+    - ``workers``: processes (or threads) for the per-image work; None (default): all cores;
+      1 runs in this process.
+    - ``executor``: ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores
+      12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the
+      compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
+    """
+
+    observe: ObserveOptions = field(default_factory=ObserveOptions)
+    solver: SolverOptions = field(default_factory=SolverOptions)
+    min_placements: int = 3
+    workers: int | None = None
+    executor: str = "thread"
+
+    def __post_init__(self):
+        if not isinstance(self.observe, ObserveOptions):
+            raise LightplaneError(f"observe must be ObserveOptions, got {type(self.observe).__name__}")
+        if not isinstance(self.solver, SolverOptions):
+            raise LightplaneError(f"solver must be SolverOptions, got {type(self.solver).__name__}")
+        if self.executor not in ("process", "thread"):
+            raise LightplaneError(f"executor must be 'process' or 'thread', got {self.executor!r}")
+
+
 @with_blas_limited
-def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml", *,
-                    workers: int | None = None, executor: str = "thread",
-                    progress: Callable[[int, int], None] | None = None,
-                    distance_range_mm: tuple[float, float] = (200.0, 1500.0), channel: str | None = None,
-                    stripe_width_px: float | None = None, min_stripe_points: int = 20,
-                    stripe_bin: int | str = "auto", min_placements: int = 3,
-                    solver: SolverOptions | None = None) -> ImagePlaneCalibration:
+def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method: str = "ml",
+                    options: PlaneCalibrationOptions | None = None, *,
+                    progress: Callable[[int, int], None] | None = None) -> ImagePlaneCalibration:
     """Calibrate the light plane from images of a circular target crossed by the stripe (paper §2.2).
 
     Parameters
@@ -681,14 +772,11 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     diameter_mm : target diameter, mm (> 0).
     method : ``"ml"`` (default), ``"global"`` or ``"paper"`` (docs/method.md §Light plane; see
         :func:`~lightplane.plane.solvers.calibrate_plane_from_points`).
-    workers : processes (or threads) for the per-image work; default: all cores;
-        1 runs in this process.
-    executor : ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores 12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
+    options : :class:`PlaneCalibrationOptions`, optional: the per-image observation's options
+        (``observe``, :class:`ObserveOptions`), the solver's (``solver``,
+        :class:`~lightplane.plane.solvers.SolverOptions`), ``min_placements``, ``workers`` and
+        ``executor`` (meanings there; defaults when omitted).
     progress : optional callable ``progress(done, total)`` after each image.
-    distance_range_mm, channel, stripe_width_px, min_stripe_points, stripe_bin : see :func:`observe_image`.
-    min_placements : fewest used placements accepted (>= 3 for a checked result).
-    solver : :class:`~lightplane.plane.solvers.SolverOptions`, optional: the solver's options
-        (``sigma_px``, ``min_normal_spread_deg``, the ML refinement's...; defaults when omitted).
 
     Returns
     -------
@@ -705,22 +793,17 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
         non-image file is skipped with its reason like an image without the target.
     """
     t_start = time.perf_counter()
+    opts = PlaneCalibrationOptions() if options is None else options
     diameter = check_calibration_args(method, camera, diameter_mm)
-    images, (lo, hi) = _checked_inputs(images, distance_range_mm)
-    obs = observe_images(images, camera, diameter, workers=workers, executor=executor, progress=progress,
-                         distance_range_mm=(lo, hi), channel=channel, stripe_width_px=stripe_width_px,
-                         min_stripe_points=min_stripe_points, stripe_bin=stripe_bin)
-    return solve_observations(obs, camera, diameter, method, min_placements=min_placements,
-                              seconds=time.perf_counter() - t_start, solver=solver)
+    images = _checked_inputs(images)
+    obs = observe_images(images, camera, diameter, opts, progress=progress)
+    return solve_observations(obs, camera, diameter, method, min_placements=opts.min_placements,
+                              seconds=time.perf_counter() - t_start, solver=opts.solver)
 
 
-def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, lasers: Sequence, method: str = "ml", *,
-                     workers: int | None = None, executor: str = "thread",
-                     progress: Callable[[int, int], None] | None = None,
-                     distance_range_mm: tuple[float, float] = (200.0, 1500.0),
-                     stripe_width_px: float | None = None, min_stripe_points: int = 20,
-                     stripe_bin: int | str = "auto", min_placements: int = 3,
-                     solver: SolverOptions | None = None) -> dict:
+def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, lasers: Sequence, method: str = "ml",
+                     options: PlaneCalibrationOptions | None = None, *,
+                     progress: Callable[[int, int], None] | None = None) -> dict:
     """One light plane per laser from the same images of a circular target (several lasers).
 
     ``lasers``: :class:`lightplane.stripe.lasers.LaserSelector` s; each laser's stripe is told apart
@@ -731,13 +814,15 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
     :func:`calibrate_plane` does.  An image in which a laser's stripe is missing is skipped
     for that laser, with the reason.
 
-    Returns ``{name: ImagePlaneCalibration}`` in the order of ``lasers``.  Raises
+    ``options``: :class:`PlaneCalibrationOptions` as for :func:`calibrate_plane` (``observe.channel``
+    is not used: each laser's channel is its selector's).  Returns ``{name: ImagePlaneCalibration}`` in the order of ``lasers``.  Raises
     LightplaneError (nothing solved) for a laser whose stripe is found in none of its images,
     a laser with no images, or one with too few usable placements (the message names the laser).
     """
     t_start = time.perf_counter()
+    opts = PlaneCalibrationOptions() if options is None else options
     diameter = check_calibration_args(method, camera, diameter_mm)
-    images, (lo, hi) = _checked_inputs(images, distance_range_mm)
+    images = _checked_inputs(images)
     lasers = list(lasers)
     if not lasers:
         raise LightplaneError("no lasers given")
@@ -745,12 +830,33 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
         if s.cycle is not None:
             raise LightplaneError(f"laser {s.name}: cycle:K selects laser frames per board pose (calibrate-plane-board "
                                   "with --cycle or --pattern); here use frames:PATTERN")
+    per_image = _observe_by_lasers(images, camera, diameter, lasers, opts, progress)
+    seconds = time.perf_counter() - t_start
+    out = {}
+    for k, s in enumerate(lasers):
+        obs = [replace(per_image[i][k], index=j) for j, i in enumerate(i for i in range(len(images)) if k in per_image[i])]
+        if not any(o.ok for o in obs):
+            raise LightplaneError(no_stripe_message(s.name, s, len(obs), {o.name: o.reason for o in obs}))
+        out[k] = obs
+    result = {}
+    for k, s in enumerate(lasers):
+        try:
+            result[s.name] = solve_observations(out[k], camera, diameter, method, min_placements=opts.min_placements,
+                                                seconds=seconds, solver=opts.solver)
+        except LightplaneError as e:
+            raise LightplaneError(f"laser {s.name}: {e}") from None
+    return result
+
+
+def _observe_by_lasers(images: list, camera: Camera, diameter: float, lasers: list, opts: PlaneCalibrationOptions,
+                       progress: Callable[[int, int], None] | None) -> list[dict]:
+    """Per image, ``{laser position: ImageObservation}`` of the lasers whose frame it is: each group of
+    images seen by the same lasers observed together (:func:`observe_image_lasers`)."""
     takes = [tuple(k for k, s in enumerate(lasers) if s.takes_file(src)) if isinstance(src, (str, os.PathLike))
              else tuple(range(len(lasers))) for src in images]
     for k, s in enumerate(lasers):
         if not any(k in t for t in takes):
             raise LightplaneError(f"laser {s.name} ({s.text}): none of the {len(images)} images is one of its frames")
-    # observe each group of images seen by the same lasers together
     per_image: list[dict] = [{} for _ in images]
     groups: dict[tuple, list[int]] = {}
     for i, t in enumerate(takes):
@@ -762,44 +868,28 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
             if progress is not None:
                 progress(base + j, len(images))
 
-        obs = observe_images([images[i] for i in idx], camera, diameter, workers=workers, executor=executor,
-                             progress=step, lasers=[lasers[k] for k in t], distance_range_mm=(lo, hi),
-                             stripe_width_px=stripe_width_px, min_stripe_points=min_stripe_points,
-                             stripe_bin=stripe_bin)
+        obs = observe_images([images[i] for i in idx], camera, diameter, opts, lasers=[lasers[k] for k in t],
+                             progress=step)
         for i, o in zip(idx, obs):
             per_image[i] = dict(zip(t, cast(list, o)))
         done += len(idx)
-    seconds = time.perf_counter() - t_start
-    per_laser = []
-    for k, s in enumerate(lasers):
-        obs = [replace(per_image[i][k], index=j) for j, i in enumerate(i for i in range(len(images)) if k in takes[i])]
-        if not any(o.ok for o in obs):
-            raise LightplaneError(no_stripe_message(s.name, s, len(obs), {o.name: o.reason for o in obs}))
-        per_laser.append(obs)
-    out = {}
-    for s, obs in zip(lasers, per_laser):
-        try:
-            out[s.name] = solve_observations(obs, camera, diameter, method, min_placements=min_placements,
-                                             seconds=seconds, solver=solver)
-        except LightplaneError as e:
-            raise LightplaneError(f"laser {s.name}: {e}") from None
-    return out
+    return per_image
 
 
-def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, workers: int | None = None,
-                   executor: str = "thread", progress: Callable[[int, int], None] | None = None,
-                   **observe_options) -> list[ImageObservation]:
-    """:func:`observe_image` on every image, in parallel (``workers`` processes or threads).
+def observe_images(images: Sequence, camera: Camera, diameter_mm: float, options: PlaneCalibrationOptions | None = None,
+                   *, lasers: Sequence | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> list:
+    """:func:`observe_image` (``lasers``: :func:`observe_image_lasers`) on every image, in parallel
+    (``options.workers`` processes or threads, ``options.executor``; ``options.observe`` for each image).
 
     Unreadable files give skipped observations; raises :class:`LightplaneError` for the
     first image whose size differs from the camera's.
     """
-    if executor not in ("process", "thread"):
-        raise LightplaneError(f"executor must be 'process' or 'thread', got {executor!r}")
-    kw = dict(observe_options)
-    tasks = [(src, camera, float(diameter_mm), i, kw) for i, src in enumerate(images)]
+    opts = PlaneCalibrationOptions() if options is None else options
+    las = None if lasers is None else list(lasers)
+    tasks = [(src, camera, float(diameter_mm), i, las, opts.observe) for i, src in enumerate(images)]
     n = len(tasks)
-    n_workers = default_workers() if workers is None else max(1, int(workers))
+    n_workers = default_workers() if opts.workers is None else max(1, int(opts.workers))
     n_workers = min(n_workers, n)
     results: list = [None] * n
     if n_workers == 1:
@@ -811,7 +901,7 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, *, work
                 progress(k + 1, n)
     else:
         # one level of parallelism: images across the workers, serial kernels in each (lightplane.core.threads)
-        if executor == "process":
+        if opts.executor == "process":
             import multiprocessing as mp
 
             # spawn, not fork: forking a process that already ran OpenMP code (numba, OpenCV) aborts it

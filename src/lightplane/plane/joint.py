@@ -42,22 +42,22 @@ errors (lens model, flatness, a curved light sheet), a wrong target diameter or 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from lightplane.camera.model import Camera
+from lightplane.camera.targets import Target
 from lightplane.core.errors import LightplaneError
+from lightplane.plane.calibrate import ImagePlaneCalibration, PlaneCalibrationOptions, calibrate_plane, calibrate_planes
 from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.ml import _huber_weights, _make_pose, _Problem, plane_param_jacobian
-from lightplane.camera.intrinsics import free_parameters, view_dispersion
+from lightplane.camera.intrinsics import IntrinsicsCalibration, calibrate_camera, free_parameters, view_dispersion
 from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_with_params
 
-if TYPE_CHECKING:
-    from lightplane.plane.calibrate import ImagePlaneCalibration
-
 __all__ = ["JointResult", "JointBoardViews", "JointTargetPlacements", "JointOptions", "refine_joint_points",
-           "refine_joint", "JointCalibration", "joint_dispersion"]
+           "refine_joint", "JointCalibration", "joint_dispersion", "JointCameraImages", "LightPlaneImagesResult",
+           "calibrate_light_planes"]
 
 
 @dataclass(frozen=True)
@@ -388,11 +388,11 @@ class JointCalibration:
     plane calibration with the joint plane, poses and camera), ``camera`` (the joint camera)."""
 
     result: JointResult
-    plane_cal: "ImagePlaneCalibration"
+    plane_cal: ImagePlaneCalibration
     camera: Camera
 
 
-def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", options: JointOptions | None = None) -> JointCalibration:
+def refine_joint(intrinsics, plane_cal: ImagePlaneCalibration, options: JointOptions | None = None) -> JointCalibration:
     """The joint refinement from a camera calibration (:func:`lightplane.camera.intrinsics.calibrate_camera`,
     its corners and board poses) and an ``ml`` plane calibration made with that camera
     (:func:`lightplane.plane.calibrate.calibrate_plane`, its rim and stripe points, poses and noise model);
@@ -440,3 +440,61 @@ def refine_joint(intrinsics, plane_cal: "ImagePlaneCalibration", options: JointO
     new_cal = replace(plane_cal, plane=plane, covariance=plane.covariance, images=images, placements=placements,
                       camera=res.camera)
     return JointCalibration(result=res, plane_cal=new_cal, camera=res.camera)
+
+
+@dataclass(frozen=True)
+class JointCameraImages:
+    """Chessboard images to calibrate the camera from, jointly with the plane (:func:`calibrate_light_planes`):
+    file paths or arrays, and the chessboard (:class:`lightplane.camera.targets.Target`)."""
+
+    images: Sequence
+    target: Target
+
+
+@dataclass(frozen=True)
+class LightPlaneImagesResult:
+    """:func:`calibrate_light_planes`' result.
+
+    ``planes``: per laser name (None for one laser) its :class:`~lightplane.plane.calibrate.ImagePlaneCalibration`
+    (after the joint refinement, with one); ``camera``: the camera they use (the joint one, with one);
+    ``intrinsics``: the chessboard calibration, ``two_step``: the plane calibrated with its camera and
+    ``joint``: the :class:`JointCalibration` (all three None without the joint refinement).
+    """
+
+    planes: dict
+    camera: Camera
+    intrinsics: IntrinsicsCalibration | None = None
+    two_step: ImagePlaneCalibration | None = None
+    joint: JointCalibration | None = None
+
+
+def calibrate_light_planes(images: Sequence, camera: Camera | None, diameter_mm: float, method: str = "ml",
+                           options: PlaneCalibrationOptions | None = None, *, lasers: Sequence | None = None,
+                           joint_camera: JointCameraImages | None = None,
+                           progress: Callable[[str, int, int], None] | None = None) -> LightPlaneImagesResult:
+    """The light plane(s) from images of a circular target, as ``lightplane calibrate-plane`` makes them.
+
+    One laser (``lasers`` None: :func:`~lightplane.plane.calibrate.calibrate_plane`) or several
+    (:class:`lightplane.stripe.lasers.LaserSelector` s: :func:`~lightplane.plane.calibrate.calibrate_planes`),
+    with ``camera``; or, with ``joint_camera`` (``camera`` None, one laser, ``method`` ``"ml"``), the camera
+    calibrated from the chessboards first (:func:`lightplane.camera.intrinsics.calibrate_camera`), the plane
+    with it, then both refined jointly (:func:`refine_joint`).  ``progress(stage, done, total)``: after each
+    image of a stage (``"chessboard images"``, ``"images"``).
+    """
+    def step(stage: str):
+        return None if progress is None else (lambda i, n: progress(stage, i, n))
+
+    if joint_camera is None:
+        if camera is None:
+            raise LightplaneError("give a camera (or chessboard images to calibrate it from, jointly with the plane)")
+        if lasers is None:
+            planes = {None: calibrate_plane(images, camera, diameter_mm, method, options, progress=step("images"))}
+        else:
+            planes = calibrate_planes(images, camera, diameter_mm, lasers, method, options, progress=step("images"))
+        return LightPlaneImagesResult(planes, camera)
+    if camera is not None or lasers is not None:
+        raise LightplaneError("the joint refinement calibrates the camera itself, with one laser")
+    intr = calibrate_camera(list(joint_camera.images), joint_camera.target, progress=step("chessboard images"))
+    two_step = calibrate_plane(images, intr.camera, diameter_mm, method, options, progress=step("images"))
+    jc = refine_joint(intr, two_step)
+    return LightPlaneImagesResult({None: jc.plane_cal}, jc.camera, intr, two_step, jc)

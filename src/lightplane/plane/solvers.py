@@ -975,7 +975,7 @@ def calibrate_plane_from_points(camera, diameter_mm: float, rims: Sequence[np.nd
                  {i: cands[i].poses[ch.choice[i]] for i in used}, {c.index: c.rim_rms_px for c in cands},
                  {c.index: c.stripe_rms_px for c in cands}, None)
     if method == "ml":
-        fit = _refined(camera, r, (rims, stripes), cands, used, fit, opts.ml, warnings)
+        fit = _refined(camera, r, (rims, stripes), cands, used, LightPlane(ch.normal, ch.d), fit, opts.ml, warnings)
     results = _placement_results(cands, ch, fit, method)
     warnings.extend(f"placement {c.index} not used: {c.reason}" for c in cands if not c.usable)
     meta: dict = {"method": method, "sigma_px": fit.sigma_px, "n_used": len(used)}
@@ -1005,14 +1005,15 @@ class _Final:
     noise_model: dict | None
 
 
-def _refined(camera, r: float, points: tuple, cands, used: list, fit: _Final, ml_options: MLOptions,
-             warnings: list) -> _Final:
+def _refined(camera, r: float, points: tuple, cands, used: list, start: LightPlane, fit: _Final,
+             ml_options: MLOptions, warnings: list) -> _Final:
     """The joint ML refinement (:func:`lightplane.plane.ml.refine_ml`) of the plane and poses of the used
-    placements, from ``fit``; ``points``: all rim and stripe points (the stripes' inliers are used)."""
+    placements from ``start`` (the plane of the chosen chords) and ``fit``'s poses; ``points``: all rim
+    and stripe points (the stripes' inliers are used)."""
     rims, stripes = points
     res = refine_ml(camera, r, [rims[i] for i in used], [np.asarray(stripes[i], float)[cands[i].stripe_inliers]
-                                                         for i in used], LightPlane(fit.plane.normal, fit.plane.d),
-                    [fit.poses[i] for i in used], ml_options)
+                                                         for i in used], start, [fit.poses[i] for i in used],
+                    ml_options)
     if not getattr(res, "converged", True):
         warnings.append(f"the maximum-likelihood refinement stopped after {res.iterations} iterations "
                         "without converging")

@@ -41,7 +41,10 @@ __all__ = [
     "plane_from_board_stripes",
     "board_views_and_stripes",
     "BoardViews",
+    "BoardFrames",
+    "BoardPlaneOptions",
     "find_board_views",
+    "calibrate_plane_boards",
     "straight_stripe_inliers",
     "calibrate_plane_board",
 ]
@@ -317,84 +320,99 @@ class BoardViews:
     skipped: dict
 
 
-def find_board_views(images: Sequence, camera: Camera, board, square_mm: float | None = None, *,
-                     background_images: Sequence | None = None, pattern_images: Sequence | None = None,
-                     image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
-                     channel: str | None = None, skip: bool = True, min_stripe_points: int = 0,
-                     progress: Callable[[int], None] | None = None,
-                     region_px: tuple[float, float, float, float] | None = None,
-                     pose_cache: dict | None = None) -> BoardViews:
+@dataclass(frozen=True)
+class BoardFrames:
+    """The laser images of a board calibration (:func:`calibrate_plane_board`, :func:`find_board_views`)
+    and the frames that go with them.
+
+    - ``images``: laser images (gray or BGR arrays; None for one that could not be read), the board in
+      a different pose in each (or several laser frames per pose with ``pattern_images``).
+    - ``pattern_images``: per laser image, the lit board frame (laser off) of its pose, in which the
+      board is found (the laser frames may be dark, low-exposure ones); the same frame object given
+      for several images is searched once.
+    - ``background_images``: laser-off frames, one per image (same pose; also used to find the board)
+      or one for all; subtracted before stripe extraction.
+    - ``names``: the images' names (default ``image 0``, ``image 1``...).
+    - ``skipped``: name → reason of images already skipped by the caller (unreadable files), for
+      :func:`calibrate_plane_board`'s message and result.
+    """
+
+    images: Sequence
+    pattern_images: Sequence | None = None
+    background_images: Sequence | None = None
+    names: Sequence[str] | None = None
+    skipped: dict | None = None
+
+
+@dataclass(frozen=True)
+class BoardPlaneOptions:
+    """Options of Zhou's board calibration (:func:`calibrate_plane_board`; the first three also of
+    :func:`find_board_views`).  Checked on construction.
+
+    - ``stripe_width_px``, ``channel``: passed to :func:`lightplane.stripe.extract.extract_stripe`.
+    - ``region_px``: ``(x0, y0, x1, y1)`` px: stripe centres only with ``x0 <= u < x1``, ``y0 <= v < y1``
+      (one laser's stripe among several, told apart by where it is in the image).
+    - ``min_points_per_view``: fewer stripe points on a board skip the image.
+    - ``min_views``: fewer usable images raise LightplaneError, saying why the others were skipped.
+    """
+
+    stripe_width_px: float | None = None
+    channel: str | None = None
+    region_px: tuple[float, float, float, float] | None = None
+    min_points_per_view: int = 10
+    min_views: int = 2
+
+    def __post_init__(self):
+        if self.region_px is not None and len(self.region_px) != 4:
+            raise LightplaneError(f"region_px must be (x0, y0, x1, y1), got {self.region_px}")
+        if int(self.min_points_per_view) < 0:
+            raise LightplaneError(f"min_points_per_view must be >= 0, got {self.min_points_per_view}")
+
+
+def _frames(frames: "BoardFrames | Sequence") -> BoardFrames:
+    return frames if isinstance(frames, BoardFrames) else BoardFrames(frames)
+
+
+def find_board_views(frames: "BoardFrames | Sequence", camera: Camera, board, square_mm: float | None = None,
+                     options: BoardPlaneOptions | None = None, *, min_stripe_points: int = 0, skip: bool = True,
+                     progress: Callable[[int], None] | None = None, pose_cache: dict | None = None) -> BoardViews:
     """Board pose and on-board stripe centres for each image.
 
-    ``board``: a :class:`lightplane.camera.targets.Target` or ``(cols, rows)`` chessboard with ``square_mm``.
+    ``frames``: :class:`BoardFrames` (or just the laser images).  ``board``: a
+    :class:`lightplane.camera.targets.Target` or ``(cols, rows)`` chessboard with ``square_mm``.
     Where the board is looked for: in ``pattern_images[k]`` (the lit board, laser off, of
     image ``k``'s pose; the laser image may then be a dark frame in which the board
     cannot be seen), else in the laser-off ``background_images[k]`` (one per image,
     also subtracted before stripe extraction; a single one is only subtracted), else
     in the image itself (corners the stripe runs over are then left out of the pose).
-    The same pattern frame object given for several images is searched once.
     ``images[k]`` may be None (unreadable: pass its reason in a skipped entry upstream).
+    ``options``: :class:`BoardPlaneOptions` (its ``stripe_width_px``, ``channel``, ``region_px``).
 
     With ``skip`` an image whose board is not found, or with fewer than
     ``min_stripe_points`` stripe centres on the board, is skipped with its reason;
     without it the first such image raises LightplaneError.
-    ``region_px``: ``(x0, y0, x1, y1)``: stripe centres only with ``x0 <= u < x1``, ``y0 <= v < y1``
-    (one laser's stripe among several, told apart by where it is in the image).
     ``pose_cache``: a dict shared between calls on the same pattern frame objects (several
     lasers' frames of the same poses): each pattern frame's board is searched once.
     """
+    fr = _frames(frames)
+    opts = BoardPlaneOptions() if options is None else options
     target = as_target(board, square_mm)
-    names = list(image_names) if image_names is not None else [f"image {i}" for i in range(len(images))]
+    images = fr.images
+    names = list(fr.names) if fr.names is not None else [f"image {i}" for i in range(len(images))]
     if len(names) != len(images):
         raise LightplaneError(f"{len(images)} images but {len(names)} names")
-    if background_images is not None and len(background_images) not in (1, len(images)):
+    if fr.background_images is not None and len(fr.background_images) not in (1, len(images)):
         raise LightplaneError(f"give one background image, or one per image ({len(images)}); "
-                              f"got {len(background_images)}")
-    if pattern_images is not None and len(pattern_images) != len(images):
-        raise LightplaneError(f"give one pattern frame per laser image ({len(images)}); got {len(pattern_images)}")
+                              f"got {len(fr.background_images)}")
+    if fr.pattern_images is not None and len(fr.pattern_images) != len(images):
+        raise LightplaneError(f"give one pattern frame per laser image ({len(images)}); got {len(fr.pattern_images)}")
     out = BoardViews([], [], [], {})
     pattern_poses: dict[int, BoardPose | str] = {} if pose_cache is None else pose_cache
     for k, img in enumerate(images):
         try:
             if img is None:
                 raise LightplaneError(f"{names[k]}: not a readable image")
-            bg = None
-            if background_images is not None:
-                bg = background_images[k if len(background_images) > 1 else 0]
-            per_image = background_images is not None and bg is not None and len(background_images) == len(images)
-            if pattern_images is not None:
-                pat = pattern_images[k]
-                if pat is None:
-                    raise LightplaneError(f"{names[k]}: no usable pattern frame for this laser frame")
-                if id(pat) not in pattern_poses:
-                    try:
-                        pattern_poses[id(pat)] = find_board_pose(pat, camera, target, name=names[k], channel=channel)
-                    except LightplaneError as e:
-                        pattern_poses[id(pat)] = str(e).removeprefix(f"{names[k]}: ")
-                pose = pattern_poses[id(pat)]
-                if isinstance(pose, str):
-                    raise LightplaneError(f"{names[k]}: pattern frame: {pose}")
-                camera.check_image(img, names[k])
-                pose = replace(pose, name=names[k])
-            else:
-                pose = find_board_pose(bg if per_image and bg is not None else img, camera, target, name=names[k],
-                                       channel=channel)
-            mask = board_polygon_mask(camera, pose, target)
-            if region_px is not None:
-                x0, y0, x1, y1 = region_px
-                u, v = np.arange(mask.shape[1]), np.arange(mask.shape[0])
-                inside = ((v >= y0) & (v < y1))[:, None] & ((u >= x0) & (u < x1))[None, :]
-                mask = np.where(inside, mask, 0).astype(mask.dtype)
-            if pattern_images is not None and bg is None and _same_exposure(img, pat, mask, channel):
-                bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
-            stripe = _stripe_in_mask(camera, img, mask, bg, stripe_width_px, channel, pose.corners_uv)
-            if pattern_images is None and not per_image and len(stripe) >= 2:
-                # corners found in the laser-on image: leave out those the stripe runs over
-                clear = corners_clear_of_stripe(camera, pose, stripe,
-                                                clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
-                if not clear.all() and np.count_nonzero(clear) >= 6:
-                    pose = pose_from_corners(camera, pose.corners_uv, target, name=names[k], corner_ok=clear,
-                                             ids=pose.ids)
+            pose, stripe = _board_view(camera, target, fr, k, names[k], opts, pattern_poses)
             if len(stripe) < min_stripe_points:
                 raise LightplaneError(f"{names[k]}: " + (f"only {len(stripe)} stripe points on the board"
                                                          if len(stripe) else "no stripe on the board"))
@@ -409,6 +427,56 @@ def find_board_views(images: Sequence, camera: Camera, board, square_mm: float |
         if progress is not None:
             progress(k)
     return out
+
+
+def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts: BoardPlaneOptions,
+                pattern_poses: dict) -> tuple[BoardPose, np.ndarray]:
+    """Image ``k``'s board pose and the stripe centres on the board (:func:`find_board_views`)."""
+    img = fr.images[k]
+    bgs, pats = fr.background_images, fr.pattern_images
+    bg = None
+    if bgs is not None:
+        bg = bgs[k if len(bgs) > 1 else 0]
+    per_image = bgs is not None and bg is not None and len(bgs) == len(fr.images)
+    pat = None
+    if pats is not None:
+        pat = pats[k]
+        pose = _pattern_pose(camera, target, pat, name, opts.channel, pattern_poses)
+        camera.check_image(img, name)
+        pose = replace(pose, name=name)
+    else:
+        pose = find_board_pose(bg if per_image and bg is not None else img, camera, target, name=name,
+                               channel=opts.channel)
+    mask = board_polygon_mask(camera, pose, target)
+    if opts.region_px is not None:
+        x0, y0, x1, y1 = opts.region_px
+        u, v = np.arange(mask.shape[1]), np.arange(mask.shape[0])
+        inside = ((v >= y0) & (v < y1))[:, None] & ((u >= x0) & (u < x1))[None, :]
+        mask = np.where(inside, mask, 0).astype(mask.dtype)
+    if pat is not None and bg is None and _same_exposure(img, pat, mask, opts.channel):
+        bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
+    stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv)
+    if pats is None and not per_image and len(stripe) >= 2:
+        # corners found in the laser-on image: leave out those the stripe runs over
+        clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
+        if not clear.all() and np.count_nonzero(clear) >= 6:
+            pose = pose_from_corners(camera, pose.corners_uv, target, name=name, corner_ok=clear, ids=pose.ids)
+    return pose, stripe
+
+
+def _pattern_pose(camera: Camera, target, pat, name: str, channel: str | None, pattern_poses: dict) -> BoardPose:
+    """The board pose of pattern frame ``pat``, found once per frame object (``pattern_poses``: its pose or why not)."""
+    if pat is None:
+        raise LightplaneError(f"{name}: no usable pattern frame for this laser frame")
+    if id(pat) not in pattern_poses:
+        try:
+            pattern_poses[id(pat)] = find_board_pose(pat, camera, target, name=name, channel=channel)
+        except LightplaneError as e:
+            pattern_poses[id(pat)] = str(e).removeprefix(f"{name}: ")
+    pose = pattern_poses[id(pat)]
+    if isinstance(pose, str):
+        raise LightplaneError(f"{name}: pattern frame: {pose}")
+    return pose
 
 
 def _corner_spacing_px(corners_uv: np.ndarray) -> float:
@@ -434,42 +502,29 @@ def board_views_and_stripes(images: Sequence[np.ndarray], camera: Camera, *, boa
     :func:`find_board_views` without skipping: raises LightplaneError naming the
     first image where the board is not found.
     """
-    v = find_board_views(images, camera, board, square_mm, background_images=background_images,
-                         image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=False,
+    v = find_board_views(BoardFrames(images, background_images=background_images, names=image_names), camera, board,
+                         square_mm, BoardPlaneOptions(stripe_width_px=stripe_width_px, channel=channel), skip=False,
                          progress=progress)
     return v.poses, v.stripes, v.names
 
 
 @with_blas_limited
-def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: float | None = None, *,
-                          background_images: Sequence[np.ndarray] | None = None,
-                          pattern_images: Sequence | None = None,
-                          image_names: Sequence[str] | None = None, stripe_width_px: float | None = None,
-                          channel: str | None = None, min_points_per_view: int = 10, min_views: int = 2,
-                          skipped: dict | None = None,
+def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, board, square_mm: float | None = None,
+                          options: BoardPlaneOptions | None = None, *,
                           progress: Callable[[int], None] | None = None,
-                          region_px: tuple[float, float, float, float] | None = None,
                           pose_cache: dict | None = None) -> ZhouCalibration:
     """Zhou's planar-target light-plane calibration from images of a board with the stripe.
 
     Parameters
     ----------
-    images : laser images (gray or BGR arrays; None for one that could not be read), the board
-        in a different pose in each (or several laser frames per pose with ``pattern_images``).
+    frames : :class:`BoardFrames` (the laser images with their pattern or laser-off frames, names and
+        the images skipped before), or just the laser images.
     camera : the calibrated camera.
     board : a :class:`lightplane.camera.targets.Target` (chessboard, circle grid, ChArUco), or
         ``(cols, rows)`` chessboard inner corners with ``square_mm`` (mm).
-    background_images : laser-off frames, one per image (same pose) or one for all;
-        subtracted before stripe extraction (and used to find the board when one per image).
-    pattern_images : per laser image, the lit board frame (laser off) of its pose, in which
-        the board is found (the laser frames may be dark, low-exposure ones).
-    stripe_width_px, channel : passed to :func:`lightplane.stripe.extract.extract_stripe`.
-    min_points_per_view : fewer stripe points on a board skip the image.
-    min_views : fewer usable images raise LightplaneError, saying why the others were skipped.
-    skipped : name → reason of images already skipped by the caller (unreadable files); counted
-        in that message and stored in the result.
-    region_px : ``(x0, y0, x1, y1)`` px: only stripe centres in this image region (one laser of
-        several whose stripes are apart in the image); see :func:`find_board_views`.
+    options : :class:`BoardPlaneOptions` (stripe width and channel, image region, fewest stripe points
+        per board and fewest usable images; defaults when omitted).
+    progress : ``progress(k)`` after image ``k``.
     pose_cache : see :func:`find_board_views` (the board of each pattern frame found once for all lasers).
 
     Returns
@@ -479,19 +534,56 @@ def calibrate_plane_board(images: Sequence, camera: Camera, board, square_mm: fl
     images not used with their reason.
     """
 
+    fr = _frames(frames)
+    opts = BoardPlaneOptions() if options is None else options
     target = as_target(board, square_mm)
-    pre = dict(skipped or {})
-    v = find_board_views(images, camera, target, background_images=background_images, pattern_images=pattern_images,
-                         image_names=image_names, stripe_width_px=stripe_width_px, channel=channel, skip=True,
-                         min_stripe_points=min_points_per_view, progress=progress, region_px=region_px,
-                         pose_cache=pose_cache)
+    pre = dict(fr.skipped or {})
+    v = find_board_views(fr, camera, target, options=opts, min_stripe_points=opts.min_points_per_view, skip=True,
+                         progress=progress, pose_cache=pose_cache)
     why = {**pre, **v.skipped}
-    if len(v.poses) < max(2, min_views):
-        raise LightplaneError("Zhou's method: " + too_few_images_message("images", len(v.poses), max(2, min_views),
-                                                                         why.items()))
-    return plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=min_points_per_view,
+    n_min = max(2, opts.min_views)
+    if len(v.poses) < n_min:
+        raise LightplaneError("Zhou's method: " + too_few_images_message("images", len(v.poses), n_min, why.items()))
+    return plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=opts.min_points_per_view,
                                     meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
                                           "target": target.to_dict(), "skipped": why,
-                                          "laser_frames": "pattern frames" if pattern_images is not None else
-                                          ("background-subtracted" if background_images is not None
+                                          "laser_frames": "pattern frames" if fr.pattern_images is not None else
+                                          ("background-subtracted" if fr.background_images is not None
                                            else "laser-on only")})
+
+
+def calibrate_plane_boards(frames: BoardFrames, camera: Camera, board, lasers: dict,
+                           options: BoardPlaneOptions | None = None, *,
+                           progress: Callable[[str, int, int], None] | None = None) -> dict:
+    """Zhou's calibration of one plane per laser from the same board poses (``lightplane calibrate-plane-board``).
+
+    ``lasers``: laser name (None for one laser) → ``(indices of its images in frames, its
+    :class:`lightplane.stripe.lasers.LaserSelector` or None)``; a laser's selector gives its channel and
+    image region (else ``options``').  Images named in ``frames.skipped`` are left out (and listed).  Each
+    pattern frame's board is found once for all lasers.  ``progress(label, done, total)`` after each image.
+    Returns ``{name: ZhouCalibration}``; a laser's error names it.
+    """
+    opts = BoardPlaneOptions() if options is None else options
+    names = [f"image {i}" for i in range(len(frames.images))] if frames.names is None else list(frames.names)
+    skipped = frames.skipped or {}
+    pose_cache: dict = {}  # each pattern frame's board found once for all lasers
+    bgs, pats = frames.background_images, frames.pattern_images
+    results = {}
+    for lname, (idx, sel) in lasers.items():
+        keep = [k for k in idx if names[k] not in skipped]
+        label = "board poses and stripes" + ("" if lname is None else f", laser {lname}")
+        fr = BoardFrames([frames.images[k] for k in keep],
+                         pattern_images=None if pats is None else [pats[k] for k in keep],
+                         background_images=None if bgs is None else (bgs if len(bgs) == 1 else [bgs[k] for k in keep]),
+                         names=[names[k] for k in keep],
+                         skipped={names[k]: skipped[names[k]] for k in idx if names[k] in skipped})
+        laser_opts = opts if sel is None else replace(opts, channel=sel.channel, region_px=sel.region)
+        step = None if progress is None else (lambda i, label=label, n=len(keep): progress(label, i + 1, n))
+        try:
+            results[lname] = calibrate_plane_board(fr, camera, board, options=laser_opts, progress=step,
+                                                   pose_cache=pose_cache)
+        except LightplaneError as e:
+            if sel is None:
+                raise
+            raise LightplaneError(f"laser {sel.describe()}: {e}") from None
+    return results

@@ -34,13 +34,13 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
-from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 from lightplane.core.io import provenance, provenance as _prov, read_image, write_json
 from lightplane.evaluate.crossratio import evaluate_images
 from lightplane.measure.profile import ProfileMeasurer
 from lightplane.plane.model import LightPlane
-from lightplane.plane.calibrate import observe_images, solve_observations, uncertainty_summary
-from lightplane.plane.zhou import calibrate_plane_board
+from lightplane.plane.calibrate import PlaneCalibrationOptions, observe_images, solve_observations, uncertainty_summary
+from lightplane.plane.zhou import BoardFrames, calibrate_plane_board
 from lightplane.report.html import Section, write_report
 from lightplane.simulate import render as R
 from lightplane.simulate.scene import default_camera, default_plane
@@ -261,7 +261,7 @@ def _stage_camera(run: _Run) -> None:
 
         truth, files, imgs = _load_set(run.data / "chessboards")
         ic = calibrate_camera(imgs, tuple(cfg["camera_board"]), cfg["camera_square_mm"], names=[f.name for f in files],
-                              flags=cv2.CALIB_FIX_K3)
+                              options=CameraCalibrationOptions(flags=cv2.CALIB_FIX_K3))
         return ic
 
     run.say(f"[3] calibrating the camera from {cfg['chessboards']} rendered chessboards ...")
@@ -289,7 +289,7 @@ def _stage_plane(run: _Run):
     def calib_plane():
         _, files, _ = _load_set(data / "circles")
         t0 = time.perf_counter()
-        obs = observe_images(files, camera, cfg["diameter_mm"], workers=run.workers)
+        obs = observe_images(files, camera, cfg["diameter_mm"], PlaneCalibrationOptions(workers=run.workers))
         cals = {m: solve_observations(obs, camera, cfg["diameter_mm"], m,
                                       seconds=time.perf_counter() - t0 if m == "ml" else 0.0)
                 for m in ("ml", "global", "paper")}
@@ -339,8 +339,8 @@ def _stage_zhou(run: _Run):
 
     def zhou_stage():
         _, files, imgs = _load_set(run.data / "striped_boards")
-        return calibrate_plane_board(imgs, camera, tuple(cfg["board"]), cfg["square_mm"],
-                                     image_names=[f.name for f in files])
+        return calibrate_plane_board(BoardFrames(imgs, names=[f.name for f in files]), camera, tuple(cfg["board"]),
+                                     cfg["square_mm"])
 
     zhou = run.st.run("zhou", zhou_stage)
     if zhou is not None:
