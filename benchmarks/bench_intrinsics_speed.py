@@ -36,7 +36,7 @@ def _worker() -> None:  # runs in the worker process: commands on stdin, one JSO
 
     import lightplane
     from lightplane.camera.model import Camera
-    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
     from lightplane.core.io import read_image
 
     boards = Path(sys.argv[sys.argv.index("--worker") + 1])
@@ -48,7 +48,8 @@ def _worker() -> None:  # runs in the worker process: commands on stdin, one JSO
     for line in sys.stdin:
         cmd = json.loads(line)
         c0, t0 = time.process_time(), time.perf_counter()
-        ic = calibrate_camera(imgs, board, truth["board"]["square_mm"], flags=cv2.CALIB_FIX_K3)
+        ic = calibrate_camera(imgs, board, truth["board"]["square_mm"],
+                              options=CameraCalibrationOptions(flags=cv2.CALIB_FIX_K3))
         cpu, wall = time.process_time() - c0, time.perf_counter() - t0
         if cmd.get("save"):
             np.savez(cmd["save"], corners=np.stack(ic.corners_uv), K=ic.camera.K, dist=ic.camera.dist)

@@ -7,7 +7,7 @@ coefficients), all with the renderer's exact truth:
 
 1. intrinsics from ``--boards`` rendered chessboards (the calibration capture, its boards
    brought closer for the wide lens so that they fill its field) with
-   ``calibrate_camera(model=...)`` and its default corners: every parameter's error in units of
+   ``calibrate_camera(options=CameraCalibrationOptions(model=...))`` and its default corners: every parameter's error in units of
    its sigma (target: within 3 sigma) -- the sigma of the full covariance (board poses
    marginalised) and, beside it, OpenCV's ``stdDeviationsIntrinsics`` -- and the
    over-parameterisation warnings, if any.  Why OpenCV's sigma can be far too small: it is
@@ -51,7 +51,7 @@ import cv2
 
 from lightplane import Camera
 from lightplane.plane.calibrate import calibrate_plane
-from lightplane.camera.intrinsics import free_parameters, calibrate_camera, rays_up_to_rotation
+from lightplane.camera.intrinsics import CameraCalibrationOptions, free_parameters, calibrate_camera, rays_up_to_rotation
 from lightplane.camera.targets import board_object_points
 from lightplane.camera.lens import coeff_names
 from lightplane.measure.scan import ArrayFrames, Motion, scan_points
@@ -114,8 +114,8 @@ def intrinsics(rig: str, n: int, seed: int, refine="saddle") -> dict:
         difficulty="realistic", capture=cap if dist is None else replace(cap, distance_mm=dist)), camera=cam)
     t0 = time.perf_counter()
     held = (float(np.rad2deg(cam.dist[12])), float(np.rad2deg(cam.dist[13]))) if rig == "tilted_held" else None
-    cal = calibrate_camera(ds.images, cap.board, cap.square_mm, model=model, flags=flags, tilt_deg=held,
-                           refine=True if refine == "saddle" else refine)
+    cal = calibrate_camera(ds.images, cap.board, cap.square_mm, options=CameraCalibrationOptions(
+        model=model, flags=flags, tilt_deg=held, refine=True if refine == "saddle" else refine))
     dt = time.perf_counter() - t0
     truth = np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.dist])
     est = np.concatenate([[cal.camera.fx, cal.camera.fy, cal.camera.cx, cal.camera.cy], cal.camera.dist])

@@ -101,12 +101,12 @@ def _calibrate_opencv(kind: str, spec, images: list[np.ndarray]) -> dict:
 def _calibrate_library(spec, images: list[np.ndarray]) -> dict:
     import cv2
 
-    from lightplane.camera.intrinsics import calibrate_camera
+    from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
     from lightplane.camera.targets import Target
 
     dot = spec.dot_diameter_mm  # the printed dots' diameter, as a user knows it
     target = Target(spec.kind, spec.cols, spec.rows, spec.square_mm, spec.marker_mm, spec.dictionary, dot)
-    ic = calibrate_camera(images, target, flags=cv2.CALIB_FIX_K3)
+    ic = calibrate_camera(images, target, options=CameraCalibrationOptions(flags=cv2.CALIB_FIX_K3))
     shift = ic.options.get("circle_centre_correction_px")
     return {"used": len(ic.used), "rms": ic.rms_px, "K": ic.camera.K, "std": {k: ic.std[k] for k in NAMES},
             "shift": shift}

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 from lightplane.camera.corners import _detect_board, find_board
 from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardOptions, render_chessboard_dataset
 
@@ -85,7 +85,8 @@ def test_refined_corners_on_truth(boards):
 def test_intrinsics_within_reported_std(boards):
     ds = boards
     board = tuple(ds.truth["board"]["inner_corners"])
-    ic = calibrate_camera(ds.images, board, ds.truth["board"]["square_mm"], flags=cv2.CALIB_FIX_K3)
+    ic = calibrate_camera(ds.images, board, ds.truth["board"]["square_mm"],
+                          options=CameraCalibrationOptions(flags=cv2.CALIB_FIX_K3))
     cam, true = ic.camera, ds.camera
     assert len(ic.used) == N_VIEWS
     assert ic.options["refine"] == "saddle" and ic.options["median_blur_px"] > 0.8  # PSF 0.9 px ⊗ pixel box

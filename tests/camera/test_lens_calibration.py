@@ -14,7 +14,7 @@ import pytest
 
 from _cli import lightplane, one_error_line
 from lightplane import Camera
-from lightplane.camera.intrinsics import calibrate_camera
+from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 from lightplane.camera.lens import coeff_names
 from lightplane.simulate.scene import lens_camera
 from lightplane.simulate.render import CALIBRATION_CAPTURE, BoardOptions, render_chessboard_dataset
@@ -59,7 +59,7 @@ def _check_within_sigma(truth: Camera, cal, k: float = 3.5) -> None:
 
 def test_tilted_sensor_calibrates_to_the_truth(tilted_boards):
     cam, ds = tilted_boards
-    cal = calibrate_camera(ds.images, BOARD, SQUARE, model="tilted")
+    cal = calibrate_camera(ds.images, BOARD, SQUARE, options=CameraCalibrationOptions(model="tilted"))
     assert cal.camera.model == "tilted" and cal.camera.dist.size == 14
     assert np.all(cal.camera.dist[5:12] == 0)  # the rational and prism terms are not estimated
     # the corners of the renders are where the tilted model puts them (the renderer uses the model)
@@ -101,7 +101,7 @@ def test_calibrate_camera_cli_tilted_says_which_std(tmp_path, tilted_boards):
 def test_over_parameterised_model_is_flagged(tilted_boards):
     """The thin-prism terms of a lens that has none, from 4 views: undetermined and correlated."""
     cam, ds = tilted_boards
-    cal = calibrate_camera(ds.images[:4], BOARD, SQUARE, model="thin_prism")
+    cal = calibrate_camera(ds.images[:4], BOARD, SQUARE, options=CameraCalibrationOptions(model="thin_prism"))
     assert cal.camera.model == "thin_prism" and cal.camera.dist.size == 12
     text = " ".join(cal.warnings)
     assert "over-parameterised" in text or "correlated" in text, cal.warnings
@@ -146,7 +146,7 @@ def test_fisheye_calibrates_to_the_truth(fisheye_boards, refine):
     the corners are fitted again in the lens frame of a first calibration (with the straight-edge fit
     alone fx, fy were +4.4 sigma off here); Förstner's corners need no such step."""
     cam, ds = fisheye_boards
-    cal = calibrate_camera(ds.images, BOARD, SQUARE, model="fisheye", refine=refine)
+    cal = calibrate_camera(ds.images, BOARD, SQUARE, options=CameraCalibrationOptions(model="fisheye", refine=refine))
     assert cal.camera.model == "fisheye" and cal.camera.dist.size == 4
     assert cal.options["refine"] == refine
     assert (cal.options["lens_frame_refit_corners"] > 0) == (refine == "saddle")
@@ -190,7 +190,8 @@ def test_calibrate_camera_cli_model(tmp_path, fisheye_boards):
     for model, tilt, needle in (("tilted", (0.0, 60.0), "under 45 degrees"), ("tilted", (4.5,), "two finite"),
                                 ("rational", (0.0, 4.5), "tilted model")):
         with pytest.raises(LightplaneError, match=needle):
-            calibrate_camera([tmp_path / "none.png"], BOARD, SQUARE, model=model, tilt_deg=tilt)  # type: ignore[arg-type]
+            calibrate_camera([tmp_path / "none.png"], BOARD, SQUARE,
+                             options=CameraCalibrationOptions(model=model, tilt_deg=tilt))  # type: ignore[arg-type]
 
 
 def test_tilted_sensor_with_the_tilt_held(tilted_boards):
@@ -200,7 +201,7 @@ def test_tilted_sensor_with_the_tilt_held(tilted_boards):
     the same sigma here, and up to 3.1 sigma with the tilt free; 3.5 as in _check_within_sigma)."""
     cam, ds = tilted_boards
     held = (float(np.rad2deg(cam.dist[12])), float(np.rad2deg(cam.dist[13])))
-    cal = calibrate_camera(ds.images, BOARD, SQUARE, model="tilted", tilt_deg=held)
+    cal = calibrate_camera(ds.images, BOARD, SQUARE, options=CameraCalibrationOptions(model="tilted", tilt_deg=held))
     assert np.allclose(cal.camera.dist[12:], cam.dist[12:], rtol=1e-12, atol=1e-15)
     assert cal.std["taux"] == 0 and cal.std["tauy"] == 0
     f = np.sqrt(cal.options["covariance_dispersion"])  # ours: the residuals' noise times the views' dispersion

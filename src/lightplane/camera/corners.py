@@ -5,13 +5,16 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from lightplane.camera._corner_kernels import fit_saddles, forstner, window_pixels
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import to_gray_float
-__all__ = ["MIN_BOARD_BLUR_PX", "find_board", "fit_corners", "lens_bend", "refine_corners"]
+
+__all__ = ["MIN_BOARD_BLUR_PX", "CornerFitOptions", "find_board", "fit_corners", "lens_bend", "refine_corners"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
@@ -163,10 +166,40 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     return best_P, best_cost
 
 
-def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
-                max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12,
-                tol_px: float = 1e-4, min_blur_px: float = 0.4, chunk_size: int = 24,
-                camera: Camera | None = None) -> np.ndarray:
+@dataclass(frozen=True)
+class CornerFitOptions:
+    """Options of the blurred-saddle corner fit (:func:`fit_corners`; checked on construction).
+
+    radius_frac : the window's radius as a fraction of the distance to the nearest parallel grid line.
+    max_radius_px : the largest window radius (px).
+    taper_px : the width over which the window's weight falls to 0 (px).
+    max_iter, tol_px : Levenberg–Marquardt steps at most, and the corner step (px) that ends them.
+    min_blur_px : corners whose fitted blur ``|s|`` is below this keep their input.
+    chunk_size : corners fitted together (bounded memory).
+    """
+
+    radius_frac: float = 0.75
+    max_radius_px: float = 40.0
+    taper_px: float = 3.0
+    max_iter: int = 12
+    tol_px: float = 1e-4
+    min_blur_px: float = 0.4
+    chunk_size: int = 24
+
+    def __post_init__(self) -> None:
+        for name in ("radius_frac", "max_radius_px", "tol_px"):
+            if not getattr(self, name) > 0:
+                raise LightplaneError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("taper_px", "min_blur_px"):
+            if not getattr(self, name) >= 0:
+                raise LightplaneError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("max_iter", "chunk_size"):
+            if not int(getattr(self, name)) >= 1:
+                raise LightplaneError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int],
+                options: CornerFitOptions | None = None, *, camera: Camera | None = None) -> np.ndarray:
     """Chessboard corners by fitting a blurred-saddle model to the image, ``(N, 2)`` px.
 
     Around each corner ``q`` the image is modelled as
@@ -180,10 +213,11 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     gradients (vignetting and shading; the multiplicative ``h`` term matters because,
     being odd about ``q``, it would otherwise pull the corner).  All 11 parameters are
     fitted per corner by Levenberg–Marquardt (compiled, :mod:`lightplane.camera._corner_kernels`;
-    the corners of a chunk step together until all are done), over the pixel centres within a disc about the *current* ``q`` (radius ``radius_frac`` × the
-    distance to the nearest parallel grid line, at most ``max_radius_px``; the weight
-    falls smoothly to 0 over its last ``taper_px``; near the image border the radius
-    shrinks so that the disc stays inside the image).
+    the corners of a chunk step together until all are done), over the pixel centres within a
+    disc about the *current* ``q`` (radius ``radius_frac`` × the distance to the nearest parallel
+    grid line, at most ``max_radius_px``; the weight falls smoothly to 0 over its last
+    ``taper_px``; near the image border the radius shrinks so that the disc stays inside the
+    image); the options are :class:`CornerFitOptions`.
 
     Why it is unbiased: the blurred ideal saddle is point-symmetric about ``q``, so is
     the model, so is the weight; the residual of any symmetric misfit (the erf product is
@@ -221,22 +255,19 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     board : (cols, rows) inner corners; the grid gives the edge directions and the
         local spacing of every corner
 
-    min_blur_px : corners whose fitted blur ``|s|`` is below this keep their input
+    options : :class:`CornerFitOptions` (None: the defaults)
     camera : the lens (any model): fit in its lens frame (the corners returned in distorted px)
 
-    Corners whose fit fails (singular, not finite, blur outside ``min_blur_px`` … half
+    Corners whose fit fails (singular, not finite, blur outside ``options.min_blur_px`` … half
     the radius, contrast below 5x the residual noise, edge directions turned by more
     than 20° from the grid's) or that move by more than a quarter of the local spacing
     keep their input position.
     """
-    return _fit_corners(gray, corners_uv, board, radius_frac=radius_frac, max_radius_px=max_radius_px,
-                        taper_px=taper_px, max_iter=max_iter, tol_px=tol_px, min_blur_px=min_blur_px,
-                        chunk_size=chunk_size, camera=camera)[0]
+    return _fit_corners(gray, corners_uv, board, options, camera=camera)[0]
 
 
-def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], *, radius_frac: float = 0.75,
-                 max_radius_px: float = 40.0, taper_px: float = 3.0, max_iter: int = 12, tol_px: float = 1e-4,
-                 min_blur_px: float = 0.4, chunk_size: int = 24, camera: Camera | None = None,
+def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int],
+                 options: CornerFitOptions | None = None, *, camera: Camera | None = None,
                  min_bend_px: float = 0.0, start: np.ndarray | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px, which corners were fitted (N,) bool
@@ -248,10 +279,52 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     ``corners_uv``; NaN rows: the corners it did not fit, which start afresh), e.g. the fit without
     ``camera`` for the refit in the lens frame (which, to first order, changes nothing about the
     corner): the Levenberg–Marquardt then converges in one or two steps instead of three or four."""
+    opts = CornerFitOptions() if options is None else options
+    g, q0, cols, rows = _checked_corner_input(gray, corners_uv, board)
+    gap, e_row, e_col = _grid_geometry(q0, (cols, rows))
+    # the window stays inside the image (a cut window would not be symmetric about q)
+    h, w = g.shape
+    border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
+    radius = np.clip(np.minimum(opts.radius_frac * gap, border), 2.0, opts.max_radius_px)
+    n = len(q0)
+    sel = np.ones(n, bool)
+    if camera is not None and min_bend_px > 0:
+        sel = lens_bend(camera, q0, radius) > min_bend_px
+    P, warm = _start_parameters(q0, e_row, e_col, start)
+    cost = np.full(n, np.inf)
+    for group, is_warm in ((sel & ~warm, False), (sel & warm, True)):
+        # corners in chunks of similar radius: bounded memory, few padded pixels
+        order = np.flatnonzero(group)[np.argsort(radius[group])]
+        for chunk in np.array_split(order, max(1, int(np.ceil(order.size / opts.chunk_size)))):
+            if chunk.size == 0:
+                continue
+            P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], opts.taper_px, opts.max_iter,
+                                                 opts.tol_px, camera, warm=is_warm)
+    q = P[:, :2].copy()
+
+    def turned(phi, e):  # angle between the fitted edge and the grid direction
+        return np.abs(np.cos(phi) * e[:, 0] + np.sin(phi) * e[:, 1]) / np.linalg.norm(e, axis=1)
+
+    noise = np.sqrt(np.maximum(cost, 0.0))
+    blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
+    max_turn = np.sin(np.radians(20.0))
+    bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
+           | ~(blur >= opts.min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
+           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
+    q[bad] = q0[bad]
+    blur[~sel] = np.nan
+    P[bad] = np.nan
+    return q, blur, ~bad, P
+
+
+def _checked_corner_input(gray: np.ndarray, corners_uv: np.ndarray,
+                          board: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """:func:`fit_corners`' image (C-contiguous float64, the kernels' layout, once for all chunks),
+    corners (N, 2) and board ``cols, rows``, checked."""
     g = np.asarray(gray)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise LightplaneError(f"fit_corners: gray must be a 2-D numeric image, got shape {g.shape}")
-    g = np.ascontiguousarray(g, dtype=np.float64)  # the kernels' layout, once for all chunks
+    g = np.ascontiguousarray(g, dtype=np.float64)
     q0 = np.asarray(corners_uv, dtype=np.float64)
     cols, rows = (int(v) for v in board)
     if cols < 2 or rows < 2:
@@ -261,15 +334,15 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
                               f"board, got {q0.shape}")
     if not np.all(np.isfinite(q0)):
         raise LightplaneError("fit_corners: corners_uv holds non-finite values")
-    gap, e_row, e_col = _grid_geometry(q0, (cols, rows))
-    # the window stays inside the image (a cut window would not be symmetric about q)
-    h, w = g.shape
-    border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
-    radius = np.clip(np.minimum(radius_frac * gap, border), 2.0, max_radius_px)
+    return g, q0, cols, rows
+
+
+def _start_parameters(q0: np.ndarray, e_row: np.ndarray, e_col: np.ndarray,
+                      start: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The saddle fit's starting parameters (N, 11): the corners ``q0``, the edge normals of the grid's
+    row and column directions, unit blur; or, where ``start`` holds a whole fit about the same
+    corner, that fit (``warm``, (N,) bool)."""
     n = len(q0)
-    sel = np.ones(n, bool)
-    if camera is not None and min_bend_px > 0:
-        sel = lens_bend(camera, q0, radius) > min_bend_px
     P = np.zeros((n, 11))
     P[:, :2] = q0
     P[:, 2] = np.arctan2(e_row[:, 0], -e_row[:, 1])  # normal of the edge along the row
@@ -282,30 +355,7 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
             raise LightplaneError(f"fit_corners: start must have shape ({n}, 11), got {start.shape}")
         warm = np.all(np.isfinite(start), axis=1) & np.all(start[:, :2] == q0, axis=1)
         P[warm] = start[warm]
-    cost = np.full(n, np.inf)
-    for group, is_warm in ((sel & ~warm, False), (sel & warm, True)):
-        # corners in chunks of similar radius: bounded memory, few padded pixels
-        order = np.flatnonzero(group)[np.argsort(radius[group])]
-        for chunk in np.array_split(order, max(1, int(np.ceil(order.size / chunk_size)))):
-            if chunk.size == 0:
-                continue
-            P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], taper_px, max_iter, tol_px, camera,
-                                                 warm=is_warm)
-    q = P[:, :2].copy()
-
-    def turned(phi, e):  # angle between the fitted edge and the grid direction
-        return np.abs(np.cos(phi) * e[:, 0] + np.sin(phi) * e[:, 1]) / np.linalg.norm(e, axis=1)
-
-    noise = np.sqrt(np.maximum(cost, 0.0))
-    blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
-    max_turn = np.sin(np.radians(20.0))
-    bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
-           | ~(blur >= min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
-           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
-    q[bad] = q0[bad]
-    blur[~sel] = np.nan
-    P[bad] = np.nan
-    return q, blur, ~bad, P
+    return P, warm
 
 
 def lens_bend(camera: Camera, corners_uv: np.ndarray, radius_px: np.ndarray | float) -> np.ndarray:

@@ -22,7 +22,7 @@ from lightplane.camera.targets import Target, as_target, correct_circle_centres,
 from lightplane.core.io import to_gray_float, too_few_images_message, try_read_image
 from lightplane.core.threads import with_blas_limited
 
-__all__ = ["BoardView", "IntrinsicsCalibration",
+__all__ = ["BoardView", "IntrinsicsCalibration", "CameraCalibrationOptions",
            "LENS_REFIT_BEND_PX", "opencv_std_ratio", "rays_up_to_rotation",
            "calibrate_camera", "INTRINSIC_NAMES", "DIST_NAMES", "intrinsics_covariance", "IntrinsicsCovariance",
            "view_dispersion"]
@@ -317,30 +317,11 @@ class IntrinsicsCalibration:
         }
 
 
-@with_blas_limited
-def calibrate_camera(
-    images: Sequence,
-    board: "tuple[int, int] | Target",
-    square_mm: float | None = None,
-    *,
-    names: Sequence[str] | None = None,
-    flags: int = 0,
-    model: str | None = None,
-    tilt_deg: tuple[float, float] | None = None,
-    rotate_deg: int = 0,
-    min_views: int = 3,
-    refine: bool | str = True,
-    covariance_noise: str = "views",
-    progress: Callable[[int, int], None] | None = None,
-) -> IntrinsicsCalibration:
-    """Zhang calibration from images of a planar target (docs/method.md §Camera calibration).
+@dataclass(frozen=True)
+class CameraCalibrationOptions:
+    """Options of :func:`calibrate_camera` (checked on construction: the model, the corner
+    refinement, the covariance's noise and a held tilt).
 
-    Parameters
-    ----------
-    images : sequence of image arrays or paths
-    board : a :class:`lightplane.camera.targets.Target` (chessboard, circle grid or ChArUco), or
-        ``(cols, rows)`` chessboard inner corners with ``square_mm``
-    square_mm : chessboard square size, mm, with a ``(cols, rows)`` board (sets the scale of the poses only)
     flags : ``cv2.CALIB_*`` flags for ``calibrateCameraExtended`` (0: 5 coefficients, as OpenCV's default)
     model : the lens model (:data:`lightplane.camera.lens.MODELS`): ``plumb_bob``, ``rational``
         (``CALIB_RATIONAL_MODEL``), ``thin_prism`` (``+ CALIB_THIN_PRISM_MODEL``), ``tilted``
@@ -369,6 +350,75 @@ def calibrate_camera(
     covariance_noise : the corner noise of the intrinsics' covariance (:func:`intrinsics_covariance`):
         ``"views"`` (default) the residuals' σ² times the views' dispersion (:func:`view_dispersion`,
         ``options["covariance_dispersion"]``), ``"white"`` the residuals' σ² alone
+    """
+
+    flags: int = 0
+    model: str | None = None
+    tilt_deg: tuple[float, float] | None = None
+    rotate_deg: int = 0
+    min_views: int = 3
+    refine: bool | str = True
+    covariance_noise: str = "views"
+
+    def __post_init__(self) -> None:
+        model = calibration_flags(self.model, self.flags)[0]  # an unknown model raises
+        _refine_method(self.refine)
+        if self.covariance_noise not in ("views", "white"):
+            raise LightplaneError(f"covariance_noise must be 'views' or 'white', got {self.covariance_noise!r}")
+        if self.tilt_deg is not None:
+            tilt = np.asarray(self.tilt_deg, dtype=np.float64).ravel()
+            if model != "tilted":
+                raise LightplaneError(f"a held sensor tilt needs the tilted model, not {model}")
+            if tilt.size != 2 or not np.all(np.isfinite(tilt)) or np.any(np.abs(tilt) >= 45.0):
+                raise LightplaneError(f"the sensor tilt must be two finite angles (tauX, tauY) under 45 degrees, "
+                                      f"got {tilt.tolist()}")
+
+
+@dataclass
+class _Capture:
+    """What :func:`calibrate_camera` read: per view with a readable image of the right size its
+    detection, image (array or path, for the refit in the lens frame), saddle-fit corners and
+    parameters (chessboards with the saddle fit, else None); the saddle fits' blurs, the dots'
+    diameters (circle grids), the images skipped with their reasons and the image size."""
+
+    views: list[BoardView] = field(default_factory=list)
+    sources: list = field(default_factory=list)
+    saddles: list = field(default_factory=list)
+    fits: list = field(default_factory=list)
+    blurs: list = field(default_factory=list)
+    dots: list = field(default_factory=list)
+    skipped: dict = field(default_factory=dict)
+    size: tuple[int, int] | None = None
+
+
+@dataclass
+class _Used:
+    """The views a calibration uses: each one's :class:`BoardView`, corners (N, 2) px, object
+    points (N, 3) float32 and image points (N, 1, 2) float32 as solved."""
+
+    views: list[BoardView]
+    uv: list[np.ndarray]
+    objs: list[np.ndarray]
+    imgpoints: list[np.ndarray]
+
+
+@with_blas_limited
+def calibrate_camera(images: Sequence, board: "tuple[int, int] | Target", square_mm: float | None = None, *,
+                     names: Sequence[str] | None = None, options: CameraCalibrationOptions | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> IntrinsicsCalibration:
+    """Zhang calibration from images of a planar target (docs/method.md §Camera calibration).
+
+    Parameters
+    ----------
+    images : sequence of image arrays or paths
+    board : a :class:`lightplane.camera.targets.Target` (chessboard, circle grid or ChArUco), or
+        ``(cols, rows)`` chessboard inner corners with ``square_mm``
+    square_mm : chessboard square size, mm, with a ``(cols, rows)`` board (sets the scale of the poses only)
+    names : the images' names in the result (default: the paths, or ``image i``)
+    options : :class:`CameraCalibrationOptions` (None: the defaults): the flags and lens model, a
+        held sensor tilt, the rotation on reading, the fewest views, the corner refinement and
+        the covariance's noise
+    progress : called with ``(images done, images)`` after each image
 
     Circle grids: the dots' centroids are moved to the projected circle centres
     (:func:`lightplane.camera.targets.correct_circle_centres`) with the poses of a first
@@ -379,139 +429,202 @@ def calibrate_camera(
     """
     import cv2
 
+    opts = CameraCalibrationOptions() if options is None else options
     target = as_target(board, square_mm)
-    guess_dist = None  # a held tilt (checked before any image is read)
-    if tilt_deg is not None:
-        tilt = np.asarray(tilt_deg, dtype=np.float64).ravel()
-        if calibration_flags(model, flags)[0] != "tilted":
-            raise LightplaneError(f"a held sensor tilt needs the tilted model, not {calibration_flags(model, flags)[0]}")
-        if tilt.size != 2 or not np.all(np.isfinite(tilt)) or np.any(np.abs(tilt) >= 45.0):
-            raise LightplaneError(f"the sensor tilt must be two finite angles (tauX, tauY) under 45 degrees, "
-                                  f"got {tilt.tolist()}")
-        guess_dist = np.zeros(14)
-        guess_dist[12:] = np.deg2rad(tilt)
+    guess_dist = _held_tilt_guess(opts.tilt_deg)  # checked on the options' construction, before any image is read
     if len(images) == 0:
         raise LightplaneError("no images given")
     if names is None:
         names = [str(im) if isinstance(im, (str, Path)) else f"image {i}" for i, im in enumerate(images)]
-    method = _refine_method(refine) if target.kind == "chessboard" else None
-    views: list[BoardView] = []
-    sources: list = []  # the image (array or path) of each view, for the refit in the lens frame
-    saddles: list[np.ndarray | None] = []
-    fits: list[np.ndarray | None] = []  # the saddle fit's parameters of each view (the refit's start)
-    blurs: list[np.ndarray] = []
-    dots: list[float] = []
-    skipped: dict[str, str] = {}
-    size = None
-    for i, (im, name) in enumerate(zip(images, names)):
-        if isinstance(im, (str, Path)):
-            img, reason = try_read_image(im, rotate_deg=rotate_deg)
-            if img is None:
-                skipped[name] = reason
-        else:
-            img = None if im is None else np.asarray(im)
-            if img is None:
-                skipped[name] = "not a readable image"
-        if img is not None and img.ndim not in (2, 3):
-            skipped[name] = f"not an image (shape {img.shape})"
-            img = None
-        if img is not None:
-            h, w = img.shape[:2]
-            if size is None:
-                size = (w, h)
-            if size != (w, h):
-                skipped[name] = f"size {w}x{h} px differs from the first image's {size[0]}x{size[1]} px"
-            elif target.kind == "chessboard":
-                c, saddle, blur, fit = _detect_board(img, (target.cols, target.rows), True, method)
-                views.append(BoardView(name, c, (w, h)))
-                sources.append(im)
-                saddles.append(saddle)
-                fits.append(fit)
-                blurs.append(blur)
-            else:
-                det = target.detect(img)
-                views.append(BoardView(name, None if det is None else det.uv, (w, h),
-                                       None if det is None else det.ids))
-                sources.append(im)
-                saddles.append(None)
-                fits.append(None)
-                if det is not None and target.kind in ("circles", "acircles"):
-                    dots.append(dot_diameter_mm(img, det, target))
-        if progress:
-            progress(i + 1, len(images))
-    blur_all = np.concatenate(blurs) if blurs else np.zeros(0)
-    median_blur = float(np.median(blur_all)) if blur_all.size else float("nan")
-    if method == "saddle":
-        if median_blur >= MIN_BOARD_BLUR_PX:  # one method for the whole capture
-            views = [BoardView(v.name, s, v.image_size) if s is not None else v for v, s in zip(views, saddles)]
-        else:
-            method = "forstner"
+    method = _refine_method(opts.refine) if target.kind == "chessboard" else None
+    cap = _read_views(images, names, target, method, opts.rotate_deg, progress)
+    views, method, median_blur = _one_corner_method(cap, method)
     found = [v for v in views if v.corners_uv is not None]
-    found_src = [src for v, src in zip(views, sources) if v.corners_uv is not None]
-    found_fits = [f for v, f in zip(views, fits) if v.corners_uv is not None]
+    found_src = [src for v, src in zip(views, cap.sources) if v.corners_uv is not None]
+    found_fits = [f for v, f in zip(views, cap.fits) if v.corners_uv is not None]
     found_uv: list[np.ndarray] = [v.corners_uv for v in views if v.corners_uv is not None]
     not_found = tuple(v.name for v in views if v.corners_uv is None)
     for n in not_found:
-        skipped[n] = f"{target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
-    if len(found) < min_views:
-        raise LightplaneError(too_few_images_message("images", len(found), min_views, skipped.items()))
+        cap.skipped[n] = f"{target.spec} board not found" + (" (or fewer than 6 corners)" if target.partial_views else "")
+    if len(found) < opts.min_views:
+        raise LightplaneError(too_few_images_message("images", len(found), opts.min_views, cap.skipped.items()))
+    size = cap.size
     assert size is not None  # set by the first readable image, and some were found
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]
     imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    model, flags = calibration_flags(model, flags)
+    model, flags = calibration_flags(opts.model, opts.flags)
     if guess_dist is not None:
         flags |= cv2.CALIB_FIX_TAUX_TAUY | cv2.CALIB_USE_INTRINSIC_GUESS
 
     def solve(imgpoints):
-        if model != "fisheye":
-            if guess_dist is not None:  # OpenCV starts from the guess; the tilt stays where it is put
-                K0 = cv2.initCameraMatrix2D(objs, imgpoints, size)
-                out = cv2.calibrateCameraExtended(objs, imgpoints, size, K0, guess_dist.copy(), flags=flags,
-                                                  criteria=crit)
-            else:
-                out = cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags, criteria=crit)
-            if model in POLISHED_MODELS:
-                out = _polish(objs, imgpoints, out, flags)
-            return out
-        o64 = [o.astype(np.float64).reshape(1, -1, 3) for o in objs]  # (1, N, 3): fisheye refuses (N, 1, 3)
-        i64 = [u.astype(np.float64).reshape(1, -1, 2) for u in imgpoints]
-        try:
-            rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(o64, i64, size, None, None, flags=flags, criteria=crit)
-        except cv2.error as e:
-            raise LightplaneError(f"fisheye calibration failed ({str(e).strip().splitlines()[-1]})") from None
-        cam = Camera(K, np.ravel(D), size[0], size[1], model="fisheye")
-        per_view = [np.sqrt(np.mean(np.sum((cam.project(o.astype(np.float64) @ cv2.Rodrigues(rv)[0].T + np.ravel(tv))
-                                            - u.reshape(-1, 2)) ** 2, axis=1))) for o, u, rv, tv in
-                    zip(objs, imgpoints, rvecs, tvecs)]
-        return rms, K, D, rvecs, tvecs, None, None, np.asarray(per_view)
+        return _solve_views(objs, imgpoints, size, model, flags, guess_dist)
 
-    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
+    out = solve(imgpoints)
     n_refit = 0
     if method == "saddle":
         # the saddle model's edges are straight: refit, in the lens frame of this first calibration, the
         # corners whose windows its lens bends (LENS_REFIT_BEND_PX), then solve again
-        cam1 = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
-        found_uv, n_refit = _refit_in_lens_frame(cam1, found_uv, found_src, (target.cols, target.rows), rotate_deg,
-                                                 found_fits)
+        cam1 = Camera(out[1], _model_dist(out[2], model), size[0], size[1], model=model)
+        found_uv, n_refit = _refit_in_lens_frame(cam1, found_uv, found_src, (target.cols, target.rows),
+                                                 opts.rotate_deg, found_fits)
         if n_refit:
             found = [BoardView(v.name, u, v.image_size, v.ids) for v, u in zip(found, found_uv)]
             imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
-            rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
+            out = solve(imgpoints)
     dot_mm, shift = None, None
     if target.kind in ("circles", "acircles"):
-        # centroids -> projected centres at the poses found, then solve again (twice: the poses move a little)
-        dot_mm = float(target.dot_mm or np.median(dots))
-        raw = found_uv
-        for _ in range(2):
-            cam = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
-            fixed = [correct_circle_centres(cam, target, u, v.ids, cv2.Rodrigues(rv)[0], tv.ravel(), dot_mm)
-                     for u, v, rv, tv in zip(raw, found, rvecs, tvecs)]
-            imgpoints = [f.astype(np.float32).reshape(-1, 1, 2) for f in fixed]
-            rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = solve(imgpoints)
-        shift = float(np.sqrt(np.mean(np.concatenate([np.sum((f - u) ** 2, axis=1) for f, u in zip(fixed, raw)]))))
+        dot_mm = float(target.dot_mm or np.median(cap.dots))
+        fixed, imgpoints, out = _circle_centres_solved(target, found, found_uv, out, dot_mm, size, model, solve)
+        shift = float(np.sqrt(np.mean(np.concatenate([np.sum((f - u) ** 2, axis=1) for f, u in zip(fixed, found_uv)]))))
         found = [BoardView(v.name, f, v.image_size, v.ids) for v, f in zip(found, fixed)]
         found_uv = fixed
+    record = {"rotate_deg": opts.rotate_deg, "refine": method or False, "median_blur_px": median_blur,
+              "lens_frame_refit_corners": n_refit, "dot_mm": dot_mm, "circle_centre_correction_px": shift}
+    return _calibration_result(target, _Used(found, found_uv, objs, imgpoints), out, (model, flags),
+                               opts.covariance_noise, record, (not_found, cap.skipped))
+
+
+def _held_tilt_guess(tilt_deg) -> np.ndarray | None:
+    """OpenCV's initial distortion (14,) holding the sensor tilt ``tilt_deg`` (tauX, tauY degrees), or None."""
+    if tilt_deg is None:
+        return None
+    guess_dist = np.zeros(14)
+    guess_dist[12:] = np.deg2rad(np.asarray(tilt_deg, dtype=np.float64).ravel())
+    return guess_dist
+
+
+def _one_corner_method(cap: _Capture, method: str | None) -> tuple[list[BoardView], str | None, float]:
+    """One corner method for the whole capture: the saddle fit's corners when the boards' median
+    fitted blur reaches :data:`MIN_BOARD_BLUR_PX`, else Förstner's.  The views, the method and
+    the median blur (px; NaN without the saddle fit)."""
+    blur_all = np.concatenate(cap.blurs) if cap.blurs else np.zeros(0)
+    median_blur = float(np.median(blur_all)) if blur_all.size else float("nan")
+    views = cap.views
+    if method == "saddle":
+        if median_blur >= MIN_BOARD_BLUR_PX:
+            views = [BoardView(v.name, s, v.image_size) if s is not None else v for v, s in zip(views, cap.saddles)]
+        else:
+            method = "forstner"
+    return views, method, median_blur
+
+
+def _read_views(images: Sequence, names: Sequence[str], target: Target, method: str | None, rotate_deg: int,
+                progress: Callable[[int, int], None] | None) -> _Capture:
+    """Read every image and detect the target in it (:func:`calibrate_camera`'s first step)."""
+    cap = _Capture()
+    for i, (im, name) in enumerate(zip(images, names)):
+        img = _read_view_image(im, name, rotate_deg, cap.skipped)
+        if img is not None:
+            h, w = img.shape[:2]
+            if cap.size is None:
+                cap.size = (w, h)
+            if cap.size != (w, h):
+                cap.skipped[name] = f"size {w}x{h} px differs from the first image's {cap.size[0]}x{cap.size[1]} px"
+            else:
+                _detect_view(img, im, name, target, method, cap)
+        if progress:
+            progress(i + 1, len(images))
+    return cap
+
+
+def _read_view_image(im, name: str, rotate_deg: int, skipped: dict) -> np.ndarray | None:
+    """The image of one view (read from its path, or the array given), or None with its reason in ``skipped``."""
+    if isinstance(im, (str, Path)):
+        img, reason = try_read_image(im, rotate_deg=rotate_deg)
+        if img is None:
+            skipped[name] = reason
+    else:
+        img = None if im is None else np.asarray(im)
+        if img is None:
+            skipped[name] = "not a readable image"
+    if img is not None and img.ndim not in (2, 3):
+        skipped[name] = f"not an image (shape {img.shape})"
+        img = None
+    return img
+
+
+def _detect_view(img: np.ndarray, source, name: str, target: Target, method: str | None, cap: _Capture) -> None:
+    """Detect the target in one view's image and add the view to ``cap``."""
+    h, w = img.shape[:2]
+    if target.kind == "chessboard":
+        c, saddle, blur, fit = _detect_board(img, (target.cols, target.rows), True, method)
+        cap.views.append(BoardView(name, c, (w, h)))
+        cap.sources.append(source)
+        cap.saddles.append(saddle)
+        cap.fits.append(fit)
+        cap.blurs.append(blur)
+        return
+    det = target.detect(img)
+    cap.views.append(BoardView(name, None if det is None else det.uv, (w, h), None if det is None else det.ids))
+    cap.sources.append(source)
+    cap.saddles.append(None)
+    cap.fits.append(None)
+    if det is not None and target.kind in ("circles", "acircles"):
+        cap.dots.append(dot_diameter_mm(img, det, target))
+
+
+def _solve_views(objs: list, imgpoints: list, size: tuple[int, int], model: str, flags: int,
+                 guess_dist: np.ndarray | None) -> tuple:
+    """One calibration of the views: ``calibrateCameraExtended``'s tuple ``(rms, K, dist, rvecs, tvecs,
+    std_intrinsics, std_extrinsics, per-view RMS)`` (polished for :data:`POLISHED_MODELS`; the
+    fisheye's from ``cv2.fisheye.calibrate``, without std)."""
+    import cv2
+
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if model != "fisheye":
+        if guess_dist is not None:  # OpenCV starts from the guess; the tilt stays where it is put
+            K0 = cv2.initCameraMatrix2D(objs, imgpoints, size)
+            out = cv2.calibrateCameraExtended(objs, imgpoints, size, K0, guess_dist.copy(), flags=flags,
+                                              criteria=crit)
+        else:
+            # None: no initial guess (OpenCV accepts it; the stubs do not)
+            out = cv2.calibrateCameraExtended(objs, imgpoints, size, None, None, flags=flags,  # type: ignore[call-overload]
+                                              criteria=crit)
+        if model in POLISHED_MODELS:
+            out = _polish(objs, imgpoints, out, flags)
+        return out
+    o64 = [o.astype(np.float64).reshape(1, -1, 3) for o in objs]  # (1, N, 3): fisheye refuses (N, 1, 3)
+    i64 = [u.astype(np.float64).reshape(1, -1, 2) for u in imgpoints]
+    try:
+        rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(o64, i64, size, None, None, flags=flags,  # type: ignore[call-overload]
+                                                        criteria=crit)
+    except cv2.error as e:
+        raise LightplaneError(f"fisheye calibration failed ({str(e).strip().splitlines()[-1]})") from None
+    cam = Camera(K, np.ravel(D), size[0], size[1], model="fisheye")
+    per_view = [np.sqrt(np.mean(np.sum((cam.project(o.astype(np.float64) @ cv2.Rodrigues(rv)[0].T + np.ravel(tv))
+                                        - u.reshape(-1, 2)) ** 2, axis=1))) for o, u, rv, tv in
+                zip(objs, imgpoints, rvecs, tvecs)]
+    return rms, K, D, rvecs, tvecs, None, None, np.asarray(per_view)
+
+
+def _circle_centres_solved(target: Target, found: list[BoardView], raw: list[np.ndarray], out: tuple, dot_mm: float,
+                           size: tuple[int, int], model: str, solve: Callable) -> tuple[list, list, tuple]:
+    """Circle grids: the dots' centroids ``raw`` moved to the projected centres at the poses of the
+    calibration ``out``, then solved again (twice: the poses move a little).  Returns the moved
+    centres, their image points and the last calibration."""
+    import cv2
+
+    for _ in range(2):
+        _, K, dist, rvecs, tvecs = out[:5]
+        cam = Camera(K, _model_dist(dist, model), size[0], size[1], model=model)
+        fixed = [correct_circle_centres(cam, target, u, v.ids, cv2.Rodrigues(rv)[0], tv.ravel(), dot_mm)
+                 for u, v, rv, tv in zip(raw, found, rvecs, tvecs)]
+        imgpoints = [f.astype(np.float32).reshape(-1, 1, 2) for f in fixed]
+        out = solve(imgpoints)
+    return fixed, imgpoints, out
+
+
+def _calibration_result(target: Target, used: _Used, out: tuple, model_flags: tuple[str, int], covariance_noise: str,
+                        record: dict, not_used: tuple[tuple[str, ...], dict]) -> IntrinsicsCalibration:
+    """The :class:`IntrinsicsCalibration` of the solved calibration ``out`` of the views ``used``: the
+    camera with the intrinsics' covariance, the std, the residuals; ``record`` the first entries of
+    its ``options``; ``not_used``: the views where the board was not found and every image skipped."""
+    import cv2
+
+    model, flags = model_flags
+    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = out
+    objs, imgpoints = used.objs, used.imgpoints
+    size = used.views[0].image_size
     dist = _model_dist(dist, model)
     try:
         icov = intrinsics_covariance(objs, imgpoints, rvecs, tvecs, K, dist, flags, model=model,
@@ -523,6 +636,44 @@ def calibrate_camera(
                     covariance_params=None if icov is None else icov.params)
     centres = [cv2.Rodrigues(rv)[0] @ o.astype(np.float64).mean(axis=0) + np.ravel(tv)
                for o, rv, tv in zip(objs, rvecs, tvecs)]
+    std_cv, std = _calibration_std(model, std_int, icov)
+    residuals, corners = [], []
+    for uv, o, rv, tv in zip(used.uv, objs, rvecs, tvecs):
+        proj = camera.project(o.astype(np.float64) @ cv2.Rodrigues(np.ravel(rv))[0].T + np.ravel(tv))
+        residuals.append(uv - proj)
+        corners.append(uv)
+    not_found, skipped = not_used
+    return IntrinsicsCalibration(
+        camera=camera,
+        rms_px=float(rms),
+        std=std,
+        used=tuple(v.name for v in used.views),
+        not_found=not_found,
+        per_view_rms_px=np.asarray(per_view, dtype=np.float64).ravel(),
+        residuals_px=tuple(residuals),
+        corners_uv=tuple(corners),
+        rvecs=tuple(np.asarray(r).ravel() for r in rvecs),
+        tvecs=tuple(np.asarray(t).ravel() for t in tvecs),
+        board=(target.cols, target.rows),
+        square_mm=float(target.square_mm),
+        flags=int(flags),
+        options={**record,
+                 "median_board_distance_mm": float(np.median([np.linalg.norm(c) for c in centres])),
+                 "covariance_sigma_px": None if icov is None else icov.sigma_px,
+                 "covariance_dof": None if icov is None else icov.dof,
+                 "covariance_dispersion": None if icov is None else icov.dispersion,
+                 "covariance_noise": None if icov is None else icov.noise},
+        target=target,
+        ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in used.views),
+        skipped=skipped,
+        warnings=tuple(overparameterisation_warnings(camera, icov, std, len(used.views))),
+        std_opencv=std_cv,
+    )
+
+
+def _calibration_std(model: str, std_int, icov: "IntrinsicsCovariance | None") -> tuple[dict, dict]:
+    """OpenCV's std of the intrinsics (``std_int``, None for the fisheye) by name, and the std the
+    calibration reports."""
     names = ("fx", "fy", "cx", "cy") + coeff_names(model)
     std_cv = {}
     if std_int is not None:  # OpenCV's: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 taux tauy
@@ -536,39 +687,7 @@ def calibrate_camera(
     else:
         std_cv_scaled = std_cv
     std = std_cv_scaled if (model == "plumb_bob" or icov is None) else icov.std()
-    residuals, corners = [], []
-    for uv, o, rv, tv in zip(found_uv, objs, rvecs, tvecs):
-        proj = camera.project(o.astype(np.float64) @ cv2.Rodrigues(np.ravel(rv))[0].T + np.ravel(tv))
-        residuals.append(uv - proj)
-        corners.append(uv)
-    return IntrinsicsCalibration(
-        camera=camera,
-        rms_px=float(rms),
-        std=std,
-        used=tuple(v.name for v in found),
-        not_found=not_found,
-        per_view_rms_px=np.asarray(per_view, dtype=np.float64).ravel(),
-        residuals_px=tuple(residuals),
-        corners_uv=tuple(corners),
-        rvecs=tuple(np.asarray(r).ravel() for r in rvecs),
-        tvecs=tuple(np.asarray(t).ravel() for t in tvecs),
-        board=(target.cols, target.rows),
-        square_mm=float(target.square_mm),
-        flags=int(flags),
-        options={"rotate_deg": rotate_deg, "refine": method or False, "median_blur_px": median_blur,
-                 "lens_frame_refit_corners": n_refit,
-                 "dot_mm": dot_mm, "circle_centre_correction_px": shift,
-                 "median_board_distance_mm": float(np.median([np.linalg.norm(c) for c in centres])),
-                 "covariance_sigma_px": None if icov is None else icov.sigma_px,
-                 "covariance_dof": None if icov is None else icov.dof,
-                 "covariance_dispersion": None if icov is None else icov.dispersion,
-                 "covariance_noise": None if icov is None else icov.noise},
-        target=target,
-        ids=tuple(np.arange(target.n_points) if v.ids is None else v.ids for v in found),
-        skipped=skipped,
-        warnings=tuple(overparameterisation_warnings(camera, icov, std, len(found))),
-        std_opencv=std_cv,
-    )
+    return std_cv, std
 
 
 #: Saddle-fit corners whose window the first calibration's lens bends by more than this (px,
@@ -754,7 +873,7 @@ def overparameterisation_warnings(camera: Camera, icov: "IntrinsicsCovariance | 
                    f"shift and tangential distortion, which other views do not change; the projection is "
                    f"determined (shapes measured are not affected), the frame's orientation and the principal "
                    f"point only within their std. To pin them, hold the tilt at the mechanical design's value "
-                   f"(calibrate-camera --tilt TAUX,TAUY; calibrate_camera(tilt_deg=...)): the principal point is "
+                   f"(calibrate-camera --tilt TAUX,TAUY; CameraCalibrationOptions(tilt_deg=...)): the principal point is "
                    f"then determined relative to it")
     return out
 

@@ -14,7 +14,8 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
-from lightplane.camera.intrinsics import calibrate_camera, opencv_std_ratio
+from lightplane.camera.intrinsics import (CameraCalibrationOptions, IntrinsicsCalibration, calibrate_camera,
+                                          opencv_std_ratio)
 from lightplane.camera.lens import MODELS, coeff_names
 from lightplane.plane.uncertainty import camera_uncertainty_summary
 from lightplane.report.plots import intrinsics_residuals
@@ -50,8 +51,21 @@ def calibrate_camera_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
-    import cv2
+    options = _calibration_options(model, fix_k3, zero_tangent, tilt, rotate)
+    if distance is not None and not distance > 0:
+        raise LightplaneError(f"--distance must be positive, got {distance} mm")
+    files = _checked_files(images, output, plot, force)
+    with progress_bar("finding corners", len(files)) as update:
+        result = calibrate_camera([str(f) for f in files], target, options=options, progress=lambda i, n: update(i))
+    detector = _print_intrinsics(result, target)
+    cu = _print_uncertainty(result, distance)
+    _write(result, output, plot, force, _extra(result, cu, files, target, options, detector))
 
+
+def _calibration_options(model: str, fix_k3: bool, zero_tangent: bool, tilt: str | None,
+                         rotate: int) -> CameraCalibrationOptions:
+    """The command line's options as the library's, with the command line's messages for bad ones."""
+    import cv2
 
     if model not in MODELS:
         raise LightplaneError(f"--model {model!r} is not a lens model (plumb_bob, rational, thin_prism, tilted, fisheye)")
@@ -67,8 +81,13 @@ def calibrate_camera_cmd(
             tilt_deg = ()
         if len(tilt_deg) != 2:
             raise LightplaneError(f"--tilt must be TAUX,TAUY in degrees (e.g. 0,4.5), got {tilt!r}")
-    if distance is not None and not distance > 0:
-        raise LightplaneError(f"--distance must be positive, got {distance} mm")
+    flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
+    return CameraCalibrationOptions(flags=flags, model=model, rotate_deg=rotate,
+                                    tilt_deg=None if tilt_deg is None else (tilt_deg[0], tilt_deg[1]))
+
+
+def _checked_files(images: List[str], output: Path, plot: Optional[Path], force: bool) -> list[Path]:
+    """The image files, the outputs checked (writable, not there unless ``force``)."""
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
@@ -77,13 +96,11 @@ def calibrate_camera_cmd(
         check_output(plot, force)
     if len(files) == 1 and not files[0].exists():  # a single missing file: say so (several: skipped one by one)
         raise LightplaneError(f"{files[0]}: no such file")
+    return files
 
-    with progress_bar("finding corners", len(files)) as update:
-        flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if zero_tangent else 0)
-        result = calibrate_camera([str(f) for f in files], target, rotate_deg=rotate, flags=flags, model=model,
-                                  tilt_deg=None if tilt_deg is None else (tilt_deg[0], tilt_deg[1]),
-                                  progress=lambda i, n: update(i))
 
+def _print_intrinsics(result: IntrinsicsCalibration, target: Target) -> str:
+    """Print the intrinsics, their std, the warnings, the corners and the views; the detector's name."""
     cam = result.camera
     t = Table(title=f"Camera intrinsics (Zhang, OpenCV; lens model {cam.model})", show_edge=False)
     t.add_column("parameter")
@@ -115,6 +132,13 @@ def calibrate_camera_cmd(
         console.print(f"[bold yellow]warning:[/] {w}")
     console.print(f"RMS reprojection error: {result.rms_px:.4f} px over {len(result.used)} views "
                   f"({cam.width}x{cam.height} px); board: {target.describe()}")
+    detector = _print_corners(result, target)
+    _print_views(result)
+    return detector
+
+
+def _print_corners(result: IntrinsicsCalibration, target: Target) -> str:
+    """Print how the corners (dots) were found; the detector's name for the provenance."""
     if target.kind == "chessboard":
         label, refiner = _CORNER_METHODS.get(str(result.options.get("refine")), ("cornerSubPix only", "none"))
         blur = result.options.get("median_blur_px", float("nan"))
@@ -122,16 +146,19 @@ def calibrate_camera_cmd(
         console.print(f"Corners: {label}" + (f"; median edge blur {blur:.2f} px" if np.isfinite(blur) else "")
                       + (f"; {refit} fitted again in the lens frame of a first calibration (edges bent by the lens)"
                          if refit else ""))
-        detector = f"findChessboardCornersSB+cornerSubPix+{refiner}"
-    elif target.kind == "charuco":
+        return f"findChessboardCornersSB+cornerSubPix+{refiner}"
+    if target.kind == "charuco":
         console.print("Corners: cv2.aruco.CharucoDetector, then cornerSubPix inside the marker gap; "
                       "partial views used")
-        detector = "CharucoDetector+cornerSubPix"
-    else:
-        o = result.options
-        console.print(f"Dots: findCirclesGrid, darkness-weighted centroids moved to the projected circle centres "
-                      f"(dot {o['dot_mm']:.2f} mm; RMS shift {o['circle_centre_correction_px']:.3f} px)")
-        detector = "findCirclesGrid+weighted-centroid+perspective-correction"
+        return "CharucoDetector+cornerSubPix"
+    o = result.options
+    console.print(f"Dots: findCirclesGrid, darkness-weighted centroids moved to the projected circle centres "
+                  f"(dot {o['dot_mm']:.2f} mm; RMS shift {o['circle_centre_correction_px']:.3f} px)")
+    return "findCirclesGrid+weighted-centroid+perspective-correction"
+
+
+def _print_views(result: IntrinsicsCalibration) -> None:
+    """Print each used view's RMS error (worst first) and every image skipped with its reason."""
     v = Table(title="Per image used: RMS reprojection error, worst first", show_edge=False)
     columns: tuple[tuple[str, JustifyMethod], ...] = (("image", "left"), ("points", "right"), ("RMS px", "right"))
     for c, j in columns:
@@ -142,6 +169,12 @@ def calibrate_camera_cmd(
     console.print(v)
     for name, why in result.skipped.items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
+
+
+def _print_uncertainty(result: IntrinsicsCalibration, distance: float | None) -> dict:
+    """Print the camera's uncertainty at the working distance (default: the boards' median distance);
+    its summary (:func:`camera_uncertainty_summary`)."""
+    cam = result.camera
     work_mm = float(distance if distance is not None else result.options["median_board_distance_mm"])
     cu = camera_uncertainty_summary(cam, work_mm)
     if cu["included"]:
@@ -156,18 +189,32 @@ def calibrate_camera_cmd(
                       + (" (the boards' median distance)" if distance is None else ""))
     else:
         console.print(f"Camera uncertainty: not available ({cu['note']})")
+    return cu
 
-    extra = {
+
+def _extra(result: IntrinsicsCalibration, cu: dict, files: list[Path], target: Target,
+           options: CameraCalibrationOptions, detector: str) -> dict:
+    """The camera file's extra entries: the calibration, the camera's uncertainty and the provenance."""
+    import cv2
+
+    cam = result.camera
+    return {
         "calibration": result.to_dict(),
         "camera_uncertainty": cu,
         "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
-                                         "target": target.to_dict(), "rotate_deg": rotate,
-                                         "flags": result.flags, "fix_k3": fix_k3, "zero_tangent": zero_tangent,
-                                         "tilt_deg_held": None if tilt_deg is None else list(tilt_deg),
+                                         "target": target.to_dict(), "rotate_deg": options.rotate_deg,
+                                         "flags": result.flags, "fix_k3": bool(options.flags & cv2.CALIB_FIX_K3),
+                                         "zero_tangent": bool(options.flags & cv2.CALIB_ZERO_TANGENT_DIST),
+                                         "tilt_deg_held": None if options.tilt_deg is None else list(options.tilt_deg),
                                          "model": cam.model, "detector": detector,
                                          "solver": "fisheye.calibrate" if cam.model == "fisheye"
                                          else "calibrateCameraExtended"}),
     }
+
+
+def _write(result: IntrinsicsCalibration, output: Path, plot: Optional[Path], force: bool, extra: dict) -> None:
+    """Write the camera file (JSON with ``extra``; ROS / OpenCV without) and the residual plot."""
+    cam = result.camera
     suffix = output.suffix.lower()
     if suffix == ".json" or suffix == "":
         cam.save_json(output, force=force, extra=extra)
