@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator, Optional
@@ -26,7 +28,7 @@ def measure_batch_cmd(
     manifest: Path = typer.Argument(..., help="Manifest CSV: header id,input,camera,plane[,step,direction,positions]; "
                                     "direction written x;y;z; relative paths from the manifest's folder."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder: points/scan=<id>/part-<k>.parquet, "
-                                "manifest.json (created; re-running resumes)."),
+                                "manifest.json (created; re-running resumes; one run at a time)."),
     local_workers: Optional[int] = typer.Option(None, "--local-workers", help="Start N single-threaded worker "
                                                 "processes on this machine (a Dask LocalCluster)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler, "
@@ -41,14 +43,18 @@ def measure_batch_cmd(
     smooth: int = typer.Option(0, "--smooth", help="Smooth the centres along the stripe over N lines (odd >= 5; 0: off)."),
     sigma_along: Optional[float] = typer.Option(None, "--sigma-along", help="Gaussian scale along the stripe, px "
                                                 "(as in measure)."),
+    break_lock: bool = typer.Option(False, "--break-lock", help="Take the output folder's lock whoever holds it "
+                                    "(only when the run named by the lock is known to be gone, e.g. on another host)."),
 ) -> None:
     """Measure every scan of a manifest on a Dask cluster; the same points as `measure`, bit for bit.
 
     Each scan's frames are cut into chunks of --chunk-frames; each chunk is one task that
     reads its own frames and writes one Parquet partition atomically.  Re-running the same
-    command skips the partitions already complete.  A scan that fails (missing input,
-    unreadable calibration, wrong frame size) is reported and the others go on; exit 2 only
-    when no scan could be measured.
+    command skips the partitions already complete and measured with the same frames,
+    calibration files, options and code.  One run at a time per output folder (a lock
+    file).  A scan that fails (missing input, unreadable calibration, wrong frame size) is
+    reported, its partitions set aside, and the others go on; exit 2 only when no scan could
+    be measured.
     """
     require_extra()
 
@@ -63,12 +69,16 @@ def measure_batch_cmd(
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
                              axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth)
     scans = read_manifest(manifest)
-    with _batch_progress(len(scans)) as progress:
-        r = measure_batch(scans, output, options, BatchOptions(chunk_frames=chunk_frames, ply=ply),
+    with _batch_progress(len(scans)) as progress, _terminate_as_interrupt():
+        r = measure_batch(scans, output, options,
+                          BatchOptions(chunk_frames=chunk_frames, ply=ply, break_lock=break_lock),
                           scheduler=scheduler, local_workers=local_workers, progress=progress,
-                          on_dashboard=_print_dashboard)
+                          on_dashboard=_print_dashboard, on_notice=_print_notice)
     _print_batch(r, scans)
-    console.print(f"wrote {Path(output) / 'points'} and {Path(output) / 'manifest.json'}")
+    if r.set_aside:
+        err_console.print(f"set aside: {len(r.set_aside)} folder(s) or file(s) of failed or dropped scans in "
+                          f"{Path(output) / 'set-aside'} (listed in manifest.json)")
+    console.print(f"wrote {Path(output) / 'points'} and {Path(output) / 'manifest.json'} (status {r.status})")
     if not any(s["status"] == "ok" for s in r.scans):
         fail(f"no scan could be measured ({len(r.failed)} failed; see above and {Path(output) / 'manifest.json'})")
 
@@ -95,6 +105,28 @@ def _batch_progress(n_scans: int) -> Iterator[Callable[[str, int, int], None]]:
                        total=sum(t for _, t in state.values()))
 
         yield progress
+
+
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt for the block (as Ctrl-C does), so that the run releases its
+    lock and marks its manifest before the command ends (exit 130)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _print_notice(line: str) -> None:
+    err_console.print(f"warning: {line}")
 
 
 def _print_dashboard(link) -> None:

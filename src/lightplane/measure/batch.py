@@ -21,32 +21,55 @@ workers and the chunking:
 Output (``OUT_DIR``)::
 
     points/scan=<id>/part-<k>.parquet   chunk k of scan <id>: columns x,y,z,frame,
-                                        intensity,sigma_mm,u,v (as measure's CSV)
+                                        intensity,sigma_mm,u,v (as measure's CSV) and
+                                        scan (the id, a string)
     ply/<id>.ply                        optional, one cloud per scan
-    manifest.json                       what was written, failures, provenance
+    manifest.json                       status ("in progress", then "ok" or "failed"),
+                                        what was written, failures, provenance
+    set-aside/                          partitions (and PLY files) of scans that failed or
+                                        left the manifest, moved out of the dataset
+    .lightplane-batch.lock              while a run writes here: its pid, host, start
+
+One run at a time: a run holds ``.lightplane-batch.lock`` (created with ``O_CREAT|O_EXCL``)
+from its start to its end; a second run refuses, naming the holder; a lock left by a
+process of this host that is no longer running is taken over; a lock from another host
+is broken only when asked (``BatchOptions(break_lock=True)``, ``--break-lock``).
 
 Faults and resume: a partition is (scan, chunk); its name is deterministic and it is
 written to a hidden temporary name then renamed, so a task retried after a worker died
 rewrites the same file and a reader never sees half a partition.  Each partition
-carries in its Parquet metadata the fingerprint of what produced it (frames, calibration,
-options, lightplane version) and the chunk's own summary (unreadable frames...), so a
-re-run skips the partitions that are complete and up to date and measures only the
-rest.  An unreadable frame is skipped and recorded for its scan; a scan whose input,
-camera or plane cannot be used fails alone; the others go on.
+carries in its Parquet metadata the fingerprint of what produced it (its frames' names,
+sizes and modification times, the SHA-256 of the camera, plane and positions files, the
+motion, the options, the layout and the code's versions) and the chunk's own summary
+(unreadable frames...); a re-run keeps the partitions whose fingerprint is the current
+one and measures the rest (a partition with another fingerprint is removed before its
+chunk is measured again).  ``manifest.json`` says "in progress" from a run's start and
+"ok" or "failed" only at its end, once the partitions of failed or dropped scans are set
+aside, so that the dataset read with :func:`scan_partitioning` holds exactly the points
+of the scans the manifest lists as ok.  An unreadable frame is skipped and recorded for
+its scan; a scan whose input, camera or plane cannot be used fails alone; the others go on.
 """
 
 from __future__ import annotations
 
+import codecs
+import contextlib
 import csv
+import datetime as _dt
 import hashlib
+import io
 import json
 import os
 import re
+import shutil
+import socket
 import time
+import uuid
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -55,24 +78,28 @@ from lightplane.measure.options import MeasureOptions
 from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
 from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
-from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, write_json
+from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, versions, write_json
 from lightplane.measure.pointcloud import PointSpool, write_cloud
 from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
 from lightplane.motion.model import Motion
 from lightplane.plane.model import LightPlane
-from lightplane.version import __version__
 from lightplane.core.threads import frames_across_threads, with_blas_limited
 
 __all__ = ["BatchScan", "BatchOptions", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
-           "DEFAULT_CHUNK_FRAMES", "local_cluster", "require_extra"]
+           "open_dataset", "scan_partitioning", "DATASET_READ", "DEFAULT_CHUNK_FRAMES", "LOCK_NAME", "SET_ASIDE",
+           "local_cluster", "require_extra"]
 
 DEFAULT_CHUNK_FRAMES = 200
 REQUIRED_COLUMNS = ("id", "input", "camera", "plane")
 OPTIONAL_COLUMNS = ("step", "direction", "positions")
-_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _META_KEY = b"lightplane"
 #: bump when the partition layout or the meaning of its metadata changes
-_LAYOUT = 1
+_LAYOUT = 2
+#: the lock file a run holds in its output folder
+LOCK_NAME = ".lightplane-batch.lock"
+#: the folder (in the output folder, beside points/) that receives the partitions of failed or dropped scans
+SET_ASIDE = "set-aside"
 
 
 # ----------------------------------------------------------------------------- manifest
@@ -96,17 +123,46 @@ def _resolve(cell: str, base: Path) -> str:
     return str(base / cell)
 
 
+def _manifest_text(p: Path) -> str:
+    """The manifest's text: UTF-8 (with or without a byte-order mark) or UTF-16 with its byte-order mark."""
+    try:
+        raw = p.read_bytes()
+    except OSError as e:
+        raise LightplaneError(f"{p}: cannot be read ({e.strerror or type(e).__name__})") from None
+    if raw.startswith((codecs.BOM_UTF32_LE, codecs.BOM_UTF32_BE)):
+        raise LightplaneError(f"{p}: the manifest is UTF-32 text; save it as UTF-8 (or UTF-16)")
+    encoding = "utf-16" if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)) else "utf-8-sig"
+    try:
+        text = raw.decode(encoding)
+    except UnicodeDecodeError as e:
+        what = "UTF-16" if encoding == "utf-16" else "UTF-8"
+        raise LightplaneError(f"{p}: the manifest is not {what} text (byte {e.start} cannot be decoded); "
+                              "save it as UTF-8") from None
+    if "\x00" in text:
+        raise LightplaneError(f"{p}: the manifest holds NUL characters, not CSV text (UTF-16 needs its "
+                              "byte-order mark; UTF-8 is safest)")
+    return text
+
+
+def _manifest_rows(p: Path) -> list[list[str]]:
+    """The manifest's rows, blank lines and ``#`` comments left out."""
+    try:
+        rows = list(csv.reader(io.StringIO(_manifest_text(p), newline="")))
+    except csv.Error as e:
+        raise LightplaneError(f"{p}: not a valid CSV manifest ({e})") from None
+    return [r for r in rows if r and not (len(r) == 1 and not r[0].strip()) and not r[0].lstrip().startswith("#")]
+
+
 def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
-    """The scans of a manifest CSV; raises :class:`LightplaneError` for a malformed manifest
-    (no header, a required column missing, an unknown column, an empty or duplicate id, an
-    id unusable as a folder name).  Values are checked per scan when it runs."""
+    """The scans of a manifest CSV (UTF-8, with or without a byte-order mark, or UTF-16 with
+    one); raises :class:`LightplaneError` for a malformed manifest (other bytes, no header,
+    a required column missing, an unknown column, an empty or duplicate id, an id unusable
+    as a folder name).  Values are checked per scan when it runs."""
     p = Path(path)
     if not p.is_file():
         raise LightplaneError(f"{p}: no such manifest file")
     base = p.resolve().parent
-    with open(p, newline="") as f:
-        rows = [r for r in csv.reader(f) if r and not (len(r) == 1 and not r[0].strip())
-                and not r[0].lstrip().startswith("#")]
+    rows = _manifest_rows(p)
     if not rows:
         raise LightplaneError(f"{p}: manifest is empty (expected a header id,input,camera,plane)")
     header = [h.strip().lower() for h in rows[0]]
@@ -127,7 +183,7 @@ def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
         sid = cells["id"]
         if not sid:
             raise LightplaneError(f"{p}: row {n} has no id")
-        if not _ID_RE.match(sid):
+        if not _ID_RE.fullmatch(sid):
             raise LightplaneError(f"{p}: row {n}: id {sid!r} must be letters, digits, '.', '_' or '-' "
                                   "(it names a folder)")
         if sid in seen:
@@ -182,7 +238,8 @@ class _Plan:
     frames: list = field(default_factory=list)  # frame paths (images) or [video path]
     video: bool = False
     chunks: list = field(default_factory=list)  # [(k, start, stop)]; stop None: to the end (video)
-    tokens: dict = field(default_factory=dict)  # k -> fingerprint of the partition
+    tokens: dict = field(default_factory=dict)  # k -> hash of the partition's fingerprint
+    fingerprint: dict = field(default_factory=dict)  # the scan's (every partition's, but its chunk)
     scan_token: str = ""
     stats: list | None = None  # remote frames: (size, modification stamp) from the listing
     error: str | None = None
@@ -225,17 +282,42 @@ def _plan(scan: BatchScan, chunk_frames: int, record: dict) -> _Plan:
     except (OSError, ValueError) as e:
         pl.error = f"{type(e).__name__}: {e}"
         return pl
-    assert pl.camera is not None and pl.plane is not None and pl.motion is not None  # read above, or returned
-    base = {"layout": _LAYOUT, "camera": pl.camera.to_dict(), "plane": pl.plane.to_dict(),
-            "motion": pl.motion.to_dict(), "options": record, "versions": _code_versions(),
-            # every frame of the scan (name, size, mtime): the stripe width comes from its first readable frame
-            "frames": pl.frames, "stats": pl.stats if pl.stats is not None else [_stat(q) for q in pl.frames]}
-    if pl.motion.positions_mm is not None:
-        base["positions_sha256"] = hashlib.sha256(np.ascontiguousarray(pl.motion.positions_mm).tobytes()).hexdigest()
-    pl.scan_token = hashlib.sha256(json.dumps(base, sort_keys=True, default=str).encode()).hexdigest()
+    assert pl.motion is not None  # read above, or returned
+    fingerprint = _scan_fingerprint(pl, record)
+    pl.fingerprint = fingerprint
+    pl.scan_token = _sha256_json(fingerprint)
     for k, a, b in pl.chunks:
-        pl.tokens[k] = hashlib.sha256(f"{pl.scan_token}:{k}:{a}:{b}".encode()).hexdigest()
+        pl.tokens[k] = _sha256_json({**fingerprint, "chunk": [k, a, b]})
     return pl
+
+
+def _sha256_json(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _file_sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _scan_fingerprint(pl: _Plan, record: dict) -> dict:
+    """What a scan's partitions depend on (JSON): its frames (each one's name, size and
+    modification time: the stripe width comes from the first readable frame of the scan), the
+    SHA-256 of the camera, plane and positions files, the motion, the options and the code."""
+    assert pl.motion is not None  # only a planned scan has a fingerprint
+    stats = pl.stats if pl.stats is not None else [_stat(q) for q in pl.frames]
+    motion = pl.motion.to_dict()
+    if pl.motion.positions_mm is not None:
+        motion["positions_sha256"] = hashlib.sha256(np.ascontiguousarray(pl.motion.positions_mm).tobytes()).hexdigest()
+    s = pl.scan
+    files = {"camera": _file_sha256(s.camera), "plane": _file_sha256(s.plane)}
+    if s.positions:
+        files["positions"] = _file_sha256(s.positions)
+    return {"layout": _LAYOUT, "frames": {"count": len(pl.frames), "sha256": _sha256_json([pl.frames, stats])},
+            "calibration_sha256": files, "motion": motion, "options": record, "code": _code_versions()}
 
 
 def _is_url(text: str) -> bool:
@@ -324,7 +406,8 @@ def _stat(path: str):
 
 
 def _code_versions() -> dict:
-    return {"lightplane": __version__, "numpy": np.__version__}
+    """The versions that shape the points: lightplane, Python, numpy, scipy, OpenCV."""
+    return versions()
 
 
 # ----------------------------------------------------------------------------- worker side
@@ -389,9 +472,12 @@ def _processor(key: str, camera, plane, motion, axis: str, width_px, options: Me
 
 
 def _table(records: np.ndarray, meta: dict):
+    """The partition's table: the points' columns and ``scan`` (the id, a string: a reader that
+    infers the partition key as an integer fails on it instead of merging ``1`` and ``01``)."""
     import pyarrow as pa
 
     cols = {name: pa.array(np.ascontiguousarray(records[name])) for name in POINT_FIELDS}
+    cols["scan"] = pa.repeat(pa.scalar(str(meta["scan"]), pa.string()), records.size)
     t = pa.table(cols)
     return t.replace_schema_metadata({_META_KEY: json.dumps(meta).encode()})
 
@@ -438,7 +524,9 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
     summary = {"chunk": k, "frames": [start, start + n], "n_frames": n, "n_points": int(recs.size),
                "skipped": skipped, "frames_without_points": int(empty), "axis": prep["axis"],
                "width_px": prep["width_px"]}
-    meta = {"token": spec["token"], "scan": spec["scan"], **summary}
+    meta = {"token": spec["token"], "scan": spec["scan"], "fingerprint": spec["fingerprint"], **summary}
+    if _lock_token(Path(spec["lock"][0])) != spec["lock"][1]:  # the run that asked for it has ended
+        return {"chunk": k, "error": "the run that submitted this chunk no longer holds the output folder's lock"}
     atomic_write(spec["path"], lambda tmp: pq.write_table(_table(recs, meta), tmp), force=True)
     return {**summary, "written": True}
 
@@ -466,12 +554,21 @@ def require_extra() -> None:
 
 @dataclass
 class BatchResult:
-    """What :func:`measure_batch` did; ``scans``: one dict per manifest row (as in manifest.json)."""
+    """What :func:`measure_batch` did; ``scans``: one dict per manifest row (as in manifest.json);
+    ``set_aside``: what lies in ``set-aside/`` (path, reason); ``notes``: what the run reported
+    on the way (a stale lock taken over...)."""
 
     out_dir: Path
     scans: list
     seconds: float
     dashboard: str | None = None
+    set_aside: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+
+    @property
+    def status(self) -> str:
+        """``ok`` when every scan was measured, else ``failed`` (as manifest.json says)."""
+        return "failed" if self.failed else "ok"
 
     @property
     def failed(self) -> list:
@@ -510,14 +607,18 @@ def _partition_path(out_dir: Path, sid: str, k: int) -> Path:
 @dataclass(frozen=True)
 class BatchOptions:
     """How :func:`measure_batch` runs: ``chunk_frames`` frames per task, ``ply`` (also one PLY per
-    scan, ``ply/<id>.ply``), ``retries`` of a failed task (a worker that died)."""
+    scan, ``ply/<id>.ply``), ``retries`` of a failed task (a worker that died), ``break_lock``
+    (take the output folder's lock whoever holds it: only when its holder is known to be gone)."""
 
     chunk_frames: int = DEFAULT_CHUNK_FRAMES
     ply: bool = False
     retries: int = 2
+    break_lock: bool = False
 
     def __post_init__(self) -> None:
         plan_chunks(1, self.chunk_frames)  # checks chunk_frames
+        if not isinstance(self.retries, int) or self.retries < 0:
+            raise LightplaneError(f"retries must be an integer >= 0, got {self.retries!r}")
 
 
 def _options_record(options: MeasureOptions) -> dict:
@@ -528,40 +629,253 @@ def _options_record(options: MeasureOptions) -> dict:
             "stripe": options.changed()}
 
 
+# ----------------------------------------------------------------------------- the output folder's lock
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _process_state(pid: int) -> tuple[str, str] | None:
+    """(state, start time in clock ticks) of process ``pid`` from /proc (Linux); None elsewhere or when gone."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return fields[0].decode(), fields[19].decode()
+    except (OSError, IndexError, UnicodeDecodeError):
+        return None
+
+
+def _pid_alive(pid: int, process_start: str | None) -> bool:
+    """Whether process ``pid`` of this host still runs (and is the one that started at ``process_start``)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # another user's process: it exists
+    state = _process_state(pid)
+    if state is not None and (state[0] in ("Z", "X") or (process_start is not None and state[1] != process_start)):
+        return False  # a zombie, or the pid was reused by another process
+    return True
+
+
+def _lock_holder(raw: bytes) -> dict | None:
+    """The holder a lock file names (pid, host, started...), or None when it is not a lock file's content."""
+    try:
+        d = json.loads(raw.decode())
+    except (ValueError, RecursionError):
+        return None
+    ok = (isinstance(d, dict) and isinstance(d.get("pid"), int) and not isinstance(d.get("pid"), bool)
+          and d["pid"] > 0 and isinstance(d.get("host"), str))
+    return d if ok else None
+
+
+def _lock_token(path: Path) -> str | None:
+    """The token of the run holding the lock file at ``path`` (None: no lock, or not readable)."""
+    try:
+        holder = _lock_holder(path.read_bytes())
+    except OSError:
+        return None
+    return None if holder is None else holder.get("token")
+
+
+def _age(seconds: float) -> str:
+    s = max(0, int(seconds))
+    if s < 120:
+        return f"{s} s"
+    if s < 7200:
+        return f"{s // 60} min"
+    if s < 2 * 86400:
+        return f"{s // 3600} h {s % 3600 // 60} min"
+    return f"{s // 86400} days"
+
+
+def _describe_holder(holder: dict | None, path: Path) -> str:
+    try:
+        mtime = path.stat().st_mtime
+    except OSError:
+        mtime = time.time()
+    if holder is None:
+        return f"an unreadable lock file {path}, last written {_age(time.time() - mtime)} ago"
+    started = holder.get("started_unix")
+    age = _age(time.time() - (started if isinstance(started, (int, float)) else mtime))
+    return f"pid {holder['pid']} on host {holder['host']}, started {holder.get('started_utc', '?')}, {age} ago"
+
+
+def _remove_lock(path: Path, seen: bytes) -> None:
+    """Remove the lock file if it still holds ``seen``; one another run wrote meanwhile is put back."""
+    aside = path.with_name(f"{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:
+        return
+    try:
+        if aside.read_bytes() != seen:  # a new holder's lock: back where it was (unless a third run has one)
+            try:
+                os.link(aside, path)
+            except FileExistsError:
+                pass
+            except OSError:  # no hard links on this file system
+                os.rename(aside, path)
+    finally:
+        aside.unlink(missing_ok=True)
+
+
+def _clear_lock(path: Path, break_lock: bool, notice: Callable[[str], None]) -> None:
+    """Remove a lock that may be taken over (stale, or ``break_lock``); else raise naming its holder."""
+    try:
+        seen = path.read_bytes()
+    except FileNotFoundError:
+        return  # released meanwhile
+    except OSError:
+        seen = b""
+    holder = _lock_holder(seen)
+    who = _describe_holder(holder, path)
+    out = path.parent
+    if break_lock:
+        _remove_lock(path, seen)
+        notice(f"{out}: broke the lock of {who}, as --break-lock asks")
+        return
+    if holder is None:
+        raise LightplaneError(f"{out}: locked by {who}; if no other measure-batch run writes there, "
+                              "run again with --break-lock")
+    if holder["host"] != socket.gethostname():
+        raise LightplaneError(f"{out}: a measure-batch run on another host holds the lock ({who}); "
+                              "if it is no longer running, run again with --break-lock")
+    if _pid_alive(holder["pid"], holder.get("process_start")):
+        raise LightplaneError(f"{out}: another measure-batch run writes there ({who}); wait for it to end")
+    _remove_lock(path, seen)
+    notice(f"{out}: took over the stale lock of {who} (that process is no longer running)")
+
+
+@contextlib.contextmanager
+def _output_lock(out: Path, break_lock: bool, notice: Callable[[str], None]) -> Iterator[dict]:
+    """Hold ``out/.lightplane-batch.lock`` (created with O_CREAT|O_EXCL) for the block; removed at its end."""
+    path = out / LOCK_NAME
+    pid = os.getpid()
+    state = _process_state(pid)
+    me = {"pid": pid, "host": socket.gethostname(), "started_utc": _utc_now(), "started_unix": time.time(),
+          "process_start": None if state is None else state[1], "token": uuid.uuid4().hex}
+    for _ in range(5):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            _clear_lock(path, break_lock, notice)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(me))
+        break
+    else:
+        raise LightplaneError(f"{out}: could not take the lock {path}: other runs keep taking it")
+    try:
+        yield me
+    finally:
+        if _lock_token(path) == me["token"]:
+            path.unlink(missing_ok=True)
+
+
+# ----------------------------------------------------------------------------- the run
+@dataclass
+class _Run:
+    """One run of :func:`measure_batch`: its output folder, scans, settings, lock and what it set aside."""
+
+    out: Path
+    scans: list
+    record: dict
+    batch: BatchOptions
+    notes: list = field(default_factory=list)
+    on_notice: Callable[[str], None] | None = None
+    lock: dict = field(default_factory=dict)
+    moved: dict = field(default_factory=dict)  # set-aside path -> reason, this run
+    earlier: dict = field(default_factory=dict)  # set-aside path -> reason, from the last manifest.json
+    t0: float = field(default_factory=time.perf_counter)
+
+    def notice(self, message: str) -> None:
+        self.notes.append(message)
+        if self.on_notice is not None:
+            self.on_notice(message)
+        else:
+            warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+
+def _output_folder(out_dir: str | os.PathLike) -> Path:
+    out = Path(out_dir)
+    if not out.resolve().parent.exists():
+        raise LightplaneError(f"{out.parent}: output folder's parent does not exist")
+    if out.exists() and not out.is_dir():
+        raise LightplaneError(f"{out}: exists and is not a folder")
+    return out
+
+
 @with_blas_limited
 def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: str | os.PathLike,
                   options: MeasureOptions = MeasureOptions(), batch: BatchOptions = BatchOptions(), *,
                   client=None, scheduler: str | None = None, local_workers: int | None = None,
                   progress: Callable[[str, int, int], None] | None = None,
-                  on_dashboard: Callable[[str | None], None] | None = None) -> BatchResult:
+                  on_dashboard: Callable[[str | None], None] | None = None,
+                  on_notice: Callable[[str], None] | None = None) -> BatchResult:
     """Measure every scan of ``manifest`` into a hive-partitioned Parquet dataset under ``out_dir``.
 
     The cluster: an existing ``client`` (``distributed.Client``), a ``scheduler`` address
     (``tcp://host:port``), or ``local_workers`` worker processes started here (a
     LocalCluster, closed at the end).  ``options``
     (:class:`~lightplane.measure.options.MeasureOptions`) apply to every scan, as in
-    ``measure``; ``batch``: :class:`BatchOptions` (frames per task, PLY files, retries).
-    ``progress(scan_id, chunks_done, chunks_total)`` after each chunk.  Partitions already
-    complete and up to date are kept (resume).  Returns a :class:`BatchResult`;
-    ``manifest.json`` is written in ``out_dir`` in any case.  Raises :class:`LightplaneError`
-    only for a bad manifest or output folder; a scan's own failure is recorded in its entry.
+    ``measure``; ``batch``: :class:`BatchOptions` (frames per task, PLY files, retries,
+    breaking a lock).  ``progress(scan_id, chunks_done, chunks_total)`` after each chunk;
+    ``on_notice(line)`` for what the run reports on the way (default: a ``RuntimeWarning``).
+
+    One run at a time per output folder (its lock file; a second run raises
+    :class:`LightplaneError` naming the holder).  ``manifest.json`` says ``in progress`` from
+    the start and ``ok`` or ``failed`` at the end.  Partitions whose fingerprint is the
+    current one are kept (resume), the others measured again; the partitions of failed scans
+    and of folders not in the manifest are moved to ``set-aside/``.  Returns a
+    :class:`BatchResult`.  Raises :class:`LightplaneError` only for a bad manifest, a bad or
+    locked output folder; a scan's own failure is recorded in its entry.
     """
-    t0 = time.perf_counter()
     require_extra()
     scans = list(manifest) if not isinstance(manifest, (str, os.PathLike)) else read_manifest(manifest)
-    out = Path(out_dir)
-    if not out.resolve().parent.exists():
-        raise LightplaneError(f"{out.parent}: output folder's parent does not exist")
-    if out.exists() and not out.is_dir():
-        raise LightplaneError(f"{out}: exists and is not a folder")
+    out = _output_folder(out_dir)
     if sum(x is not None for x in (client, scheduler, local_workers)) != 1:
         raise LightplaneError("give exactly one of a client, a scheduler address or a number of local workers")
     if local_workers is not None and int(local_workers) < 1:
         raise LightplaneError(f"local workers must be >= 1, got {local_workers}")
-    (out / "points").mkdir(parents=True, exist_ok=True)
-    record = _options_record(options)
-    plans = [_plan(s, batch.chunk_frames, record) for s in scans]
+    run = _Run(out, scans, _options_record(options), batch, on_notice=on_notice)
+    out.mkdir(exist_ok=True)
+    with _output_lock(out, batch.break_lock, run.notice) as lock:
+        run.lock = lock
+        run.earlier = _earlier_set_aside(out)
+        _write_manifest_in_progress(run)
+        try:
+            return _measure_locked(run, options, (client, scheduler, local_workers), progress, on_dashboard)
+        except BaseException as exc:
+            _write_manifest_stopped(run, exc)
+            raise
 
+
+def _measure_locked(run: _Run, options: MeasureOptions, cluster: tuple, progress, on_dashboard) -> BatchResult:
+    """The run, once it holds the lock: plan, set aside what is not the manifest's, measure, set aside failures."""
+    out = run.out
+    (out / "points").mkdir(exist_ok=True)
+    plans = [_plan(s, run.batch.chunk_frames, run.record) for s in run.scans]
+    _set_aside_foreign(run)
+    entries, dashboard = _on_cluster(run, plans, options, cluster, progress, on_dashboard)
+    for e in entries:
+        if e["status"] == "failed":
+            _set_aside_scan(run, e)
+    written = set()
+    if run.batch.ply:
+        for e, pl in zip(entries, plans):
+            if e["status"] != "failed" and e["n_points"]:
+                e["ply"] = str(_write_ply(out, e, pl))
+                written.add(Path(e["ply"]).name)
+    _set_aside_ply(run, written)
+    result = BatchResult(out, entries, time.perf_counter() - run.t0, dashboard, _set_aside_listing(run), run.notes)
+    _write_manifest(run, result)
+    return result
+
+
+def _on_cluster(run: _Run, plans: list, options: MeasureOptions, cluster: tuple, progress, on_dashboard):
+    """``(entries, dashboard)``: the plans measured on the given client, scheduler or a local cluster."""
+    client, scheduler, local_workers = cluster
     own_cluster = own_client = None
     try:
         if client is None:
@@ -570,31 +884,24 @@ def measure_batch(manifest: str | os.PathLike | Sequence[BatchScan], out_dir: st
             if scheduler is not None:
                 client = own_client = Client(scheduler)
             else:
-                assert local_workers is not None  # exactly one of the three was checked above
+                assert local_workers is not None  # exactly one of the three was checked
                 own_cluster = local_cluster(local_workers)
                 client = own_client = Client(own_cluster)
         dashboard = getattr(client, "dashboard_link", None)
         if on_dashboard is not None:
             on_dashboard(dashboard)
-        entries = _run(client, plans, out, options, batch.retries, progress)
+        lock = (str(run.out / LOCK_NAME), run.lock["token"])
+        return _run(client, plans, run.out, options, (run.batch.retries, lock), progress), dashboard
     finally:
         if own_client is not None:
             own_client.close()
         if own_cluster is not None:
             own_cluster.close()
-    if batch.ply:
-        for e, pl in zip(entries, plans):
-            if e["status"] != "failed" and e["n_points"]:
-                e["ply"] = str(_write_ply(out, e, pl))
-    result = BatchResult(out, entries, time.perf_counter() - t0, dashboard)
-    _write_manifest(out, result, record, batch.chunk_frames, scans)
-    return result
 
 
-def _run(client, plans: list, out: Path, options: MeasureOptions, retries: int, progress) -> list:
-    """Submit every chunk not yet complete, collect the chunks' summaries; one entry per scan."""
-    import uuid
-
+def _run(client, plans: list, out: Path, options: MeasureOptions, settings: tuple, progress) -> list:
+    """Submit every chunk not yet complete, collect the chunks' summaries; one entry per scan.
+    ``settings``: (retries, (lock path, lock token))."""
     # keys unique to this run: a key the scheduler still remembers from an earlier run would
     # give that run's result without running the task (and without rewriting a deleted partition)
     run = uuid.uuid4().hex[:8]
@@ -609,14 +916,20 @@ def _run(client, plans: list, out: Path, options: MeasureOptions, retries: int, 
         if pl.error is not None:
             e["status"], e["error"] = "failed", pl.error
             continue
+        e["fingerprint"] = {"scan": pl.fingerprint, "sha256": pl.scan_token}
         done, todo = _partitions_done(out, pl)
         chunk_meta[i] = done
         e["partitions_reused"] = len(done)
         if todo:
-            futs[i] = _submit_scan(client, pl, todo, out, options, retries, run)
+            futs[i] = _submit_scan(client, pl, todo, out, options, settings, run)
         if progress is not None:
             progress(s.id, len(done), len(pl.chunks))
-    errors = _collect(futs, plans, entries, chunk_meta, progress)
+    try:
+        errors = _collect(futs, plans, entries, chunk_meta, progress)
+    except BaseException:  # stopped: no task of this run may write once the lock is gone
+        with contextlib.suppress(Exception):
+            client.cancel([f for fs in futs.values() for f in fs])
+        raise
     for i, (pl, e) in enumerate(zip(plans, entries)):
         if pl.error is None:
             _summarize(e, pl, chunk_meta[i], out, errors.get(i))
@@ -624,27 +937,38 @@ def _run(client, plans: list, out: Path, options: MeasureOptions, retries: int, 
 
 
 def _partitions_done(out: Path, pl: _Plan) -> tuple[dict, list]:
-    """A scan's partitions complete and up to date (chunk -> its summary) and the chunks to measure;
-    partitions of an earlier, differently chunked run and temporary files of a dead one removed."""
+    """A scan's partitions complete and with the current fingerprint (chunk -> its summary), taken back
+    from ``set-aside/`` when one lies there, and the chunks to measure.  Every other file the scan's
+    folder holds (a partition with another fingerprint, of another chunking, a dead run's temporary
+    file) is removed."""
     s = pl.scan
     folder = out / "points" / f"scan={s.id}"
     folder.mkdir(parents=True, exist_ok=True)
     wanted = {_partition_path(out, s.id, k).name for k, _, _ in pl.chunks}
     for q in folder.iterdir():
-        if q.is_file() and ((q.name.startswith("part-") and q.name not in wanted) or q.name.startswith(".part-")):
+        if q.is_file() and q.name not in wanted:
             q.unlink()
     todo, done = [], {}
     for k, a, b in pl.chunks:
-        meta = _read_partition_meta(_partition_path(out, s.id, k)) if _partition_path(out, s.id, k).exists() else None
+        path = _partition_path(out, s.id, k)
+        meta = _read_partition_meta(path) if path.exists() else None
+        if meta is None or meta.get("token") != pl.tokens[k]:
+            aside = out / SET_ASIDE / path.relative_to(out)
+            meta = _read_partition_meta(aside) if aside.is_file() else None
+            if meta is not None and meta.get("token") == pl.tokens[k]:
+                os.replace(aside, path)
         if meta is not None and meta.get("token") == pl.tokens[k]:
             done[k] = meta
         else:
+            path.unlink(missing_ok=True)  # never kept: a reader of a stopped run sees no partition of another
             todo.append((k, a, b))
     return done, todo
 
 
-def _submit_scan(client, pl: _Plan, todo: list, out: Path, options: MeasureOptions, retries: int, run: str) -> list:
+def _submit_scan(client, pl: _Plan, todo: list, out: Path, options: MeasureOptions, settings: tuple,
+                 run: str) -> list:
     """The scan's prepare task and one task per chunk of ``todo``: their futures, the prepare's first."""
+    retries, lock = settings
     s = pl.scan
     common = (pl.camera, pl.plane, pl.motion)
     prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
@@ -653,6 +977,7 @@ def _submit_scan(client, pl: _Plan, todo: list, out: Path, options: MeasureOptio
     for k, a, b in todo:
         spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
                 "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
+                "fingerprint": {**pl.fingerprint, "chunk": [k, a, b]}, "lock": lock,
                 "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
         futs.append(client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
                                   key=f"chunk-{s.id}-{k}-{pl.tokens[k][:12]}-{run}"))
@@ -710,15 +1035,115 @@ def _summarize(e: dict, pl: _Plan, metas_by_chunk: dict, out: Path, errors: list
                                              "frames (laser off, wrong --channel or --roi?)")
 
 
-def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
-    """A scan's points (:data:`lightplane.measure.pointcloud.POINT_DTYPE`) in frame order, from its partitions."""
-    import pyarrow.parquet as pq
+# ----------------------------------------------------------------------------- set aside
+def _set_aside(run: _Run, src: Path, reason: str) -> None:
+    """Move ``src`` (under the output folder) to the same place under ``set-aside/``, replacing what lay there."""
+    out = run.out
+    dest = out / SET_ASIDE / src.relative_to(out)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    if dest.is_dir() and not dest.is_symlink():
+        shutil.rmtree(dest)
+    elif dest.exists() or dest.is_symlink():
+        dest.unlink()
+    os.replace(src, dest)
+    run.moved[str(dest.relative_to(out))] = reason
 
-    folder = Path(out_dir) / "points" / f"scan={scan_id}"
-    parts = sorted(folder.glob("part-*.parquet"), key=lambda q: int(q.stem.split("-")[1]))
+
+def _set_aside_foreign(run: _Run) -> None:
+    """Set aside what ``points/`` holds besides the manifest's scans (names starting with ``.`` or
+    ``_`` stay: pyarrow's dataset discovery skips them)."""
+    ids = {f"scan={s.id}" for s in run.scans}
+    for q in sorted((run.out / "points").iterdir()):
+        if q.name.startswith((".", "_")) or (q.name in ids and q.is_dir()):
+            continue
+        _set_aside(run, q, "not a scan of the manifest")
+
+
+def _set_aside_scan(run: _Run, e: dict) -> None:
+    """A failed scan's folder out of ``points/``: set aside when it holds partitions, else removed."""
+    folder = run.out / "points" / f"scan={e['id']}"
+    e["partitions"] = []
+    if not folder.is_dir():
+        return
+    if any(q.name.endswith(".parquet") and not q.name.startswith(".") for q in folder.iterdir()):
+        _set_aside(run, folder, f"the scan failed: {e['error']}")
+        e["set_aside"] = f"{SET_ASIDE}/points/scan={e['id']}"
+    else:
+        shutil.rmtree(folder)
+
+
+def _set_aside_ply(run: _Run, written: set) -> None:
+    """Set aside the PLY files this run did not write (of failed or dropped scans, or of an earlier
+    run when this one wrote none)."""
+    folder = run.out / "ply"
+    if not folder.is_dir():
+        return
+    for q in sorted(folder.iterdir()):
+        if q.is_file() and q.suffix == ".ply" and q.name not in written:
+            _set_aside(run, q, "not written by the last run (its scan failed, left the manifest, or --ply was off)")
+
+
+def _earlier_set_aside(out: Path) -> dict:
+    """The reasons the last manifest.json gives for what lies in ``set-aside/`` (path -> reason)."""
+    try:
+        doc = json.loads((out / "manifest.json").read_text(encoding="utf-8"))
+        return {str(d["path"]): str(d["reason"]) for d in doc.get("set_aside", [])}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return {}
+
+
+def _set_aside_listing(run: _Run) -> list:
+    """What lies in ``set-aside/`` now: ``{"path", "reason"}`` each (empty folders removed)."""
+    root = run.out / SET_ASIDE
+    items = []
+    for sub in ("points", "ply"):
+        folder = root / sub
+        if not folder.is_dir():
+            continue
+        for q in sorted(folder.iterdir()):
+            if q.is_dir() and not any(q.iterdir()):
+                q.rmdir()  # all its partitions were taken back
+                continue
+            rel = str(q.relative_to(run.out))
+            items.append({"path": rel, "reason": run.moved.get(rel) or run.earlier.get(rel)
+                          or "set aside by an earlier run"})
+    return items
+
+
+# ----------------------------------------------------------------------------- reading
+def scan_partitioning():
+    """The dataset's partitioning: hive, with the ``scan`` key a string (ids ``1`` and ``01`` stay
+    apart; inferred, a key whose values all look like integers would become int32)."""
+    import pyarrow as pa
+    import pyarrow.dataset as pds
+
+    return pds.partitioning(pa.schema([("scan", pa.string())]), flavor="hive")
+
+
+def open_dataset(out_dir: str | os.PathLike):
+    """The points of a measure-batch output as one ``pyarrow.dataset.Dataset`` (columns x, y, z, frame,
+    intensity, sigma_mm, u, v, scan): ``pyarrow.dataset.dataset(out_dir/points, format="parquet",
+    partitioning=scan_partitioning())``.  Its points are those of the scans ``manifest.json`` lists
+    as ok when it says ``ok`` or ``failed`` (not while it says ``in progress``)."""
+    import pyarrow.dataset as pds
+
+    folder = Path(out_dir) / "points"
+    if not folder.is_dir():
+        raise LightplaneError(f"{folder}: no such folder (not a measure-batch output?)")
+    return pds.dataset(folder, format="parquet", partitioning=scan_partitioning())
+
+
+def read_points(out_dir: str | os.PathLike, scan_id: str) -> np.ndarray:
+    """A scan's points (:data:`lightplane.measure.pointcloud.POINT_DTYPE`) in frame order, from its
+    partitions in :func:`open_dataset` (empty when the scan has none)."""
+    import pyarrow.dataset as pds
+
+    if not (Path(out_dir) / "points").is_dir():
+        return np.empty(0, POINT_DTYPE)
+    frags = open_dataset(out_dir).get_fragments(filter=pds.field("scan") == str(scan_id))
     arrays = []
-    for q in parts:
-        t = pq.read_table(q)
+    for frag in sorted(frags, key=lambda f: _natural(Path(f.path).name)):
+        t = frag.to_table(columns=list(POINT_FIELDS))
         rec = np.empty(t.num_rows, POINT_DTYPE)
         for name in POINT_FIELDS:
             rec[name] = t.column(name).to_numpy()
@@ -734,7 +1159,7 @@ def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
     dest = out / "ply" / f"{pl.scan.id}.ply"
     with PointSpool(out / "ply") as spool:
         for part in e["partitions"]:
-            t = pq.read_table(out / part["path"])
+            t = pq.read_table(out / part["path"], columns=list(POINT_FIELDS))
             rec = np.empty(t.num_rows, POINT_DTYPE)
             for name in POINT_FIELDS:
                 rec[name] = t.column(name).to_numpy()
@@ -747,15 +1172,54 @@ def _write_ply(out: Path, e: dict, pl: _Plan) -> Path:
     return dest
 
 
-def _write_manifest(out: Path, result: BatchResult, record: dict, chunk_frames: int, scans) -> None:
-    prov = provenance([s.input for s in scans], {**record, "chunk_frames": int(chunk_frames)})
+# ----------------------------------------------------------------------------- manifest.json
+#: how the dataset is read (as documented in docs/batch.md and manifest.json)
+DATASET_READ = ('pyarrow.dataset.dataset("points", format="parquet", partitioning=pyarrow.dataset.partitioning('
+                'pyarrow.schema([("scan", pyarrow.string())]), flavor="hive"))')
+
+
+def _manifest_head(run: _Run, status: str) -> dict:
+    """manifest.json's common part: format, status, the run (pid, host, start), provenance, the dataset."""
+    prov = provenance([s.input for s in run.scans], {**run.record, "chunk_frames": int(run.batch.chunk_frames)})
+    lock = run.lock
+    return {"format": "lightplane batch", "layout": _LAYOUT, "status": status,
+            "run": {"pid": lock.get("pid"), "host": lock.get("host"), "started_utc": lock.get("started_utc")},
+            "provenance": prov,
+            "dataset": {"path": "points", "format": "parquet", "partitioning": "hive", "partition_key": "scan",
+                        "partition_schema": {"scan": "string"}, "columns": [*POINT_FIELDS, "scan"],
+                        "read": DATASET_READ}}
+
+
+def _write_manifest_in_progress(run: _Run) -> None:
+    doc = _manifest_head(run, "in progress")
+    doc["summary"] = {"scans": len(run.scans)}
+    doc["scans"] = [{"id": s.id, "status": "in progress"} for s in run.scans]
+    doc["set_aside"] = [{"path": p, "reason": r} for p, r in sorted(run.earlier.items())]
+    write_json(run.out / "manifest.json", doc, force=True)
+
+
+def _write_manifest_stopped(run: _Run, exc: BaseException) -> None:
+    """manifest.json of a run stopped by an exception: failed, why, and that the dataset may be mixed."""
+    doc = _manifest_head(run, "failed")
+    doc["run"]["finished_utc"] = _utc_now()
+    doc["error"] = (f"the run stopped before its end ({type(exc).__name__}: {exc}); the dataset may hold "
+                    "partitions of this run and of an earlier one: run it again")
+    doc["scans"] = [{"id": s.id, "status": "unknown"} for s in run.scans]
+    doc["set_aside"] = _set_aside_listing(run) if (run.out / SET_ASIDE).is_dir() else []
+    with contextlib.suppress(Exception):  # the exception that stopped the run is the one to see
+        write_json(run.out / "manifest.json", doc, force=True)
+
+
+def _write_manifest(run: _Run, result: BatchResult) -> None:
+    doc = _manifest_head(run, result.status)
+    doc["run"]["finished_utc"] = _utc_now()
     ok = [s for s in result.scans if s["status"] == "ok"]
-    doc = {"format": "lightplane batch", "layout": _LAYOUT, "provenance": prov,
-           "dataset": {"path": "points", "format": "parquet", "partitioning": "hive", "partition_key": "scan",
-                       "columns": list(POINT_FIELDS)},
-           "summary": {"scans": len(result.scans), "ok": len(ok), "failed": len(result.failed),
-                       "frames": result.n_frames, "points": result.n_points,
-                       "partitions_written": result.partitions_written,
-                       "partitions_reused": result.partitions_reused, "seconds": round(result.seconds, 3)},
-           "scans": result.scans}
-    write_json(out / "manifest.json", doc, force=True)
+    doc["summary"] = {"scans": len(result.scans), "ok": len(ok), "failed": len(result.failed),
+                      "frames": result.n_frames, "points": result.n_points,
+                      "partitions_written": result.partitions_written,
+                      "partitions_reused": result.partitions_reused, "set_aside": len(result.set_aside),
+                      "seconds": round(result.seconds, 3)}
+    doc["scans"] = result.scans
+    doc["set_aside"] = result.set_aside
+    doc["notes"] = result.notes
+    write_json(run.out / "manifest.json", doc, force=True)
