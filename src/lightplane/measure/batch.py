@@ -906,25 +906,19 @@ def _run(client, plans: list, out: Path, options: MeasureOptions, settings: tupl
     # give that run's result without running the task (and without rewriting a deleted partition)
     run = uuid.uuid4().hex[:8]
     entries, futs, chunk_meta = [], {}, {}
-    for i, pl in enumerate(plans):
-        s = pl.scan
-        e = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
-             "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
-             "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
-             "partitions_reused": 0}
-        entries.append(e)
-        if pl.error is not None:
-            e["status"], e["error"] = "failed", pl.error
-            continue
-        e["fingerprint"] = {"scan": pl.fingerprint, "sha256": pl.scan_token}
-        done, todo = _partitions_done(out, pl)
-        chunk_meta[i] = done
-        e["partitions_reused"] = len(done)
-        if todo:
-            futs[i] = _submit_scan(client, pl, todo, out, options, settings, run)
-        if progress is not None:
-            progress(s.id, len(done), len(pl.chunks))
     try:
+        for i, pl in enumerate(plans):
+            e = _entry(pl)
+            entries.append(e)
+            if pl.error is not None:
+                continue
+            done, todo = _partitions_done(out, pl)
+            chunk_meta[i] = done
+            e["partitions_reused"] = len(done)
+            if todo:
+                futs[i] = _submit_scan(client, pl, todo, out, options, settings, run)
+            if progress is not None:
+                progress(pl.scan.id, len(done), len(pl.chunks))
         errors = _collect(futs, plans, entries, chunk_meta, progress)
     except BaseException:  # stopped: no task of this run may write once the lock is gone
         with contextlib.suppress(Exception):
@@ -934,6 +928,20 @@ def _run(client, plans: list, out: Path, options: MeasureOptions, settings: tupl
         if pl.error is None:
             _summarize(e, pl, chunk_meta[i], out, errors.get(i))
     return entries
+
+
+def _entry(pl: _Plan) -> dict:
+    """A scan's entry in manifest.json before its chunks are collected (failed already when it could not be planned)."""
+    s = pl.scan
+    e = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
+         "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
+         "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
+         "partitions_reused": 0}
+    if pl.error is not None:
+        e["status"], e["error"] = "failed", pl.error
+    else:
+        e["fingerprint"] = {"scan": pl.fingerprint, "sha256": pl.scan_token}
+    return e
 
 
 def _partitions_done(out: Path, pl: _Plan) -> tuple[dict, list]:
