@@ -31,11 +31,12 @@ from typing import Any
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.camera.lens import MODELS, ROS_MODELS, distort_jac, lens_params, model_for
+from lightplane.camera.lens import MODELS, ROS_MODELS, coeff_names, distort_jac, lens_params, model_for
 from lightplane.camera.lens_kernels import newton_undistort, newton_undistort_from
 from lightplane.core.io import atomic_write, read_json, write_json
 
-__all__ = ["Camera", "as_points"]
+__all__ = ["Camera", "as_points", "SAME_CAMERA_RTOL", "ALLOWED_CAMERA_KEY", "camera_record", "camera_difference",
+           "check_calibrated_with"]
 
 
 def as_points(x: Any, dim: int, name: str) -> np.ndarray:
@@ -614,6 +615,83 @@ class Camera:
             return cls(K, dist, w, h, meta={"source": str(p), "format": "opencv"}, model=model)
         except LightplaneError as e:
             raise LightplaneError(f"{p}: {e}") from None
+
+
+#: relative tolerance of :func:`camera_difference`: K's entries within ``SAME_CAMERA_RTOL`` times the
+#: focal length (1e-3 px at f = 1000 px), each distortion coefficient within ``SAME_CAMERA_RTOL``
+#: times ``max(1, |k|)``.  A recalibration of the same camera moves f by ~1e-4 of itself (its σ)
+#: or more, so it is "another camera"; a camera file written again (JSON, ROS or OpenCV YAML/XML,
+#: all with >= 7 significant digits) is the same one.
+SAME_CAMERA_RTOL = 1e-6
+
+#: the field of a plane or turntable record, inside a sensor file, naming the camera (a
+#: :func:`camera_record`) it was joined with by ``lightplane sensor --allow-other-camera``
+ALLOWED_CAMERA_KEY = "allowed_camera"
+
+
+def camera_record(camera: Camera) -> dict:
+    """What a result file records of the camera it was calibrated with (``"camera"``): image size,
+    lens model, K and the distortion coefficients (:func:`camera_difference` compares them)."""
+    return {"width": camera.width, "height": camera.height, "model": camera.model, "K": camera.K.tolist(),
+            "dist": camera.dist.tolist()}
+
+
+def _recorded(rec: Any) -> tuple[tuple[int, int], str, np.ndarray, np.ndarray] | None:
+    try:
+        size = (int(rec["width"]), int(rec["height"]))
+        K = np.asarray(rec["K"], dtype=np.float64).reshape(3, 3)
+        model, dist = model_for(rec["dist"], rec.get("model"))
+    except (KeyError, TypeError, ValueError, AttributeError, LightplaneError):
+        return None
+    return (size, model, K, dist) if np.all(np.isfinite(K)) else None
+
+
+def camera_difference(recorded: Any, camera: Camera, rtol: float = SAME_CAMERA_RTOL) -> str | None:
+    """The first difference between a recorded camera (a dict as :func:`camera_record` or
+    :meth:`Camera.to_dict` write it) and ``camera``, in words (``fx 1000 px vs 1005 px``: the
+    recorded value first), or None when they are the same camera: the same image size and lens
+    model, K and the coefficients within :data:`SAME_CAMERA_RTOL` (see there)."""
+    rec = _recorded(recorded)
+    if rec is None:
+        return "its recorded camera is malformed"
+    size, model, K, dist = rec
+    if size != camera.size:
+        return f"image size {size[0]}x{size[1]} px vs {camera.width}x{camera.height} px"
+    if model != camera.model:
+        return f"lens model {model} vs {camera.model}"
+    tol = rtol * max(camera.fx, camera.fy)
+    for name, (i, j) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2)), ("skew", (0, 1))):
+        if not abs(K[i, j] - camera.K[i, j]) <= tol:
+            return f"{name} {K[i, j]:.10g} px vs {camera.K[i, j]:.10g} px"
+    for name, a, b in zip(coeff_names(model), dist, camera.dist):
+        if not abs(a - b) <= rtol * max(1.0, abs(a), abs(b)):
+            return f"distortion {name} {a:.10g} vs {b:.10g}"
+    return None
+
+
+def check_calibrated_with(recorded: Any, camera: Camera, *, source: str, camera_file: str, what: str,
+                          allow_other: bool = False, override: Any = None) -> str | None:
+    """Raise :class:`LightplaneError` (one line naming ``source``, ``camera_file`` and the first
+    difference) when ``recorded`` (the camera a ``what`` -- "plane", "turntable" -- was calibrated
+    with, None if the file records none) is not ``camera``.
+
+    Returns None when it is the same camera, else the one-line note to show and to record in the
+    output's provenance: the file records no camera (written before files recorded it: not
+    checked), or it differs and the use is allowed -- by ``allow_other`` (the
+    ``--allow-other-camera`` flag) or by ``override``, a camera record this file was explicitly
+    joined with before (a sensor file built with the flag), when that is ``camera``."""
+    if recorded is None:
+        return f"{source} records no camera (written by an older lightplane): not checked against {camera_file}"
+    diff = camera_difference(recorded, camera)
+    if diff is None:
+        return None
+    other = f"{source}: calibrated with another camera than {camera_file} ({diff} in {camera_file})"
+    if allow_other:
+        return f"{other}; used by --allow-other-camera"
+    if override is not None and camera_difference(override, camera) is None:
+        return f"{other}; used by the --allow-other-camera recorded with it"
+    raise LightplaneError(f"{other}; recalibrate the {what} with this camera (or give --allow-other-camera to use "
+                          "it anyway)")
 
 
 _ROS_NAMES = ("rational_polynomial", "equidistant")

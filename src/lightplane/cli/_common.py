@@ -5,9 +5,11 @@ from __future__ import annotations
 import contextlib
 import functools
 import inspect
+import os
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal, Optional, TypeVar
+from typing import Any, Callable, Iterable, Iterator, Literal, Optional, TypeVar
 
 import typer
 from rich.console import Console
@@ -19,8 +21,12 @@ except ImportError:  # pragma: no cover
     from click import exceptions as _click_errors  # type: ignore[no-redef]  # the same module, older typer
 
 from lightplane.core.errors import LightplaneError
+from lightplane.camera.model import ALLOWED_CAMERA_KEY, Camera, camera_record
 from lightplane.camera.targets import parse_target
-from lightplane.core.io import quiet_opencv
+from lightplane.core.io import check_output, quiet_opencv
+from lightplane.measure.sensor import Sensor
+from lightplane.motion.model import Turntable
+from lightplane.plane.model import LightPlane, check_camera
 
 class _OneLineErrors(TyperGroup):
     """The command group, with click's usage errors (a bad choice, a value out of range, a
@@ -204,3 +210,107 @@ LASER_HELP = ("One laser of several, NAME=SELECTOR (repeat per laser; one plane 
               "image files) or cycle:K (the K-th laser frame of each pose), parts joined by +. E.g. --laser left=red "
               "--laser right=green. Files: -o plane.json gives plane_NAME.json, or use {laser} in -o.")
 laser_option = typer.Option(None, "--laser", help=LASER_HELP)
+
+
+# ------------------------------------------------------------------ outputs
+def output_file(path: str | os.PathLike, force: bool, *, inputs: Iterable[Any] = (), option: str = "-o",
+                suffixes: tuple[str, ...] = ()) -> Path:
+    """Check a file a command will write, before any work; one line on bad input.
+
+    Refused: an existing folder (with or without ``--force``), a file named among ``inputs`` (the
+    command's input files: the same path, or the same file through a link), a suffix not among
+    ``suffixes`` when given; then :func:`lightplane.core.io.check_output` (exists without
+    ``--force``, no such or unwritable folder)."""
+    p = Path(path)
+    if p.is_dir():
+        raise LightplaneError(f"{option} {p}: is a folder; give a file name")
+    for item in inputs:
+        if item is not None and _same_file(p, Path(item)):
+            raise LightplaneError(f"{option} {p}: is also an input of this command; give another output file")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise LightplaneError(f"{option} {p}: the file name must end in {' or '.join(suffixes)}")
+    return check_output(p, force)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
+
+
+# ------------------------------------------------------ plane and camera together
+ALLOW_OTHER_CAMERA_HELP = ("Use a plane, sensor or turntable file calibrated with another camera than the one given "
+                           "(refused otherwise); the output's provenance records it.")
+allow_other_camera_option = typer.Option(False, "--allow-other-camera", help=ALLOW_OTHER_CAMERA_HELP)
+
+
+@dataclass
+class CameraFiles:
+    """The camera of a command and the calibration files read against it: every plane and turntable
+    is checked to belong to ``camera`` (:func:`lightplane.plane.model.check_camera`; refused in one
+    line naming both files unless ``allow_other``).  ``notes``: what the check let through (older
+    files that record no camera, another camera allowed), for the console and the provenance."""
+
+    camera: Camera
+    camera_file: str
+    allow_other: bool = False
+    notes: list[str] = field(default_factory=list)
+
+    @classmethod
+    def load(cls, camera_file: str | os.PathLike, allow_other: bool = False) -> "CameraFiles":
+        return cls(Camera.load(camera_file), str(camera_file), allow_other)
+
+    def _note(self, note: str | None) -> None:
+        if note is not None and note not in self.notes:
+            self.notes.append(note)
+
+    def plane(self, path: str | os.PathLike, source: str | None = None) -> LightPlane:
+        """The plane file ``path``, checked against the camera."""
+        pl = LightPlane.load(path)
+        self.check_plane(pl, source or str(path))
+        return pl
+
+    def check_plane(self, plane: LightPlane, source: str) -> None:
+        self._note(check_camera(plane, self.camera, plane_file=source, camera_file=self.camera_file,
+                                allow_other=self.allow_other))
+
+    def turntable(self, path: str | os.PathLike) -> Turntable:
+        """The turntable file ``path``, checked against the camera."""
+        tt = Turntable.load(path)
+        self.check_turntable(tt, str(path))
+        return tt
+
+    def check_turntable(self, table: Turntable, source: str) -> None:
+        self._note(table.check_camera(self.camera, source, camera_file=self.camera_file, allow_other=self.allow_other))
+
+    def allowed(self) -> dict:
+        """What a part recorded with it in a sensor file carries when another camera was allowed."""
+        return {ALLOWED_CAMERA_KEY: camera_record(self.camera)} if self.allow_other else {}
+
+    def record(self) -> dict:
+        """For the output's provenance options: the flag and the notes."""
+        return {"allow_other_camera": self.allow_other, "camera_check": list(self.notes)}
+
+    def comments(self) -> tuple[str, ...]:
+        """For a point cloud's comment lines."""
+        head = ("camera check: --allow-other-camera given",) if self.allow_other else ()
+        return head + tuple(f"camera check: {n}" for n in self.notes)
+
+    def warn(self) -> None:
+        """Each note as one warning line on stderr."""
+        for n in self.notes:
+            err_console.print(f"warning: {n}")
+
+
+def load_sensor(path: str | os.PathLike, allow_other: bool = False) -> tuple[Sensor, CameraFiles]:
+    """A sensor file with its planes checked against its own camera (its turntable is checked on reading)."""
+    sens = Sensor.load(path)
+    cf = CameraFiles(sens.camera, f"{path} (its camera)", allow_other)
+    for name, pl in sens.planes.items():
+        cf.check_plane(pl, f"{path}: plane {name!r}")
+    if sens.turntable is not None:
+        cf.check_turntable(sens.turntable, f"{path}: turntable")
+    return sens, cf

@@ -11,9 +11,9 @@ from rich.console import JustifyMethod
 from rich.table import Table
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
-from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, progress_bar, takes_target)
+from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, output_file, progress_bar, takes_target)
 from lightplane.camera.intrinsics import (CameraCalibrationOptions, IntrinsicsCalibration, calibrate_camera,
                                           opencv_std_ratio)
 from lightplane.camera.lens import MODELS, coeff_names
@@ -91,9 +91,9 @@ def _checked_files(images: List[str], output: Path, plot: Optional[Path], force:
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
-    check_output(output, force)
+    output_file(output, force, inputs=files)
     if plot is not None:
-        check_output(plot, force)
+        output_file(plot, force, inputs=files, option="--plot")
     if len(files) == 1 and not files[0].exists():  # a single missing file: say so (several: skipped one by one)
         raise LightplaneError(f"{files[0]}: no such file")
     return files

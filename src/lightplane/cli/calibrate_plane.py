@@ -10,7 +10,8 @@ from rich.table import Table
 
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import check_output, expand_inputs, provenance
-from lightplane.cli._common import Channel, app, board_option, console, handles_errors, laser_option, progress_bar, square_option
+from lightplane.cli._common import (Channel, app, board_option, console, handles_errors, laser_option, output_file,
+                                    progress_bar, square_option)
 from lightplane.camera.model import Camera
 from lightplane.cli._common import target_from_options
 from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, uncertainty_summary
@@ -47,6 +48,8 @@ def calibrate_plane_cmd(
     square: Optional[float] = square_option,
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --joint-camera: the camera file to "
                                               "write (JSON, with the joint covariance of the intrinsics)."),
+    keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
+                                      "points lie far beyond their stripe noise from it (marked in its 'quality')."),
 ) -> None:
     """Calibrate the light plane from images of a flat circular target (Wang & Li 2022).
 
@@ -74,10 +77,10 @@ def calibrate_plane_cmd(
     if joint is None and camera is None:
         raise LightplaneError("give --camera FILE (or --joint-camera GLOB with --board, --square and --camera-out)")
     sels = parse_lasers(laser, channel)
-    outputs, reports = _checked_outputs(output, report, sels, force)
+    outputs, reports = _checked_outputs(output, report, sels, force, [*files, camera])
     cam = None if camera is None else Camera.load(camera)  # None: --joint-camera calibrates it
     opts = PlaneCalibrationOptions(observe=ObserveOptions(distance_range_mm=(near, far), channel=channel),
-                                   workers=workers)
+                                   workers=workers, keep_suspect=keep_suspect)
     first = ("chessboard images", len(joint[0])) if joint is not None else ("images", len(files))
     with progress_bar(*first) as update:
         run = calibrate_light_planes([str(f) for f in files], cam, diameter, method, opts, lasers=sels,
@@ -86,7 +89,7 @@ def calibrate_plane_cmd(
                                      progress=lambda stage, i, n: update(i, total=n, label=stage))
     results = _print_run(run, joint, sels)
     options: dict = {"camera": None if camera is None else str(camera), "diameter_mm": diameter, "method": method,
-               "channel": channel, "distance_range_mm": [near, far]}
+               "channel": channel, "distance_range_mm": [near, far], "keep_suspect": keep_suspect}
     if sels is not None:
         options["lasers"] = [x.to_dict() for x in sels]
     inputs = [*map(str, files)] + ([str(camera)] if camera is not None else [])
@@ -113,9 +116,9 @@ def calibrate_plane_cmd(
             console.print(f"wrote {path}")
 
 
-def _checked_outputs(output: Path, report: Path | None, sels, force: bool) -> tuple[dict, dict]:
-    """The plane file and report folder of each laser, every one checked before any work: nothing is
-    written on bad input."""
+def _checked_outputs(output: Path, report: Path | None, sels, force: bool, inputs: list) -> tuple[dict, dict]:
+    """The plane file and report folder of each laser, every one checked before any work (not an input, not a
+    folder...): nothing is written on bad input."""
     names: list[str | None] = [x.name for x in sels] if sels else [None]
     outputs: dict[str | None, Path] = {None: output}
     if sels:
@@ -124,7 +127,7 @@ def _checked_outputs(output: Path, report: Path | None, sels, force: bool) -> tu
     if len(set(map(str, outputs.values()))) < len(outputs):
         raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
     for out in outputs.values():
-        check_output(out, force)
+        output_file(out, force, inputs=inputs)
     if report is not None:
         if report.exists() and not report.is_dir():
             raise LightplaneError(f"{report}: exists and is not a folder")
@@ -285,7 +288,7 @@ def _joint_inputs(joint_camera, board, square, camera, camera_out, output, metho
         raise LightplaneError(f"--joint-camera: no images found in {joint_camera}")
     if Path(camera_out).resolve() == Path(output).resolve():
         raise LightplaneError("--camera-out and -o name the same file")
-    check_output(camera_out, force)
+    output_file(camera_out, force, inputs=files, option="--camera-out")
     return files, target
 
 

@@ -11,13 +11,12 @@ import typer
 from rich.table import Table
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import atomic_write, check_output, dumps_json, expand_inputs, provenance
+from lightplane.core.io import atomic_write, dumps_json, expand_inputs, provenance
 from lightplane.camera.targets import Target
-from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, progress_bar, takes_target)
+from lightplane.cli._common import (app, BOARD_OPTIONS, CameraFiles, Channel, allow_other_camera_option, console,
+                                    handles_errors, output_file, progress_bar, takes_target)
 from lightplane.cli.calibrate_plane_board import read_laser_frames
-from lightplane.camera.model import Camera
 from lightplane.evaluate.crossratio import EvaluateOptions, Evaluation, evaluate_images
-from lightplane.plane.model import LightPlane
 
 
 def _labels(paths: List[Path]) -> list[str]:
@@ -41,17 +40,19 @@ def evaluate_cmd(
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Compare light planes by the cross-ratio on a chessboard: ideal vs measured distances (paper Table 2)."""
 
-    for out in (json_out, csv_out):
+    for out, option in ((json_out, "--json"), (csv_out, "--csv")):
         if out is not None:
-            check_output(out, force)
+            output_file(out, force, inputs=[camera, *plane, *images, *(background or [])], option=option)
     if json_out is not None and csv_out is not None and json_out.resolve() == csv_out.resolve():
         raise LightplaneError("--json and --csv must be different files")
-    cam = Camera.load(camera)
-    planes = [LightPlane.load(p) for p in plane]
+    cams = CameraFiles.load(camera, allow_other_camera)
+    cam = cams.camera
+    planes = [cams.plane(p) for p in plane]
     labels = _labels(plane)
     files = expand_inputs(images)
     if not files:
@@ -67,9 +68,10 @@ def evaluate_cmd(
                              labels=labels, image_names=[str(files[k]) for k in keep], skipped=skipped,
                              progress=lambda i: update(i + 1))
     _print_evaluation(ev, labels, plane, len(files), target)
+    cams.warn()
     opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(), "lines": lines, "corners": corners_used,
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate, "camera": str(camera),
-            "background": [str(f) for f in bg_files]}
+            "background": [str(f) for f in bg_files], **cams.record()}
     if json_out is not None:
         d = ev.to_dict()
         d["planes"] = {str(p): d["planes"][lab] for p, lab in zip(plane, labels)}

@@ -9,13 +9,14 @@ from typing import List, Literal, Optional
 import typer
 
 from lightplane.core.errors import LightplaneError
-from lightplane.cli._common import Channel, app, console, err_console, handles_errors, progress_bar
+from lightplane.cli._common import (Channel, CameraFiles, allow_other_camera_option, app, console, err_console,
+                                    handles_errors, load_sensor, output_file, progress_bar)
 from lightplane.camera.model import Camera
 from lightplane.core.io import summarize_reasons
 from lightplane.measure.options import CloudOutput, MeasureOptions
 from lightplane.measure.scan import measure_scan, open_frames
 from lightplane.measure.sensor import Sensor, measure_lasers
-from lightplane.motion.model import Motion, Turntable, load_rigid
+from lightplane.motion.model import Motion, load_rigid
 from lightplane.plane.model import LightPlane
 from lightplane.plane.uncertainty import camera_share_status
 from lightplane.stripe.options import StripeOptions
@@ -125,9 +126,9 @@ class MotionArgs:
         return parse_vector(self.direction, "--direction") if self.direction is not None else None
 
 
-def motion_from_options(args: MotionArgs, camera, sensor: Sensor | None = None) -> Motion:
-    """The :class:`lightplane.motion.model.Motion` named by the measure options; the turntable and
-    the flange transform from ``sensor`` when the options give none."""
+def motion_from_options(args: MotionArgs, cams: CameraFiles, sensor: Sensor | None = None) -> Motion:
+    """The :class:`lightplane.motion.model.Motion` named by the measure options; the turntable (checked
+    against the camera of ``cams``) and the flange transform from ``sensor`` when the options give none."""
     dvec = args.direction_vector
     if args.step is not None:
         if dvec is None:
@@ -137,8 +138,7 @@ def motion_from_options(args: MotionArgs, camera, sensor: Sensor | None = None) 
         return Motion.load_positions(args.positions, dvec)
     if args.turntable_step is not None or args.turntable_angles is not None:
         if args.turntable is not None:
-            table = Turntable.load(args.turntable)
-            table.check_camera(camera, str(args.turntable))
+            table = cams.turntable(args.turntable)
         elif sensor is not None and sensor.turntable is not None:
             table = sensor.turntable
         else:
@@ -201,28 +201,35 @@ def measure_cmd(
         "stripe's own scale). About twice that averages laser speckle (0.11 -> 0.09 px per centre on speckled "
         "renders) and blurs detail along the stripe over as many lines."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
+    keep_outliers: bool = typer.Option(False, "--keep-outliers", help="Keep points outside the calibrated working "
+                                       "volume or with a sigma beyond 10x the plane's (dropped and counted by default)."),
+    allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
-    output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force)
-    out, _ = output_opts.target(output)
     inputs = list(inputs or [])
+    output_file(output, force, inputs=[camera, plane, sensor, positions, turntable, turntable_angles, poses, flange,
+                                       *inputs, *(parse_laser(t)[1] for t in laser or [])])
+    CloudOutput(fmt=fmt, ascii=ascii_ply, force=force).target(output)  # the format, before any work
     sens: Sensor | None = None
     lasers: list[tuple[str, str | None]] = []
     rot = 0 if rotate is None else rotate
     if sensor is not None:
         if camera is not None or plane is not None:
             raise LightplaneError("give either --sensor or --camera/--plane, not both")
-        sens, lasers = _sensor_lasers(sensor, laser, inputs)
+        sens, lasers, cams = _sensor_lasers(sensor, laser, inputs, allow_other_camera)
         rot = sens.rotate_deg if rotate is None else rotate
-        cam = sens.camera
     else:
-        cam = _single_camera(camera, plane, laser, inputs)
+        cams, pl = _single_camera(camera, plane, laser, inputs, allow_other_camera)
+    cam = cams.camera
     motion = motion_from_options(MotionArgs(step=step, direction=direction, positions=positions, turntable=turntable,
                                             turntable_step=turntable_step, turntable_angles=turntable_angles,
                                             turntable_start=turntable_start, counts_per_rev=counts_per_rev,
-                                            poses=poses, flange=flange), cam, sens)
+                                            poses=poses, flange=flange), cams, sens)
+    output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force, comments=cams.comments())
+    out = Path(output)
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
-                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth)
+                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth,
+                             keep_outliers=keep_outliers)
     if sens is not None:
         scans = [(name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name])
                  for name, glob in lasers]
@@ -231,26 +238,28 @@ def measure_cmd(
             ls = measure_lasers(scans, cam, out, options, motion=motion, output=output_opts, workers=workers,
                                 progress=lambda done, tot: update(done, total=tot))
         _print_lasers(ls, cam, sens, lasers)
+        cams.warn()
         console.print(f"wrote {ls.path} ({ls.format}{' ascii' if ascii_ply else ''})")
         return
 
-    assert plane is not None  # checked above when there is no sensor
-    pl = LightPlane.load(plane)
     source = open_frames(inputs, rot)
     with progress_bar("measuring frames", source.n_frames) as update:
         s = measure_scan(source, cam, pl, out, options, motion=motion, output=output_opts, workers=workers,
                          progress=lambda done, tot: update(done, total=tot))
     _print_scan(s, source.description)
     console.print(sigma_line(cam, pl))
+    cams.warn()
     console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
 
 
-def _sensor_lasers(sensor: Path, laser: list[str] | None, inputs: list[str]) -> tuple[Sensor, list]:
-    """The sensor file and its lasers to measure, ``(name, frames glob or None)``: every one named in
-    the file; each with its frames, or one laser with the frames as arguments."""
+def _sensor_lasers(sensor: Path, laser: list[str] | None, inputs: list[str],
+                   allow_other: bool) -> tuple[Sensor, list, CameraFiles]:
+    """The sensor file (its planes checked against its camera), its lasers to measure, ``(name, frames
+    glob or None)``: every one named in the file; each with its frames, or one laser with the frames as
+    arguments."""
     if not laser:
         raise LightplaneError("--sensor needs --laser NAME (frames as arguments) or --laser NAME=FRAMES per laser")
-    sens = Sensor.load(sensor)
+    sens, cams = load_sensor(sensor, allow_other)
     lasers = [parse_laser(t) for t in laser]
     for name, _ in lasers:
         sens.plane(name, str(sensor))  # every laser named must be in the sensor file
@@ -265,18 +274,21 @@ def _sensor_lasers(sensor: Path, laser: list[str] | None, inputs: list[str]) -> 
         lasers = [(lasers[0][0], None)]
     elif inputs:
         raise LightplaneError("frames given both as arguments and in --laser NAME=FRAMES")
-    return sens, lasers
+    return sens, lasers, cams
 
 
-def _single_camera(camera: Path | None, plane: Path | None, laser: list[str] | None, inputs: list[str]) -> Camera:
-    """The camera of a measurement with --camera and --plane (no sensor file)."""
+def _single_camera(camera: Path | None, plane: Path | None, laser: list[str] | None, inputs: list[str],
+                   allow_other: bool) -> tuple[CameraFiles, LightPlane]:
+    """The camera and the plane (checked against it) of a measurement with --camera and --plane (no
+    sensor file)."""
     if laser:
         raise LightplaneError("--laser needs --sensor")
     if camera is None or plane is None:
         raise LightplaneError("give --camera and --plane, or --sensor with --laser")
     if not inputs:
         raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
-    return Camera.load(camera)
+    cams = CameraFiles.load(camera, allow_other)
+    return cams, cams.plane(plane)
 
 
 def _print_lasers(ls, cam: Camera, sens: Sensor, lasers: list) -> None:
@@ -287,6 +299,9 @@ def _print_lasers(ls, cam: Camera, sens: Sensor, lasers: list) -> None:
                       f"stripe width {width}" + (f", {len(skipped)} frames skipped" if skipped else ""))
         for idx, fname, reason in skipped[:10]:
             err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
+    for name, dr in ls.dropped:
+        if dr.totals:
+            err_console.print(f"warning: laser {name}: {dr.summary()} (per frame in the file's comments)")
     console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
     for name, _ in lasers:
         console.print(f"laser {name}: " + sigma_line(cam, sens.planes[name]))
@@ -303,6 +318,8 @@ def _print_scan(s, description: str) -> None:
                       + summarize_reasons([(name, reason) for _, name, reason in s.skipped]))
     if s.frames_without_points:
         console.print(f"{s.frames_without_points} frames had no stripe points")
+    if s.dropped.totals:
+        err_console.print(f"warning: {s.dropped.summary()} (per frame in the file's comments)")
     for w in s.warnings:
         err_console.print(f"warning: {w}")
     if s.skipped:

@@ -8,9 +8,10 @@ from typing import List, Optional
 import typer
 
 from lightplane.core.errors import LightplaneError
-from lightplane.cli._common import Channel, app, console, handles_errors, progress_bar
+from lightplane.cli._common import (Channel, allow_other_camera_option, app, console, handles_errors, load_sensor,
+                                    output_file, progress_bar)
 from lightplane.cli.measure import parse_laser
-from lightplane.core.io import check_output, provenance
+from lightplane.core.io import provenance
 from lightplane.measure.options import MeasureOptions
 from lightplane.measure.scan import open_frames, scan_points
 from lightplane.measure.sensor import Sensor
@@ -32,6 +33,7 @@ def refine_turntable_cmd(
     rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate image files clockwise by 0/90/180/270 deg "
                                          "(default: the sensor file's)."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
+    allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     """Refine the turntable's axis and each scan's start angle so that the scans' clouds agree (planes fixed).
@@ -45,8 +47,8 @@ def refine_turntable_cmd(
     import numpy as np
 
 
-    check_output(output, force)
-    sens = Sensor.load(sensor)
+    output_file(output, force, inputs=[sensor])
+    sens, cams = load_sensor(sensor, allow_other_camera)
     if sens.turntable is None:
         raise LightplaneError(f"{sensor}: has no turntable to refine (add one with lightplane sensor --turntable)")
     items = [parse_laser(t) for t in scan]
@@ -87,8 +89,11 @@ def refine_turntable_cmd(
         "agreement_after_mm": r.after, "axis_moved_deg": r.axis_moved_deg, "axis_moved_mm": r.axis_moved_mm,
         "note": "planes held fixed; measure each scan with --turntable-start at its start_deg",
         "previous_turntable": sens.turntable.to_dict()}
+    for pl in sens.planes.values():
+        pl.meta.update(cams.allowed())
     out = Sensor(sens.camera, sens.planes, tt, sens.flange, sens.rotate_deg, sens.records)
     out.save(output, force=force, provenance=provenance([sensor, *(g for _, g in items)],
                                                         {"turntable_step_deg": turntable_step, "channel": channel,
-                                                         "rotate_deg": rot}))
+                                                         "rotate_deg": rot, **cams.record()}))
+    cams.warn()
     console.print(f"wrote {output}")

@@ -11,15 +11,15 @@ from rich.console import JustifyMethod
 from rich.table import Table
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import check_output, expand_inputs, provenance
+from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
-from lightplane.cli._common import (app, BOARD_OPTIONS, console, err_console, handles_errors, progress_bar, takes_target)
+from lightplane.cli._common import (app, BOARD_OPTIONS, CameraFiles, allow_other_camera_option, console, err_console,
+                                    handles_errors, output_file, progress_bar, takes_target)
 from lightplane.camera.model import Camera
 from lightplane.core.io import read_json, rotation_code, try_read_image
 from lightplane.measure.sensor import Sensor, check_name, import_fabscan, plane_name
-from lightplane.motion.model import Turntable, load_rigid
+from lightplane.motion.model import load_rigid
 from lightplane.motion.turntable import calibrate_turntable
-from lightplane.plane.model import LightPlane
 
 
 @app.command("calibrate-turntable")
@@ -46,7 +46,7 @@ def calibrate_turntable_cmd(
     the rotations between the poses; uncertainty by a leave-one-image-out jackknife.
     """
 
-    check_output(output, force)
+    output_file(output, force, inputs=[camera, *images])
     cam = Camera.load(camera)
     if rotate is None:
         rotate = _sensor_rotation(camera)
@@ -112,18 +112,17 @@ def _sensor_rotation(path: Path) -> int:
         return 0
 
     d = read_json(path, "camera file")
-    return int((d.get("frames") or {}).get("rotate_deg", 0)) if d.get("kind") == "lightplane sensor" else 0
+    return Sensor.from_dict(d, str(path)).rotate_deg if d.get("kind") == "lightplane sensor" else 0
 
 
-def _camera_record(path: Path):
-
-    cam = Camera.load(path)
+def _camera_record(path: Path, allow_other: bool) -> tuple[CameraFiles, dict]:
+    cams = CameraFiles.load(path, allow_other)
     rec = {"source": str(path)}
     if path.suffix.lower() == ".json":
         d = read_json(path, "camera file")
         if "provenance" in d:
             rec["provenance"] = d["provenance"]
-    return cam, rec
+    return cams, rec
 
 
 @app.command("sensor")
@@ -138,41 +137,48 @@ def sensor_cmd(
                                           "flange's frame)."),
     rotate: int = typer.Option(0, "--rotate", help="Frames are read rotated clockwise by 0/90/180/270 degrees "
                                "(the frame the camera was calibrated in)."),
+    allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
 ) -> None:
     """Assemble a sensor file: camera, named planes, turntable or flange transform.
 
     Example: lightplane sensor -o sensor.json --camera cam.json --plane laser0=p0.json --plane laser1=p1.json --turntable turntable.json
+
+    Every plane and the turntable must have been calibrated with the camera given (refused
+    otherwise); --allow-other-camera joins them anyway and records that in the sensor file.
     """
 
-    check_output(output, force)
+    inputs = [camera, *[p.partition("=")[2] or p for p in plane], *(x for x in (turntable, flange) if x is not None)]
+    output_file(output, force, inputs=inputs)
     rotation_code(rotate)
     if turntable is not None and flange is not None:
         raise LightplaneError("give a turntable or a flange transform, not both")
-    cam, cam_rec = _camera_record(camera)
+    cams, cam_rec = _camera_record(camera, allow_other_camera)
+    cam = cams.camera
     planes = {}
     for i, item in enumerate(plane):
         name, sep, path = item.partition("=")
         if not sep:
             name, path = "", item
-        pl = LightPlane.load(path)
+        pl = cams.plane(path)
         name = check_name(name.strip() or plane_name(pl, f"laser{i}"))
         if name in planes:
             raise LightplaneError(f"--plane: laser {name!r} given twice")
         pl.meta.setdefault("source", str(path))
+        pl.meta.update(cams.allowed())
         planes[name] = pl
     tt = None
     if turntable is not None:
-        tt = Turntable.load(turntable)
-        tt.check_camera(cam, str(turntable))
+        tt = cams.turntable(turntable)
         tt.meta.setdefault("source", str(turntable))
+        tt.meta.update(cams.allowed())
     fl = load_rigid(flange) if flange is not None else None
     recs = {"camera": cam_rec}
     if fl is not None:
         recs["flange"] = {"source": str(flange)}
     s = Sensor(cam, planes, tt, fl, rotate, recs)
-    inputs = [camera, *[p.partition("=")[2] or p for p in plane], *(x for x in (turntable, flange) if x is not None)]
-    s.save(output, force=force, provenance=provenance(inputs, {"rotate_deg": rotate}))
+    s.save(output, force=force, provenance=provenance(inputs, {"rotate_deg": rotate, **cams.record()}))
+    cams.warn()
     console.print(f"sensor: camera {cam.width}x{cam.height} px, lasers {', '.join(planes)}"
                   + (", turntable" if tt is not None else "") + (", flange transform" if fl is not None else "")
                   + (f", frames rotated {rotate} deg" if rotate else ""))
@@ -193,7 +199,7 @@ def import_fabscan_cmd(
     FabScan's frame rotation (rotate/hflip/vflip) is recorded, so measure --sensor reads
     the frames as FabScan does; its platform pose becomes the turntable axis.
     """
-    check_output(output, force)
+    output_file(output, force, inputs=[config])
     s = import_fabscan(config)
     s.save(output, force=force, provenance=provenance([config], {"importer": "fabscan"}))
     c = s.camera

@@ -44,7 +44,8 @@ def try_read_image(path: str | os.PathLike, *, rotate_deg: int = 0) -> tuple[np.
 
     Reasons (one short phrase, without the file name): ``no such file``, ``is a folder,
     not an image``, ``cannot be read (permission denied)``, ``not a readable image (empty
-    file)``, ``not a readable image (truncated)`` (a PNG without its IEND chunk, a JPEG
+    file)``, ``too large: W x H px ...`` (the size in a PNG, JPEG, BMP, TIFF or PNM header
+    above :func:`max_pixels`, refused before anything is decoded), ``not a readable image (truncated)`` (a PNG without its IEND chunk, a JPEG
     without its end-of-image marker, a BMP shorter than its header says: decoders may
     otherwise return a partly grey image with only a warning), ``not a readable image
     (not an image file)``, ``not a readable image (corrupt)`` or, for the formats whose end
@@ -59,7 +60,12 @@ def try_read_image(path: str | os.PathLike, *, rotate_deg: int = 0) -> tuple[np.
         return None, "no such file"
     if p.is_dir():
         return None, "is a folder, not an image"
+    limit = max_pixels()
     try:
+        size = image_header_size(p)
+        if size is not None and size[0] * size[1] > limit:
+            return None, (f"too large: {size[0]}x{size[1]} px ({size[0] * size[1] / 1e6:.0f} megapixels) in its header, "
+                          f"above the limit of {limit / 1e6:g} megapixels (set {MAX_PIXELS_ENV} to raise it)")
         data = np.fromfile(str(p), dtype=np.uint8)
     except PermissionError:
         return None, "cannot be read (permission denied)"
@@ -83,6 +89,131 @@ def try_read_image(path: str | os.PathLike, *, rotate_deg: int = 0) -> tuple[np.
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[:, :, :3]
     return rotate_image(img, rotate_deg), ""
+
+
+#: the largest image read, in pixels (width x height), unless :data:`MAX_PIXELS_ENV` says otherwise:
+#: 100 megapixels, beyond every line-scan-free industrial sensor lightplane is used with; a 16-bit
+#: colour image of that size takes 0.6 GB decoded
+DEFAULT_MAX_PIXELS = 100_000_000
+#: the environment variable that sets the limit (a positive integer, pixels)
+MAX_PIXELS_ENV = "LIGHTPLANE_MAX_PIXELS"
+
+
+def max_pixels() -> int:
+    """The largest image :func:`try_read_image` decodes: :data:`DEFAULT_MAX_PIXELS`, or the value of
+    the environment variable :data:`MAX_PIXELS_ENV` (read at each call)."""
+    text = os.environ.get(MAX_PIXELS_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_PIXELS
+    try:
+        value = int(float(text))
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise LightplaneError(f"{MAX_PIXELS_ENV} must be a positive number of pixels, got {text!r}")
+    return value
+
+
+def image_header_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(width, height)`` from the header of a PNG, JPEG, BMP, TIFF or PNM (PBM/PGM/PPM) file, read
+    without decoding the pixels; None for other formats or a header that cannot be parsed (the
+    decoder then judges the file)."""
+    with open(path, "rb") as f:
+        head = f.read(32)
+        try:
+            if head.startswith(b"\x89PNG\r\n\x1a\n"):
+                return _png_size(head)
+            if head.startswith(b"\xff\xd8"):
+                return _jpeg_size(f)
+            if head.startswith(b"BM"):
+                return _bmp_size(head)
+            if head[:4] in (b"II*\x00", b"MM\x00*"):
+                return _tiff_size(f, "<" if head[:2] == b"II" else ">")
+            if len(head) >= 2 and head[:1] == b"P" and head[1:2] in b"123456":
+                return _pnm_size(f)
+        except (ValueError, IndexError, OSError):
+            return None
+    return None
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    if head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    """The first start-of-frame marker's size, walking the marker segments from the file's start."""
+    f.seek(2)
+    while True:
+        b = f.read(1)
+        while b == b"\xff":  # fill bytes before the marker code
+            b = f.read(1)
+        if not b:
+            return None
+        marker = b[0]
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:
+            if f.read(1) != b"\xff":
+                return None
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before them
+            return None
+        seg = f.read(2)
+        if len(seg) < 2:
+            return None
+        length = int.from_bytes(seg, "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            sof = f.read(5)
+            if len(sof) < 5:
+                return None
+            return int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big")
+        f.seek(length - 2, 1)
+        if f.read(1) != b"\xff":
+            return None
+
+
+def _bmp_size(head: bytes) -> tuple[int, int] | None:
+    if len(head) < 26:
+        return None
+    if int.from_bytes(head[14:18], "little") == 12:  # OS/2 core header: 16-bit sizes
+        return int.from_bytes(head[18:20], "little"), int.from_bytes(head[20:22], "little")
+    w = int.from_bytes(head[18:22], "little", signed=True)
+    h = int.from_bytes(head[22:26], "little", signed=True)  # negative: rows stored top-down
+    return abs(w), abs(h)
+
+
+def _tiff_size(f, order: str) -> tuple[int, int] | None:
+    """ImageWidth (256) and ImageLength (257) of the first image file directory."""
+    big = order == ">"
+    f.seek(4)
+    f.seek(int.from_bytes(f.read(4), "big" if big else "little"))
+    raw = f.read(2)
+    count = int.from_bytes(raw, "big" if big else "little")
+    if len(raw) < 2 or count > 4096:
+        return None
+    entries = f.read(12 * count)
+    found: dict[int, int] = {}
+    for k in range(len(entries) // 12):
+        e = entries[12 * k:12 * k + 12]
+        tag, typ = (int.from_bytes(e[i:i + 2], "big" if big else "little") for i in (0, 2))
+        if tag in (256, 257) and typ in (3, 4):
+            found[tag] = int.from_bytes(e[8:10] if typ == 3 else e[8:12], "big" if big else "little")
+    return (found[256], found[257]) if 256 in found and 257 in found else None
+
+
+def _pnm_size(f) -> tuple[int, int] | None:
+    """Width and height after the magic number, skipping whitespace and comments."""
+    f.seek(2)
+    text = f.read(1024)
+    numbers: list[int] = []
+    for line in text.split(b"\n"):
+        for token in line.split(b"#", 1)[0].split():
+            if not token.isdigit():
+                return None
+            numbers.append(int(token))
+            if len(numbers) == 2:
+                return numbers[0], numbers[1]
+    return None
 
 
 def read_images(paths: Iterable[str | os.PathLike], *, rotate_deg: int = 0
@@ -407,8 +538,11 @@ def to_gray8(image: np.ndarray, *, percentiles: tuple[float, float] = (0.5, 99.5
 
 
 def check_output(path: str | os.PathLike, force: bool) -> Path:
-    """Refuse to overwrite an existing file without ``force``; check the folder exists."""
+    """Refuse to overwrite an existing file without ``force``, and an existing folder always (a file
+    cannot replace it); check the folder it goes into exists and is writable."""
     p = Path(path)
+    if p.is_dir():
+        raise LightplaneError(f"{p}: is a folder, not a file; give a file name")
     if p.exists() and not force:
         raise LightplaneError(f"{p}: already exists (use --force to overwrite)")
     parent = p.parent if str(p.parent) else Path(".")
@@ -493,8 +627,10 @@ def read_json(path: str | os.PathLike, what: str = "file") -> dict:
         raise LightplaneError(f"{p}: no such {what}")
     try:
         obj = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise LightplaneError(f"{p}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise LightplaneError(f"{p}: cannot read the {what} ({e.strerror or e})") from None
+    except (ValueError, RecursionError) as e:  # bad JSON, undecodable bytes, an integer of thousands of digits
+        raise LightplaneError(f"{p}: not valid JSON ({(str(e).strip().splitlines() or [type(e).__name__])[0]})") from None
     if not isinstance(obj, dict):
         raise LightplaneError(f"{p}: expected a JSON object at the top level")
     return obj

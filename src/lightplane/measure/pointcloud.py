@@ -112,13 +112,18 @@ def make_records(points: np.ndarray, frame, intensity=None, sigma_mm=None, uv=No
 
 
 def cloud_format(path: str | os.PathLike, fmt: str | None = None) -> str:
-    """The format for ``path``: ``fmt`` if given, else from the suffix (.ply, .csv, .npy)."""
+    """The format for ``path``: from the suffix (.ply, .csv, .npy); ``fmt``, when given, must agree
+    with it (``csv`` for ``cloud.ply`` is refused), and names the format of a file with another
+    suffix (``points.txt``)."""
+    suffix = Path(path).suffix.lower().lstrip(".")
     if fmt is not None:
         fmt = fmt.lower()
         if fmt not in FORMATS:
             raise LightplaneError(f"format must be one of {', '.join(FORMATS)}; got {fmt!r}")
+        if suffix in FORMATS and suffix != fmt:
+            raise LightplaneError(f"{path}: the format {fmt} does not match the file's suffix .{suffix} (name the "
+                                  f"file .{fmt}, or leave the format out)")
         return fmt
-    suffix = Path(path).suffix.lower().lstrip(".")
     if suffix not in FORMATS:
         raise LightplaneError(f"{path}: cannot tell the point-cloud format from the suffix "
                               f"(use .ply, .csv or .npy, or give the format)")

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightplane.camera.model import ALLOWED_CAMERA_KEY, check_calibrated_with
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import read_json, write_json
 
@@ -211,31 +212,12 @@ class Turntable:
         x = x / np.linalg.norm(x)
         return self.point_mm.copy(), np.column_stack([x, np.cross(z, x), z])
 
-    def check_camera(self, camera, source: str = "turntable") -> None:
-        """Raise if this axis was calibrated with a different camera (size, K or distortion)."""
-        if self.camera is None:
-            return
-        c = self.camera
-        mine = camera.to_dict()
-
-        def close(key: str) -> bool:
-            try:
-                a = np.asarray(c.get(key), float).ravel()
-                b = np.asarray(mine.get(key), float).ravel()
-            except (TypeError, ValueError):
-                return False
-            return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-9, atol=1e-12))
-
-        same = (c.get("width"), c.get("height")) == (camera.width, camera.height)
-        same = same and c.get("model", mine.get("model")) == mine.get("model") and close("K") and close("dist")
-        if not same:
-            try:
-                K = np.asarray(c.get("K"), float).reshape(3, 3)
-            except (TypeError, ValueError):
-                K = np.full((3, 3), np.nan)
-            raise LightplaneError(f"{source}: calibrated with another camera ({c.get('width')}x{c.get('height')} px, "
-                                  f"fx {K[0, 0]:.3f}) than the one given ({camera.width}x{camera.height} px, "
-                                  f"fx {camera.fx:.3f}); recalibrate the turntable with this camera")
+    def check_camera(self, camera, source: str = "turntable", *, camera_file: str = "the camera given",
+                     allow_other: bool = False) -> str | None:
+        """Raise if this axis was calibrated with a different camera (size, lens model, K or distortion:
+        :func:`lightplane.camera.model.check_calibrated_with`, whose note, or None, it returns)."""
+        return check_calibrated_with(self.camera, camera, source=source, camera_file=camera_file, what="turntable",
+                                     allow_other=allow_other, override=self.meta.get(ALLOWED_CAMERA_KEY))
 
     def to_dict(self) -> dict:
         d = {"kind": "turntable", "units": "mm", "frame": "camera", "point_mm": self.point_mm.tolist(),

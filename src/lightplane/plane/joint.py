@@ -46,7 +46,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from lightplane.camera.model import Camera
+from lightplane.camera.model import Camera, camera_record
 from lightplane.camera.targets import Target
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.calibrate import ImagePlaneCalibration, PlaneCalibrationOptions, calibrate_plane, calibrate_planes
@@ -334,7 +334,8 @@ def _joint_result(jm: _JointModel, x: np.ndarray, res, cov: np.ndarray, psi: flo
     dep = CameraDependence(jm.names, Jpk, Jpk @ cov_full @ Jpk.T,
                            "joint refinement: Cov(plane, intrinsics) Cov(intrinsics)^-1 of the joint covariance")
     meta = dict(jm.plane0.meta)
-    meta.update({CameraDependence.KEY: dep.to_dict(), "joint_refinement": True, "joint_dispersion": psi,
+    meta.update({CameraDependence.KEY: dep.to_dict(), "camera": camera_record(camera_out), "joint_refinement": True,
+                 "joint_dispersion": psi,
                  "joint_dispersion_applied": bool(dispersion)})
     plane = LightPlane(nvec, dd, cov_own, meta=meta)
     poses = [_make_pose(C[i].copy(), N[i] if N[i] @ C[i] < 0 else -N[i], float(jm.radius_mm)) for i in range(len(C))]

@@ -19,11 +19,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from lightplane.camera.model import as_points
+from lightplane.camera.model import ALLOWED_CAMERA_KEY, Camera, as_points, check_calibrated_with
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import read_json, write_json
 
-__all__ = ["LightPlane", "CameraDependence"]
+__all__ = ["LightPlane", "CameraDependence", "recorded_camera", "check_camera"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,3 +214,28 @@ class LightPlane:
         if extra:
             d.update(extra)
         return write_json(path, d, force=force)
+
+
+def recorded_camera(plane: LightPlane) -> dict | None:
+    """The camera ``plane`` was calibrated with, as its file records it: the field ``camera``
+    (:func:`lightplane.camera.model.camera_record`, written by every calibration), else the camera
+    of ``report_inputs`` (``calibrate-plane``'s files before the field existed), else None."""
+    rec = plane.meta.get("camera")
+    if isinstance(rec, dict):
+        return rec
+    inputs = plane.meta.get("report_inputs")
+    rec = inputs.get("camera") if isinstance(inputs, dict) else None
+    return rec if isinstance(rec, dict) else None
+
+
+def check_camera(plane: LightPlane, camera: Camera, *, plane_file: str = "plane", camera_file: str = "camera",
+                 allow_other: bool = False) -> str | None:
+    """Raise :class:`LightplaneError` when ``plane`` was calibrated with another camera than ``camera``
+    (image size, lens model, K or distortion: :func:`lightplane.camera.model.camera_difference`); the
+    one line names both files and the first difference.
+
+    Returns None for the same camera, else a one-line note for the user and the output's provenance:
+    the plane records no camera (an older plane file; not checked, not refused), or ``allow_other``
+    (``--allow-other-camera``) let another camera through."""
+    return check_calibrated_with(recorded_camera(plane), camera, source=plane_file, camera_file=camera_file,
+                                 what="plane", allow_other=allow_other, override=plane.meta.get(ALLOWED_CAMERA_KEY))

@@ -22,7 +22,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from lightplane.camera.board_pose import BoardPose, find_board_pose, pose_from_corners
-from lightplane.camera.model import Camera, as_points
+from lightplane.camera.model import Camera, as_points, camera_record
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
@@ -210,7 +210,7 @@ def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes
         sel = I == k
         dg["residual_rms_mm"] = float(np.sqrt(np.mean(res[sel] ** 2))) if sel.any() else None
     m = {**plane.meta, "method": "zhou", "covariance_method": cov_method,
-         "covariance_fit": cov_fit.tolist(), "images": diag, **(meta or {})}
+         "covariance_fit": cov_fit.tolist(), "images": diag, "camera": camera_record(camera), **(meta or {})}
     plane = LightPlane(plane.normal, plane.d, cov, meta=m)
     return ZhouCalibration(plane, P, I, tuple(poses), res)
 
