@@ -132,6 +132,9 @@ def _manifest_text(p: Path) -> str:
     if raw.startswith((codecs.BOM_UTF32_LE, codecs.BOM_UTF32_BE)):
         raise LightplaneError(f"{p}: the manifest is UTF-32 text; save it as UTF-8 (or UTF-16)")
     encoding = "utf-16" if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)) else "utf-8-sig"
+    if encoding == "utf-8-sig" and b"\x00" in raw:
+        raise LightplaneError(f"{p}: the manifest holds NUL bytes, not UTF-8 text (UTF-16 text needs its "
+                              "byte-order mark); save it as UTF-8")
     try:
         text = raw.decode(encoding)
     except UnicodeDecodeError as e:
@@ -139,8 +142,7 @@ def _manifest_text(p: Path) -> str:
         raise LightplaneError(f"{p}: the manifest is not {what} text (byte {e.start} cannot be decoded); "
                               "save it as UTF-8") from None
     if "\x00" in text:
-        raise LightplaneError(f"{p}: the manifest holds NUL characters, not CSV text (UTF-16 needs its "
-                              "byte-order mark; UTF-8 is safest)")
+        raise LightplaneError(f"{p}: the manifest holds NUL characters, not CSV text; save it as UTF-8")
     return text
 
 
@@ -169,10 +171,10 @@ def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise LightplaneError(f"{p}: the header must name the columns id,input,camera,plane "
-                              f"(missing: {','.join(missing)}; got {','.join(header)})")
+                              f"(missing: {','.join(missing)}; got {','.join(header)!r})")
     unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
     if unknown:
-        raise LightplaneError(f"{p}: unknown column(s) {','.join(unknown)} (known: "
+        raise LightplaneError(f"{p}: unknown column(s) {','.join(unknown)!r} (known: "
                               f"{','.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)})")
     scans, seen = [], set()
     for n, r in enumerate(rows[1:], start=2):
