@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
+from lightplane.camera.model import camera_record
 
 from _renders import cached_circle_render
 from _cli import lightplane, one_error_line
@@ -36,6 +37,7 @@ def test_run_writes_plane_with_diagnostics_and_report(render, tmp_path):
     assert np.degrees(plane.angle_to(truth)) < 0.03
     d = json.loads(out.read_text())
     assert d["method"] == "ml" and len(d["covariance"]) == 4
+    assert d["camera"] == camera_record(Camera.load(render / "camera.json"))  # the camera it belongs to
     assert len(d["images"]) == 5 and all(im["status"] == "used" for im in d["images"])
     assert {"rim_residual_rms_px", "stripe_residual_rms_px", "n_stripe", "reason"} <= set(d["images"][0])
     assert len(d["provenance"]["inputs"]) == 6 and d["provenance"]["options"]["diameter_mm"] == 50.0

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lightplane import Camera, LightPlane
+from lightplane.plane.model import check_camera
 
 from _cli import lightplane, one_error_line
 from _renders import cached_render
@@ -41,6 +42,7 @@ def test_joint_run_writes_camera_and_plane_within_their_covariance(boards, tmp_p
     cam_true = Camera.load(circles / "camera.json")  # the renderer's exact camera
     cam, plane = Camera.load(cam_out), LightPlane.load(out)
     assert cam.covariance is not None and plane.meta.get("camera_jacobian")
+    assert check_camera(plane, cam) is None  # the plane records the refined camera, not the starting one
     d = json.loads(out.read_text())
     assert d["provenance"]["options"]["joint_camera"].endswith("*.png")
     assert "camera's share is not included" not in json.dumps(d["uncertainty"])

@@ -189,7 +189,8 @@ def measure_cmd(
                                           "the robot flange's frame); the poses are then the flange's."),
     rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image file clockwise by 0/90/180/270 "
                                          "degrees first (default 0, or the sensor file's)."),
-    fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix)."),
+    fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix; "
+                                     "given, it must agree with a .ply/.csv/.npy suffix)."),
     ascii_ply: bool = typer.Option(False, "--ascii", help="ASCII PLY instead of binary."),
     roi: Optional[str] = typer.Option(None, "--roi", help="Region X0,Y0,X1,Y1 in px (X1, Y1 exclusive)."),
     axis: Literal["auto", "columns", "rows"] = typer.Option("auto", "--axis", help="One centre per 'columns', 'rows', or 'auto' (from the plane)."),

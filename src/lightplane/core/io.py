@@ -623,6 +623,8 @@ def write_json(path: str | os.PathLike, obj: Any, *, force: bool = False) -> Pat
 def read_json(path: str | os.PathLike, what: str = "file") -> dict:
     """Read a JSON object, with one clear error for a missing or corrupt file."""
     p = Path(path)
+    if p.is_dir():
+        raise LightplaneError(f"{p}: is a folder, not a {what}")
     if not p.is_file():
         raise LightplaneError(f"{p}: no such {what}")
     try:

@@ -82,7 +82,7 @@ from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, prov
 from lightplane.measure.pointcloud import PointSpool, write_cloud
 from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
 from lightplane.motion.model import Motion
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import LightPlane, check_camera
 from lightplane.core.threads import frames_across_threads, with_blas_limited
 
 __all__ = ["BatchScan", "BatchOptions", "read_manifest", "plan_chunks", "measure_batch", "BatchResult", "read_points",
@@ -262,6 +262,7 @@ def _plan(scan: BatchScan, chunk_frames: int, record: dict) -> _Plan:
         pl.motion = _motion_of(scan)
         pl.camera = Camera.load(scan.camera)
         pl.plane = LightPlane.load(scan.plane)
+        check_camera(pl.plane, pl.camera, plane_file=scan.plane, camera_file=scan.camera)  # another camera's: failed
         if _is_url(scan.input):
             if Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
                 raise LightplaneError(f"{scan.input}: a video must be a local (shared) path, not a URL")
