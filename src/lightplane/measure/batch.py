@@ -936,10 +936,10 @@ def _run(client, plans: list, out: Path, options: MeasureOptions, settings: tupl
 def _entry(pl: _Plan) -> dict:
     """A scan's entry in manifest.json before its chunks are collected (failed already when it could not be planned)."""
     s = pl.scan
-    e = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
-         "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
-         "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
-         "partitions_reused": 0}
+    e: dict = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
+               "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
+               "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
+               "partitions_reused": 0}
     if pl.error is not None:
         e["status"], e["error"] = "failed", pl.error
     else:
