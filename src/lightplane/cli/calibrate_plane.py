@@ -48,6 +48,8 @@ def calibrate_plane_cmd(
     square: Optional[float] = square_option,
     camera_out: Optional[Path] = typer.Option(None, "--camera-out", help="With --joint-camera: the camera file to "
                                               "write (JSON, with the joint covariance of the intrinsics)."),
+    keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
+                                      "points lie far beyond their stripe noise from it (marked in its 'quality')."),
 ) -> None:
     """Calibrate the light plane from images of a flat circular target (Wang & Li 2022).
 
@@ -78,7 +80,7 @@ def calibrate_plane_cmd(
     outputs, reports = _checked_outputs(output, report, sels, force, [*files, camera])
     cam = None if camera is None else Camera.load(camera)  # None: --joint-camera calibrates it
     opts = PlaneCalibrationOptions(observe=ObserveOptions(distance_range_mm=(near, far), channel=channel),
-                                   workers=workers)
+                                   workers=workers, keep_suspect=keep_suspect)
     first = ("chessboard images", len(joint[0])) if joint is not None else ("images", len(files))
     with progress_bar(*first) as update:
         run = calibrate_light_planes([str(f) for f in files], cam, diameter, method, opts, lasers=sels,
@@ -87,7 +89,7 @@ def calibrate_plane_cmd(
                                      progress=lambda stage, i, n: update(i, total=n, label=stage))
     results = _print_run(run, joint, sels)
     options: dict = {"camera": None if camera is None else str(camera), "diameter_mm": diameter, "method": method,
-               "channel": channel, "distance_range_mm": [near, far]}
+               "channel": channel, "distance_range_mm": [near, far], "keep_suspect": keep_suspect}
     if sels is not None:
         options["lasers"] = [x.to_dict() for x in sels]
     inputs = [*map(str, files)] + ([str(camera)] if camera is not None else [])

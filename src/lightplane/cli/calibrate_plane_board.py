@@ -16,6 +16,7 @@ from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, output_file,
                                     progress_bar, takes_target)
 from lightplane.camera.model import Camera
+from lightplane.cli._common import err_console
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
@@ -172,6 +173,8 @@ def calibrate_plane_board_cmd(
     rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
     laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+    keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
+                                      "points lie far beyond their stripe noise from it (marked in its 'quality')."),
 ) -> None:
     """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline).
 
@@ -213,12 +216,13 @@ def calibrate_plane_board_cmd(
                          skipped=skipped)
     with progress_bar("board poses and stripes") as update:
         results = calibrate_plane_boards(frames, cam, target, {n: (i, by_name.get(n)) for n, i in chosen.items()},
-                                         BoardPlaneOptions(stripe_width_px=stripe_width, channel=channel),
+                                         BoardPlaneOptions(stripe_width_px=stripe_width, channel=channel,
+                                                           keep_suspect=keep_suspect),
                                          progress=lambda label, i, n: update(i, total=n, label=label))
     opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
             "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
-            "cycle": cycle, "camera": str(camera)}
+            "cycle": cycle, "camera": str(camera), "keep_suspect": keep_suspect}
     if sels is not None:
         opts["lasers"] = [x.to_dict() for x in sels]
     for lname, res in results.items():
@@ -265,3 +269,13 @@ def _print_board_result(res, target) -> None:
     console.print(v)
     for name, why in pl.meta["skipped"].items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
+    print_quality(pl.meta.get("quality"), res.quality)
+
+
+def print_quality(rec: dict | None, quality) -> None:
+    """Warnings for images above their stripe noise, and for a suspect plane kept on request."""
+    if quality is not None:
+        for w in quality.warnings():
+            err_console.print(f"warning: {w}")
+    if rec and rec.get("kept_by_request"):
+        err_console.print(f"warning: kept by --keep-suspect (marked in the file's quality): {rec.get('diagnosis')}")

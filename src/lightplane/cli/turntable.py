@@ -37,6 +37,8 @@ def calibrate_turntable_cmd(
                                                  "of points above the table's top, mm: puts the turntable frame's "
                                                  "origin on the table (default: at the board's level)."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+    keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the axis even when its two estimates "
+                                      "are more than 10 σ apart (marked in the file's quality)."),
 ) -> None:
     """The turntable's axis (camera frame) from a board on the table at several angles.
 
@@ -63,7 +65,8 @@ def calibrate_turntable_cmd(
             cam.check_image(img, str(f))
     with progress_bar("board poses", len(files)) as update:
         cal = calibrate_turntable(imgs, cam, target, names=[str(f) for f in files], reasons=skipped,
-                                  board_height_mm=board_height, progress=lambda i: update(i + 1))
+                                  board_height_mm=board_height, progress=lambda i: update(i + 1),
+                                  keep_suspect=keep_suspect)
     tt = cal.turntable
     m = tt.meta
     t = Table(title="Turntable axis (camera frame)", show_edge=False)
@@ -101,7 +104,7 @@ def calibrate_turntable_cmd(
                           "poor camera calibration?)")
     console.print(f"turntable frame's origin {', '.join(f'{v:+.3f}' for v in tt.point_mm)} mm: {m['origin']}")
     opts = {"board": target.spec, "target": target.to_dict(), "rotate_deg": rotate, "camera": str(camera),
-            "board_height_mm": board_height}
+            "board_height_mm": board_height, "keep_suspect": keep_suspect}
     tt.save(output, force=force, extra={"provenance": provenance(files, opts)})
     console.print(f"wrote {output}")
 

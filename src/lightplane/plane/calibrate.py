@@ -40,7 +40,7 @@ import numpy as np
 
 from lightplane.camera.model import Camera, camera_record
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import default_workers, robust_line, robust_sigma, tls_line
+from lightplane.core.geometry import default_workers, ray_plane, robust_line, robust_sigma, tls_line
 from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.solvers import (PlacementResult, PlaneCalibration, SolverOptions, calibrate_plane_from_points,
                             check_calibration_args)
@@ -49,6 +49,7 @@ from lightplane.core.threads import enter_serial, frames_across_threads
 from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, RefinedEllipse, detect_ellipses, expected_axis_range_px,
     refine_ellipse, select_target, stripe_crossing)
 from lightplane.plane.circle_pose import CirclePose
+from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
 from lightplane.plane.solvers import Ambiguity
 from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camera_params, camera_share_status,
     camera_steps, camera_with_params, plane_noise_covers, point_sigma_mm, volume_sigma, working_volume_grid)
@@ -59,7 +60,7 @@ from lightplane.core.threads import with_blas_limited
 
 __all__ = ["ObserveOptions", "PlaneCalibrationOptions", "ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
            "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
-           "default_workers", "propagate_camera"]
+           "default_workers", "propagate_camera", "placement_quality"]
 
 @dataclass(frozen=True, eq=False)
 class ImageObservation:
@@ -741,6 +742,8 @@ class PlaneCalibrationOptions:
     - ``executor``: ``"thread"`` (default: OpenCV and the numba kernels release the GIL; on 2 cores
       12 images take ~1.0 s with threads against ~1.7 s with processes, whose workers each load the
       compiled kernels first; benchmarks/bench_calibrate.py) or ``"process"``.
+    - ``keep_suspect``: keep a plane whose stripe points contradict their stripe noise
+      (:mod:`lightplane.plane.quality`), marked in ``meta["quality"]``, instead of raising.
     """
 
     observe: ObserveOptions = field(default_factory=ObserveOptions)
@@ -748,6 +751,7 @@ class PlaneCalibrationOptions:
     min_placements: int = 3
     workers: int | None = None
     executor: str = "thread"
+    keep_suspect: bool = False
 
     def __post_init__(self):
         if not isinstance(self.observe, ObserveOptions):
@@ -798,7 +802,7 @@ def calibrate_plane(images: Sequence, camera: Camera, diameter_mm: float, method
     images = _checked_inputs(images)
     obs = observe_images(images, camera, diameter, opts, progress=progress)
     return solve_observations(obs, camera, diameter, method, min_placements=opts.min_placements,
-                              seconds=time.perf_counter() - t_start, solver=opts.solver)
+                              seconds=time.perf_counter() - t_start, solver=opts.solver, keep_suspect=opts.keep_suspect)
 
 
 def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, lasers: Sequence, method: str = "ml",
@@ -842,7 +846,7 @@ def calibrate_planes(images: Sequence, camera: Camera, diameter_mm: float, laser
     for k, s in enumerate(lasers):
         try:
             result[s.name] = solve_observations(out[k], camera, diameter, method, min_placements=opts.min_placements,
-                                                seconds=seconds, solver=opts.solver)
+                                                seconds=seconds, solver=opts.solver, keep_suspect=opts.keep_suspect)
         except LightplaneError as e:
             raise LightplaneError(f"laser {s.name}: {e}") from None
     return result
@@ -923,12 +927,14 @@ def observe_images(images: Sequence, camera: Camera, diameter_mm: float, options
 
 def solve_observations(observations: Sequence[ImageObservation], camera: Camera, diameter_mm: float,
                        method: str = "ml", *, min_placements: int = 3, seconds: float = 0.0,
-                       solver: SolverOptions | None = None) -> ImagePlaneCalibration:
+                       solver: SolverOptions | None = None, keep_suspect: bool = False) -> ImagePlaneCalibration:
     """The light plane from per-image observations (:func:`observe_images`) (docs/method.md §Light plane).
 
     Runs :func:`~lightplane.plane.solvers.calibrate_plane_from_points` on the images that gave
     a target and stripe points, and maps its per-placement results back to the images.
     Lets one set of observations be solved by several methods (``paper``, ``global``, ``ml``).
+    Raises LightplaneError when some used image's stripe points contradict their stripe noise
+    (:func:`placement_quality`), unless ``keep_suspect`` (the plane's ``meta["quality"]`` says so).
     """
     obs = list(observations)
     n = len(obs)
@@ -976,12 +982,39 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     if dep is not None and meta.get("noise_model"):
         meta["noise_model"], f = _dispersion_beside_camera(meta["noise_model"], dep)
         cov = f * np.asarray(cov)
+    q = placement_quality(camera, cal.plane, final, diameter)
+    meta["quality"] = check_plane_quality(q, keep=keep_suspect)
+    warnings.extend(q.warnings())
+    pts = [im.points_mm for im in _stripe_images(camera, final)]
+    if pts:
+        meta["working_volume"] = working_volume(np.vstack(pts))
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)
     return ImagePlaneCalibration(plane=plane, covariance=plane.covariance, sigma_px=cal.sigma_px,
                                  placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,
                                  warnings=tuple(warnings), iterations=cal.iterations, images=tuple(final),
                                  camera=camera, diameter_mm=diameter,
                                  seconds=seconds + time.perf_counter() - t_start)
+
+
+def _stripe_images(camera: Camera, observations: Sequence[ImageObservation]) -> list:
+    """The used placements' stripe points (the solver's inliers) on their discs' planes."""
+    out = []
+    for o in observations:
+        p = o.placement
+        if not o.used or p is None or p.pose is None or len(o.stripe_uv) < 3:
+            continue
+        uv = o.stripe_uv if p.stripe_inliers is None or len(p.stripe_inliers) != len(o.stripe_uv) \
+            else o.stripe_uv[p.stripe_inliers]
+        pts = ray_plane(camera.undistort_points(uv, normalized=True), p.pose.normal, p.pose.center)
+        out.append(stripe_image(camera, o.source, pts, p.pose.normal, p.pose.center))
+    return out
+
+
+def placement_quality(camera: Camera, plane: LightPlane, observations: Sequence[ImageObservation],
+                      diameter_mm: float) -> PlaneQuality:
+    """Each used placement's stripe points (on its refined disc) against ``plane`` and their stripe noise
+    (:func:`lightplane.plane.quality.plane_quality`, the disc's diameter as the target's scale)."""
+    return plane_quality(camera, plane.normal, plane.d, _stripe_images(camera, observations), diameter_mm)
 
 
 def _dispersion_beside_camera(nm: dict, dep: CameraDependence) -> tuple[dict, float]:

@@ -26,6 +26,7 @@ from lightplane.camera.model import Camera, as_points, camera_record
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
+from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
 from lightplane.stripe.extract import extract_stripe
@@ -159,10 +160,18 @@ class ZhouCalibration:
     view_index: np.ndarray
     poses: tuple
     residual_mm: np.ndarray = field(repr=False)
+    quality: PlaneQuality | None = field(default=None, repr=False)
 
     @property
     def residual_rms_mm(self) -> float:
         return float(np.sqrt(np.mean(self.residual_mm**2)))
+
+    def assess(self, camera: Camera, scale_mm: float) -> PlaneQuality:
+        """Each pose's stripe points against the plane and their stripe noise
+        (:func:`lightplane.plane.quality.plane_quality`; ``scale_mm``: the board's square or pitch)."""
+        imgs = [stripe_image(camera, pose.name or f"pose {k}", self.points_cam_mm[self.view_index == k],
+                             pose.normal_cam, pose.t_cam_board) for k, pose in enumerate(self.poses)]
+        return plane_quality(camera, self.plane.normal, self.plane.d, imgs, scale_mm)
 
 
 def plane_from_board_stripes(camera: Camera, poses: Sequence[BoardPose], stripes_uv: Sequence[np.ndarray], *,
@@ -354,6 +363,8 @@ class BoardPlaneOptions:
       (one laser's stripe among several, told apart by where it is in the image).
     - ``min_points_per_view``: fewer stripe points on a board skip the image.
     - ``min_views``: fewer usable images raise LightplaneError, saying why the others were skipped.
+    - ``keep_suspect``: keep a plane whose stripe points contradict their stripe noise
+      (:mod:`lightplane.plane.quality`), marked in ``meta["quality"]``, instead of raising.
     """
 
     stripe_width_px: float | None = None
@@ -361,6 +372,7 @@ class BoardPlaneOptions:
     region_px: tuple[float, float, float, float] | None = None
     min_points_per_view: int = 10
     min_views: int = 2
+    keep_suspect: bool = False
 
     def __post_init__(self):
         if self.region_px is not None and len(self.region_px) != 4:
@@ -544,12 +556,18 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     n_min = max(2, opts.min_views)
     if len(v.poses) < n_min:
         raise LightplaneError("Zhou's method: " + too_few_images_message("images", len(v.poses), n_min, why.items()))
-    return plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=opts.min_points_per_view,
-                                    meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
-                                          "target": target.to_dict(), "skipped": why,
-                                          "laser_frames": "pattern frames" if fr.pattern_images is not None else
-                                          ("background-subtracted" if fr.background_images is not None
-                                           else "laser-on only")})
+    z = plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=opts.min_points_per_view,
+                                 meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
+                                       "target": target.to_dict(), "skipped": why,
+                                       "laser_frames": "pattern frames" if fr.pattern_images is not None else
+                                       ("background-subtracted" if fr.background_images is not None
+                                        else "laser-on only")})
+    q = z.assess(camera, float(target.square_mm))
+    per_image_bg = fr.background_images is not None and len(fr.background_images) > 1
+    rec = check_plane_quality(q, keep=opts.keep_suspect, background_per_image=per_image_bg)
+    plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
+                       meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm)})
+    return replace(z, plane=plane, quality=q)
 
 
 def calibrate_plane_boards(frames: BoardFrames, camera: Camera, board, lasers: dict,
