@@ -202,6 +202,8 @@ def measure_cmd(
         "stripe's own scale). About twice that averages laser speckle (0.11 -> 0.09 px per centre on speckled "
         "renders) and blurs detail along the stripe over as many lines."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
+    keep_outliers: bool = typer.Option(False, "--keep-outliers", help="Keep points outside the calibrated working "
+                                       "volume or with a sigma beyond 100x the calibration's (dropped and counted by default)."),
     allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
@@ -227,7 +229,8 @@ def measure_cmd(
     output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force, comments=cams.comments())
     out = Path(output)
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
-                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth)
+                             axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth,
+                             keep_outliers=keep_outliers)
     if sens is not None:
         scans = [(name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name])
                  for name, glob in lasers]
@@ -297,6 +300,9 @@ def _print_lasers(ls, cam: Camera, sens: Sensor, lasers: list) -> None:
                       f"stripe width {width}" + (f", {len(skipped)} frames skipped" if skipped else ""))
         for idx, fname, reason in skipped[:10]:
             err_console.print(f"warning: laser {name}: skipped frame {idx} ({fname}): {reason}")
+    for name, dr in ls.dropped:
+        if dr.totals:
+            err_console.print(f"warning: laser {name}: {dr.summary()} (per frame in the file's comments)")
     console.print(f"{ls.n_points} points, motion {ls.motion['kind']}, {ls.seconds:.1f} s")
     for name, _ in lasers:
         console.print(f"laser {name}: " + sigma_line(cam, sens.planes[name]))
@@ -313,6 +319,8 @@ def _print_scan(s, description: str) -> None:
                       + summarize_reasons([(name, reason) for _, name, reason in s.skipped]))
     if s.frames_without_points:
         console.print(f"{s.frames_without_points} frames had no stripe points")
+    if s.dropped.totals:
+        err_console.print(f"warning: {s.dropped.summary()} (per frame in the file's comments)")
     for w in s.warnings:
         err_console.print(f"warning: {w}")
     if s.skipped:

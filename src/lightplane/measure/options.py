@@ -23,11 +23,15 @@ from lightplane.measure.pointcloud import cloud_format
 from lightplane.plane.triangulate import AXES, GRAZING_COS
 from lightplane.stripe.options import StripeOptions
 
-__all__ = ["MeasureOptions", "CloudOutput", "MIN_WIDTH_RATIO", "MAX_WIDTH_RATIO"]
+__all__ = ["MeasureOptions", "CloudOutput", "MIN_WIDTH_RATIO", "MAX_WIDTH_RATIO", "DEPTH_FACTOR", "MAX_SIGMA_RATIO"]
 
 #: defaults of the per-point stripe-width filter (:class:`MeasureOptions`): width / frame median
 MIN_WIDTH_RATIO = 0.8
 MAX_WIDTH_RATIO = 2.0
+#: defaults of the outlier screen (:class:`MeasureOptions`): the depth range beyond the calibration's, and σ
+#: over the plane's σ where it was calibrated
+DEPTH_FACTOR = 2.0
+MAX_SIGMA_RATIO = 100.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,16 @@ class MeasureOptions:
         ``0`` and ``inf`` switch the filter off.
     parallel : ``parallel`` of :func:`lightplane.stripe.extract.extract_profile` (None:
         its own choice; given, frames are profiled one at a time); the numbers are the same.
+    stripe_evidence : a frame whose centres form no line (no run of consecutive lines as long as
+        :data:`lightplane.measure.profile.STRIPE_MIN_RUN` and 5 times the stripe's width) has no
+        stripe and gives no point (chessboard squares, texture: docs/limits.md §Frames without a stripe).
+    keep_outliers : keep points outside the calibrated working volume or with a σ beyond
+        ``max_sigma_ratio`` (dropped and counted by default; see
+        :class:`lightplane.measure.profile.ProfileMeasurer`).
+    depth_factor : the working volume's depth range: the plane's calibrated depth range divided
+        and multiplied by this (``inf``: no depth limit).
+    max_sigma_ratio : a point's σ over the plane's σ where it was calibrated beyond which the point
+        is dropped (``inf``: no limit).
     """
 
     stripe: StripeOptions = field(default_factory=StripeOptions)
@@ -67,6 +81,10 @@ class MeasureOptions:
     min_width_ratio: float = MIN_WIDTH_RATIO
     max_width_ratio: float = MAX_WIDTH_RATIO
     parallel: bool | None = None
+    stripe_evidence: bool = True
+    keep_outliers: bool = False
+    depth_factor: float = DEPTH_FACTOR
+    max_sigma_ratio: float = MAX_SIGMA_RATIO
 
     def __post_init__(self) -> None:
         if not isinstance(self.stripe, StripeOptions):
@@ -80,6 +98,10 @@ class MeasureOptions:
         if not (0.0 <= lo < 1.0 < hi) or np.isnan(hi):
             raise LightplaneError(f"need 0 <= min_width_ratio < 1 < max_width_ratio, got {self.min_width_ratio!r}, "
                                   f"{self.max_width_ratio!r}")
+        for name in ("depth_factor", "max_sigma_ratio"):
+            v = float(getattr(self, name))
+            if not v > 1.0:
+                raise LightplaneError(f"{name} must be > 1 (inf: off), got {getattr(self, name)!r}")
 
     def changed(self) -> dict:
         """``smooth_lines`` and every other option not at its default, stripe options included

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -24,12 +24,23 @@ from lightplane.stripe.extract import check_roi, extract_profile, extract_profil
 
 #: fewer valid lines than this in a frame: no width filter (the median would mean little)
 WIDTH_FILTER_MIN_LINES = 20
+#: a frame shows a stripe when some run of consecutive lines with a centre is this long (or half the roi's
+#: lines, when fewer) ...
+STRIPE_MIN_RUN = 20
+#: ... and at least this many times the stripe's width (the median FWHM of the frame's centres)
+STRIPE_MIN_ELONGATION = 5.0
+#: a point whose pixel the camera model does not give back (px) is outside the model's field (past the
+#: fold of its distortion)
+ROUND_TRIP_PX = 0.05
+#: why points are dropped (:attr:`Profile.dropped`), in this order
+DROP_REASONS = ("no stripe", "outside the camera model", "outside the working volume", "sigma beyond the bound")
 
 
 # ======================================================================================
 # Profiles: one stripe centre per image column (row) -> 3D points with uncertainty
 
-__all__ = ["Profile", "ProfileMeasurer", "measure_profile", "profile_cache_info", "clear_profile_cache"]
+__all__ = ["Profile", "ProfileMeasurer", "measure_profile", "profile_cache_info", "clear_profile_cache",
+           "has_stripe", "working_depth", "DROP_REASONS"]
 
 @dataclass(frozen=True)
 class Profile:
@@ -50,7 +61,10 @@ class Profile:
     - ``axis`` ``"columns"`` or ``"rows"``;
     - ``width_rejected`` (N,) bool: a stripe centre was found and triangulated but
       dropped by the width filter (``min_width_ratio`` / ``max_width_ratio`` of
-      :class:`~lightplane.measure.options.MeasureOptions`); None when the profile did not go through it.
+      :class:`~lightplane.measure.options.MeasureOptions`); None when the profile did not go through it;
+    - ``dropped``: reason (:data:`DROP_REASONS`) → how many triangulated points the screen dropped
+      (a frame without a stripe, points outside the working volume or with a σ beyond the bound:
+      :class:`ProfileMeasurer`).
     """
 
     points: np.ndarray
@@ -61,6 +75,7 @@ class Profile:
     width_px: np.ndarray
     axis: str
     width_rejected: np.ndarray | None = None
+    dropped: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -145,6 +160,9 @@ class ProfileMeasurer:
 
         #: None when the points' sigma includes the camera's share, else why not (one sentence)
         self.camera_share_missing = camera_share_status(camera, plane)
+        #: the working volume's depth range (mm; None: no limit) and the σ bound (mm; None: none)
+        self.depth_range: tuple[float, float] | None = None
+        self.sigma_bound: float | None = None
         self._lookup = bool(lookup)
         # lookup tables (xy, d xy / d sample per roi pixel) and which blocks of them are built
         self._xy: np.ndarray | None = None
@@ -153,6 +171,58 @@ class ProfileMeasurer:
         #: how many table blocks this measurer has built (a diagnostic: repeated frames build none)
         self.blocks_built = 0
         self._lock = threading.Lock()
+        self._screen_limits()
+
+    # ---------------------------------------------------------------- the screen
+    def _screen_limits(self) -> None:
+        """The depth range and σ bound of :meth:`screen` from the plane's working volume."""
+        depth, centre = working_depth(self.plane)
+        k = float(self.options.depth_factor)
+        if depth is not None and np.isfinite(k):
+            self.depth_range = (depth[0] / k, depth[1] * k)
+        if centre is not None and np.isfinite(self.options.max_sigma_ratio) and self.plane.covariance is not None:
+            uv = self.camera.project(centre[None, :])
+            s = float(self.from_stripe(uv, np.ones(1, bool)).sigma_mm[0]) if np.all(np.isfinite(uv)) else np.nan
+            if np.isfinite(s) and s > 0:
+                self.sigma_bound = float(self.options.max_sigma_ratio) * s
+
+    def screen(self, prof: Profile) -> Profile:
+        """Drop what is not a measured point, counting why (:attr:`Profile.dropped`).
+
+        - **no stripe**: the frame's centres form no line (:func:`has_stripe`): every point goes
+          (``options.stripe_evidence``);
+        - **outside the camera model**: the camera does not project the point back onto its pixel
+          within :data:`ROUND_TRIP_PX` (the pixel lies past the fold of the lens model's distortion,
+          where the undistortion has no answer);
+        - **outside the working volume**: depth outside the plane's calibrated depth range divided and
+          multiplied by ``options.depth_factor`` (:func:`working_depth`);
+        - **sigma beyond the bound**: σ over ``options.max_sigma_ratio`` times the σ of a point at the
+          centre of the plane's calibration.
+
+        The last three only without ``options.keep_outliers``.
+        """
+        valid = np.asarray(prof.valid, bool)
+        if not valid.any():
+            return prof
+        bad = np.zeros(len(valid), np.int8)  # 0 kept, else 1 + the index of the reason
+        if self.options.stripe_evidence and not has_stripe(valid, prof.width_px):
+            bad[valid] = 1
+        elif not self.options.keep_outliers:
+            idx = np.flatnonzero(valid)
+            p = prof.points[idx]
+            with np.errstate(invalid="ignore"):
+                off = np.linalg.norm(self.camera.project(p) - prof.uv[idx], axis=1) > ROUND_TRIP_PX
+                far = np.zeros(len(idx), bool) if self.depth_range is None else \
+                    (p[:, 2] < self.depth_range[0]) | (p[:, 2] > self.depth_range[1])
+                wide = np.zeros(len(idx), bool) if self.sigma_bound is None else prof.sigma_mm[idx] > self.sigma_bound
+            bad[idx] = np.select([off, far, wide], [2, 3, 4], 0)
+        if not bad.any():
+            return prof
+        drop = bad > 0
+        pts, sig = prof.points.copy(), prof.sigma_mm.copy()
+        pts[drop], sig[drop] = np.nan, np.nan
+        counts = {DROP_REASONS[k - 1]: int(np.count_nonzero(bad == k)) for k in range(1, 5) if np.any(bad == k)}
+        return replace(prof, points=pts, sigma_mm=sig, valid=valid & ~drop, dropped=counts)
 
     # ---------------------------------------------------------------- lookup tables
     #: the tables are built in blocks of this many lines x samples, when a centre first needs one
@@ -299,7 +369,7 @@ class ProfileMeasurer:
         sp = extract_profile(image, self.axis, self.stripe, roi=roi, parallel=self.options.parallel)
         uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
         prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width)
-        return width_filter(prof, self.min_width_ratio, self.max_width_ratio)
+        return self.screen(width_filter(prof, self.min_width_ratio, self.max_width_ratio))
 
     #: regions of interest with at most this many samples per line (rows for ``axis="columns"``) are
     #: profiled a batch of frames per call (:meth:`measure_many`): there the per-call costs dominate
@@ -330,8 +400,8 @@ class ProfileMeasurer:
         out = []
         for sp in extract_profiles(images, self.axis, self.stripe, roi=roi):
             uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
-            out.append(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
-                                    self.min_width_ratio, self.max_width_ratio))
+            out.append(self.screen(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
+                                                self.min_width_ratio, self.max_width_ratio)))
         return out
 
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
@@ -355,6 +425,61 @@ class ProfileMeasurer:
         inten = np.full(n, np.nan) if intensity is None else np.asarray(intensity, float)
         width = np.full(n, np.nan) if width_px is None else np.asarray(width_px, float)
         return Profile(points=pts, sigma_mm=sigma, uv=uv, valid=ok, intensity=inten, width_px=width, axis=self.axis)
+
+
+def has_stripe(valid: np.ndarray, width_px: np.ndarray) -> bool:
+    """Whether a frame's centres (``valid`` per line, their FWHM ``width_px``) form a stripe: some run of
+    consecutive lines with a centre at least :data:`STRIPE_MIN_RUN` long (half the lines when there are
+    fewer than twice that) and :data:`STRIPE_MIN_ELONGATION` times the median width.
+
+    A laser line across a surface is continuous over many lines and much longer than it is wide;
+    what a frame without a laser gives (the ridge of a chessboard's white square between two black
+    ones, texture) is fragments about as long as they are wide.  Measured (longest run, median
+    width): FabScan scans 205-460 lines / 10-14 px and the Ciclop laser frame 288 / 4.3 against
+    chessboard frames without a laser (Ciclop captures and pattern, FabScan lit boards) 1-56 lines
+    at 1.6-39 px (elongation <= 3.7 but for one 30-line straight edge), rendered chessboards <= 11
+    lines at 55-80 px.
+    """
+    v = np.asarray(valid, bool)
+    if not v.any():
+        return False
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], v.view(np.int8), [0]])))
+    longest = int(np.max(edges[1::2] - edges[::2]))
+    w = np.asarray(width_px, float)[v]
+    w = w[np.isfinite(w)]
+    need = min(STRIPE_MIN_RUN, max(3, len(v) // 2))
+    return longest >= need and (not len(w) or longest >= STRIPE_MIN_ELONGATION * float(np.median(w)))
+
+
+def working_depth(plane: LightPlane) -> tuple[tuple[float, float] | None, np.ndarray | None]:
+    """Where ``plane`` was calibrated: ``((near, far) depth mm, centre (3,) mm)``, camera frame.
+
+    From the plane file's ``working_volume`` (written by the calibrations: their stripe points'
+    depth range and centre), else the depth range of its placements (``images``: the boards' origins
+    or the discs' centres) without a centre (they need not lie on the plane: no σ bound), else
+    ``(None, None)`` (a plane from elsewhere: no depth limit, no σ bound).
+    """
+    wv = plane.meta.get("working_volume")
+    if wv is not None:
+        try:
+            lo, hi = (float(x) for x in wv["depth_mm"])
+            centre = np.asarray(wv["centre_mm"], np.float64).reshape(3)
+        except (KeyError, TypeError, ValueError):
+            raise LightplaneError("plane: field 'working_volume' must hold 'depth_mm' [near, far] and "
+                                  "'centre_mm' [x, y, z]") from None
+        if not (0 < lo <= hi and np.all(np.isfinite(centre))):
+            raise LightplaneError(f"plane: field 'working_volume' needs 0 < near <= far, got {lo:g}, {hi:g}")
+        return (lo, hi), centre
+    pts = []
+    for im in plane.meta.get("images") or []:
+        if isinstance(im, dict) and im.get("used", im.get("status") == "used"):
+            p = im.get("t_cam_board_mm") or (im.get("pose") or {}).get("center_mm")
+            if p is not None and len(p) == 3 and float(p[2]) > 0:
+                pts.append([float(x) for x in p])
+    if not pts:
+        return None, None
+    z = np.asarray(pts)[:, 2]
+    return (float(z.min()), float(z.max())), None
 
 
 def width_filter(prof: Profile, min_ratio: float = MIN_WIDTH_RATIO, max_ratio: float = MAX_WIDTH_RATIO) -> Profile:

@@ -36,7 +36,7 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import default_workers
 from lightplane.measure.options import CloudOutput, MeasureOptions
-from lightplane.measure.profile import ProfileMeasurer
+from lightplane.measure.profile import DROP_REASONS, ProfileMeasurer
 from lightplane.plane.triangulate import profile_axis
 from lightplane.motion.model import Motion, unit_direction  # noqa: F401  (re-exported: lightplane.measure.scan.Motion)
 from lightplane.plane.model import LightPlane
@@ -59,6 +59,7 @@ __all__ = [
     "iter_scan",
     "kernels_release_gil",
     "ScanSummary",
+    "Dropped",
     "measure_scan",
     "scan_points",
     "VIDEO_SUFFIXES",
@@ -238,12 +239,14 @@ def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0) -> Fra
 @dataclass(frozen=True)
 class FrameResult:
     """One frame's outcome: ``records`` (:data:`POINT_DTYPE`, valid points only, placed by
-    the motion) or ``error`` (why it was skipped)."""
+    the motion) or ``error`` (why it was skipped); ``dropped``: reason → points the screen dropped
+    (:meth:`lightplane.measure.profile.ProfileMeasurer.screen`)."""
 
     index: int
     name: str
     records: np.ndarray | None
     error: str | None = None
+    dropped: dict = field(default_factory=dict)
 
 
 class FrameProcessor:
@@ -281,7 +284,8 @@ class FrameProcessor:
         image, reason = try_load_frame(payload)
         if image is None:
             return FrameResult(index, name, None, reason)
-        return FrameResult(index, name, self.process(index, image))
+        prof = self.measurer(image)
+        return FrameResult(index, name, self._records(index, prof), dropped=prof.dropped)
 
     def run_batch(self, batch: list) -> list[FrameResult]:
         """:meth:`run` of each ``(index, name, payload)``; regions of interest of few rows
@@ -294,8 +298,14 @@ class FrameProcessor:
         """:meth:`run_batch` of frames already read: ``(index, name, image or None, reason)``."""
         images = [im for _, _, im, _ in loaded if im is not None]
         profs = iter(self.measurer.measure_many(images))
-        return [FrameResult(i, name, None, why) if im is None else FrameResult(i, name, self._records(i, next(profs)))
-                for i, name, im, why in loaded]
+        out = []
+        for i, name, im, why in loaded:
+            if im is None:
+                out.append(FrameResult(i, name, None, why))
+            else:
+                prof = next(profs)
+                out.append(FrameResult(i, name, self._records(i, prof), dropped=prof.dropped))
+        return out
 
 
 _WORKER: FrameProcessor | None = None
@@ -487,7 +497,8 @@ def iter_scan(source: FrameSource, processor: FrameProcessor, *, workers: int | 
 # ----------------------------------------------------------------------------- scan → file
 @dataclass(frozen=True)
 class ScanSummary:
-    """What a scan did.  ``skipped``: ``(index, name, reason)`` of frames that could not be read."""
+    """What a scan did.  ``skipped``: ``(index, name, reason)`` of frames that could not be read;
+    ``dropped``: :class:`Dropped`, the points the screen dropped (frames without a stripe, outliers)."""
 
     path: Path | None
     format: str | None
@@ -501,10 +512,49 @@ class ScanSummary:
     motion: dict = field(default_factory=dict)
     seconds: float = float("nan")
     warnings: tuple = ()
+    dropped: "Dropped" = field(default_factory=lambda: Dropped())
 
     @property
     def n_skipped(self) -> int:
         return len(self.skipped)
+
+
+@dataclass
+class Dropped:
+    """What a scan's screen dropped (:meth:`lightplane.measure.profile.ProfileMeasurer.screen`):
+    ``totals`` reason → points, ``frames`` ``(index, name, {reason: points})`` of each frame with any."""
+
+    totals: dict = field(default_factory=dict)
+    frames: list = field(default_factory=list)
+
+    def add(self, r: FrameResult) -> None:
+        if r.dropped:
+            self.frames.append((r.index, r.name, dict(r.dropped)))
+            for k, v in r.dropped.items():
+                self.totals[k] = self.totals.get(k, 0) + int(v)
+
+    @property
+    def frames_without_stripe(self) -> int:
+        return sum("no stripe" in d for _, _, d in self.frames)
+
+    def summary(self) -> str:
+        """One line: points dropped per reason and frames without a stripe ("" when nothing was dropped)."""
+        if not self.totals:
+            return ""
+        parts = [f"{n} points {why}" if why != "no stripe" else f"{self.frames_without_stripe} frames without a stripe "
+                 f"({n} points)" for why, n in sorted(self.totals.items(), key=lambda kv: DROP_REASONS.index(kv[0]))]
+        return "dropped: " + ", ".join(parts)
+
+    def comments(self, limit: int = 1000) -> list[str]:
+        """The cloud file's lines: the summary, then one per frame with dropped points (at most ``limit``)."""
+        if not self.totals:
+            return []
+        lines = [self.summary()]
+        for i, name, d in self.frames[:limit]:
+            lines.append(f"frame {i} ({Path(name).name}): dropped " + ", ".join(f"{n} {why}" for why, n in d.items()))
+        if len(self.frames) > limit:
+            lines.append(f"... and {len(self.frames) - limit} more frames with dropped points")
+        return lines
 
 
 def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
@@ -572,7 +622,7 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, options:
     t0 = time.perf_counter()
     source, motion, opts = _prepare(source, camera, plane, motion, options)
     proc = FrameProcessor(camera, plane, motion, opts)
-    parts, skipped, n, empty = [], [], 0, 0
+    parts, skipped, n, empty, dropped = [], [], 0, 0, Dropped()
     for r in iter_scan(source, proc, workers=workers, executor=executor):
         n += 1
         if r.error is not None:
@@ -580,11 +630,13 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, options:
             continue
         assert r.records is not None  # a frame without an error has its records
         empty += r.records.size == 0
+        dropped.add(r)
         parts.append(r.records)
     recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
     width_px = opts.stripe.width_px
     summ = ScanSummary(None, None, n, n - len(skipped), int(recs.size), tuple(skipped), int(empty), opts.axis,
-                       float("nan") if width_px is None else width_px, motion.to_dict(), time.perf_counter() - t0)
+                       float("nan") if width_px is None else width_px, motion.to_dict(), time.perf_counter() - t0,
+                       dropped=dropped)
     return recs, summ
 
 
@@ -616,16 +668,15 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
         if workers is None and source.n_frames is not None and source.n_frames < 64:
             workers = 1  # starting a pool costs more than it saves
         with PointSpool(out.parent if str(out.parent) else None) as spool:
-            n, skipped, empty = _spool_scan(iter_scan(source, proc, workers=workers, executor=executor), spool,
-                                            progress, source.n_frames)
+            n, skipped, empty, dropped = _spool_scan(iter_scan(source, proc, workers=workers, executor=executor),
+                                                     spool, progress, source.n_frames)
             if motion.n_frames is not None and motion.n_frames != n:
                 raise LightplaneError(f"the {motion.what} give {motion.n_frames} frames but the input has {n}")
             if n == len(skipped):
                 raise LightplaneError(too_few_images_message("frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
             if spool.count == 0:
-                raise LightplaneError(f"no stripe found in any of the {n - len(skipped)} readable frames "
-                                      "(laser off, wrong --channel or --roi?); nothing written")
-            lines = _scan_comments(source, plane, motion, opts, n, skipped) + list(output.comments)
+                raise LightplaneError(no_points_message(n - len(skipped), dropped))
+            lines = _scan_comments(source, plane, motion, opts, n, skipped) + dropped.comments() + list(output.comments)
             write_cloud(out, spool, fmt=fmt, ascii=output.ascii, force=output.force, comments=lines)
             n_points = spool.count
     finally:
@@ -637,13 +688,26 @@ def measure_scan(source: FrameSource, camera: Camera, plane: LightPlane, out_pat
     width_px = opts.stripe.width_px
     return ScanSummary(out, fmt, n, n - len(skipped), n_points, tuple(skipped), int(empty), opts.axis,
                        float("nan") if width_px is None else float(width_px), motion.to_dict(),
-                       time.perf_counter() - t0, tuple(warnings))
+                       time.perf_counter() - t0, tuple(warnings), dropped)
 
 
-def _spool_scan(results: Iterator[FrameResult], spool: PointSpool, progress, total) -> tuple[int, list, int]:
+def no_points_message(n_readable: int, dropped: "Dropped") -> str:
+    """Why a scan has no point at all (one sentence)."""
+    if not dropped.totals:
+        return (f"no stripe found in any of the {n_readable} readable frames (laser off, wrong --channel or --roi?); "
+                "nothing written")
+    if set(dropped.totals) == {"no stripe"}:
+        return (f"no laser stripe in any of the {n_readable} readable frames (their centres form no line: laser off, "
+                "wrong --channel or --roi, or frames of the calibration target?); nothing written")
+    return (f"no stripe point left in any of the {n_readable} readable frames ({dropped.summary()}; --keep-outliers "
+            "keeps the outliers); nothing written")
+
+
+def _spool_scan(results: Iterator[FrameResult], spool: PointSpool, progress, total) -> tuple[int, list, int, Dropped]:
     """The frames' points into ``spool``; the number of frames, the skipped ones ``(index, name,
-    reason)`` and how many frames had no point.  ``progress(done, total)`` after each frame."""
-    skipped, n, empty = [], 0, 0
+    reason)``, how many frames had no point and what the screen dropped.  ``progress(done, total)``
+    after each frame."""
+    skipped, n, empty, dropped = [], 0, 0, Dropped()
     for r in results:
         n += 1
         if r.error is not None:
@@ -651,16 +715,18 @@ def _spool_scan(results: Iterator[FrameResult], spool: PointSpool, progress, tot
         else:
             assert r.records is not None  # a frame without an error has its records
             empty += r.records.size == 0
+            dropped.add(r)
             spool.append(r.records)
         if progress is not None:
             progress(n, total)
-    return n, skipped, int(empty)
+    return n, skipped, int(empty), dropped
 
 
 def _scan_comments(source, plane, motion, opts: MeasureOptions, n: int, skipped: list) -> list[str]:
     """A scanned cloud's comment lines: frame, plane, provenance, options, skipped frames."""
     record = {"axis": opts.axis, "roi": opts.roi, "width_px": opts.stripe.width_px, "channel": opts.stripe.channel,
-              "motion": motion.to_dict(), "frames": n, "skipped": len(skipped)}
+              "motion": motion.to_dict(), "frames": n, "skipped": len(skipped),
+              "stripe_evidence": opts.stripe_evidence, "keep_outliers": opts.keep_outliers}
     prov = provenance([getattr(source, "description", "")], record)
     return [f"lightplane point cloud: x y z in mm ({motion.frame_description})",
             f"plane: {plane!r}", f"created: {prov['created_utc']}", f"command: {prov['command']}",

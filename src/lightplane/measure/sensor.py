@@ -38,7 +38,7 @@ from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
 from lightplane.core.io import provenance, read_json, summarize_reasons, too_few_images_message, write_json
 from lightplane.measure.options import CloudOutput, MeasureOptions
 from lightplane.measure.pointcloud import PointSpool, write_cloud
-from lightplane.measure.scan import FrameProcessor, _prepare, iter_scan
+from lightplane.measure.scan import Dropped, FrameProcessor, _prepare, iter_scan, no_points_message
 from lightplane.core.threads import with_blas_limited
 
 __all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
@@ -215,7 +215,8 @@ def import_fabscan(path: str | os.PathLike) -> Sensor:
 @dataclass(frozen=True)
 class LaserScanSummary:
     """What :func:`measure_lasers` did; ``lasers``: per laser ``(name, frames, frames used, points,
-    skipped (index, name, reason)..., profile axis, stripe width px or None)``."""
+    skipped (index, name, reason)..., profile axis, stripe width px or None)``; ``dropped``: per laser
+    ``(name, Dropped)``, the points the screen dropped (:class:`lightplane.measure.scan.Dropped`)."""
 
     path: Path
     format: str
@@ -223,6 +224,7 @@ class LaserScanSummary:
     n_points: int
     motion: dict
     seconds: float
+    dropped: tuple = ()
 
 
 @with_blas_limited
@@ -263,18 +265,22 @@ def measure_lasers(scans: Sequence[tuple[str, FrameSource, LightPlane]], camera:
             if progress is not None:
                 progress(done, total)
 
-        per_laser = []
+        per_laser, dropped = [], []
         with PointSpool(out.parent if str(out.parent) else None, dtype=LASER_POINT_DTYPE) as spool:
             for li, (name, src, proc, ax, w) in enumerate(prepared):
-                n, skipped, npts = _spool_laser(li, name, src, proc, spool, motion, workers, step)
+                dr = Dropped()
+                n, skipped, npts = _spool_laser(li, name, src, proc, spool, motion, workers, step, dr)
                 per_laser.append((name, n, n - len(skipped), npts, tuple(skipped), ax, w))
+                dropped.append((name, dr))
             lines = _lasers_comments(prepared, scans, per_laser, names, motion, options) + list(output.comments)
+            lines += [f"laser {name}: {line}" for name, dr in dropped for line in dr.comments()]
             write_cloud(out, spool, fmt=fmt, ascii=output.ascii, force=output.force, comments=lines)
             n_points = spool.count
     finally:
         for _, s, _ in scans:
             s.close()
-    return LaserScanSummary(out, fmt, tuple(per_laser), n_points, motion.to_dict(), time.perf_counter() - t0)
+    return LaserScanSummary(out, fmt, tuple(per_laser), n_points, motion.to_dict(), time.perf_counter() - t0,
+                            tuple(dropped))
 
 
 def _prepare_laser(name: str, source, camera: Camera, plane: LightPlane, motion: Motion, options: MeasureOptions):
@@ -287,10 +293,10 @@ def _prepare_laser(name: str, source, camera: Camera, plane: LightPlane, motion:
 
 
 def _spool_laser(li: int, name: str, src, proc, spool: PointSpool, motion: Motion, workers: int | None,
-                 step: Callable[[], None]) -> tuple[int, list, int]:
-    """Laser ``li``'s frames measured into ``spool`` (``step()`` after each frame); its number of
-    frames, skipped frames and points.  Raises for frame counts off the motion's, no readable frame,
-    no stripe."""
+                 step: Callable[[], None], dropped: Dropped) -> tuple[int, list, int]:
+    """Laser ``li``'s frames measured into ``spool`` (``step()`` after each frame, what the screen
+    dropped into ``dropped``); its number of frames, skipped frames and points.  Raises for frame
+    counts off the motion's, no readable frame, no stripe."""
     n, skipped, count0 = 0, [], spool.count
     if workers is None and src.n_frames is not None and src.n_frames < 64:
         workers = 1
@@ -298,7 +304,10 @@ def _spool_laser(li: int, name: str, src, proc, spool: PointSpool, motion: Motio
         n += 1
         if r.error is not None:
             skipped.append((r.index, r.name, r.error))
-        elif r.records is not None and r.records.size:  # no error: the frame has its records
+            step()
+            continue
+        dropped.add(r)
+        if r.records is not None and r.records.size:  # no error: the frame has its records
             rec = np.empty(r.records.size, LASER_POINT_DTYPE)
             for f in POINT_FIELDS:
                 rec[f] = r.records[f]
@@ -312,8 +321,7 @@ def _spool_laser(li: int, name: str, src, proc, spool: PointSpool, motion: Motio
         raise LightplaneError(f"laser {name}: " + too_few_images_message(
             "frames", 0, 1, [(nm, why) for _, nm, why in skipped]))
     if spool.count == count0:
-        raise LightplaneError(f"laser {name}: no stripe found in any of its {n - len(skipped)} readable "
-                              "frames (laser off, wrong --channel or --roi?); nothing written")
+        raise LightplaneError(f"laser {name}: {no_points_message(n - len(skipped), dropped)}")
     return n, skipped, spool.count - count0
 
 
