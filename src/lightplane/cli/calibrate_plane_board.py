@@ -175,6 +175,11 @@ def calibrate_plane_board_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
                                       "points lie far beyond their stripe noise from it (marked in its 'quality')."),
+    board_margin: Optional[float] = typer.Option(None, "--board-margin", metavar="MM",
+                                                 help="The board's white margin beyond its printed pattern, mm "
+                                                 "(stripe points are taken there too, only where the lit board "
+                                                 "shows it; default: as far as the image shows the board; 0: the "
+                                                 "pattern only)."),
 ) -> None:
     """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline).
 
@@ -217,12 +222,12 @@ def calibrate_plane_board_cmd(
     with progress_bar("board poses and stripes") as update:
         results = calibrate_plane_boards(frames, cam, target, {n: (i, by_name.get(n)) for n, i in chosen.items()},
                                          BoardPlaneOptions(stripe_width_px=stripe_width, channel=channel,
-                                                           keep_suspect=keep_suspect),
+                                                           keep_suspect=keep_suspect, board_margin_mm=board_margin),
                                          progress=lambda label, i, n: update(i, total=n, label=label))
     opts = {"board": target.spec, "square_mm": target.square_mm, "target": target.to_dict(),
             "stripe_width_px": stripe_width, "channel": channel, "rotate_deg": rotate,
             "background": [str(f) for f in bg_files], "pattern": [str(f) for f in pattern_files or []],
-            "cycle": cycle, "camera": str(camera), "keep_suspect": keep_suspect}
+            "cycle": cycle, "camera": str(camera), "keep_suspect": keep_suspect, "board_margin_mm": board_margin}
     if sels is not None:
         opts["lasers"] = [x.to_dict() for x in sels]
     for lname, res in results.items():

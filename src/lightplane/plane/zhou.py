@@ -36,6 +36,7 @@ from lightplane.core.threads import with_blas_limited
 __all__ = [
     "corners_clear_of_stripe",
     "board_polygon_mask",
+    "board_area_mask",
     "stripe_points_on_board",
     "fit_plane",
     "ZhouCalibration",
@@ -94,6 +95,127 @@ def board_polygon_mask(camera: Camera, pose: BoardPose, board, square_mm: float 
     if np.all(np.isfinite(uv)):
         cv2.fillPoly(mask, [np.round(uv).astype(np.int32).reshape(-1, 1, 2)], 255)
     return mask
+
+
+def _printed_rect(target) -> tuple[float, float, float, float]:
+    """``(x0, x1, y0, y1)`` mm: the printed pattern's rectangle in board coordinates (chessboard: the
+    outer squares, one square beyond the inner corners; other targets: their outline)."""
+    x0, x1, y0, y1 = target.outline_mm()
+    g = 0.1 * target.square_mm if target.kind == "chessboard" else 0.0
+    return x0 - g, x1 + g, y0 - g, y1 + g
+
+
+def _beyond_pattern(camera: Camera, pose: BoardPose, rect, shape: tuple[int, int], f: int) -> np.ndarray:
+    """For every pixel of the image shrunk ``f`` times, ``shape = (h, w)``: how far (mm, board plane)
+    it lies beyond each side of the rectangle ``rect`` (``(h, w, 4)``: x0, x1, y0, y1; negative
+    inside; NaN off the plane)."""
+    h, w = shape
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    uv = np.column_stack([(jj.ravel() + 0.5) * f - 0.5, (ii.ravel() + 0.5) * f - 0.5])
+    X = ray_plane(camera.undistort_points(uv, normalized=True), pose.normal_cam, pose.t_cam_board)
+    q = (X - pose.t_cam_board) @ pose.R_cam_board
+    x0, x1, y0, y1 = rect
+    return np.column_stack([x0 - q[:, 0], q[:, 0] - x1, y0 - q[:, 1], q[:, 1] - y1]).reshape(h, w, 4)
+
+
+def _margin_widths(region: np.ndarray, excess: np.ndarray, start_mm: float, step_mm: float,
+                   extent_mm: float) -> np.ndarray:
+    """Per side of the pattern, how far (mm) the board reaches: across the strip straight beyond that
+    side, the distance up to which the grown ``region`` keeps >= 80 % of the pixels seen (the board is a
+    rectangle; a leak into a background as light as the board covers only part of the strip)."""
+    widths = np.zeros(4)
+    for k in range(4):
+        others = [j for j in range(4) if j != k and j // 2 != k // 2]
+        lateral = np.all(excess[..., others] <= 0, axis=-1) & (excess[..., k] > 0)
+        d = excess[..., k][lateral]
+        inr = region[lateral]
+        w = 0.0
+        for lo in np.arange(start_mm, extent_mm, step_mm):
+            sel = (d > lo) & (d <= lo + step_mm)
+            if np.count_nonzero(sel) < 3:
+                if lo > w + 2 * step_mm:
+                    break
+                continue
+            if np.mean(inr[sel]) < 0.8:
+                break
+            w = lo + step_mm
+        widths[k] = w
+    return widths
+
+
+def _grown_margin(small: np.ndarray, excess: np.ndarray, ring: tuple[float, float], extent_mm: float) -> np.ndarray:
+    """bool mask: the board's flat, evenly lit margin, grown from a ring just outside the pattern.
+
+    Per side of the pattern, the ring's median level ``m`` and robust spread ``s`` (a side whose ring
+    is not at the white level of the pattern's light parts, or not even, has no margin seen: it is
+    the background or the board's edge); from the ring the region grows over pixels within
+    ``max(4 s, 0.05 m)`` of ``m`` whose gradient stays that of the ring's, never beyond ``extent_mm``.
+    """
+    import cv2
+
+    out = np.max(excess, axis=2)
+    side = np.argmax(np.nan_to_num(excess, nan=-np.inf), axis=2)
+    white = float(np.percentile(small[out < 0], 90)) if np.any(out < 0) else 0.0
+    g = cv2.GaussianBlur(small, (0, 0), 1.0)
+    gy, gx = np.gradient(g)
+    grad = np.hypot(gx, gy)
+    inside = np.isfinite(out) & (out > 0) & (out <= extent_mm)
+    region = np.zeros(small.shape, bool)
+    for k in range(4):
+        seed = inside & (side == k) & (out > ring[0]) & (out <= ring[1])
+        if np.count_nonzero(seed) < 8:
+            continue
+        m, s = float(np.median(g[seed])), robust_sigma(g[seed])
+        if not (m > 0.5 * white and s < 0.15 * m):
+            continue
+        tol = max(4.0 * s, 0.05 * m)
+        gtol = min(max(float(np.median(grad[seed])) + 6.0 * robust_sigma(grad[seed]), 0.1 * tol), 0.5 * tol)
+        cand = inside & (np.abs(g - m) <= tol) & (grad <= gtol)
+        _, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=4)
+        ids = np.unique(lab[seed & cand])
+        region |= np.isin(lab, ids[ids > 0])
+    return region
+
+
+def board_area_mask(camera: Camera, pose: BoardPose, board, square_mm: float | None = None, *,
+                    image: np.ndarray | None = None, channel: str | None = None,
+                    margin_mm: float | None = None) -> np.ndarray:
+    """uint8 mask (H, W): the printed pattern (:func:`board_polygon_mask`) and the flat board around it.
+
+    The board plane extends beyond its pattern: in ``image`` (the lit board; a thin bright
+    stripe in it is opened away) the white margin is grown outward from a ring just outside the
+    printed pattern while it keeps the ring's level and smoothness (:func:`_grown_margin`,
+    computed on the image shrunk to ~480 px), so it stops at the board's edges and never takes the
+    background.  The growth stays within ``margin_mm`` of the printed pattern in board coordinates
+    (None: the pattern's larger side); ``margin_mm=0`` or no ``image``: the pattern only.
+    """
+    import cv2
+
+    target = as_target(board, square_mm)
+    pattern = board_polygon_mask(camera, pose, target)
+    if image is None or (margin_mm is not None and margin_mm <= 0):
+        return pattern
+    rect = _printed_rect(target)
+    extent = float(margin_mm) if margin_mm is not None else max(rect[1] - rect[0], rect[3] - rect[2])
+    gray = to_gray_float(image, channel)
+    H, W = gray.shape
+    f = max(1, int(np.ceil(max(H, W) / 480)))
+    h, w = H // f, W // f
+    small = cv2.resize(np.ascontiguousarray(gray[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
+    small = cv2.morphologyEx(small, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
+    excess = _beyond_pattern(camera, pose, rect, (h, w), f)
+    out = np.max(excess, axis=2)
+    mm_px = target.square_mm * f / _corner_spacing_px(pose.corners_uv)  # mm per shrunk pixel
+    d1 = max(0.15 * target.square_mm, 1.5 * mm_px)
+    region = _grown_margin(small, excess, (d1, d1 + max(0.35 * target.square_mm, 3.0 * mm_px)), extent)
+    ell = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    region = cv2.morphologyEx((region | (out <= 0)).astype(np.uint8), cv2.MORPH_CLOSE, ell) > 0
+    widths = _margin_widths(region, excess, d1, mm_px, extent)
+    region &= np.all(np.nan_to_num(excess, nan=np.inf) <= widths, axis=2)  # the board: a rectangle
+    region = cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8))
+    full = np.zeros((H, W), np.uint8)
+    full[:h * f, :w * f] = cv2.resize(region * 255, (w * f, h * f), interpolation=cv2.INTER_NEAREST)
+    return np.maximum(full, pattern)
 
 
 def stripe_points_on_board(camera: Camera, pose: BoardPose, stripe_uv: np.ndarray) -> np.ndarray:
@@ -265,10 +387,11 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
 
 
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
-                    width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None
-                    ) -> np.ndarray:
+                    width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None,
+                    pattern_mask: np.ndarray | None = None) -> np.ndarray:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
-    subtracting the laser-off frame."""
+    subtracting the laser-off frame (``pattern_mask``: the printed pattern, whose white level a
+    stripe must exceed without one; default ``mask``)."""
 
     import cv2
 
@@ -300,7 +423,8 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             # without a laser-off frame, trust only centres brighter than the white squares
             # (the 90th percentile of the board area): square corners survive the top-hat, and
             # centres on dark squares sit next to reflectance edges that bias them
-            white = float(np.percentile(raw[mask > 0], 90))
+            pm = mask if pattern_mask is None else pattern_mask
+            white = float(np.percentile(raw[pm > 0], 90))
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
         uv = uv[keep]
     if len(uv) and grid is not None and spacing is not None:
@@ -365,6 +489,11 @@ class BoardPlaneOptions:
     - ``min_views``: fewer usable images raise LightplaneError, saying why the others were skipped.
     - ``keep_suspect``: keep a plane whose stripe points contradict their stripe noise
       (:mod:`lightplane.plane.quality`), marked in ``meta["quality"]``, instead of raising.
+    - ``board_margin_mm``: stripe points are taken on the board around its printed pattern too
+      (:func:`board_area_mask`: the white margin the lit board shows, grown from the pattern); None:
+      as far as the image shows it (up to the pattern's larger side); a value: at most that far
+      beyond the printed pattern (mm, every side), still only where the image shows board; 0: the
+      pattern only.
     """
 
     stripe_width_px: float | None = None
@@ -373,8 +502,11 @@ class BoardPlaneOptions:
     min_points_per_view: int = 10
     min_views: int = 2
     keep_suspect: bool = False
+    board_margin_mm: float | None = None
 
     def __post_init__(self):
+        if self.board_margin_mm is not None and not (np.isfinite(self.board_margin_mm) and self.board_margin_mm >= 0):
+            raise LightplaneError(f"board_margin_mm (--board-margin) must be finite and >= 0 mm, got {self.board_margin_mm}")
         if self.region_px is not None and len(self.region_px) != 4:
             raise LightplaneError(f"region_px must be (x0, y0, x1, y1), got {self.region_px}")
         if int(self.min_points_per_view) < 0:
@@ -459,15 +591,18 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
     else:
         pose = find_board_pose(bg if per_image and bg is not None else img, camera, target, name=name,
                                channel=opts.channel)
-    mask = board_polygon_mask(camera, pose, target)
+    pattern_mask = board_polygon_mask(camera, pose, target)
+    lit = pat if pat is not None else (bg if per_image else img)
+    mask = board_area_mask(camera, pose, target, image=lit, channel=opts.channel, margin_mm=opts.board_margin_mm)
     if opts.region_px is not None:
         x0, y0, x1, y1 = opts.region_px
         u, v = np.arange(mask.shape[1]), np.arange(mask.shape[0])
         inside = ((v >= y0) & (v < y1))[:, None] & ((u >= x0) & (u < x1))[None, :]
         mask = np.where(inside, mask, 0).astype(mask.dtype)
-    if pat is not None and bg is None and _same_exposure(img, pat, mask, opts.channel):
+    if pat is not None and bg is None and _same_exposure(img, pat, pattern_mask, opts.channel):
         bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
-    stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv)
+    stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
+                             pattern_mask)
     if pats is None and not per_image and len(stripe) >= 2:
         # corners found in the laser-on image: leave out those the stripe runs over
         clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
@@ -559,6 +694,7 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     z = plane_from_board_stripes(camera, v.poses, v.stripes, min_points_per_view=opts.min_points_per_view,
                                  meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
                                        "target": target.to_dict(), "skipped": why,
+                                       "board_margin_mm": opts.board_margin_mm,
                                        "laser_frames": "pattern frames" if fr.pattern_images is not None else
                                        ("background-subtracted" if fr.background_images is not None
                                         else "laser-on only")})

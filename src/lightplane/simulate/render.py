@@ -63,6 +63,7 @@ __all__ = [
     "render_circle_dataset",
     "second_laser_plane",
     "render_chessboard_dataset",
+    "render_board_pose",
     "render_target_dataset",
     "target_spec",
     "target_object_points",
@@ -894,10 +895,33 @@ def _render_board_view(camera: Camera, plane: LightPlane, patches: np.ndarray, i
     return out, ambient, power
 
 
-def _board_patches(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None) -> np.ndarray:
+def _board_patches(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None,
+                   margin_mm: float | None = None) -> np.ndarray:
     """The board and the grey background 250 mm behind it."""
     bg = rc.make_patch([0, 0, float(t[2] + 250.0)], [1, 0, 0], [0, 1, 0], albedo=_BACKGROUND_ALBEDO)
-    return np.array([_target_patch(spec, R, t, layout), bg])
+    return np.array([_target_patch(spec, R, t, layout, margin_mm), bg])
+
+
+def render_board_pose(target, R: ArrayLike, t: ArrayLike, *, margin_mm: float | None = None, seed: int = 0,
+                      options: BoardOptions = BoardOptions(difficulty="clean", with_stripe=True, laser_off=True),
+                      camera: Camera | None = None, plane: LightPlane | None = None) -> dict[str, np.ndarray]:
+    """The images of one board pose ``(R, t)`` (board frame to camera, mm) chosen by the caller:
+    ``{"": laser frame, "_off": laser-off frame}`` (``options``: as :func:`render_target_dataset`).
+
+    ``margin_mm``: the white margin of the board beyond its squares (or outer dot centres);
+    None: one square.  The grey background is 250 mm behind the board.
+    """
+    spec = target_spec(target)
+    if margin_mm is not None and not (np.isfinite(margin_mm) and margin_mm >= 0):
+        raise LightplaneError(f"margin_mm must be finite and >= 0, got {margin_mm}")
+    camera = default_camera() if camera is None else camera
+    plane = default_plane() if plane is None else plane
+    layout = _charuco_layout(spec) if spec.kind == "charuco" else None
+    R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    shots, _, _ = _render_board_view(camera, plane, _board_patches(spec, R, t, layout, margin_mm),
+                                     np.random.default_rng(seed), options,
+                                     None if layout is None else layout["texels"])
+    return dict(shots)
 
 
 def render_chessboard_dataset(n: int = 20, seed: int = 0, options: BoardOptions = BoardOptions(), *,
@@ -1089,16 +1113,18 @@ def target_object_points(target) -> np.ndarray:
     return board_object_points(spec.kind, spec.cols, spec.rows, spec.square_mm)
 
 
-def _target_outline(spec: TargetSpec) -> np.ndarray:
-    """The board's rectangle ``(u0, u1, v0, v1)`` in its frame (mm): a white margin of one
-    square (pitch) around the squares (chessboard, ChArUco) or the outer dot centres."""
+def _target_outline(spec: TargetSpec, margin_mm: float | None = None) -> np.ndarray:
+    """The board's rectangle ``(u0, u1, v0, v1)`` in its frame (mm): a white margin of
+    ``margin_mm`` (None: one square or pitch) around the squares (chessboard, ChArUco) or the
+    outer dot centres."""
     s = spec.square_mm
+    m = s if margin_mm is None else float(margin_mm)
     if spec.kind == "chessboard":
-        return _board_outline((spec.cols, spec.rows), s, s)
+        return _board_outline((spec.cols, spec.rows), s, m)
     if spec.kind == "charuco":
-        return np.array([-s, (spec.cols + 1) * s, -s, (spec.rows + 1) * s])
+        return np.array([-m, spec.cols * s + m, -m, spec.rows * s + m])
     obj = target_object_points(spec)
-    return np.array([obj[:, 0].min() - s, obj[:, 0].max() + s, obj[:, 1].min() - s, obj[:, 1].max() + s])
+    return np.array([obj[:, 0].min() - m, obj[:, 0].max() + m, obj[:, 1].min() - m, obj[:, 1].max() + m])
 
 
 def _fraction_gcd(values: list[float]) -> float:
@@ -1171,8 +1197,9 @@ def _charuco_layout(spec: TargetSpec) -> dict:
             "board": board}
 
 
-def _target_patch(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None) -> np.ndarray:
-    u0, u1, v0, v1 = _target_outline(spec)
+def _target_patch(spec: TargetSpec, R: np.ndarray, t: np.ndarray, layout: dict | None,
+                  margin_mm: float | None = None) -> np.ndarray:
+    u0, u1, v0, v1 = _target_outline(spec, margin_mm)
     s = spec.square_mm
     region = (u0, u1, v0, v1)
     if spec.kind == "chessboard":
