@@ -26,15 +26,18 @@ SAME_PX = 1e-9
 
 def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool):
     """The blurred saddle of :func:`lightplane.camera.corners.fit_corners` at offsets ``(ux, uy)`` (N, K) from the
-    corners; ``P`` (N, 11) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy.  Returns the model
-    (N, K) and, if asked, its Jacobian (N, 11, K)."""
+    corners; ``P`` (N, 13) = qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy, κ1, κ2 (the edges' bends, held).
+    Returns the model (N, K) and, if asked, its Jacobian (N, 11, K) in the free parameters."""
     from scipy.special import erf
 
     c1, s1 = np.cos(P[:, 2:3]), np.sin(P[:, 2:3])
     c2, s2 = np.cos(P[:, 3:4]), np.sin(P[:, 3:4])
     s = P[:, 4:5]
-    d1 = c1 * ux + s1 * uy
-    d2 = c2 * ux + s2 * uy
+    k1, k2 = P[:, 11:12], P[:, 12:13]
+    n1, n2 = c1 * ux + s1 * uy, c2 * ux + s2 * uy
+    t1, t2 = c1 * uy - s1 * ux, c2 * uy - s2 * ux  # along the edges
+    d1 = n1 + k1 * t1**2
+    d2 = n2 + k2 * t2**2
     e1 = erf(d1 / (np.sqrt(2.0) * s))
     e2 = erf(d2 / (np.sqrt(2.0) * s))
     ee = e1 * e2
@@ -46,10 +49,10 @@ def _saddle_model(P: np.ndarray, ux: np.ndarray, uy: np.ndarray, jacobian: bool)
     b1 = amp * (k * np.exp(-0.5 * (d1 / s) ** 2)) * e2  # amp · E'(d1) E(d2)
     b2 = amp * e1 * (k * np.exp(-0.5 * (d2 / s) ** 2))
     J = np.empty((P.shape[0], 11, ux.shape[1]))
-    J[:, 0] = -P[:, 7:8] - P[:, 9:10] * ee - b1 * c1 - b2 * c2
-    J[:, 1] = -P[:, 8:9] - P[:, 10:11] * ee - b1 * s1 - b2 * s2
-    J[:, 2] = b1 * (c1 * uy - s1 * ux)
-    J[:, 3] = b2 * (c2 * uy - s2 * ux)
+    J[:, 0] = -P[:, 7:8] - P[:, 9:10] * ee - b1 * (c1 - 2 * k1 * t1 * s1) - b2 * (c2 - 2 * k2 * t2 * s2)
+    J[:, 1] = -P[:, 8:9] - P[:, 10:11] * ee - b1 * (s1 + 2 * k1 * t1 * c1) - b2 * (s2 + 2 * k2 * t2 * c2)
+    J[:, 2] = b1 * t1 * (1 - 2 * k1 * n1)
+    J[:, 3] = b2 * t2 * (1 - 2 * k2 * n2)
     J[:, 4] = -(b1 * d1 + b2 * d2) / s
     J[:, 5] = 1.0
     J[:, 6] = ee
@@ -75,7 +78,8 @@ def _solve_each(A, b):
 
 
 def numpy_fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol):
-    """The batched numpy Levenberg–Marquardt that :func:`ck.fit_saddles` replaces (lightplane 7a27c47)."""
+    """The batched numpy Levenberg–Marquardt that :func:`ck.fit_saddles` replaces (lightplane 7a27c47; with
+    the edges' bends ``P[:, 11:13]`` held)."""
     def weight(q):
         ux, uy = px - q[:, :1], py - q[:, 1:]
         t = np.clip((radius[:, None] - np.hypot(ux, uy)) / taper, 0.0, 1.0)
@@ -114,7 +118,8 @@ def numpy_fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol):
         diag = np.einsum("nii->ni", A_best)
         step = _solve_each(A_best + (lam[:, None] * diag)[:, :, None] * eye, g_best)
         step[~np.all(np.isfinite(step), axis=1)] = 0.0
-        P = best_P + step
+        P = best_P.copy()
+        P[:, :11] += step
         if np.all(better) and np.abs(step[:, :2]).max(initial=0.0) < tol:
             break
     return best_P, best_cost
@@ -181,8 +186,10 @@ def test_saddle_fit_is_the_numpy_loop(monkeypatch, noisy_board):
                  SHAPE[1], SHAPE[0])
     cold, (q1, _, ok1, P1) = _recorded_fits(monkeypatch, lambda: _fit_corners(img, start, BOARD))
     warm, (q2, _, ok2, _) = _recorded_fits(monkeypatch, lambda: _fit_corners(img, q1, BOARD, camera=cam, start=P1))
-    assert ok1.all() and ok2.all() and len(cold) == 2 and len(warm) == 2
-    assert not cold[0][0][7] and warm[0][0][7]  # the cold start solves the linear parameters, the warm one not
+    # two chunks each (the cold fit's calls after them: its corners fitted again with the bends of their
+    # fitted grid, a warm start)
+    assert ok1.all() and ok2.all() and len(warm) == 2 and [c[0][7] for c in cold[:2]] == [False, False]
+    assert all(c[0][7] for c in cold[2:]) and warm[0][0][7]  # the cold start solves the linear parameters, the warm one not
     for args, best_P, best_cost in cold + warm:
         ref_P, ref_cost = numpy_fit_saddles(*args)
         assert np.abs(best_P[:, :2] - ref_P[:, :2]).max() < SAME_PX

@@ -141,14 +141,18 @@ def _erf(x):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
-    """The saddle model's ``erf`` factors ``e1``, ``e2`` for parameters ``p`` (11,) at the ``m`` offsets."""
+    """The saddle model's ``erf`` factors ``e1``, ``e2`` for parameters ``p`` (13,) at the ``m`` offsets (the
+    edges' signed distances ``d_i = n_i·u + κ_i t_i²``, ``t_i`` along the edge, ``κ_i = p[11 + i]``)."""
     c1, s1 = math.cos(p[2]), math.sin(p[2])
     c2, s2 = math.cos(p[3]), math.sin(p[3])
+    k1, k2 = p[11], p[12]
     den = _SQRT2 * p[4]
     for k in range(m):
         x, y = ux[k], uy[k]
-        e1[k] = _erf((c1 * x + s1 * y) / den)
-        e2[k] = _erf((c2 * x + s2 * y) / den)
+        t1 = c1 * y - s1 * x
+        t2 = c2 * y - s2 * x
+        e1[k] = _erf((c1 * x + s1 * y + k1 * (t1 * t1)) / den)
+        e2[k] = _erf((c2 * x + s2 * y + k2 * (t2 * t2)) / den)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -188,28 +192,36 @@ def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
-    """The saddle model's Jacobian in its 11 parameters (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy)
-    at the ``m`` offsets, times the square root of the weight, into ``J`` (11, K); the residuals
-    ``res`` scaled alike."""
+    """The saddle model's Jacobian in its 11 free parameters (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy;
+    the edges' bends κ1, κ2 held) at the ``m`` offsets, times the square root of the weight, into ``J``
+    (11, K); the residuals ``res`` scaled alike."""
     c1, s1 = math.cos(p[2]), math.sin(p[2])
     c2, s2 = math.cos(p[3]), math.sin(p[3])
+    k1, k2 = p[11], p[12]
     s = p[4]
     kk = _SQRT_2_PI / s
     for k in range(m):
         xk, yk = ux[k], uy[k]
-        d1 = c1 * xk + s1 * yk
-        d2 = c2 * xk + s2 * yk
+        n1 = c1 * xk + s1 * yk
+        n2 = c2 * xk + s2 * yk
+        t1 = c1 * yk - s1 * xk  # along the edges: d_i = n_i·u + κ_i t_i²
+        t2 = c2 * yk - s2 * xk
+        d1 = n1 + k1 * (t1 * t1)
+        d2 = n2 + k2 * (t2 * t2)
         ee = e1[k] * e2[k]
         amp = p[6] + p[9] * xk + p[10] * yk
-        t1 = d1 / s
-        t2 = d2 / s
-        b1 = amp * (kk * math.exp(-0.5 * (t1 * t1))) * e2[k]
-        b2 = amp * e1[k] * (kk * math.exp(-0.5 * (t2 * t2)))
+        r1 = d1 / s
+        r2 = d2 / s
+        b1 = amp * (kk * math.exp(-0.5 * (r1 * r1))) * e2[k]
+        b2 = amp * e1[k] * (kk * math.exp(-0.5 * (r2 * r2)))
         sw = math.sqrt(W[k])
-        J[0, k] = sw * (-p[7] - p[9] * ee - b1 * c1 - b2 * c2)
-        J[1, k] = sw * (-p[8] - p[10] * ee - b1 * s1 - b2 * s2)
-        J[2, k] = sw * (b1 * (c1 * yk - s1 * xk))
-        J[3, k] = sw * (b2 * (c2 * yk - s2 * xk))
+        # ∂d_i/∂u = n_i + 2 κ_i t_i (-sin φ_i, cos φ_i);  ∂d_i/∂φ_i = t_i (1 - 2 κ_i n_i·u)
+        a1 = 2.0 * k1 * t1
+        a2 = 2.0 * k2 * t2
+        J[0, k] = sw * (-p[7] - p[9] * ee - b1 * (c1 - a1 * s1) - b2 * (c2 - a2 * s2))
+        J[1, k] = sw * (-p[8] - p[10] * ee - b1 * (s1 + a1 * c1) - b2 * (s2 + a2 * c2))
+        J[2, k] = sw * (b1 * t1 * (1.0 - 2.0 * k1 * n1))
+        J[3, k] = sw * (b2 * t2 * (1.0 - 2.0 * k2 * n2))
         J[4, k] = sw * (-(b1 * d1 + b2 * d2) / s)
         J[5, k] = sw
         J[6, k] = sw * ee
@@ -241,9 +253,9 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
     """``intrinsics._fit_saddles``' Levenberg–Marquardt for the corners of one chunk: pixel centres
     ``px, py`` (n, K) (lens-frame coordinates with a camera), image values ``img`` (n, K), the weight's
     fixed factor ``w0`` (n, K) (inside the image times the area element), window radii ``radius`` (n,);
-    ``P`` (n, 11) the start (overwritten), ``warm``: whole parameter sets (else the linear parameters
-    are solved for first).  Writes the best parameters ``best_P`` (n, 11) and their weighted mean
-    squared residual ``best_cost`` (n,)."""
+    ``P`` (n, 13) the start (overwritten; its edge bends ``P[:, 11:13]`` held), ``warm``: whole parameter
+    sets (else the linear parameters are solved for first).  Writes the best parameters ``best_P`` (n, 13)
+    and their weighted mean squared residual ``best_cost`` (n,)."""
     n, K = px.shape
     ux = np.empty(K)
     uy = np.empty(K)
@@ -307,6 +319,60 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
                 big_step = max(big_step, abs(step[0]), abs(step[1]))
         if all_better and big_step < tol:
             break
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def line_bends(g, e, ok, width, kappa):  # pragma: no cover - compiled
+    """:func:`lightplane.camera.corners._line_bends`: for each corner of the grid lines ``g`` (lines, m, 2)
+    (line directions ``e`` (lines, m, 2), usable corners ``ok`` (lines, m)), the polynomial
+    ``y = a + b t + c t² (+ d t³)`` by least squares through the usable corners among the ``width``
+    nearest on its line (centred, shifted in at the ends), in the frame of the corner and ``e``;
+    ``kappa`` (lines, m) ``= -c`` (a parabola through 4 or 5 corners, the cubic through 6 or more;
+    0 through fewer)."""
+    n_lines, m = ok.shape
+    A = np.empty((4, 4))
+    b = np.empty(4)
+    x = np.empty(4)
+    for i in range(n_lines):
+        for j in range(m):
+            first = min(max(j - width // 2, 0), m - width)
+            ux, uy = e[i, j, 0], e[i, j, 1]
+            nrm = math.sqrt(ux * ux + uy * uy)
+            ux /= nrm
+            uy /= nrm
+            count = 0
+            scale = 1e-9
+            for k in range(first, first + width):
+                if ok[i, k]:
+                    count += 1
+                    scale = max(scale, abs((g[i, k, 0] - g[i, j, 0]) * ux + (g[i, k, 1] - g[i, j, 1]) * uy))
+            kappa[i, j] = 0.0
+            if count < 4:
+                continue
+            deg = 3 if count >= 6 else 2
+            A[:] = 0.0
+            b[:] = 0.0
+            for k in range(first, first + width):
+                if not ok[i, k]:
+                    continue
+                dx = g[i, k, 0] - g[i, j, 0]
+                dy = g[i, k, 1] - g[i, j, 1]
+                t = (dx * ux + dy * uy) / scale
+                y = dy * ux - dx * uy  # along n = (-u_y, u_x), the saddle model's edge normal
+                p = 1.0
+                for r in range(deg + 1):
+                    q = p * p  # t^(r + c)
+                    for c in range(r, deg + 1):
+                        A[r, c] += q
+                        q *= t
+                    b[r] += p * y
+                    p *= t
+            for r in range(deg + 1):
+                for c in range(r):
+                    A[r, c] = A[c, r]
+            _solve(A[:deg + 1, :deg + 1], b[:deg + 1], x[:deg + 1])
+            if math.isfinite(x[2]):
+                kappa[i, j] = -x[2] / (scale * scale)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lightplane.camera._corner_kernels import fit_saddles, forstner, window_pixels
+from lightplane.camera._corner_kernels import fit_saddles, forstner, line_bends, window_pixels
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import to_gray_float
@@ -20,6 +20,11 @@ __all__ = ["MIN_BOARD_BLUR_PX", "CornerFitOptions", "find_board", "fit_corners",
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
 #: pixel scale (see :func:`fit_corners`); sharpened camera images (halos) are not.
 MIN_BOARD_BLUR_PX = 0.55
+
+#: The saddle fit's corners are fitted again where the bends of their edges (:func:`_grid_bends`) measured
+#: on the fitted corners differ from those on the start corners by more than this across the window (px):
+#: a corner moves by ~0.27 of such a change (measured), so at most ~0.0005 px is left.
+BEND_TOL_PX = 0.002
 
 
 def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, *, sigma_frac: float = 0.2,
@@ -134,7 +139,7 @@ class _LensFrame:
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
                  tol_px: float, camera: Camera | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg–Marquardt fit of the blurred saddle of :func:`fit_corners` to ``g`` for corners with starting
-    parameters ``P`` (n, 11) and window radii ``radius`` (n,) px: the fitted parameters
+    parameters ``P`` (n, 13) and window radii ``radius`` (n,) px: the fitted parameters
     and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
     the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
     ``warm``: ``P`` is a whole fitted parameter set (else only the corner, edge angles and blur:
@@ -176,6 +181,8 @@ class CornerFitOptions:
     max_iter, tol_px : Levenberg–Marquardt steps at most, and the corner step (px) that ends them.
     min_blur_px : corners whose fitted blur ``|s|`` is below this keep their input.
     chunk_size : corners fitted together (bounded memory).
+    bent_edges : the model's edges bent as the board's grid lines are at each corner (the lens's
+        distortion, :func:`fit_corners`); False: straight edges.
     """
 
     radius_frac: float = 0.75
@@ -185,6 +192,7 @@ class CornerFitOptions:
     tol_px: float = 1e-4
     min_blur_px: float = 0.4
     chunk_size: int = 24
+    bent_edges: bool = True
 
     def __post_init__(self) -> None:
         for name in ("radius_frac", "max_radius_px", "tol_px"):
@@ -206,13 +214,13 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
 
         I(p) = a + g·(p - q) + (b + h·(p - q)) · E(d1 / s) · E(d2 / s),   E(t) = erf(t / √2),
 
-    with ``d_i = n_i·(p - q)`` the signed distances (px) to the two board edges through
-    the corner (normal angles φ1, φ2 free: in perspective the edges are not
-    perpendicular), ``s`` the blur (Gaussian PSF ⊗ pixel box ≈ Gaussian of
-    ``s² = σ_psf² + 1/12``), ``a, b`` the mean and half-contrast, ``g, h`` their
+    with ``d_i = n_i·(p - q) + κ_i (t_i·(p - q))²`` the signed distances (px) to the two board edges
+    through the corner (normal angles φ1, φ2 free: in perspective the edges are not
+    perpendicular; ``t_i`` along the edge, ``κ_i`` its bend, below), ``s`` the blur (Gaussian
+    PSF ⊗ pixel box ≈ Gaussian of ``s² = σ_psf² + 1/12``), ``a, b`` the mean and half-contrast, ``g, h`` their
     gradients (vignetting and shading; the multiplicative ``h`` term matters because,
-    being odd about ``q``, it would otherwise pull the corner).  All 11 parameters are
-    fitted per corner by Levenberg–Marquardt (compiled, :mod:`lightplane.camera._corner_kernels`;
+    being odd about ``q``, it would otherwise pull the corner).  All 11 parameters but the
+    bends are fitted per corner by Levenberg–Marquardt (compiled, :mod:`lightplane.camera._corner_kernels`;
     the corners of a chunk step together until all are done), over the pixel centres within a
     disc about the *current* ``q`` (radius ``radius_frac`` × the distance to the nearest parallel
     grid line, at most ``max_radius_px``; the weight falls smoothly to 0 over its last
@@ -235,17 +243,25 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     sampling), against 0.019 px for :func:`refine_corners` and 0.031 px for
     ``cornerSubPix``; ~0.1 s of CPU per view of 165 corners (0.4 s as the numpy loop it was).
 
-    Lens distortion bends the board edges across the disc, which breaks the symmetry: the
-    straight-edge model then pulls the corners towards the image centre (a rendered wide
-    6 mm lens, ~0.06 px of bend per window: -0.003 px at r < 200 px, -0.01 px at 400–600 px,
-    enough to bias the focal length by 12 sigma).  With ``camera`` (the lens, e.g. from a
-    first calibration) the model is fitted in the lens frame about each corner
-    (:class:`_LensFrame`: the pixel centres mapped through the undistortion and back by the
-    local Jacobian, so the first-order geometry is unchanged and only the bending removed;
-    each pixel weighted by the area element so the sums stay integrals): the edges are
-    straight there and the pull is gone (+0.0003 px at every radius on the same renders).
-    :func:`calibrate_camera` does this for the corners whose windows its first
-    calibration's lens bends by more than :data:`LENS_REFIT_BEND_PX`.
+    Lens distortion bends the board edges across the disc, which breaks the symmetry: with straight
+    edges the fit pulls the corners towards the image centre (a rendered wide 6 mm lens, ~0.06 px of
+    bend per window: -0.003 px at r < 200 px, -0.010 px at 400–600 px, enough to bias the focal
+    length by 10 σ; a 2.6 mm fisheye -0.013 to -0.023 px).  So the model's edges are bent as the
+    board's own lines are (``bent_edges``): a board line stays straight in perspective, the lens
+    alone bends it, and its bend at a corner is that of the corners on it (a cubic through the
+    corner and its neighbours on the line, :func:`_grid_bends`; ``κ_i`` held in the fit).  The bend's
+    quadratic part is what breaks the symmetry (a cubic one is point-symmetric about ``q``), so the
+    pull is gone.  The bends are measured on the start corners first, then again on the fitted ones,
+    and the corners whose bends that changed by more than :data:`BEND_TOL_PX` across the window are
+    fitted again (a noisy start, ~0.1 px, bends its neighbours' lines).  On 10 realistic renders of
+    each lens: wide 6 mm lens +0.0003 / +0.0001 / +0.0000 px at r < 200 / 200–400 / 400–600 px,
+    0.0070 px RMS (straight edges 0.0101 px); fisheye within ±0.0008 px, 0.0104 px RMS (0.0232 px);
+    the default 16 mm lens 0.0060 px RMS either way; ~1.06x the straight fit's time.  With ``camera``
+    (a lens known, e.g. from a calibration) the straight model is fitted in the lens frame about each
+    corner instead (:class:`_LensFrame`: the pixel centres mapped through the undistortion and back
+    by the local Jacobian, so the first-order geometry is unchanged and only the bending removed;
+    each pixel weighted by the area element so the sums stay integrals): the same corners to the
+    noise (+0.0003 px on the wide lens), at ~1.4x the straight fit's time.
 
     Parameters
     ----------
@@ -256,7 +272,8 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
         local spacing of every corner
 
     options : :class:`CornerFitOptions` (None: the defaults)
-    camera : the lens (any model): fit in its lens frame (the corners returned in distorted px)
+    camera : the lens (any model): fit in its lens frame with straight edges (the corners returned in
+        distorted px)
 
     Corners whose fit fails (singular, not finite, blur outside ``options.min_blur_px`` … half
     the radius, contrast below 5x the residual noise, edge directions turned by more
@@ -271,11 +288,11 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
                  min_bend_px: float = 0.0, start: np.ndarray | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`fit_corners`, also returning the fitted blur ``s`` (N,) px, which corners were fitted (N,) bool
-    and the fitted parameters (N, 11) (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy of :func:`fit_corners`'s
-    model; NaN rows where not fitted).
+    and the fitted parameters (N, 13) (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy, κ1, κ2 of
+    :func:`fit_corners`'s model, the bends κ held; NaN rows where not fitted).
     With ``camera`` only the corners whose window the lens bends by more than ``min_bend_px``
     (:func:`lens_bend`) are fitted; the others keep their input (blur NaN, not fitted).
-    ``start``: (N, 11) parameters of an earlier fit about ``corners_uv`` to start from (its corners
+    ``start``: (N, 13) parameters of an earlier fit about ``corners_uv`` to start from (its corners
     ``corners_uv``; NaN rows: the corners it did not fit, which start afresh), e.g. the fit without
     ``camera`` for the refit in the lens frame (which, to first order, changes nothing about the
     corner): the Levenberg–Marquardt then converges in one or two steps instead of three or four."""
@@ -291,30 +308,74 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     if camera is not None and min_bend_px > 0:
         sel = lens_bend(camera, q0, radius) > min_bend_px
     P, warm = _start_parameters(q0, e_row, e_col, start)
-    cost = np.full(n, np.inf)
-    for group, is_warm in ((sel & ~warm, False), (sel & warm, True)):
-        # corners in chunks of similar radius: bounded memory, few padded pixels
+    bent = opts.bent_edges and (camera is None or not camera.has_distortion)
+    if bent:
+        P[~warm, 11:13] = _clipped_bends(q0, (cols, rows), radius, np.ones(n, bool))[~warm]
+    else:  # straight edges (in the lens frame the lens's bending is taken out)
+        P[:, 11:13] = 0.0
+    P, cost = _fit_groups(g, P, radius, [sel & ~warm, sel & warm], opts, camera)
+    geometry = (q0, gap, radius, e_row, e_col)
+    bad = _failed(P, cost, geometry, opts) | ~sel
+    for _ in range(3 if bent else 0):
+        # the bends again from the fitted corners (the start's noise, ~0.02 px from Förstner's step, bends
+        # its neighbours' lines by ~0.15 of it); refit where they moved a window's edge by > BEND_TOL_PX
+        bends = _clipped_bends(np.where(bad[:, None], q0, P[:, :2]), (cols, rows), radius, ~bad)
+        again = ~bad & (np.max(np.abs(bends - P[:, 11:13]), axis=1) * radius**2 > BEND_TOL_PX)
+        if not again.any():
+            break
+        P[again, 11:13] = bends[again]
+        P2, cost2 = _fit_groups(g, P, radius, [np.zeros(n, bool), again], opts, camera)
+        P[again], cost[again] = P2[again], cost2[again]
+        bad[again] = _failed(P, cost, geometry, opts)[again]
+    q = np.where(bad[:, None], q0, P[:, :2])
+    blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
+    blur[~sel] = np.nan
+    P[bad] = np.nan
+    return q, blur, ~bad, P
+
+
+def _failed(P: np.ndarray, cost: np.ndarray, geometry: tuple, opts: CornerFitOptions) -> np.ndarray:
+    """The saddle fits (parameters ``P`` (N, 13), costs (N,)) that failed (N,) bool: not finite, the corner
+    moved by more than a quarter of the gap, blur out of range, contrast below 5x the residual noise,
+    an edge turned by more than 20° from the grid's direction.  ``geometry``: the start corners, their
+    gaps, window radii and grid directions (:func:`_grid_geometry`)."""
+    q0, gap, radius, e_row, e_col = geometry
+
+    def turned(phi, e):  # angle between the fitted edge and the grid direction
+        return np.abs(np.cos(phi) * e[:, 0] + np.sin(phi) * e[:, 1]) / np.linalg.norm(e, axis=1)
+
+    noise = np.sqrt(np.maximum(cost, 0.0))
+    blur = np.abs(P[:, 4])
+    max_turn = np.sin(np.radians(20.0))
+    with np.errstate(invalid="ignore"):
+        return (~np.all(np.isfinite(P), axis=1) | ~(np.linalg.norm(P[:, :2] - q0, axis=1) <= 0.25 * gap)
+                | ~(blur >= opts.min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
+                | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn))
+
+
+def _fit_groups(g: np.ndarray, P: np.ndarray, radius: np.ndarray, groups: list, opts: CornerFitOptions,
+                camera: Camera | None) -> tuple[np.ndarray, np.ndarray]:
+    """The saddle fits of the corners of ``groups`` ([cold, warm] (N,) bool: started from their geometry
+    alone, or from a whole parameter set), in chunks of similar radius (bounded memory, few padded
+    pixels): the parameters (N, 13) (the others as they were) and costs (N,) (inf where not fitted)."""
+    P = P.copy()
+    cost = np.full(len(P), np.inf)
+    for group, is_warm in zip(groups, (False, True)):
         order = np.flatnonzero(group)[np.argsort(radius[group])]
         for chunk in np.array_split(order, max(1, int(np.ceil(order.size / opts.chunk_size)))):
             if chunk.size == 0:
                 continue
             P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], opts.taper_px, opts.max_iter,
                                                  opts.tol_px, camera, warm=is_warm)
-    q = P[:, :2].copy()
+    return P, cost
 
-    def turned(phi, e):  # angle between the fitted edge and the grid direction
-        return np.abs(np.cos(phi) * e[:, 0] + np.sin(phi) * e[:, 1]) / np.linalg.norm(e, axis=1)
 
-    noise = np.sqrt(np.maximum(cost, 0.0))
-    blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
-    max_turn = np.sin(np.radians(20.0))
-    bad = (~np.all(np.isfinite(P), axis=1) | (np.linalg.norm(q - q0, axis=1) > 0.25 * gap)
-           | ~(blur >= opts.min_blur_px) | ~(blur < 0.5 * radius) | ~(np.abs(P[:, 6]) > 5.0 * noise)
-           | (turned(P[:, 2], e_row) > max_turn) | (turned(P[:, 3], e_col) > max_turn) | ~sel)
-    q[bad] = q0[bad]
-    blur[~sel] = np.nan
-    P[bad] = np.nan
-    return q, blur, ~bad, P
+def _clipped_bends(q: np.ndarray, board: tuple[int, int], radius: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """:func:`_grid_bends` of the corners ``q`` (N, 2) (those of ``use`` (N,) bool) as (N, 2), each at most
+    1 px across its window (radius ``radius`` (N,)): a misplaced corner bends its neighbours' lines."""
+    _, e_row, e_col = _grid_geometry(q, board)
+    top = (1.0 / radius**2)[:, None]
+    return np.clip(np.column_stack(_grid_bends(q, board, e_row, e_col, use)), -top, top)
 
 
 def _checked_corner_input(gray: np.ndarray, corners_uv: np.ndarray,
@@ -337,13 +398,50 @@ def _checked_corner_input(gray: np.ndarray, corners_uv: np.ndarray,
     return g, q0, cols, rows
 
 
+def _grid_bends(q0: np.ndarray, board: tuple[int, int], e_row: np.ndarray, e_col: np.ndarray,
+                use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How the lens bends the two board edges through each corner (N,) each, 1/px: ``κ`` of the edge
+    along the row and of the edge along the column, as :func:`fit_corners`' model has them
+    (``d = n·u + κ (t·u)²``, ``n`` the edge's normal of the grid direction, ``t`` along it), from the
+    grid itself: a board line stays straight in perspective, what bends it is the lens, so the
+    line's bend at a corner is that of the corners on it (:func:`_line_bends`; only the corners
+    ``use`` (N,) bool)."""
+    cols, rows = board
+    g = q0.reshape(rows, cols, 2)
+    ok = use.reshape(rows, cols)
+    k_row = _line_bends(g, e_row.reshape(rows, cols, 2), ok)
+    k_col = _line_bends(g.transpose(1, 0, 2), e_col.reshape(rows, cols, 2).transpose(1, 0, 2), ok.T).T
+    # the bend changes smoothly from a line to the next: (1, 2, 1) / 4 across the lines halves its noise
+    # (from the start corners; the fit refits fewer corners) and moves it by a quarter of its second
+    # difference across the lines (nothing on the lenses measured)
+    k_row[1:-1] = 0.25 * k_row[:-2] + 0.5 * k_row[1:-1] + 0.25 * k_row[2:]
+    k_col[:, 1:-1] = 0.25 * k_col[:, :-2] + 0.5 * k_col[:, 1:-1] + 0.25 * k_col[:, 2:]
+    return k_row.ravel(), k_col.ravel()
+
+
+def _line_bends(g: np.ndarray, e: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The bend ``κ`` (lines, m) of grid lines of corners ``g`` (lines, m, 2) at each corner, whose line
+    direction there is ``e`` (lines, m, 2): the corner's neighbours on the line (9, centred where the
+    line allows, shifted in at its ends; all of a shorter line; those of ``ok`` (lines, m) only) in the
+    frame of the corner and ``e`` (``t`` along, ``y`` across), and ``y = a + b t + c t² + d t³`` fitted
+    to them (a parabola through 4 or 5): the edge through the corner lies at ``y = c t²``, ``κ = -c``
+    (:func:`lightplane.camera._corner_kernels.line_bends`).  The cubic term keeps the bend's change
+    along the line out of ``c`` at the ends; 9 corners (not 5) halve the start corners' noise in ``κ``.
+    0 through fewer than 4 corners."""
+    kappa = np.zeros(ok.shape)
+    if ok.shape[1] >= 4:
+        line_bends(np.ascontiguousarray(g, np.float64), np.ascontiguousarray(e, np.float64),
+                   np.ascontiguousarray(ok), min(9, ok.shape[1]), kappa)
+    return kappa
+
+
 def _start_parameters(q0: np.ndarray, e_row: np.ndarray, e_col: np.ndarray,
                       start: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The saddle fit's starting parameters (N, 11): the corners ``q0``, the edge normals of the grid's
-    row and column directions, unit blur; or, where ``start`` holds a whole fit about the same
-    corner, that fit (``warm``, (N,) bool)."""
+    """The saddle fit's starting parameters (N, 13): the corners ``q0``, the edge normals of the grid's
+    row and column directions, unit blur, straight edges; or, where ``start`` holds a whole fit about
+    the same corner, that fit (``warm``, (N,) bool)."""
     n = len(q0)
-    P = np.zeros((n, 11))
+    P = np.zeros((n, 13))
     P[:, :2] = q0
     P[:, 2] = np.arctan2(e_row[:, 0], -e_row[:, 1])  # normal of the edge along the row
     P[:, 3] = np.arctan2(e_col[:, 0], -e_col[:, 1])
@@ -351,8 +449,8 @@ def _start_parameters(q0: np.ndarray, e_row: np.ndarray, e_col: np.ndarray,
     warm = np.zeros(n, bool)
     if start is not None:
         start = np.asarray(start, np.float64)
-        if start.shape != (n, 11):
-            raise LightplaneError(f"fit_corners: start must have shape ({n}, 11), got {start.shape}")
+        if start.shape != (n, 13):
+            raise LightplaneError(f"fit_corners: start must have shape ({n}, 13), got {start.shape}")
         warm = np.all(np.isfinite(start), axis=1) & np.all(start[:, :2] == q0, axis=1)
         P[warm] = start[warm]
     return P, warm
