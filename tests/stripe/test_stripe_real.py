@@ -227,3 +227,45 @@ def test_extract_stripe_defaults_on_board(frames, frame, k):
     assert inl.mean() >= MIN_INLIER_FRACTION
     assert rms <= MAX_RMS_PX
     assert coverage >= MIN_COVERAGE
+
+
+# ----------------------------------------------------------------------------------------
+# no spurious fragments: default extract_stripe, no board mask
+
+BAND_ROWS = 40
+
+
+def _band_fit(uv: np.ndarray, cid: np.ndarray) -> np.ndarray:
+    """Residuals (px) of the points about their stripe's robust curve: undistorted, a quadratic
+    v(u) fitted first to the band's longest curve, then refitted to all points within 3, 2, 1 px."""
+    und = CAMERA.undistort_points(uv)
+    ids, counts = np.unique(cid, return_counts=True)
+    inl = cid == ids[np.argmax(counts)]
+    for tol in (3.0, 2.0, 1.0, 1.0, 1.0):
+        c = np.polyfit(und[inl, 0], und[inl, 1], 2)
+        r = und[:, 1] - np.polyval(c, und[:, 0])
+        inl = np.abs(r) < tol
+    return r
+
+
+@pytest.mark.parametrize("channel", [None, "red"])
+@pytest.mark.parametrize("frame", FRAMES)
+def test_extract_stripe_defaults_no_fragments(frames, frame, channel):
+    """Default ``extract_stripe`` over the whole frame (no mask): of the points within 40 rows of
+    each stripe (its band), >= 95 % lie within 1 px of the stripe's robust curve; texture
+    fragments along the board's squares are rejected.  Without the rule the band holds such
+    fragments (fewer points within 1 px), and the rule keeps the stripe: at least 95 % of the
+    band's points on the line without it are still there with it."""
+    diff = frames[frame]
+    sp = extract_stripe(diff, StripePointsOptions(channel=channel))
+    old = extract_stripe(diff, StripePointsOptions(channel=channel, reject_fragments=False))
+    for k, v0 in enumerate(_stripe_rows(diff)):
+        sel = np.abs(sp.uv[:, 1] - v0) < BAND_ROWS
+        r = _band_fit(sp.uv[sel], sp.curve_id[sel])
+        sel_old = np.abs(old.uv[:, 1] - v0) < BAND_ROWS
+        r_old = _band_fit(old.uv[sel_old], old.curve_id[sel_old])
+        within, within_old = np.mean(np.abs(r) < 1.0), np.mean(np.abs(r_old) < 1.0)
+        print(f"{frame} {channel} stripe {k}: within 1 px {within:.3f} (without the rule {within_old:.3f})")
+        assert within >= MIN_INLIER_FRACTION
+        assert within >= within_old
+        assert np.sum(np.abs(r) < 1.0) >= 0.95 * np.sum(np.abs(r_old) < 1.0)

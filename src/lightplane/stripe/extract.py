@@ -1114,18 +1114,17 @@ def _stripe_curves(image, gray, pts: _CurvePoints, is_core, core_len, sc: _Strip
         if image.ndim != 3:
             raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
         keep &= (_chroma(image, rows, cols) >= float(options.min_chroma)) | is_core
-    idx = np.flatnonzero(keep)
-    if idx.size == 0:
+    core = is_core if is_core.any() else None
+    kept = _split_runs(pts, keep, int(options.min_length), options.reject_fragments)
+    if kept is None:
         return None
-    brk = np.ones(idx.size, bool)
-    brk[1:] = (np.diff(idx) != 1) | (np.diff(pts.cid[idx]) != 0)      # split curves at dropped points
-    pts = pts.take(idx, renumber=False)
-    pts = _CurvePoints(pts.uv, pts.nrm, pts.st, pts.width, pts.bg, np.cumsum(brk) - 1)
-    counts = np.bincount(pts.cid)
-    good = counts[pts.cid] >= int(options.min_length)
-    if not good.any():
-        return None
-    pts = pts.take(good)
+    pts, sel = kept
+    if options.reject_fragments:
+        core = None if core is None else core[sel]
+        kept = _split_runs(pts, _stripe_like(pts, core, w), int(options.min_length), False)
+        if kept is None:
+            return None
+        pts = kept[0]
     sw = options.suppress_weaker
     if sw is not None and float(sw) > 0 and pts.cid.size:
         good = _drop_overshadowed(pts.uv, pts.nrm, pts.st, pts.cid, (H, W), _SHADOW_REACH_WIDTHS * w, 1.5 * w + 2.0,
@@ -1135,6 +1134,162 @@ def _stripe_curves(image, gray, pts: _CurvePoints, is_core, core_len, sc: _Strip
             if pts.cid.size == 0:
                 return None
     return pts
+
+
+def _split_runs(pts: _CurvePoints, keep: np.ndarray, min_length: int, kinks: bool):
+    """The points ``keep`` of ``pts``, their curves split where points were dropped (and with
+    ``kinks`` where the normal turns by more than 45 degrees at once), runs shorter than
+    ``min_length`` left out, numbered 0..; also their indices in ``pts``.  None when none is left."""
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return None
+    brk = np.ones(idx.size, bool)
+    brk[1:] = (np.diff(idx) != 1) | (np.diff(pts.cid[idx]) != 0)
+    pts = pts.take(idx, renumber=False)
+    if kinks:
+        # a stripe's normal turns slowly; a texture edge that joins it turns at once, and stays
+        # turned (the normals two points before and after differ too: not one speckled point)
+        turn = np.abs(np.sum(pts.nrm[1:] * pts.nrm[:-1], axis=1)) < _KINK_COS
+        turn[1:-1] &= np.abs(np.sum(pts.nrm[3:] * pts.nrm[:-3], axis=1)) < _KINK_COS
+        brk[1:] |= turn
+    cid = np.cumsum(brk) - 1
+    good = np.bincount(cid)[cid] >= min_length
+    if not good.any():
+        return None
+    pts = _CurvePoints(pts.uv, pts.nrm, pts.st, pts.width, pts.bg, cid).take(good)
+    return pts, idx[good]
+
+
+# fragments (StripePointsOptions.reject_fragments)
+_KINK_COS = math.cos(math.radians(45.0))   # a curve splits where its normal turns more than this at once
+_WEAK_CONTRAST = 0.5       # of the reference stripe's contrast: weak ...
+_OTHER_WIDTH = 0.35        # ... and a width this far (relative) from its width: not that stripe's kind
+_FAINT_CONTRAST = 0.75     # of the reference contrast: faint ...
+_SHORT_CHAIN = 0.25        # ... and its chain shorter than this fraction of the reference chain: a fragment
+_CHAIN_GAP_WIDTHS = 3.0    # curves continue one another across gaps of up to max(3 w, 10) px ...
+_CHAIN_COS = math.cos(math.radians(30.0))   # ... when their end tangents agree within 30 degrees
+_END_COS = math.cos(math.radians(20.0))     # a curve's end whose normal turns this far runs along an edge
+
+
+def _curve_ends(uv: np.ndarray, cid: np.ndarray, reach: int):
+    """Per curve: its first and last point and the outward unit tangents there (from the point
+    ``reach`` points inside, or the curve's other end when shorter)."""
+    change = np.flatnonzero(np.diff(cid)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [cid.size]]) - 1
+    k = np.minimum(reach, ends - starts)
+    p0, p1 = uv[starts], uv[ends]
+    t0 = p0 - uv[starts + k]
+    t1 = p1 - uv[ends - k]
+    for t in (t0, t1):
+        n = np.linalg.norm(t, axis=1, keepdims=True)
+        t /= np.where(n > 0, n, 1.0)
+    return np.concatenate([p0, p1]), np.concatenate([t0, t1])
+
+
+def _chains(uv: np.ndarray, cid: np.ndarray, w: float) -> np.ndarray:
+    """Chain label per curve: curves that continue one another across a gap (an end within
+    ``max(3 w, 10)`` px of another curve's end, both end tangents pointing at each other within
+    30 degrees) share a label: one stripe broken by dark or occluded stretches."""
+    C = int(cid.max()) + 1
+    ends, tang = _curve_ends(uv, cid, max(3, int(math.ceil(2.0 * w))))
+    owner = np.concatenate([np.arange(C), np.arange(C)])
+    d = ends[None, :, :] - ends[:, None, :]                  # from end i to end j
+    dist = np.linalg.norm(d, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dirn = d / dist[..., None]
+    toward = np.sum(tang[:, None, :] * dirn, axis=2)          # end i's tangent towards end j
+    facing = (toward >= _CHAIN_COS) & (toward.T >= _CHAIN_COS)
+    close = dist <= max(_CHAIN_GAP_WIDTHS * w, 10.0)
+    # ends that touch (< 1.5 px): their tangents must be opposed (a continuation, not a branch)
+    touch = (dist < 1.5) & (np.sum(tang[:, None, :] * tang[None, :, :], axis=2) <= -_CHAIN_COS)
+    link = close & (facing | touch) & (owner[:, None] != owner[None, :])
+    label = np.arange(C)
+    for i, j in zip(*np.nonzero(np.triu(link))):
+        a, b = label[owner[i]], label[owner[j]]
+        if a != b:
+            label[label == b] = a
+    return label
+
+
+def _stripe_like(pts: _CurvePoints, is_core: np.ndarray | None, w: float) -> np.ndarray:
+    """Keep mask of the points whose curve looks like a stripe rather than a texture fragment.
+
+    Reference: the chain (:func:`_chains`) of the largest total contrast (the main stripe).  A
+    curve is dropped when its median contrast is below half the reference's and its median
+    width differs from the reference's by more than 35 % (thin residual edges of a background
+    subtraction), or when its contrast is below 75 % of the reference's and its chain holds
+    fewer than a quarter of the reference chain's points (short, faint fragments on texture
+    edges).  Curves with a saturated core are kept.
+    """
+    cid = pts.cid
+    if cid.size == 0 or cid.max() == 0:
+        return np.ones(cid.size, bool)
+    contrast = pts.bg[:, 2] - 0.5 * (pts.bg[:, 0] + pts.bg[:, 1])
+    C = int(cid.max()) + 1
+    order = np.argsort(cid, kind="stable")
+    bounds = np.searchsorted(cid[order], np.arange(C + 1))
+    con = np.array([np.median(contrast[order[bounds[c]:bounds[c + 1]]]) for c in range(C)])
+    wid = np.array([_nanmedian(pts.width[order[bounds[c]:bounds[c + 1]]]) for c in range(C)])
+    n = np.bincount(cid, minlength=C)
+    chain = _chains(pts.uv, cid, w)
+    chain_n = np.bincount(chain, weights=n)
+    chain_mass = np.bincount(chain, weights=n * np.maximum(con, 0.0))
+    ref = int(np.argmax(chain_mass))
+    in_ref = chain == ref
+    ref_con = float(np.average(con[in_ref], weights=n[in_ref]))
+    ref_w = float(np.nanmedian(np.where(in_ref, wid, np.nan))) if np.isfinite(wid[in_ref]).any() else w
+    other_width = ~(np.abs(wid / ref_w - 1.0) <= _OTHER_WIDTH)
+    frag = ((con < _WEAK_CONTRAST * ref_con) & other_width) | \
+           ((con < _FAINT_CONTRAST * ref_con) & (chain_n[chain] < _SHORT_CHAIN * chain_n[ref]))
+    frag &= ~in_ref
+    # a curve's ends where it runs into an edge residual: weak and thin points, or a turned normal
+    thin = (contrast < _WEAK_CONTRAST * ref_con) & ~(pts.width >= (1.0 - _OTHER_WIDTH) * ref_w)
+    drop = frag[cid] | _turned_ends(pts.nrm, cid, max(3, int(math.ceil(w))), thin)
+    if is_core is not None:
+        drop &= ~np.isin(cid, cid[is_core])
+    return ~drop
+
+
+def _turned_ends(nrm: np.ndarray, cid: np.ndarray, m: int, thin: np.ndarray) -> np.ndarray:
+    """The runs of ``thin`` points at each curve's ends, and the points at its ends (within ``2 m``
+    points) up to the last whose normal differs by more than 20 degrees from the normal ``m``
+    points further in: where a stripe's end runs onto an edge that crosses it, its centres bend
+    along the edge."""
+    N = cid.size
+    out = np.zeros(N, bool)
+    first = np.ones(N, bool)
+    first[1:] = cid[1:] != cid[:-1]
+    last = np.ones(N, bool)
+    last[:-1] = cid[1:] != cid[:-1]
+    # runs of thin points that touch an end: a run's start is an end, or its end is an end
+    run_id = np.cumsum(np.concatenate([[True], (thin[1:] != thin[:-1]) | first[1:]]))
+    touch = np.zeros(int(run_id.max()) + 1, bool)
+    touch[run_id[first | last]] = True
+    out |= thin & touch[run_id]
+    change = np.flatnonzero(np.diff(cid)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [N]])
+    for s0, e0 in zip(starts, ends):
+        n = e0 - s0
+        if n < 2 * m + 1:
+            continue
+        z = min(2 * m, n - m)
+        head = np.arange(s0, s0 + z)
+        tail = np.arange(e0 - z, e0)
+        bad_h = np.abs(np.sum(nrm[head] * nrm[head + m], axis=1)) < _END_COS
+        bad_t = np.abs(np.sum(nrm[tail] * nrm[tail - m], axis=1)) < _END_COS
+        if bad_h.any():
+            out[s0:head[np.flatnonzero(bad_h)[-1]] + 1] = True
+        if bad_t.any():
+            out[tail[np.flatnonzero(bad_t)[0]]:e0] = True
+    return out
+
+
+def _nanmedian(x: np.ndarray) -> float:
+    """Median of the finite values of ``x``; NaN when there are none."""
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
 
 
 CURVATURE_SIGMA2_EXTRA = 1.0 / 12.0

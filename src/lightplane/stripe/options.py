@@ -147,6 +147,15 @@ class StripePointsOptions:
         bright (B + G + R) as the stripe's typical peak in its channel, and flanked on
         both sides by laser-coloured pixels within ``w + 2`` px, so white ambient light
         on a raw frame does not qualify.  Chroma threshold: ``min_chroma`` or 0.5.
+    reject_fragments : a stripe is a long, continuous, consistently bright ridge; short
+        responses on texture edges are not.  Curves split where their normal turns by more
+        than 45 degrees at once (a texture edge that joins a stripe); curves that continue
+        one another across gaps of up to ``max(3 w, 10)`` px (end tangents within 30 degrees)
+        form a chain; the chain of the largest total contrast is the reference.  Dropped: curves
+        under half its contrast whose width differs from its width by more than 35 % (the thin
+        edge residuals of a laser-minus-background frame), and curves under 75 % of its
+        contrast whose chain holds fewer than a quarter of its points (short fragments along
+        a board's squares).  Saturated cores are kept.  Default True.
     """
 
     width_px: float | None = None
@@ -163,6 +172,7 @@ class StripePointsOptions:
     sigma_along_px: float | None = None
     suppress_weaker: float | None = 0.5
     saturated_centre: bool | None = None
+    reject_fragments: bool = True
 
     def __post_init__(self) -> None:
         _check_width(self.width_px)
