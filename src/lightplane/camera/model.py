@@ -33,6 +33,7 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.camera.lens import MODELS, ROS_MODELS, coeff_names, distort_jac, lens_params, model_for
 from lightplane.camera.lens_kernels import newton_undistort, newton_undistort_from
+from lightplane.core.checks import array, covariance, integer, mapping, number
 from lightplane.core.io import atomic_write, read_json, write_json
 
 __all__ = ["Camera", "as_points", "SAME_CAMERA_RTOL", "ALLOWED_CAMERA_KEY", "camera_record", "camera_difference",
@@ -414,39 +415,27 @@ class Camera:
     @classmethod
     def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
         """From our JSON layout ``{"width", "height", "K", "model"?, "dist", "rms_px"?, "covariance"?,
-        "covariance_params"?}`` (no model: from the length of ``dist``)."""
+        "covariance_params"?}`` (no model: from the length of ``dist``); every number is checked
+        (:func:`check_camera_file`), errors name ``source`` and the field."""
+        d = mapping(d, "camera", source)
         for key in ("width", "height", "K", "dist"):
             if key not in d:
                 raise LightplaneError(f"{source}: missing field '{key}'")
-        try:
-            K = np.asarray(d["K"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'K' is not a 3x3 matrix of numbers") from None
-        if K.shape != (3, 3):
-            raise LightplaneError(f"{source}: field 'K' must be 3x3, got shape {K.shape}")
-        try:
-            dist = np.asarray(d["dist"], dtype=np.float64).ravel()
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'dist' is not a list of numbers") from None
+        K = array(d["K"], "K", source, (3, 3))
+        dist = _coefficients(d["dist"], "dist", source)
         cov, names = d.get("covariance"), d.get("covariance_params")
         if (cov is None) != (names is None):
             raise LightplaneError(f"{source}: 'covariance' and 'covariance_params' go together (one is missing)")
-        try:
-            if cov is not None:
-                cov = np.asarray(cov, dtype=np.float64)
-                if not isinstance(names, list):
-                    raise TypeError
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'covariance' must be a matrix of numbers and "
-                                  f"'covariance_params' a list of names") from None
+        if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+            raise LightplaneError(f"{source}: field 'covariance_params' must be a list of parameter names")
         model = d.get("model")
         if model is not None and not isinstance(model, str):
             raise LightplaneError(f"{source}: field 'model' must be a lens model name ({', '.join(MODELS)})")
-        try:
-            return cls(K, dist, d["width"], d["height"], d.get("rms_px"), meta={"source": source},
-                       covariance=cov, covariance_params=None if names is None else tuple(names), model=model)
-        except LightplaneError as e:
-            raise LightplaneError(f"{source}: {e}") from None
+        rms = d.get("rms_px")
+        return _camera_read(cls, K, dist, (integer(d["width"], "width", source, lo=1, hi=MAX_IMAGE_PX),
+                                           integer(d["height"], "height", source, lo=1, hi=MAX_IMAGE_PX)),
+                            source, model=model, rms_px=None if rms is None else number(rms, "rms_px", source, lo=0),
+                            cov=cov, names=names)
 
     def save_json(self, path: str | os.PathLike, *, force: bool = False, extra: dict | None = None) -> Path:
         """Write our JSON camera file atomically (``extra`` keys, e.g. provenance, are added)."""
@@ -522,6 +511,8 @@ class Camera:
             text = p.read_text()
         except UnicodeDecodeError:
             raise LightplaneError(f"{p}: not a text camera file (JSON, YAML or XML expected)") from None
+        except OSError as e:
+            raise LightplaneError(f"{p}: cannot be read ({e.strerror or e})") from None
         head = text.lstrip()[:64]
         if head.startswith("{"):
             d = read_json(p, "camera file")
@@ -538,83 +529,56 @@ class Camera:
 
         try:
             doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise LightplaneError(f"{p}: not valid YAML ({str(e).splitlines()[0]})") from None
+        except (yaml.YAMLError, ValueError, RecursionError) as e:
+            raise LightplaneError(f"{p}: not valid YAML ({(str(e).splitlines() or [type(e).__name__])[0]})") from None
         if not isinstance(doc, dict):
             raise LightplaneError(f"{p}: not a camera file (expected a YAML mapping or JSON object)")
-
-        def matrix(key: str, n: int | None) -> np.ndarray:
+        for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
             if key not in doc:
                 raise LightplaneError(f"{p}: missing field '{key}'")
-            node = doc[key]
-            data = node.get("data") if isinstance(node, dict) else node
-            try:
-                a = np.asarray(data, dtype=np.float64).ravel()
-            except (TypeError, ValueError):
-                raise LightplaneError(f"{p}: field '{key}' is not a list of numbers") from None
-            if n is not None and a.size != n:
-                raise LightplaneError(f"{p}: field '{key}' must hold {n} numbers, got {a.size}")
-            return a
 
-        K = matrix("camera_matrix", 9).reshape(3, 3)
-        dist = matrix("distortion_coefficients", None)
+        def data(key: str):
+            node = doc[key]
+            return node.get("data") if isinstance(node, dict) else node
+
+        K = _coefficients(data("camera_matrix"), "camera_matrix", str(p))
+        if K.size != 9:
+            raise LightplaneError(f"{p}: field 'camera_matrix' must hold 9 numbers, got {K.size}")
+        dist = _coefficients(data("distortion_coefficients"), "distortion_coefficients", str(p))
         ros_model = doc.get("distortion_model", "plumb_bob")
+        if not isinstance(ros_model, str):
+            raise LightplaneError(f"{p}: field 'distortion_model' must be a name, got {ros_model!r:.40}")
         try:
             model = _model_from_ros(ros_model, dist.size)
         except LightplaneError as e:
             raise LightplaneError(f"{p}: {e}") from None
-        for key in ("image_width", "image_height"):
-            if key not in doc:
-                raise LightplaneError(f"{p}: missing field '{key}'")
-        try:
-            return cls(K, dist, doc["image_width"], doc["image_height"], meta={"source": str(p), "format": "ros"},
-                       model=model)
-        except LightplaneError as e:
-            raise LightplaneError(f"{p}: {e}") from None
+        w, h = (integer(doc[k], k, str(p), lo=1, hi=MAX_IMAGE_PX) for k in ("image_width", "image_height"))
+        return _camera_read(cls, K.reshape(3, 3), dist, (w, h), str(p), model=model,
+                            fields=("camera_matrix", "distortion_coefficients"), meta={"format": "ros"})
 
     @classmethod
     def _load_opencv(cls, p: Path) -> "Camera":
-        import cv2
-
-        try:
-            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as e:
-            raise LightplaneError(f"{p}: not a valid OpenCV FileStorage file ({str(e).strip().splitlines()[-1]})") from None
-        if not fs.isOpened():
-            raise LightplaneError(f"{p}: cannot be opened as an OpenCV FileStorage file")
-        try:
-            def mat(key: str) -> np.ndarray:
-                node = fs.getNode(key)
-                if node.empty():
-                    raise LightplaneError(f"{p}: missing field '{key}'")
-                m = node.mat()
-                if m is None:
-                    raise LightplaneError(f"{p}: field '{key}' is not a matrix")
-                return np.asarray(m, dtype=np.float64)
-
-            def integer(key: str) -> int:
-                node = fs.getNode(key)
-                if node.empty():
-                    raise LightplaneError(f"{p}: missing field '{key}'")
-                return int(node.real())
-
-            K = mat("camera_matrix")
-            if K.shape != (3, 3):
-                raise LightplaneError(f"{p}: field 'camera_matrix' must be 3x3, got {K.shape}")
-            dist = mat("distortion_coefficients").ravel()
-            w, h = integer("image_width"), integer("image_height")
-            node = fs.getNode("distortion_model")
-            model = None if node.empty() else node.string()
-            if model is not None and not model:
-                raise LightplaneError(f"{p}: field 'distortion_model' must be a lens model name")
-        finally:
-            fs.release()
+        nodes = _read_filestorage(p, ("camera_matrix", "distortion_coefficients", "image_width", "image_height",
+                                      "distortion_model"))
+        for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
+            if key not in nodes:
+                raise LightplaneError(f"{p}: missing field '{key}'")
+        for key in ("camera_matrix", "distortion_coefficients"):
+            if not isinstance(nodes[key], np.ndarray):
+                raise LightplaneError(f"{p}: field '{key}' is not a matrix of numbers, got {nodes[key]!r:.60}")
+        K = array(nodes["camera_matrix"], "camera_matrix", str(p), (3, 3))
+        dist = _coefficients(nodes["distortion_coefficients"], "distortion_coefficients", str(p))
+        w, h = (integer(nodes[k], k, str(p), lo=1, hi=MAX_IMAGE_PX) for k in ("image_width", "image_height"))
+        model = nodes.get("distortion_model")
+        if model is not None and not (isinstance(model, str) and model):
+            raise LightplaneError(f"{p}: field 'distortion_model' must be a lens model name")
         try:
             if model is not None:
                 model = _model_from_ros(model, dist.size) if model in _ROS_NAMES else model
-            return cls(K, dist, w, h, meta={"source": str(p), "format": "opencv"}, model=model)
         except LightplaneError as e:
             raise LightplaneError(f"{p}: {e}") from None
+        return _camera_read(cls, K, dist, (w, h), str(p), model=model,
+                            fields=("camera_matrix", "distortion_coefficients"), meta={"format": "opencv"})
 
 
 #: relative tolerance of :func:`camera_difference`: K's entries within ``SAME_CAMERA_RTOL`` times the
@@ -710,3 +674,186 @@ def _model_from_ros(name: object, n: int) -> str:
         return str(name)
     raise LightplaneError(f"distortion_model {name!r} is not supported "
                           f"(plumb_bob, rational_polynomial, equidistant; or {', '.join(MODELS)})")
+
+
+# ----------------------------------------------------------------------------- what a camera file may hold
+__all__ += ["MAX_IMAGE_PX", "FOV_RANGE_DEG", "PRINCIPAL_POINT_MARGIN", "MAX_SKEW", "MAX_INTRINSIC_SD", "MAX_LENS_SCALE",
+            "check_camera_file", "lens_defect"]
+
+#: the largest image side (px) a camera file may give
+MAX_IMAGE_PX = 100_000
+#: the horizontal and vertical field of view (degrees) the focal lengths must give over the image
+FOV_RANGE_DEG = (1.0, 179.0)
+#: how far (a fraction of the image's width / height) the principal point may lie beyond the image's edges
+PRINCIPAL_POINT_MARGIN = 0.25
+#: the largest ``|skew| / fx``: the pixel axes within 5.7° of perpendicular
+MAX_SKEW = 0.1
+#: the largest standard deviation of a camera file's covariance (px for fx, fy, cx, cy; the coefficients' own units)
+MAX_INTRINSIC_SD = 1e6
+#: the largest local magnification of the lens model (the largest singular value of
+#: ∂(x_d, y_d)/∂(x, y)) over the image: no lens magnifies part of its field tenfold
+MAX_LENS_SCALE = 10.0
+
+
+def check_camera_file(camera: Camera, source: str, *, k_field: str = "K", dist_field: str = "dist") -> Camera:
+    """Raise :class:`LightplaneError` (one line naming ``source`` and the field) unless ``camera``, as
+    read from a file, is physically sane (docs/conventions.md §Limits on what is read): focal lengths
+    giving a horizontal and vertical field of view within :data:`FOV_RANGE_DEG`, the principal point
+    within :data:`PRINCIPAL_POINT_MARGIN` of the image, ``|skew| <= MAX_SKEW fx``, and a lens model
+    that is one-to-one over the image (:func:`lens_defect`).  Returns ``camera``."""
+    K, w, h = camera.K, camera.width, camera.height
+    for axis, f, c, n, side in (("horizontal", camera.fx, camera.cx, w, "fx"), ("vertical", camera.fy, camera.cy, h, "fy")):
+        m = PRINCIPAL_POINT_MARGIN * n
+        if not -0.5 - m <= c <= n - 0.5 + m:
+            name = "cx" if side == "fx" else "cy"
+            raise LightplaneError(f"{source}: field '{k_field}': principal point {name} = {c:.6g} px lies more than "
+                                  f"{PRINCIPAL_POINT_MARGIN:.0%} of the image ({n} px) beyond its edge")
+        fov = float(np.degrees(np.arctan((n - 0.5 - c) / f) - np.arctan((-0.5 - c) / f)))
+        lo, hi = FOV_RANGE_DEG
+        if not lo <= fov <= hi:
+            raise LightplaneError(f"{source}: field '{k_field}': {side} = {f:.6g} px gives a {axis} field of view of "
+                                  f"{fov:.3g}° over {n} px ({lo:g}°..{hi:g}° expected)")
+    if abs(K[0, 1]) > MAX_SKEW * camera.fx:
+        raise LightplaneError(f"{source}: field '{k_field}': skew {K[0, 1]:.6g} px is more than {MAX_SKEW:g} fx "
+                              f"(pixel axes more than {np.degrees(np.arctan(MAX_SKEW)):.1f}° off perpendicular)")
+    defect = lens_defect(camera)
+    if defect is not None:
+        raise LightplaneError(f"{source}: field '{dist_field}': the {camera.model} lens model {defect}")
+    return camera
+
+
+def lens_defect(camera: Camera, n_dir: int = 72, n_radii: int = 400) -> str | None:
+    """Why ``camera``'s lens model is not a one-to-one map over its image, in words, or None.
+
+    Rays from the optical axis outwards in ``n_dir`` directions, at ``n_radii`` normalised radii
+    from 1e-5 to 1e3 (geometric: 89.94° off axis), are projected by :meth:`Camera.normalized_to_pixels`;
+    along each, until it leaves the ellipse inscribed in the image, the pixel must move away from
+    the principal point's image, :meth:`Camera.pixel_jacobian` keep a positive determinant and the
+    lens model magnify at most :data:`MAX_LENS_SCALE`-fold.  A ray that folds back before leaving
+    the ellipse, or (fisheye excepted: its image circle may lie inside the image) never leaves it,
+    leaves pixels that no ray or two rays reach.  The image's corners beyond the ellipse are not
+    checked: calibrations often extrapolate poorly there (FabScanPi's camera folds at 0.69 of its
+    focal length, its corners are at 0.77)."""
+    if not camera.has_distortion:
+        return None
+    phi = np.linspace(0.0, 2 * np.pi, n_dir, endpoint=False)
+    r = np.concatenate([[0.0], np.geomspace(1e-5, 1e3, n_radii)])
+    xy = np.stack([np.multiply.outer(np.cos(phi), r), np.multiply.outer(np.sin(phi), r)], axis=-1).reshape(-1, 2)
+    with np.errstate(all="ignore"):
+        uv = camera.normalized_to_pixels(xy).reshape(n_dir, -1, 2)
+        J = camera.pixel_jacobian(xy).reshape(n_dir, -1, 2, 2)
+        j11, j12, j21, j22 = camera.distortion_jacobian(xy)
+        s2, dj = j11 ** 2 + j12 ** 2 + j21 ** 2 + j22 ** 2, j11 * j22 - j12 * j21
+        scale = np.sqrt(0.5 * (s2 + np.sqrt(np.maximum(s2 ** 2 - 4 * dj ** 2, 0.0)))).reshape(n_dir, -1)  # largest σ
+    a, b = camera.width / 2.0, camera.height / 2.0
+    with np.errstate(all="ignore"):
+        inside = ((uv[..., 0] - (a - 0.5)) / a) ** 2 + ((uv[..., 1] - (b - 0.5)) / b) ** 2 <= 1.0
+        entered = np.cumsum(inside, axis=1) > 0
+        left = entered & ~inside
+        reached = np.asarray(left.any(axis=1))
+        met = np.asarray(entered.any(axis=1))  # rays that reach the image at all
+        last = np.where(reached, np.argmax(left, axis=1), r.size - 1)
+        checked = (np.arange(r.size)[None, :] <= last[:, None]) & met[:, None]
+        dist = np.linalg.norm(uv - uv[:, :1], axis=-1)
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        ok = np.isfinite(dist) & np.isfinite(det) & np.isfinite(scale)
+        fold = np.zeros_like(checked)
+        fold[:, 1:] = ~(np.diff(dist, axis=1) > 0) | ~(det[:, 1:] > 0)
+        fold |= ~ok
+    bad = checked & fold
+    if np.any(bad):
+        i, j = np.argwhere(bad)[0]
+        return (f"is not one-to-one over the image: it folds back {r[j]:.3g} focal lengths off axis in the direction "
+                f"{np.degrees(phi[i]):.0f}°, inside the image (at pixel {uv[i, j, 0]:.0f}, {uv[i, j, 1]:.0f})")
+    if camera.model != "fisheye" and np.any(met & ~reached):
+        i = int(np.flatnonzero(met & ~reached)[0])
+        return f"does not reach the image's edge in the direction {np.degrees(phi[i]):.0f}° (a fold or a saturation)"
+    big = checked & (scale > MAX_LENS_SCALE)
+    if np.any(big):
+        i, j = np.argwhere(big)[0]
+        return (f"magnifies the image {scale[i, j]:.3g}-fold {r[j]:.3g} focal lengths off axis (at most "
+                f"{MAX_LENS_SCALE:g}-fold expected of a lens)")
+    return None
+
+
+def _coefficients(value: Any, field: str, source: str) -> np.ndarray:
+    """A distortion vector as read: finite numbers, a list (or a 1xN / Nx1 matrix)."""
+    a = array(value, field, source)
+    if a.ndim > 2 or (a.ndim == 2 and min(a.shape) != 1):
+        raise LightplaneError(f"{source}: field '{field}' must be a list of numbers, got shape {a.shape}")
+    return a.ravel()
+
+
+def _camera_read(cls: type[Camera], K: np.ndarray, dist: np.ndarray, size: tuple[int, int], source: str, *,
+                 model: str | None = None, rms_px: float | None = None, cov: Any = None,
+                 names: list[str] | None = None, fields: tuple[str, str] = ("K", "dist"),
+                 meta: dict | None = None) -> Camera:
+    """A camera read from a file (numbers already converted and finite), checked by :func:`check_camera_file`;
+    every error names ``source`` (and ``fields``: the file's names of K and the distortion)."""
+    try:
+        cam = cls(K, dist, size[0], size[1], rms_px, meta={"source": source, **(meta or {})}, model=model)
+    except LightplaneError as e:
+        raise LightplaneError(f"{source}: {e}") from None
+    check_camera_file(cam, source, k_field=fields[0], dist_field=fields[1])
+    if cov is None:
+        return cam
+    assert cam.model is not None and names is not None  # named on construction; read with the covariance
+    want = ["fx", "fy", "cx", "cy", *coeff_names(cam.model)]
+    if list(names) != want:
+        raise LightplaneError(f"{source}: field 'covariance_params' must name the {cam.model} model's parameters "
+                              f"{','.join(want)}, got {','.join(names)}")
+    C = covariance(cov, "covariance", source, len(want), max_sd=MAX_INTRINSIC_SD)
+    return cls(cam.K, cam.dist, cam.width, cam.height, cam.rms_px, cam.meta, C, tuple(names), cam.model)
+
+
+def _read_filestorage(p: Path, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The top-level nodes ``keys`` of an OpenCV FileStorage file as Python values: a matrix as a
+    float64 array, a number as int / float, a string as str, anything else as words saying what it
+    is (absent keys are left out).  A file OpenCV cannot parse raises :class:`LightplaneError`."""
+    import cv2
+
+    out: dict[str, Any] = {}
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+        try:
+            if not fs.isOpened():
+                raise LightplaneError(f"{p}: cannot be opened as an OpenCV FileStorage file")
+            for key in keys:
+                node = fs.getNode(key)
+                if node.empty() or node.isNone():
+                    continue
+                if node.isInt():
+                    out[key] = int(node.real())
+                elif node.isReal():
+                    out[key] = float(node.real())
+                elif node.isString():
+                    out[key] = node.string()
+                else:
+                    out[key] = _filestorage_matrix(node) if node.isMap() else "a sequence"
+        finally:
+            fs.release()
+    except (cv2.error, SystemError, UnicodeDecodeError) as e:
+        cause = e.__cause__ or e.__context__ or e  # the binding wraps OpenCV's parse error in a SystemError
+        text = str(cause).strip()
+        reason = text.split("error: ", 1)[-1].splitlines()[0] if text else type(e).__name__
+        raise LightplaneError(f"{p}: not a valid OpenCV FileStorage file ({reason})") from None
+    return out
+
+
+def _filestorage_matrix(node: Any) -> np.ndarray | str:
+    """An ``opencv-matrix`` node's numbers (rows x cols, one channel), read one at a time, or what the node
+    is instead, in words.  Never through ``FileNode.mat()``: OpenCV 5.1 writes past its buffer for a
+    negative ``cols``."""
+    rows, cols, data = node.getNode("rows"), node.getNode("cols"), node.getNode("data")
+    if not (rows.isInt() and cols.isInt() and data.isSeq()):
+        return "a mapping (not an opencv-matrix with rows, cols and data)"
+    r, c, n = int(rows.real()), int(cols.real()), int(data.size())
+    if not (1 <= r <= 1000 and 1 <= c <= 1000 and n == r * c):
+        return f"an opencv-matrix of {r}x{c} with {n} numbers"
+    values = []
+    for i in range(n):
+        e = data.at(i)
+        if not (e.isInt() or e.isReal()):
+            return "an opencv-matrix of non-numbers"
+        values.append(e.real())
+    return np.array(values, dtype=np.float64).reshape(r, c)

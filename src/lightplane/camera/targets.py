@@ -35,17 +35,20 @@ from pathlib import Path
 
 import numpy as np
 
+from lightplane.core.checks import MAX_DISTANCE_MM, integer, number
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import robust_sigma
 from lightplane.core.io import to_gray8
 from lightplane.camera.corners import find_board
 from lightplane.core.io import to_gray_float
 
-__all__ = ["KINDS", "Target", "Detection", "as_target", "parse_target", "board_object_points", "correct_circle_centres",
-           "to_gray8"]
+__all__ = ["KINDS", "MAX_BOARD_SIDE", "Target", "Detection", "as_target", "parse_target", "board_object_points",
+           "correct_circle_centres", "to_gray8"]
 
 KINDS = ("chessboard", "circles", "acircles", "charuco")
 _MIN_CHARUCO_CORNERS = 6
+#: the most columns or rows a target file may give
+MAX_BOARD_SIDE = 1000
 
 
 def board_object_points(kind: str, cols: int, rows: int, square_mm: float, ids=None) -> np.ndarray:
@@ -226,15 +229,26 @@ class Target:
             raise LightplaneError(f"{where}: a target must be a JSON object")
         d = dict(d)
         if "board" in d and "cols" not in d:  # "board": "charuco:11x8"
-            t = parse_target(str(d.pop("board")), d.get("square_mm", 1.0))
+            board = d.pop("board")
+            if not isinstance(board, str):
+                raise LightplaneError(f"{where}: field 'board' must be KIND:COLSxROWS, got {board!r:.40}")
+            t = parse_target(board, 1.0)
             d.update(kind=t.kind, cols=t.cols, rows=t.rows)
         extra = set(d) - known
         if extra:
-            raise LightplaneError(f"{where}: unknown target field(s) {', '.join(sorted(extra))} "
+            raise LightplaneError(f"{where}: unknown target field(s) {', '.join(sorted(map(str, extra)))} "
                                   f"(known: {', '.join(sorted(known))})")
         for k in ("cols", "rows", "square_mm"):
             if k not in d:
                 raise LightplaneError(f"{where}: the target needs {k!r}")
+        for k in ("cols", "rows"):
+            d[k] = integer(d[k], k, where, lo=1, hi=MAX_BOARD_SIDE)
+        for k in ("square_mm", "marker_mm", "dot_mm"):
+            if d.get(k) is not None:
+                d[k] = number(d[k], k, where, positive=True, hi=MAX_DISTANCE_MM)
+        for k in ("kind", "dictionary"):
+            if d.get(k) is not None and not isinstance(d[k], str):
+                raise LightplaneError(f"{where}: field '{k}' must be a name, got {d[k]!r:.40}")
         try:
             return cls(**d)
         except (TypeError, ValueError) as e:
@@ -249,8 +263,8 @@ class Target:
             d = json.loads(p.read_text())
         except FileNotFoundError:
             raise LightplaneError(f"{p}: no such file") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise LightplaneError(f"{p}: not a target file ({e})") from None
+        except (OSError, ValueError, RecursionError) as e:  # ValueError: undecodable bytes, bad JSON, huge ints
+            raise LightplaneError(f"{p}: not a target file ({_first_line(e)})") from None
         if isinstance(d, dict) and isinstance(d.get("target"), dict):
             d = d["target"]
         return cls.from_dict(d, str(p))
@@ -395,6 +409,10 @@ def as_target(board, square_mm: float | None = None) -> Target:
     if square_mm is None:
         raise LightplaneError("a (cols, rows) board needs square_mm")
     return Target("chessboard", cols, rows, float(square_mm))
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
 
 
 def _dictionary_name(name: str) -> str:

@@ -115,7 +115,7 @@ def _sensor_rotation(path: Path) -> int:
         return 0
 
     d = read_json(path, "camera file")
-    return int((d.get("frames") or {}).get("rotate_deg", 0)) if d.get("kind") == "lightplane sensor" else 0
+    return Sensor.from_dict(d, str(path)).rotate_deg if d.get("kind") == "lightplane sensor" else 0
 
 
 def _camera_record(path: Path, allow_other: bool) -> tuple[CameraFiles, dict]:

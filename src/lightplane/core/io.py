@@ -629,8 +629,10 @@ def read_json(path: str | os.PathLike, what: str = "file") -> dict:
         raise LightplaneError(f"{p}: no such {what}")
     try:
         obj = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise LightplaneError(f"{p}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise LightplaneError(f"{p}: cannot read the {what} ({e.strerror or e})") from None
+    except (ValueError, RecursionError) as e:  # bad JSON, undecodable bytes, an integer of thousands of digits
+        raise LightplaneError(f"{p}: not valid JSON ({(str(e).strip().splitlines() or [type(e).__name__])[0]})") from None
     if not isinstance(obj, dict):
         raise LightplaneError(f"{p}: expected a JSON object at the top level")
     return obj

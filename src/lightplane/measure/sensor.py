@@ -26,11 +26,13 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
 from lightplane.camera.model import Camera, camera_record
+from lightplane.camera.model import MAX_IMAGE_PX, check_camera_file
+from lightplane.core.checks import array, integer, mapping, number
 from lightplane.core.errors import LightplaneError
 from lightplane.motion.model import Motion, Turntable, rigid_from_dict
 from lightplane.plane.model import LightPlane
@@ -120,11 +122,12 @@ class Sensor:
             tt.check_camera(cam, f"{source}: turntable")
         fl = None
         if d.get("flange") is not None:
-            fd = d["flange"]
+            fd = mapping(d["flange"], "flange", source)
             fl = rigid_from_dict(fd.get("T_flange_cam", fd), f"{source}: flange")
-        rot = (d.get("frames") or {}).get("rotate_deg", 0)
-        if rot not in (0, 90, 180, 270):
-            raise LightplaneError(f"{source}: frames.rotate_deg must be 0, 90, 180 or 270, got {rot!r}")
+        frames = d.get("frames")
+        rot = 0 if frames is None else mapping(frames, "frames", source).get("rotate_deg", 0)
+        if isinstance(rot, bool) or rot not in (0, 90, 180, 270):
+            raise LightplaneError(f"{source}: field 'frames.rotate_deg' must be 0, 90, 180 or 270, got {rot!r:.40}")
         records = {"camera": {k: v for k, v in d["camera"].items() if k in ("provenance", "source")}}
         if d.get("flange") is not None:
             records["flange"] = {k: v for k, v in d["flange"].items() if k != "T_flange_cam"}
@@ -170,45 +173,81 @@ def import_fabscan(path: str | os.PathLike) -> Sensor:
     if not isinstance(cal, dict) or not isinstance(camd, dict):
         raise LightplaneError(f"{src}: not a FabScan configuration (no 'calibration' and 'camera' sections)")
     rot = _fabscan_rotation(camd, src)
-    try:
-        K = np.asarray(cal["camera_matrix"], dtype=np.float64)
-        dist = np.asarray(cal["distortion_vector"], dtype=np.float64).ravel()
-        w, h = int(camd["resolution"]["width"]), int(camd["resolution"]["height"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise LightplaneError(f"{src}: no usable camera calibration ({e.__class__.__name__}: {e})") from None
+    cam = _fabscan_camera(cal, camd, rot, src)
+    prov = provenance([src], {"importer": "fabscan"})
+    planes = _fabscan_planes(cal, cam, prov, src)
+    tt = None
+    if cal.get("platform_translation") is not None and cal.get("platform_rotation") is not None:
+        tt = _fabscan_turntable(cal, d.get("turntable"), cam, prov, src)
+    return Sensor(cam, planes, tt, None, rot, {"camera": {"provenance": prov}})
+
+
+def _fabscan_camera(cal: dict, camd: dict, rot: int, src: str) -> Camera:
+    """The camera of a FabScan configuration, in the frame FabScan reads (rotated by ``rot``)."""
+    for key in ("camera_matrix", "distortion_vector"):
+        if key not in cal:
+            raise LightplaneError(f"{src}: no camera calibration (calibration.{key} is missing)")
+    K = array(cal["camera_matrix"], "calibration.camera_matrix", src)
+    if K.shape != (3, 3) or not K[0, 0] > 0:
+        raise LightplaneError(f"{src}: field 'calibration.camera_matrix' is not a calibrated 3x3 matrix (run "
+                              "FabScan's calibration first)")
+    dist = array(cal["distortion_vector"], "calibration.distortion_vector", src).ravel()
+    res = mapping(camd.get("resolution"), "camera.resolution", src)
+    w, h = (integer(res.get(k), f"camera.resolution.{k}", src, lo=1, hi=MAX_IMAGE_PX) for k in ("width", "height"))
     if rot in (90, 270):
         w, h = h, w
-    if K.shape != (3, 3) or not K[0, 0] > 0:
-        raise LightplaneError(f"{src}: calibration.camera_matrix is not a calibrated 3x3 matrix (run FabScan's "
-                              "calibration first)")
-    cam = Camera(K, dist, w, h, meta={"source": src})
-    prov = provenance([src], {"importer": "fabscan"})
+    try:
+        cam = Camera(K, dist, w, h, meta={"source": src})
+    except LightplaneError as e:
+        raise LightplaneError(f"{src}: calibration: {e}") from None
+    return check_camera_file(cam, src, k_field="calibration.camera_matrix", dist_field="calibration.distortion_vector")
+
+
+def _fabscan_planes(cal: dict, cam: Camera, prov: dict, src: str) -> dict[str, LightPlane]:
+    """FabScan's ``calibration.laser_planes`` (``normal · X = distance``) as planes ``laser0``, ``laser1``..."""
+    lps = cal.get("laser_planes") or []
+    if not isinstance(lps, list):
+        raise LightplaneError(f"{src}: field 'calibration.laser_planes' must be a list of planes")
     planes = {}
-    for i, lp in enumerate(cal.get("laser_planes") or []):
-        try:
-            n = np.asarray(lp["normal"], dtype=np.float64)
-            dd = float(lp["distance"])
-        except (KeyError, TypeError, ValueError):
-            raise LightplaneError(f"{src}: calibration.laser_planes[{i}] lacks a normal and a distance") from None
-        meta = {"method": "fabscan", "laser": f"laser{i}", "fabscan_deviation_mm": lp.get("deviation"),
-                "camera": camera_record(cam), "provenance": prov}
-        planes[f"laser{i}"] = LightPlane(n, -dd, None, meta=meta)
+    for i, lp in enumerate(lps):
+        where = f"calibration.laser_planes[{i}]"
+        lp = mapping(lp, where, src)
+        if "normal" not in lp or "distance" not in lp:
+            raise LightplaneError(f"{src}: {where} lacks a normal and a distance")
+        n = array(lp["normal"], f"{where}.normal", src, (3,))
+        dd = number(lp["distance"], f"{where}.distance", src)
+        dev = lp.get("deviation")
+        with np.errstate(over="ignore"):
+            norm = float(np.linalg.norm(n))
+        if not 0 < norm < np.inf:
+            raise LightplaneError(f"{src}: field '{where}.normal' must be a non-zero vector of moderate size")
+        rec = {"normal": (n / norm).tolist(), "d": -dd / norm, "method": "fabscan", "laser": f"laser{i}",
+               "fabscan_deviation_mm": None if dev is None else number(dev, f"{where}.deviation", src, lo=0),
+               "camera": camera_record(cam), "provenance": prov}
+        planes[f"laser{i}"] = LightPlane.from_dict(rec, source=f"{src}: {where}")
     if not planes:
         raise LightplaneError(f"{src}: calibration.laser_planes is empty (no calibrated laser)")
-    tt = None
-    if cal.get("platform_translation") and cal.get("platform_rotation"):
-        Rp = np.asarray(cal["platform_rotation"], dtype=np.float64)
-        tp = np.asarray(cal["platform_translation"], dtype=np.float64).ravel()
-        if Rp.shape != (3, 3) or tp.shape != (3,):
-            raise LightplaneError(f"{src}: platform_rotation must be 3x3 and platform_translation 3 numbers")
-        col = int(np.argmax(np.abs(Rp[1, :])))
-        steps = (d.get("turntable") or {}).get("steps")
-        tt = Turntable.from_axis(tp, Rp[:, col], camera=cam.to_dict(),
-                                 counts_per_rev=float(steps) if steps else None,
-                                 meta={"method": "fabscan platform pose", "fabscan_platform_rotation_column": col,
-                                       "fabscan_turntable_radius_mm": (d.get("turntable") or {}).get("radius"),
-                                       "provenance": prov})
-    return Sensor(cam, planes, tt, None, rot, {"camera": {"provenance": prov}})
+    return planes
+
+
+def _fabscan_turntable(cal: dict, table: Any, cam: Camera, prov: dict, src: str) -> Turntable:
+    """The platform's origin and, of its rotation's columns, the one most nearly along the camera's y axis."""
+    Rp = array(cal["platform_rotation"], "calibration.platform_rotation", src, (3, 3))
+    tp = array(cal["platform_translation"], "calibration.platform_translation", src, (3,))
+    table = {} if table is None else mapping(table, "turntable", src)
+    col = int(np.argmax(np.abs(Rp[1, :])))
+    with np.errstate(all="ignore"):
+        axis = Rp[:, col] / np.linalg.norm(Rp[:, col])
+    if not np.all(np.isfinite(axis)):
+        raise LightplaneError(f"{src}: field 'calibration.platform_rotation' must be a rotation (its column {col} "
+                              "is zero or huge)")
+    steps, radius = table.get("steps"), table.get("radius")
+    rec = {"point_mm": tp.tolist(), "direction": axis.tolist(), "camera": cam.to_dict(),
+           "counts_per_rev": number(steps, "turntable.steps", src, positive=True) if steps else None,
+           "method": "fabscan platform pose", "fabscan_platform_rotation_column": col,
+           "fabscan_turntable_radius_mm": None if radius is None else number(radius, "turntable.radius", src),
+           "provenance": prov}
+    return Turntable.from_dict(rec, source=f"{src}: calibration.platform_rotation/platform_translation")
 
 
 # ----------------------------------------------------------------------------- measuring

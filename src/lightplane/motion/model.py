@@ -34,6 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from lightplane.camera.model import ALLOWED_CAMERA_KEY, check_calibrated_with
+from lightplane.camera.model import Camera
+from lightplane.core.checks import MAX_DISTANCE_MM, array, covariance, field_error, mapping, number, unit_vector
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import read_json, write_json
 
@@ -42,6 +44,12 @@ __all__ = ["Motion", "Turntable", "read_table", "load_rigid", "quaternions_to_ma
 
 #: a quaternion whose norm differs from 1 by more than this is rejected (not renormalised)
 QUATERNION_TOL = 1e-3
+
+#: the largest turntable angle (degrees) a file or a step may give: 100 turns either way
+MAX_TURNTABLE_DEG = 36000.0
+#: the largest standard deviations of a turntable file's covariance: the point (mm), the direction
+TURNTABLE_MAX_SD = (MAX_DISTANCE_MM,) * 3 + (1.0,) * 3
+__all__ += ["MAX_TURNTABLE_DEG", "TURNTABLE_MAX_SD"]
 
 
 def unit_direction(direction, name: str = "direction") -> np.ndarray:
@@ -69,7 +77,8 @@ def quaternions_to_matrices(q: np.ndarray, source: str = "quaternions", first_ro
     from scipy.spatial.transform import Rotation
 
     q = np.asarray(q, dtype=np.float64)
-    norms = np.linalg.norm(q, axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge entry: an infinite norm, refused below
+        norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(~np.isfinite(norms) | (np.abs(norms - 1.0) > QUATERNION_TOL))
     if bad.size:
         k = int(bad[0])
@@ -93,6 +102,8 @@ def read_table(path: str | os.PathLike, what: str) -> tuple[list[str] | None, np
         text = p.read_text()
     except UnicodeDecodeError:
         raise LightplaneError(f"{p}: not a text (CSV) {what} file") from None
+    except OSError as e:
+        raise LightplaneError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
     rows: list[tuple[int, list[str]]] = []
     for k, line in enumerate(text.splitlines()):
         s = line.strip()
@@ -127,34 +138,42 @@ def read_table(path: str | os.PathLike, what: str) -> tuple[list[str] | None, np
 
 
 def rigid_from_dict(d: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
-    """``{"R": 3x3, "t_mm": 3}``, ``{"matrix": 4x4}`` or ``{"translation_mm": 3, "quaternion_xyzw": 4}``."""
-    try:
-        if "matrix" in d:
-            M = np.asarray(d["matrix"], dtype=np.float64)
-            if M.shape != (4, 4):
-                raise LightplaneError(f"{source}: 'matrix' must be 4x4, got shape {M.shape}")
-            R, t = M[:3, :3], M[:3, 3]
-        elif "R" in d:
-            R = np.asarray(d["R"], dtype=np.float64)
-            t = np.asarray(d.get("t_mm", d.get("t")), dtype=np.float64).ravel()
-        elif "quaternion_xyzw" in d:
-            q = np.asarray(d["quaternion_xyzw"], dtype=np.float64).ravel()
-            if q.shape != (4,):
-                raise LightplaneError(f"{source}: 'quaternion_xyzw' must be 4 numbers, got {q.size}")
-            R = quaternions_to_matrices(q[None], source)[0]
-            t = np.asarray(d.get("translation_mm"), dtype=np.float64).ravel()
-        else:
-            raise LightplaneError(f"{source}: a rigid transform needs 'R' and 't_mm', 'matrix' (4x4) or "
-                                  "'translation_mm' and 'quaternion_xyzw'")
-    except (TypeError, ValueError) as e:
-        if isinstance(e, LightplaneError):
-            raise
-        raise LightplaneError(f"{source}: the transform is not made of numbers ({e})") from None
-    if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise LightplaneError(f"{source}: the rotation must be 3x3 and the translation 3 finite numbers")
+    """``{"R": 3x3, "t_mm": 3}``, ``{"matrix": 4x4}`` or ``{"translation_mm": 3, "quaternion_xyzw": 4}``;
+    the translation within :data:`lightplane.core.checks.MAX_DISTANCE_MM`."""
+    d = mapping(d, "transform", source)
+    if "matrix" in d:
+        M = array(d["matrix"], "matrix", source, (4, 4))
+        R, t, t_field = M[:3, :3], M[:3, 3], "matrix"
+    elif "R" in d:
+        R = array(d["R"], "R", source, (3, 3))
+        t_field = "t_mm" if "t_mm" in d else "t"
+        t = array(d.get(t_field), t_field, source, (3,))
+    elif "quaternion_xyzw" in d:
+        q = array(d["quaternion_xyzw"], "quaternion_xyzw", source, (4,))
+        R = quaternions_to_matrices(q[None], source)[0]
+        t_field = "translation_mm"
+        t = array(d.get(t_field), t_field, source, (3,))
+    else:
+        raise LightplaneError(f"{source}: a rigid transform needs 'R' and 't_mm', 'matrix' (4x4) or "
+                              "'translation_mm' and 'quaternion_xyzw'")
+    if np.abs(t).max() > MAX_DISTANCE_MM:
+        raise field_error(source, t_field, f"holds a translation of {np.abs(t).max():g} mm (at most "
+                                           f"{MAX_DISTANCE_MM:g} mm)")
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
         raise LightplaneError(f"{source}: the rotation is not a rotation matrix (RᵀR ≠ I or det < 0)")
     return R, t
+
+
+def _within(a: np.ndarray, limit: float, what: str, source, unit: str, first_row: int) -> np.ndarray:
+    """``a`` (one row per frame) if no value exceeds ``limit`` in magnitude, else the error naming
+    the first such row (numbered from ``first_row``)."""
+    rows = np.abs(a.reshape(len(a), -1)).max(axis=1)
+    bad = np.flatnonzero(rows > limit)
+    if bad.size:
+        k = int(bad[0])
+        raise LightplaneError(f"{source}: row {k + first_row}: {what} {rows[k]:g} {unit} is beyond ±{limit:g} {unit} "
+                              f"({bad.size} such row(s))")
+    return a
 
 
 def load_rigid(path: str | os.PathLike, key: str = "T_flange_cam") -> tuple[np.ndarray, np.ndarray]:
@@ -232,28 +251,30 @@ class Turntable:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "turntable") -> "Turntable":
+        """From a turntable file's layout; every number checked (docs/conventions.md §Limits on what is
+        read): the point within :data:`lightplane.core.checks.MAX_DISTANCE_MM`, a unit direction, a
+        covariance that is one, the camera a camera file's fields; errors name ``source`` and the field."""
+        d = mapping(d, "turntable", source)
         for key in ("point_mm", "direction"):
             if key not in d:
                 raise LightplaneError(f"{source}: missing field '{key}' (not a turntable file?)")
         if d.get("units", "mm") != "mm" or d.get("frame", "camera") != "camera":
             raise LightplaneError(f"{source}: a turntable axis must be in mm in the camera frame")
+        point = array(d["point_mm"], "point_mm", source, (3,), max_abs=MAX_DISTANCE_MM)
+        direction = unit_vector(d["direction"], "direction", source)
         cov = d.get("covariance")
-        try:
-            cov = None if cov is None else np.asarray(cov, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'covariance' is not a 6x6 matrix") from None
-        if cov is not None and cov.shape != (6, 6):
-            raise LightplaneError(f"{source}: field 'covariance' must be 6x6, got shape {cov.shape}")
+        if cov is not None:
+            cov = covariance(cov, "covariance", source, 6, max_sd=TURNTABLE_MAX_SD)
         cpr = d.get("counts_per_rev")
-        if cpr is not None and not (isinstance(cpr, (int, float)) and cpr > 0):
-            raise LightplaneError(f"{source}: 'counts_per_rev' must be a positive number, got {cpr!r}")
+        if cpr is not None:
+            cpr = number(cpr, "counts_per_rev", source, positive=True, hi=1e12)
+        camera = d.get("camera")
+        if camera is not None:
+            Camera.from_dict(mapping(camera, "camera", source), source=f"{source}: camera")
         known = {"kind", "units", "frame", "point_mm", "direction", "covariance", "covariance_order",
                  "angle_convention", "camera", "counts_per_rev"}
-        try:
-            return cls.from_axis(d["point_mm"], d["direction"], covariance=cov, camera=d.get("camera"),
-                                 counts_per_rev=cpr, meta={k: v for k, v in d.items() if k not in known})
-        except (TypeError, ValueError) as e:
-            raise LightplaneError(f"{source}: {e}") from None
+        return cls.from_axis(point, direction, covariance=cov, camera=camera, counts_per_rev=cpr,
+                             meta={k: v for k, v in d.items() if k not in known})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Turntable":
@@ -345,7 +366,7 @@ class Motion:
         else:
             raise LightplaneError(f"{p}: expected columns dx,dy,dz (mm) or a single position column, got "
                                   f"{width} columns{'' if names is None else ' ' + ','.join(names)}")
-        return cls.from_positions(a)
+        return cls.from_positions(_within(a, MAX_DISTANCE_MM, "position", p, "mm", 1 + (names is not None)))
 
     @classmethod
     def turntable(cls, table: Turntable, step_deg: float | None = None, *, angles_deg=None,
@@ -355,16 +376,19 @@ class Motion:
             raise LightplaneError(f"a turntable motion needs a Turntable, got {type(table).__name__}")
         if (step_deg is None) == (angles_deg is None):
             raise LightplaneError("a turntable motion needs either a step per frame (deg) or the angle of every frame")
-        if not np.isfinite(start_deg):
-            raise LightplaneError(f"the start angle must be a finite number of degrees, got {start_deg!r}")
+        if not (np.isfinite(start_deg) and abs(start_deg) <= MAX_TURNTABLE_DEG):
+            raise LightplaneError(f"the start angle must be a finite number of degrees within ±{MAX_TURNTABLE_DEG:g}, "
+                                  f"got {start_deg!r}")
         if step_deg is not None:
             step = float(step_deg)
-            if not np.isfinite(step) or step == 0:
-                raise LightplaneError(f"the turntable step must be a finite, non-zero number of degrees, got {step_deg!r}")
+            if not np.isfinite(step) or step == 0 or abs(step) > MAX_TURNTABLE_DEG:
+                raise LightplaneError(f"the turntable step must be a finite, non-zero number of degrees within "
+                                      f"±{MAX_TURNTABLE_DEG:g}, got {step_deg!r}")
             return cls(table=table, step_deg=step, start_deg=float(start_deg))
         a = np.asarray(angles_deg, dtype=np.float64).ravel()
-        if a.size < 1 or not np.all(np.isfinite(a)):
-            raise LightplaneError("turntable angles must be finite numbers of degrees, one per frame")
+        if a.size < 1 or not np.all(np.isfinite(a)) or np.abs(a).max() > MAX_TURNTABLE_DEG:
+            raise LightplaneError(f"turntable angles must be finite numbers of degrees within ±{MAX_TURNTABLE_DEG:g}, "
+                                  "one per frame")
         return cls(table=table, angles_deg=a, start_deg=float(start_deg))
 
     @classmethod
@@ -398,6 +422,7 @@ class Motion:
         else:
             raise LightplaneError(f"{p}: {a.shape[1]} unnamed columns; give one column of degrees, or a header "
                                   "naming angle_deg or counts")
+        col = _within(col, MAX_TURNTABLE_DEG, "turntable angle", p, "°", 1 + (names is not None))
         return cls.turntable(table, angles_deg=col, start_deg=start_deg)._replace(source=str(p))
 
     @classmethod
@@ -432,6 +457,7 @@ class Motion:
         elif a.shape[1] != 7:
             raise LightplaneError(f"{p}: a pose row is 7 numbers x,y,z,qx,qy,qz,qw; got {a.shape[1]}")
         R = quaternions_to_matrices(a[:, 3:], str(p), first_row=1 + (names is not None))
+        _within(a[:, :3], MAX_DISTANCE_MM, "translation x,y,z", p, "mm", 1 + (names is not None))
         return cls.from_poses(R, a[:, :3], flange=flange, source=str(p))
 
     def _replace(self, **kw) -> "Motion":

@@ -20,10 +20,21 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lightplane.camera.model import ALLOWED_CAMERA_KEY, Camera, as_points, check_calibrated_with
+from lightplane.core.checks import MAX_DISTANCE_MM, array, covariance, mapping, number, unit_vector
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import read_json, write_json
 
 __all__ = ["LightPlane", "CameraDependence", "recorded_camera", "check_camera"]
+
+#: a plane file's camera centre must lie at least this far (mm) from its plane (docs/conventions.md
+#: §Limits on what is read): closer, the rays of the stripe graze the plane and nothing is triangulated
+MIN_PLANE_DISTANCE_MM = 1.0
+#: the largest standard deviations a plane file's covariance may give: a, b, c (a unit normal's
+#: components, at most 1) and d (mm)
+PLANE_MAX_SD = (1.0, 1.0, 1.0, MAX_DISTANCE_MM)
+#: the largest entry of a plane file's ∂(a, b, c, d)/∂(intrinsics)
+MAX_PLANE_JACOBIAN = 1e9
+__all__ += ["MIN_PLANE_DISTANCE_MM", "PLANE_MAX_SD", "MAX_PLANE_JACOBIAN"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,13 +77,20 @@ class CameraDependence:
 
     @classmethod
     def from_dict(cls, rec: Any, source: str = "plane file") -> "CameraDependence":
+        """From a plane file's :attr:`KEY` record; every number checked, errors name ``source`` and the field."""
+        rec = mapping(rec, cls.KEY, source)
+        for key in ("params", "matrix", "covariance_camera"):
+            if key not in rec:
+                raise LightplaneError(f"{source}: field '{cls.KEY}' must hold 'params', 'matrix' (4xP) and "
+                                      f"'covariance_camera' (4x4); '{key}' is missing")
+        names = rec["params"]
+        if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+            raise LightplaneError(f"{source}: field '{cls.KEY}.params' must be a list of parameter names")
+        J = array(rec["matrix"], f"{cls.KEY}.matrix", source, (4, len(names)), max_abs=MAX_PLANE_JACOBIAN)
+        C = covariance(rec["covariance_camera"], f"{cls.KEY}.covariance_camera", source, 4, max_sd=PLANE_MAX_SD)
+        known = {"params", "matrix", "covariance_camera", "method"}
         try:
-            known = {"params", "matrix", "covariance_camera", "method"}
-            return cls(tuple(rec["params"]), rec["matrix"], rec["covariance_camera"], str(rec.get("method", "")),
-                       {k: v for k, v in rec.items() if k not in known})
-        except (KeyError, TypeError, ValueError, AttributeError):
-            raise LightplaneError(f"{source}: field '{cls.KEY}' must hold 'params', 'matrix' (4xP) and "
-                                  "'covariance_camera' (4x4)") from None
+            return cls(tuple(names), J, C, str(rec.get("method", "")), {k: v for k, v in rec.items() if k not in known})
         except LightplaneError as e:
             raise LightplaneError(f"{source}: {e}") from None
 
@@ -181,25 +199,31 @@ class LightPlane:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "plane") -> "LightPlane":
+        """From a plane file's layout (docs/conventions.md §Plane file); every number is checked
+        (§Limits on what is read): a unit normal (renormalised within
+        :data:`lightplane.core.checks.UNIT_TOL`), the camera centre at least :data:`MIN_PLANE_DISTANCE_MM`
+        from the plane, a covariance that is one; errors name ``source`` and the field."""
+        d = mapping(d, "plane", source)
         for key in ("normal", "d"):
             if key not in d:
                 raise LightplaneError(f"{source}: missing field '{key}'")
         if d.get("units", "mm") != "mm":
-            raise LightplaneError(f"{source}: field 'units' must be 'mm', got {d.get('units')!r}")
+            raise LightplaneError(f"{source}: field 'units' must be 'mm', got {d.get('units')!r:.40}")
         if d.get("frame", "camera") != "camera":
-            raise LightplaneError(f"{source}: field 'frame' must be 'camera', got {d.get('frame')!r}")
-        try:
-            normal = np.asarray(d["normal"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'normal' is not 3 numbers") from None
+            raise LightplaneError(f"{source}: field 'frame' must be 'camera', got {d.get('frame')!r:.40}")
+        normal = unit_vector(d["normal"], "normal", source)
+        offset = number(d["d"], "d", source, lo=-MAX_DISTANCE_MM, hi=MAX_DISTANCE_MM)
+        if abs(offset) < MIN_PLANE_DISTANCE_MM:
+            raise LightplaneError(f"{source}: field 'd': the camera centre lies {abs(offset):.3g} mm from the plane "
+                                  f"(at least {MIN_PLANE_DISTANCE_MM:g} mm expected): nothing can be triangulated")
         cov = d.get("covariance")
-        try:
-            cov = None if cov is None else np.asarray(cov, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise LightplaneError(f"{source}: field 'covariance' is not a 4x4 matrix") from None
+        if cov is not None:
+            cov = covariance(cov, "covariance", source, 4, max_sd=PLANE_MAX_SD)
+        if d.get(CameraDependence.KEY) is not None:
+            CameraDependence.from_dict(d[CameraDependence.KEY], source)  # checked here, read where it is used
         meta = {k: v for k, v in d.items() if k not in ("normal", "d", "covariance", "units", "frame")}
         try:
-            return cls(normal, d["d"], cov, meta=meta)
+            return cls(normal, offset, cov, meta=meta)
         except LightplaneError as e:
             raise LightplaneError(f"{source}: {e}") from None
 
