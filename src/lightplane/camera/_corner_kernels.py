@@ -20,13 +20,13 @@ import math
 
 import numpy as np
 
-from numba import njit
+from lightplane.core.jit import njit_cached
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_2_PI = math.sqrt(2.0 / math.pi)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _solve(A, b, x):  # pragma: no cover - compiled
     """``x`` = the solution of ``A x = b`` (m, m) by Gaussian elimination with partial pivoting (as
     LAPACK's ``gesv``), NaN where a pivot is exactly zero.  ``A`` and ``b`` are overwritten."""
@@ -59,7 +59,7 @@ def _solve(A, b, x):  # pragma: no cover - compiled
         x[r] = s / A[r, r]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+@njit_cached(nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 def _normal_equations(J, res, m, A, g):  # pragma: no cover - compiled
     """``A = J Jᵀ``, ``g = J res`` over the first ``m`` columns of ``J`` (n, K) (the sums reassociated
     so that they vectorise; four products per load of a row of ``J``)."""
@@ -93,7 +93,7 @@ def _normal_equations(J, res, m, A, g):  # pragma: no cover - compiled
             A[b, a] = A[a, b]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _window(px, py, w0, i, qx, qy, radius, taper, ux, uy, W, idx):  # pragma: no cover - compiled
     """The weight of ``intrinsics._fit_saddles`` about ``(qx, qy)`` for corner ``i``: the pixels
     where it is not zero (their offsets ``ux, uy``, weights ``W`` and indices ``idx``), how many."""
@@ -129,7 +129,7 @@ def _window(px, py, w0, i, qx, qy, radius, taper, ux, uy, W, idx):  # pragma: no
     return m
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit_cached(nogil=True, inline="always", error_model="numpy")
 def _erf(x):  # pragma: no cover - compiled
     """``math.erf``, its saturated tails (|x| >= 6: ±1 to the last bit, in libm as in scipy) without the call."""
     if x >= 6.0:
@@ -139,7 +139,7 @@ def _erf(x):  # pragma: no cover - compiled
     return math.erf(x)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
     """The saddle model's ``erf`` factors ``e1``, ``e2`` for parameters ``p`` (13,) at the ``m`` offsets (the
     edges' signed distances ``d_i = n_i·u + κ_i t_i²``, ``t_i`` along the edge, ``κ_i = p[11 + i]``)."""
@@ -155,7 +155,7 @@ def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
         e2[k] = _erf((c2 * x + s2 * y + k2 * (t2 * t2)) / den)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _residual(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - compiled
     """The residuals ``res`` (image - model) of the saddle model with parameters ``p`` and ``erf``
     factors ``e1``, ``e2`` at the ``m`` offsets."""
@@ -165,7 +165,7 @@ def _residual(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - com
         res[k] = img[i, idx[k]] - (p[5] + p[7] * x + p[8] * y + amp * (e1[k] * e2[k]))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma: no cover - compiled
     """The linear parameters (a, b, g, h) of ``p`` solved for its geometry (corner, edges, blur; the
     ``erf`` factors ``e1``, ``e2``), weights ``W``: written into ``p[5:11]`` (0 where not finite)."""
@@ -190,7 +190,7 @@ def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma
         p[5 + a] = x6[a] if math.isfinite(x6[a]) else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
     """The saddle model's Jacobian in its 11 free parameters (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy;
     the edges' bends κ1, κ2 held) at the ``m`` offsets, times the square root of the weight, into ``J``
@@ -232,7 +232,7 @@ def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
         res[k] = sw * res[k]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def window_pixels(g, base, ox, oy, px, py, img, w0):  # pragma: no cover - compiled
     """The pixel centres ``base[i] + (ox[k], oy[k])`` (``px, py``, (n, K)) about integer-valued corners
     ``base`` (n, 2), the image ``g`` there (``img``; outside the image: its nearest border pixel) and
@@ -248,7 +248,7 @@ def window_pixels(g, base, ox, oy, px, py, img, w0):  # pragma: no cover - compi
             img[i, k] = g[int(min(max(y, 0.0), h - 1.0)), int(min(max(x, 0.0), w - 1.0))]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost):  # pragma: no cover
     """``intrinsics._fit_saddles``' Levenberg–Marquardt for the corners of one chunk: pixel centres
     ``px, py`` (n, K) (lens-frame coordinates with a camera), image values ``img`` (n, K), the weight's
@@ -321,7 +321,7 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
             break
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def line_bends(g, e, ok, width, kappa):  # pragma: no cover - compiled
     """:func:`lightplane.camera.corners._line_bends`: for each corner of the grid lines ``g`` (lines, m, 2)
     (line directions ``e`` (lines, m, 2), usable corners ``ok`` (lines, m)), the polynomial
@@ -375,7 +375,7 @@ def line_bends(g, e, ok, width, kappa):  # pragma: no cover - compiled
                 kappa[i, j] = -x[2] / (scale * scale)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def forstner(gx, gy, unit, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no cover - compiled
     """:func:`lightplane.camera.corners.refine_corners`' iteration: each corner of ``q0`` (n, 2) moved to the
     point its gradients (``unit`` times ``gx, gy``, the Scharr images) are orthogonal to, over the pixels within
