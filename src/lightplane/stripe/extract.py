@@ -123,8 +123,6 @@ __all__ = [
     "estimate_width",
     "sigma_for_width",
     "PROFILE_STATUS",
-    "KERNEL_PIXEL_TYPES",
-    "kernel_pixels",
 ]
 
 #: meaning of :attr:`StripeProfile.status`
@@ -219,21 +217,8 @@ class StripeProfile:
 # ----------------------------------------------------------------------------------------
 # input handling
 
-#: the pixel types the numba kernels are compiled for: 8-bit images as they are (the fast path: a
-#: quarter of float32's memory traffic), every other image as float32 (exact for 16-bit and
-#: integer data up to 2**24; float64 frames lose digits below 1e-7 of their value).  numba compiles
-#: a kernel once per argument type: one more type would compile every kernel again (~25 s, once)
-KERNEL_PIXEL_TYPES = (np.uint8, np.float32)
-
-
-def kernel_pixels(image: np.ndarray) -> np.ndarray:
-    """``image`` in one of :data:`KERNEL_PIXEL_TYPES`: uint8 stays, any other type becomes float32
-    (no copy when it is already float32)."""
-    return image if image.dtype == np.uint8 else image.astype(np.float32, copy=False)
-
-
 def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
-    """2-D uint8 or float32 array (:func:`kernel_pixels`) from gray or BGR input, and its full scale.
+    """2-D uint8, uint16 or float32 array from gray or BGR input, and its full scale.
 
     ``channel``: None / ``"gray"`` (weighted gray), ``"red"``, ``"green"``,
     ``"blue"``, or ``"sum"`` (unweighted B + G + R: a laser that saturates its own
@@ -260,9 +245,9 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
         fs *= 3.0
     if out.shape[0] < 3 or out.shape[1] < 3:
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
-    # one integer type and one float type: the kernels compile once for each (16-bit data and the
-    # 8-bit "sum" (uint16) as float32, exactly)
-    return kernel_pixels(out), fs
+    # to_gray_float(native=True) gives one float type and two integer types: fewer numba
+    # specialisations to compile
+    return out, fs
 
 
 def _default_min_peak(full_scale: float) -> float:
@@ -431,12 +416,8 @@ def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prep
     mp = _default_min_peak(fs) if options.min_peak is None else float(options.min_peak)
     w = _check_width(options.width_px)
     if w is None:
-        # lines="rows": the image's own rows, read along memory (the same values as A's columns) when
-        # they are whole rows; a roi's block (not contiguous: a kernel layout of its own) from A
-        E = A
-        if prepared is None and axis == "rows":
-            block = img[line0:line0 + L, sample0:sample0 + S]
-            E = block.T if block.flags.c_contiguous else A
+        # lines="rows": the image's own rows, read along memory (the same values as A's columns)
+        E = img[line0:line0 + L, sample0:sample0 + S].T if prepared is None and axis == "rows" else A
         w, n = _fwhm_median(E, mp, every=max(1, L // 160))
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
@@ -515,12 +496,12 @@ def _stack_lines(frames, axis: str, channel, roi):
             raise LightplaneError("frames contain NaN or infinite values")
         x, y, w, h = check_roi(roi, W, H)
         sub = frames[:, y:y + h, x:x + w]
-        if axis not in ("columns", "rows"):
+        if axis == "columns":
+            A3, line0, sample0 = np.ascontiguousarray(sub), x, y
+        elif axis == "rows":
+            A3, line0, sample0 = np.ascontiguousarray(sub.transpose(0, 2, 1)), y, x
+        else:
             raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
-        view = sub if axis == "columns" else sub.transpose(0, 2, 1)
-        # C-contiguous, in the kernels' pixel type (no copy where the stack already is)
-        A3 = np.ascontiguousarray(view, dtype=np.uint8 if frames.dtype == np.uint8 else np.float32)
-        line0, sample0 = (x, y) if axis == "columns" else (y, x)
         if frames.dtype == np.uint8:
             fs = np.full(N, 255.0)
         else:
@@ -1021,7 +1002,7 @@ def _ridge_maps(img: np.ndarray, sc: _StripeScales) -> tuple[_RidgeMaps, list]:
             cv2.filter2D(sub, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
         for x, k, out in ((vx1, w0, vru), (vx0, w1, vrv), (vx2, w0, vruu), (vx1, w1, vruv), (vx0, w2, vrvv)):
             cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
-        K.ridge_points(ru, rv, ruu, ruv, rvv, sc.lo, su, sv, snu, snv, sstr, a0, b0, a1, b1)
+        K.ridge_points(vru, vrv, vruu, vruv, vrvv, sc.lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
         # a region's inner edges (not the image's): the replicated border there is not the image
         m = R + 1
         if a0 > 0:
@@ -1139,11 +1120,13 @@ def _stripe_curves(image, gray, pts: _CurvePoints, is_core, core_len, sc: _Strip
         return None
     pts, sel = kept
     if options.reject_fragments:
-        core = None if core is None else core[sel]
-        kept = _split_runs(pts, _stripe_like(pts, core, w), int(options.min_length), False)
-        if kept is None:
-            return None
-        pts = kept[0]
+        # first the ends that run onto edges, then whole curves that are not the stripe's kind
+        for rule in (_ragged_ends, _stripe_like):
+            core = None if core is None else core[sel]
+            kept = _split_runs(pts, rule(pts, core, w), int(options.min_length), False)
+            if kept is None:
+                return None
+            pts, sel = kept
     sw = options.suppress_weaker
     if sw is not None and float(sw) > 0 and pts.cid.size:
         good = _drop_overshadowed(pts.uv, pts.nrm, pts.st, pts.cid, (H, W), _SHADOW_REACH_WIDTHS * w, 1.5 * w + 2.0,
@@ -1181,10 +1164,10 @@ def _split_runs(pts: _CurvePoints, keep: np.ndarray, min_length: int, kinks: boo
 
 # fragments (StripePointsOptions.reject_fragments)
 _KINK_COS = math.cos(math.radians(45.0))   # a curve splits where its normal turns more than this at once
-_WEAK_CONTRAST = 0.5       # of the reference stripe's contrast: weak ...
-_OTHER_WIDTH = 0.35        # ... and a width this far (relative) from its width: not that stripe's kind
-_FAINT_CONTRAST = 0.75     # of the reference contrast: faint ...
-_SHORT_CHAIN = 0.25        # ... and its chain shorter than this fraction of the reference chain: a fragment
+_WEAK_CONTRAST = 0.5       # of the reference stripe's contrast: a weak point (at a curve's end) ...
+_THIN = 0.3                # ... and this much (relative) narrower than the reference: an edge residual
+_FAINT_CONTRAST = 0.75     # of the reference contrast: a faint curve, dropped when thin ...
+_SHORT_CHAIN = 0.25        # ... or when its chain is shorter than this fraction of the reference chain
 _CHAIN_GAP_WIDTHS = 3.0    # curves continue one another across gaps of up to max(3 w, 10) px ...
 _CHAIN_COS = math.cos(math.radians(30.0))   # ... when their end tangents agree within 30 degrees
 _END_COS = math.cos(math.radians(20.0))     # a curve's end whose normal turns this far runs along an edge
@@ -1231,19 +1214,27 @@ def _chains(uv: np.ndarray, cid: np.ndarray, w: float) -> np.ndarray:
     return label
 
 
-def _stripe_like(pts: _CurvePoints, is_core: np.ndarray | None, w: float) -> np.ndarray:
-    """Keep mask of the points whose curve looks like a stripe rather than a texture fragment.
+@dataclass(frozen=True)
+class _Reference:
+    """The main stripe of :func:`_stripe_like`: per point ``contrast``; per curve median ``con``,
+    median width ``wid``, ``chain`` label and its chain's points ``chain_n``; ``in_ref`` the
+    curves of the reference chain, its contrast ``ref_con``, width ``ref_w`` and points ``ref_n``."""
 
-    Reference: the chain (:func:`_chains`) of the largest total contrast (the main stripe).  A
-    curve is dropped when its median contrast is below half the reference's and its median
-    width differs from the reference's by more than 35 % (thin residual edges of a background
-    subtraction), or when its contrast is below 75 % of the reference's and its chain holds
-    fewer than a quarter of the reference chain's points (short, faint fragments on texture
-    edges).  Curves with a saturated core are kept.
-    """
+    contrast: np.ndarray
+    con: np.ndarray
+    wid: np.ndarray
+    chain: np.ndarray
+    chain_n: np.ndarray
+    in_ref: np.ndarray
+    ref_con: float
+    ref_w: float
+    ref_n: float
+
+
+def _reference(pts: _CurvePoints, w: float) -> _Reference:
+    """The curves' contrast, width and chains (:func:`_chains`), and the chain of the largest
+    total contrast (the main stripe)."""
     cid = pts.cid
-    if cid.size == 0 or cid.max() == 0:
-        return np.ones(cid.size, bool)
     contrast = pts.bg[:, 2] - 0.5 * (pts.bg[:, 0] + pts.bg[:, 1])
     C = int(cid.max()) + 1
     order = np.argsort(cid, kind="stable")
@@ -1253,21 +1244,50 @@ def _stripe_like(pts: _CurvePoints, is_core: np.ndarray | None, w: float) -> np.
     n = np.bincount(cid, minlength=C)
     chain = _chains(pts.uv, cid, w)
     chain_n = np.bincount(chain, weights=n)
-    chain_mass = np.bincount(chain, weights=n * np.maximum(con, 0.0))
-    ref = int(np.argmax(chain_mass))
+    ref = int(np.argmax(np.bincount(chain, weights=n * np.maximum(con, 0.0))))
     in_ref = chain == ref
-    ref_con = float(np.average(con[in_ref], weights=n[in_ref]))
-    ref_w = float(np.nanmedian(np.where(in_ref, wid, np.nan))) if np.isfinite(wid[in_ref]).any() else w
-    other_width = ~(np.abs(wid / ref_w - 1.0) <= _OTHER_WIDTH)
-    frag = ((con < _WEAK_CONTRAST * ref_con) & other_width) | \
-           ((con < _FAINT_CONTRAST * ref_con) & (chain_n[chain] < _SHORT_CHAIN * chain_n[ref]))
-    frag &= ~in_ref
-    # a curve's ends where it runs into an edge residual: weak and thin points, or a turned normal
-    thin = (contrast < _WEAK_CONTRAST * ref_con) & ~(pts.width >= (1.0 - _OTHER_WIDTH) * ref_w)
-    drop = frag[cid] | _turned_ends(pts.nrm, cid, max(3, int(math.ceil(w))), thin)
+    ref_w = _nanmedian(wid[in_ref])
+    return _Reference(contrast, con, wid, chain, chain_n[chain], in_ref,
+                      float(np.average(con[in_ref], weights=n[in_ref])), ref_w if np.isfinite(ref_w) else w,
+                      float(chain_n[ref]))
+
+
+def _ragged_ends(pts: _CurvePoints, is_core: np.ndarray | None, w: float) -> np.ndarray:
+    """Keep mask without the curves' ends that run onto an edge residual: the runs of weak
+    (under half the main stripe's contrast) and thin (30 % narrower than it) points at each end,
+    and the points at each end whose normal turns (:func:`_turned_ends`)."""
+    cid = pts.cid
+    if cid.size == 0 or cid.max() == 0:
+        return np.ones(cid.size, bool)
+    r = _reference(pts, w)
+    thin = (r.contrast < _WEAK_CONTRAST * r.ref_con) & ~(pts.width >= (1.0 - _THIN) * r.ref_w)
+    drop = _turned_ends(pts.nrm, cid, max(3, int(math.ceil(w))), thin)
     if is_core is not None:
-        drop &= ~np.isin(cid, cid[is_core])
+        drop &= ~is_core
     return ~drop
+
+
+def _stripe_like(pts: _CurvePoints, is_core: np.ndarray | None, w: float) -> np.ndarray:
+    """Keep mask of the points whose curve looks like a stripe rather than a texture fragment.
+
+    Reference: the chain (:func:`_chains`) of the largest total contrast (the main stripe).  A
+    curve is dropped when its median contrast is below 75 % of the reference's and either its
+    median width is 30 % below the reference's (thin residual edges of a background
+    subtraction) or its chain holds fewer than a quarter of the reference chain's
+    points (short fragments on texture edges).  Curves with a saturated core are kept.
+    """
+    cid = pts.cid
+    if cid.size == 0 or cid.max() == 0:
+        return np.ones(cid.size, bool)
+    r = _reference(pts, w)
+    # a chain's width (a stripe's pieces together): the median over its points
+    pch = r.chain[cid]
+    cw = np.array([_nanmedian(pts.width[pch == c]) for c in range(int(r.chain.max()) + 1)])
+    thin = ~(cw[r.chain] >= (1.0 - _THIN) * r.ref_w)
+    frag = (r.con < _FAINT_CONTRAST * r.ref_con) & (thin | (r.chain_n < _SHORT_CHAIN * r.ref_n)) & ~r.in_ref
+    if is_core is not None:
+        frag[np.unique(cid[is_core])] = False
+    return ~frag[cid]
 
 
 def _turned_ends(nrm: np.ndarray, cid: np.ndarray, m: int, thin: np.ndarray) -> np.ndarray:
@@ -1337,7 +1357,7 @@ def _stripe_cores(image, img, channel, maps: _RidgeMaps, hi, w, resp, min_chroma
     if not ref > 0:
         return None
     ch = {"blue": 0, "green": 1, "red": 2}[channel]
-    bgr = kernel_pixels(np.ascontiguousarray(image[:, :, :3]))   # the kernels take uint8 or float32
+    bgr = np.ascontiguousarray(image[:, :, :3])
     H, W = img.shape
     max_len = 2.5 * w + 2.0
     reach = int(math.ceil(w)) + 2

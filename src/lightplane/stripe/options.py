@@ -151,11 +151,12 @@ class StripePointsOptions:
         responses on texture edges are not.  Curves split where their normal turns by more
         than 45 degrees at once (a texture edge that joins a stripe); curves that continue
         one another across gaps of up to ``max(3 w, 10)`` px (end tangents within 30 degrees)
-        form a chain; the chain of the largest total contrast is the reference.  Dropped: curves
-        under half its contrast whose width differs from its width by more than 35 % (the thin
-        edge residuals of a laser-minus-background frame), and curves under 75 % of its
-        contrast whose chain holds fewer than a quarter of its points (short fragments along
-        a board's squares).  Saturated cores are kept.  Default True.
+        form a chain; the chain of the largest total contrast is the reference.  A curve's ends
+        are trimmed where they run onto an edge (weak and thin points, or a normal that turns
+        by more than 20 degrees); then curves under 75 % of the reference's contrast are
+        dropped when their chain is 30 % narrower than the reference (the thin edge residuals
+        of a laser-minus-background frame) or holds fewer than a quarter of its points (short
+        fragments along a board's squares).  Saturated cores are kept.  Default True.
     """
 
     width_px: float | None = None

@@ -1,0 +1,147 @@
+"""Spurious stripe fragments: extract_stripe's defaults with and without ``reject_fragments``.
+
+Renders: 9 x 6 chessboards crossed by the stripe (``render_chessboard_dataset``, realistic,
+one pose per seed), laser frame minus the laser-off frame moved by (0.6, 0.4) px (a camera that
+moved between the exposures: every rising edge of the squares and of the board leaves a thin
+bright residual).  False points: returned points farther than 1 px from the true stripe (the
+plane's line across the board and across the background plane behind it, projected);
+coverage: the true stripe's samples on the board with a point within 1 px.  Ciclop (when
+``shared/data/ciclop`` is there): laser minus laser-off, no mask, the points within 40 rows
+of each stripe and the share within 1 px of the stripe's robust quadratic (distorted pixels).
+Times: interleaved runs with and without the rule on the same frames.
+
+Run: ``.venv/bin/python benchmarks/bench_stripe_fragments.py [--seeds 8]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lightplane.core.io import read_image
+from lightplane.simulate.render import BoardOptions, render_chessboard_dataset
+from lightplane.stripe.extract import extract_stripe
+from lightplane.stripe.options import StripePointsOptions
+from results import at_least, at_most, figure, record
+
+SHIFT_PX = (0.6, 0.4)
+CICLOP = Path(__file__).resolve().parents[2] / "shared" / "data" / "ciclop" / "laser_segmentation_in_pattern"
+RULE = {"on": StripePointsOptions(), "off": StripePointsOptions(reject_fragments=False)}
+
+
+def textured_frame(seed: int):
+    """The misregistered laser-minus-background frame of one pose and its true stripe pixels
+    (board, background)."""
+    ds = render_chessboard_dataset(1, seed, BoardOptions(difficulty="realistic", with_stripe=True, laser_off=True))
+    laser, off = ds.images
+    M = np.float32([[1, 0, SHIFT_PX[0]], [0, 1, SHIFT_PX[1]]])
+    moved = cv2.warpAffine(off.astype(np.float32), M, (off.shape[1], off.shape[0]), borderMode=cv2.BORDER_REPLICATE)
+    diff = np.clip(laser.astype(np.float32) - moved, 0, 255).astype(np.uint8)
+    view = ds.truth["views"][0]
+    R, t = np.asarray(view["T_cam_board"]["R"]), np.asarray(view["T_cam_board"]["t"])
+    n, d = np.asarray(ds.truth["plane"]["normal"]), float(ds.truth["plane"]["d"])
+    x0, x1, y0, y1 = ds.truth["board"]["outline_board_mm"]
+    g, s = (R.T @ n)[:2], float(n @ t + d)
+    if abs(g[1]) > abs(g[0]):
+        a = np.arange(x0, x1, 0.05)
+        b = (-s - g[0] * a) / g[1]
+    else:
+        b = np.arange(y0, y1, 0.05)
+        a = (-s - g[1] * b) / g[0]
+    on = (a >= x0) & (a <= x1) & (b >= y0) & (b <= y1)
+    board = ds.camera.project(np.column_stack([a[on], b[on], np.zeros(on.sum())]) @ R.T + t)
+    z = float(t[2]) + 250.0
+    y = np.arange(-2000.0, 2000.0, 0.2)
+    back = ds.camera.project(np.column_stack([(-d - n[2] * z - n[1] * y) / n[0], y, np.full_like(y, z)]))
+    return diff, board, back
+
+
+def band_within(uv: np.ndarray, cid: np.ndarray) -> float:
+    """Share of the band's points within 1 px of a quadratic v(u) fitted to the band's longest
+    curve, then refitted to the points within 3, 2, 1 px."""
+    ids, counts = np.unique(cid, return_counts=True)
+    inl = cid == ids[np.argmax(counts)]
+    for tol in (3.0, 2.0, 1.0, 1.0, 1.0):
+        c = np.polyfit(uv[inl, 0], uv[inl, 1], 2)
+        r = uv[:, 1] - np.polyval(c, uv[:, 0])
+        inl = np.abs(r) < tol
+    return float(inl.mean())
+
+
+def timed(img, reps: int = 3) -> dict[str, float]:
+    """Median ms per setting, runs interleaved (ABBA...)."""
+    t: dict[str, list[float]] = {"on": [], "off": []}
+    for rep in range(reps):
+        for k in (("on", "off") if rep % 2 == 0 else ("off", "on")):
+            t0 = time.perf_counter()
+            extract_stripe(img, RULE[k])
+            t[k].append(1e3 * (time.perf_counter() - t0))
+    return {k: float(np.median(v)) for k, v in t.items()}
+
+
+def renders(n: int) -> list[dict]:
+    false: dict[str, list[float]] = {"on": [], "off": []}
+    cover: dict[str, list[float]] = {"on": [], "off": []}
+    ms: list[dict[str, float]] = []
+    print(f"{'seed':>4} {'false off':>10} {'false on':>9} {'cover off':>10} {'cover on':>9}")
+    for seed in range(n):
+        diff, board, back = textured_frame(seed)
+        truth = cKDTree(np.concatenate([board, back]))
+        for k, o in RULE.items():
+            sp = extract_stripe(diff, o)
+            false[k].append(float(np.mean(truth.query(sp.uv)[0] > 1.0)) if len(sp) else 0.0)
+            cover[k].append(float(np.mean(cKDTree(sp.uv).query(board)[0] < 1.0)) if len(sp) else 0.0)
+        ms.append(timed(diff))
+        print(f"{seed:>4} {false['off'][-1]:>10.4f} {false['on'][-1]:>9.4f} {cover['off'][-1]:>10.3f} {cover['on'][-1]:>9.3f}")
+    on_ms, off_ms = float(np.median([m["on"] for m in ms])), float(np.median([m["off"] for m in ms]))
+    print(f"median false on {np.median(false['on']):.4f}, worst {max(false['on']):.4f}; coverage on/off "
+          f"{np.mean(cover['on']) / np.mean(cover['off']):.3f}; time {on_ms:.1f} / {off_ms:.1f} ms")
+    figs_l = [figure("fragments_render_false_worst", f"false points, worst of {n} textured renders", max(false["on"]),
+                     "fraction", statistic="max over poses", target=at_most(0.005, "fraction")),
+              figure("fragments_render_coverage_ratio", "stripe coverage with / without the rule",
+                     float(np.mean(cover["on"]) / np.mean(cover["off"])), "ratio", target=at_least(0.99, "ratio")),
+              figure("fragments_render_ms", "extract_stripe, textured render", on_ms, "ms", statistic="median",
+                     reference=("reject_fragments=False", off_ms, "ms"))]
+    return figs_l
+
+
+def ciclop() -> list[dict]:
+    if not CICLOP.is_dir():
+        print(f"Ciclop data not found ({CICLOP}): skipped")
+        return []
+    worst = 1.0
+    for name in ("laser-0-255-255-8", "laser-0-255-255-8-x"):
+        laser = read_image(CICLOP / f"{name}.png", rotate_deg=90)
+        off = read_image(CICLOP / f"{name.replace('laser-', 'laser-background-', 1)}.png", rotate_deg=90)
+        diff = cv2.subtract(laser, off)
+        rows = diff[:, 300:800, 2].astype(float).sum(axis=1)
+        first = int(np.argmax(rows))
+        second = int(np.argmax(np.where(np.abs(np.arange(rows.size) - first) > 100, rows, -1)))
+        for channel in (None, "red"):
+            out = []
+            for k, o in RULE.items():
+                sp = extract_stripe(diff, StripePointsOptions(channel=channel, reject_fragments=o.reject_fragments))
+                for v0 in sorted([first, second]):
+                    sel = np.abs(sp.uv[:, 1] - v0) < 40
+                    out.append((k, band_within(sp.uv[sel], sp.curve_id[sel])))
+            on = [x for k, x in out if k == "on"]
+            worst = min(worst, *on)
+            print(f"Ciclop {name} {channel}: within 1 px " + ", ".join(f"{k} {x:.3f}" for k, x in out))
+    return [figure("fragments_ciclop_within_1px_worst", "Ciclop bands, points within 1 px (worst stripe)", worst,
+                   "fraction", target=at_least(0.95, "fraction"))]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=8)
+    args = ap.parse_args()
+    record("bench_stripe_fragments", renders(args.seeds) + ciclop())
+
+
+if __name__ == "__main__":
+    main()
