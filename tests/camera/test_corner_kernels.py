@@ -168,10 +168,11 @@ def _recorded_fits(monkeypatch, run):
     calls = []
     kernel = ck.fit_saddles
 
-    def record(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost):
+    def record(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost, sens):
         start = P.copy()
-        kernel(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost)
-        calls.append(((px, py, img, w0, radius, taper, start, warm, max_iter, tol), best_P.copy(), best_cost.copy()))
+        kernel(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost, sens)
+        calls.append(((px, py, img, w0, radius, taper, start, warm, max_iter, tol), best_P.copy(), best_cost.copy(),
+                      sens.copy()))
 
     monkeypatch.setattr(corners_module, "fit_saddles", record)  # where the corner fit looks it up
     out = run()
@@ -190,7 +191,7 @@ def test_saddle_fit_is_the_numpy_loop(monkeypatch, noisy_board):
     # fitted grid, a warm start)
     assert ok1.all() and ok2.all() and len(warm) == 2 and [c[0][7] for c in cold[:2]] == [False, False]
     assert all(c[0][7] for c in cold[2:]) and warm[0][0][7]  # the cold start solves the linear parameters, the warm one not
-    for args, best_P, best_cost in cold + warm:
+    for args, best_P, best_cost, _ in cold + warm:
         ref_P, ref_cost = numpy_fit_saddles(*args)
         assert np.abs(best_P[:, :2] - ref_P[:, :2]).max() < SAME_PX
         assert np.allclose(best_P, ref_P, rtol=1e-9, atol=1e-9)
@@ -198,6 +199,29 @@ def test_saddle_fit_is_the_numpy_loop(monkeypatch, noisy_board):
     # and the fit is the fit: 0.0117 px RMS from the truth here; the bar is test_noise_8bit's (1.5x its 0.012 px)
     assert np.sqrt(np.mean(np.sum((q1 - t) ** 2, axis=1))) < 0.018
     assert np.abs(q2 - q1).max() > 1e-3  # the lens frame moved them (0.025 px): the warm path did run
+
+
+def test_bend_sensitivity_is_the_fits(monkeypatch, noisy_board):
+    """The kernel's ``sens``, how a fitted corner moves with the bends it holds (what the corner fit moves
+    its corners by when the bends measured on the fitted grid differ from the start's), against the
+    fit itself with each bend changed by ±0.02 px across the window: within 10 % of the largest (measured
+    3 %: ``sens`` is taken after the first step, the corner fit needs it to a few per cent)."""
+    img, _, start = noisy_board
+    cold, _ = _recorded_fits(monkeypatch, lambda: _fit_corners(img, start, BOARD))
+    (px, py, im, w0, radius, taper, P0, warm, _, _), best_P, _, sens = cold[0]
+    assert sens.shape == (len(P0), 2, 2) and np.all(np.isfinite(sens))
+    fd = np.empty_like(sens)
+    for c in range(2):
+        q = []
+        for sign in (1.0, -1.0):
+            P = best_P.copy()  # from the fit: warm, the bends moved, to convergence
+            P[:, 11 + c] += sign * 0.02 / radius**2
+            out, cost, s2 = np.empty_like(P), np.empty(len(P)), np.empty((len(P), 2, 2))
+            ck.fit_saddles(px, py, im, w0, radius, taper, P, True, 50, 1e-10, out, cost, s2)
+            q.append(out[:, :2])
+        fd[:, :, c] = (q[0] - q[1]) / (2 * 0.02 / radius[:, None] ** 2)
+    assert np.abs(fd).max() > 1.0  # px per 1/px: the bends do move the corners
+    assert np.abs(sens - fd).max() < 0.1 * np.abs(fd).max(), np.abs(sens - fd).max() / np.abs(fd).max()
 
 
 def test_forstner_is_the_numpy_loop(noisy_board):

@@ -20,13 +20,13 @@ import math
 
 import numpy as np
 
-from numba import njit
+from lightplane.core.jit import njit_cached
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_2_PI = math.sqrt(2.0 / math.pi)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _solve(A, b, x):  # pragma: no cover - compiled
     """``x`` = the solution of ``A x = b`` (m, m) by Gaussian elimination with partial pivoting (as
     LAPACK's ``gesv``), NaN where a pivot is exactly zero.  ``A`` and ``b`` are overwritten."""
@@ -59,11 +59,10 @@ def _solve(A, b, x):  # pragma: no cover - compiled
         x[r] = s / A[r, r]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _normal_equations(J, res, m, A, g):  # pragma: no cover - compiled
-    """``A = J Jᵀ``, ``g = J res`` over the first ``m`` columns of ``J`` (n, K) (the sums reassociated
-    so that they vectorise; four products per load of a row of ``J``)."""
-    n = J.shape[0]
+@njit_cached(nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _normal_equations(J, res, m, A, g, n):  # pragma: no cover - compiled
+    """``A = J Jᵀ``, ``g = J res`` over the first ``n`` rows and ``m`` columns of ``J`` (into ``A[:n, :n]``,
+    ``g[:n]``; the sums reassociated so that they vectorise; four products per load of a row of ``J``)."""
     for a in range(n):
         ja = J[a]
         s0 = 0.0
@@ -93,7 +92,7 @@ def _normal_equations(J, res, m, A, g):  # pragma: no cover - compiled
             A[b, a] = A[a, b]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _window(px, py, w0, i, qx, qy, radius, taper, ux, uy, W, idx):  # pragma: no cover - compiled
     """The weight of ``intrinsics._fit_saddles`` about ``(qx, qy)`` for corner ``i``: the pixels
     where it is not zero (their offsets ``ux, uy``, weights ``W`` and indices ``idx``), how many."""
@@ -129,7 +128,7 @@ def _window(px, py, w0, i, qx, qy, radius, taper, ux, uy, W, idx):  # pragma: no
     return m
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit_cached(nogil=True, inline="always", error_model="numpy")
 def _erf(x):  # pragma: no cover - compiled
     """``math.erf``, its saturated tails (|x| >= 6: ±1 to the last bit, in libm as in scipy) without the call."""
     if x >= 6.0:
@@ -139,7 +138,7 @@ def _erf(x):  # pragma: no cover - compiled
     return math.erf(x)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
     """The saddle model's ``erf`` factors ``e1``, ``e2`` for parameters ``p`` (13,) at the ``m`` offsets (the
     edges' signed distances ``d_i = n_i·u + κ_i t_i²``, ``t_i`` along the edge, ``κ_i = p[11 + i]``)."""
@@ -147,6 +146,12 @@ def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
     c2, s2 = math.cos(p[3]), math.sin(p[3])
     k1, k2 = p[11], p[12]
     den = _SQRT2 * p[4]
+    if k1 == 0.0 and k2 == 0.0:  # straight edges: the bends' terms left out (a tenth of the time)
+        for k in range(m):
+            x, y = ux[k], uy[k]
+            e1[k] = _erf((c1 * x + s1 * y) / den)
+            e2[k] = _erf((c2 * x + s2 * y) / den)
+        return
     for k in range(m):
         x, y = ux[k], uy[k]
         t1 = c1 * y - s1 * x
@@ -155,7 +160,7 @@ def _erfs(p, ux, uy, m, e1, e2):  # pragma: no cover - compiled
         e2[k] = _erf((c2 * x + s2 * y + k2 * (t2 * t2)) / den)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _residual(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - compiled
     """The residuals ``res`` (image - model) of the saddle model with parameters ``p`` and ``erf``
     factors ``e1``, ``e2`` at the ``m`` offsets."""
@@ -165,7 +170,7 @@ def _residual(p, img, i, ux, uy, idx, m, e1, e2, res):  # pragma: no cover - com
         res[k] = img[i, idx[k]] - (p[5] + p[7] * x + p[8] * y + amp * (e1[k] * e2[k]))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma: no cover - compiled
     """The linear parameters (a, b, g, h) of ``p`` solved for its geometry (corner, edges, blur; the
     ``erf`` factors ``e1``, ``e2``), weights ``W``: written into ``p[5:11]`` (0 where not finite)."""
@@ -179,7 +184,7 @@ def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma
         J[4, k] = sw * (ux[k] * ee)
         J[5, k] = sw * (uy[k] * ee)
         res[k] = sw * img[i, idx[k]]
-    _normal_equations(J[:6], res, m, A6, g6)
+    _normal_equations(J, res, m, A6, g6, 6)
     tr = 0.0
     for a in range(6):
         tr += A6[a, a]
@@ -190,16 +195,51 @@ def _linear(p, img, i, ux, uy, W, idx, m, e1, e2, J, res, A6, g6, x6):  # pragma
         p[5 + a] = x6[a] if math.isfinite(x6[a]) else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
-    """The saddle model's Jacobian in its 11 free parameters (qx, qy, φ1, φ2, s, a, b, gx, gy, hx, hy;
-    the edges' bends κ1, κ2 held) at the ``m`` offsets, times the square root of the weight, into ``J``
-    (11, K); the residuals ``res`` scaled alike."""
+@njit_cached(nogil=True, error_model="numpy")
+def _jacobian_straight(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
+    """:func:`_jacobian` of straight edges (both bends 0) in the 11 free parameters."""
+    c1, s1 = math.cos(p[2]), math.sin(p[2])
+    c2, s2 = math.cos(p[3]), math.sin(p[3])
+    s = p[4]
+    kk = _SQRT_2_PI / s
+    for k in range(m):
+        xk, yk = ux[k], uy[k]
+        d1 = c1 * xk + s1 * yk
+        d2 = c2 * xk + s2 * yk
+        ee = e1[k] * e2[k]
+        amp = p[6] + p[9] * xk + p[10] * yk
+        t1 = d1 / s
+        t2 = d2 / s
+        b1 = amp * (kk * math.exp(-0.5 * (t1 * t1))) * e2[k]
+        b2 = amp * e1[k] * (kk * math.exp(-0.5 * (t2 * t2)))
+        sw = math.sqrt(W[k])
+        J[0, k] = sw * (-p[7] - p[9] * ee - b1 * c1 - b2 * c2)
+        J[1, k] = sw * (-p[8] - p[10] * ee - b1 * s1 - b2 * s2)
+        J[2, k] = sw * (b1 * (c1 * yk - s1 * xk))
+        J[3, k] = sw * (b2 * (c2 * yk - s2 * xk))
+        J[4, k] = sw * (-(b1 * d1 + b2 * d2) / s)
+        J[5, k] = sw
+        J[6, k] = sw * ee
+        J[7, k] = sw * xk
+        J[8, k] = sw * yk
+        J[9, k] = sw * (xk * ee)
+        J[10, k] = sw * (yk * ee)
+        res[k] = sw * res[k]
+
+
+@njit_cached(nogil=True, error_model="numpy")
+def _jacobian(p, ux, uy, W, m, e1, e2, J, res, rows):  # pragma: no cover - compiled
+    """The saddle model's Jacobian in its first ``rows`` (11 or 13) parameters (qx, qy, φ1, φ2, s, a, b,
+    gx, gy, hx, hy, and the edges' bends κ1, κ2, which the fit holds) at the ``m`` offsets, times the
+    square root of the weight, into ``J`` (13, K); the residuals ``res`` scaled alike."""
     c1, s1 = math.cos(p[2]), math.sin(p[2])
     c2, s2 = math.cos(p[3]), math.sin(p[3])
     k1, k2 = p[11], p[12]
     s = p[4]
     kk = _SQRT_2_PI / s
+    if k1 == 0.0 and k2 == 0.0 and rows == 11:
+        _jacobian_straight(p, ux, uy, W, m, e1, e2, J, res)
+        return
     for k in range(m):
         xk, yk = ux[k], uy[k]
         n1 = c1 * xk + s1 * yk
@@ -229,10 +269,13 @@ def _jacobian(p, ux, uy, W, m, e1, e2, J, res):  # pragma: no cover - compiled
         J[8, k] = sw * yk
         J[9, k] = sw * (xk * ee)
         J[10, k] = sw * (yk * ee)
+        if rows > 11:
+            J[11, k] = sw * (b1 * (t1 * t1))
+            J[12, k] = sw * (b2 * (t2 * t2))
         res[k] = sw * res[k]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def window_pixels(g, base, ox, oy, px, py, img, w0):  # pragma: no cover - compiled
     """The pixel centres ``base[i] + (ox[k], oy[k])`` (``px, py``, (n, K)) about integer-valued corners
     ``base`` (n, 2), the image ``g`` there (``img``; outside the image: its nearest border pixel) and
@@ -248,14 +291,17 @@ def window_pixels(g, base, ox, oy, px, py, img, w0):  # pragma: no cover - compi
             img[i, k] = g[int(min(max(y, 0.0), h - 1.0)), int(min(max(x, 0.0), w - 1.0))]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost):  # pragma: no cover
+@njit_cached(nogil=True, error_model="numpy")
+def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, best_cost, sens):  # pragma: no cover
     """``intrinsics._fit_saddles``' Levenberg–Marquardt for the corners of one chunk: pixel centres
     ``px, py`` (n, K) (lens-frame coordinates with a camera), image values ``img`` (n, K), the weight's
     fixed factor ``w0`` (n, K) (inside the image times the area element), window radii ``radius`` (n,);
     ``P`` (n, 13) the start (overwritten; its edge bends ``P[:, 11:13]`` held), ``warm``: whole parameter
-    sets (else the linear parameters are solved for first).  Writes the best parameters ``best_P`` (n, 13)
-    and their weighted mean squared residual ``best_cost`` (n,)."""
+    sets (else the linear parameters are solved for first).  Writes the best parameters ``best_P`` (n, 13),
+    their weighted mean squared residual ``best_cost`` (n,) and, where ``sens`` is given ((n, 2, 2); else
+    (0, 2, 2)), how the fitted corner moves with the bends held, ``∂(qx, qy)/∂(κ1, κ2)`` (Gauss–Newton:
+    ``-(J_fᵀJ_f)⁻¹ J_fᵀ J_κ`` of the free parameters ``f``, at the last accepted step after a cold start's
+    first; NaN where singular or where there was none)."""
     n, K = px.shape
     ux = np.empty(K)
     uy = np.empty(K)
@@ -264,7 +310,7 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
     e1 = np.empty(K)
     e2 = np.empty(K)
     res = np.empty(K)
-    J = np.empty((11, K))
+    J = np.empty((13, K))
     A = np.empty((11, 11))
     g = np.empty(11)
     step = np.empty(11)
@@ -274,8 +320,10 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
     lam = np.full(n, 1e-3)
     best_cost[:] = np.inf
     best_P[:] = P
-    A_best = np.zeros((n, 11, 11))
-    g_best = np.zeros((n, 11))
+    A_best = np.zeros((n, 13, 13))  # with the bends' rows and columns (for sens)
+    g_best = np.zeros((n, 13))
+    want = sens.shape[0] == n
+    has = np.zeros(n, np.bool_)
     for it in range(max_iter + 1):
         all_better = True
         big_step = 0.0
@@ -295,8 +343,12 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
             cost = num / max(den, 1e-300)
             better = math.isfinite(cost) and cost <= best_cost[i]
             if better:
-                _jacobian(p, ux, uy, W, m, e1, e2, J, res)
-                _normal_equations(J, res, m, A_best[i], g_best[i])
+                # the bends' columns once, near the solution (after a cold start's first step): sens needs
+                # them to a few per cent
+                rows = 13 if want and not has[i] and (it > 0 or warm) else 11
+                _jacobian(p, ux, uy, W, m, e1, e2, J, res, rows)
+                _normal_equations(J, res, m, A_best[i], g_best[i], rows)
+                has[i] = has[i] or rows == 13
                 best_P[i] = p
                 best_cost[i] = cost
                 lam[i] = max(min(0.3 * lam[i], 1e9), 1e-9)
@@ -319,9 +371,21 @@ def fit_saddles(px, py, img, w0, radius, taper, P, warm, max_iter, tol, best_P, 
                 big_step = max(big_step, abs(step[0]), abs(step[1]))
         if all_better and big_step < tol:
             break
+    for i in range(n if want else 0):
+        if not has[i]:
+            sens[i] = np.nan
+            continue
+        for c in range(2):
+            for a in range(11):
+                g[a] = A_best[i, a, 11 + c]
+                for b in range(11):
+                    A[a, b] = A_best[i, a, b]
+            _solve(A, g, step)
+            sens[i, 0, c] = -step[0]
+            sens[i, 1, c] = -step[1]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def line_bends(g, e, ok, width, kappa):  # pragma: no cover - compiled
     """:func:`lightplane.camera.corners._line_bends`: for each corner of the grid lines ``g`` (lines, m, 2)
     (line directions ``e`` (lines, m, 2), usable corners ``ok`` (lines, m)), the polynomial
@@ -375,7 +439,7 @@ def line_bends(g, e, ok, width, kappa):  # pragma: no cover - compiled
                 kappa[i, j] = -x[2] / (scale * scale)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def forstner(gx, gy, unit, q0, radius, two_sigma2, max_iter, tol, q):  # pragma: no cover - compiled
     """:func:`lightplane.camera.corners.refine_corners`' iteration: each corner of ``q0`` (n, 2) moved to the
     point its gradients (``unit`` times ``gx, gy``, the Scharr images) are orthogonal to, over the pixels within

@@ -22,9 +22,10 @@ __all__ = ["MIN_BOARD_BLUR_PX", "CornerFitOptions", "find_board", "fit_corners",
 MIN_BOARD_BLUR_PX = 0.55
 
 #: The saddle fit's corners are fitted again where the bends of their edges (:func:`_grid_bends`) measured
-#: on the fitted corners differ from those on the start corners by more than this across the window (px):
-#: a corner moves by ~0.27 of such a change (measured), so at most ~0.0005 px is left.
-BEND_TOL_PX = 0.002
+#: on the fitted corners differ from those it held by more than this across the window (px); the others
+#: are moved to first order (a corner moves by ~0.27 of a bend, linear within 1.4 % up to 0.05 px: within
+#: this, less than 1e-5 px is left).
+BEND_REFIT_PX = 0.005
 
 
 def refine_corners(gray: np.ndarray, corners_uv: np.ndarray, spacing_px: float, *, sigma_frac: float = 0.2,
@@ -137,10 +138,12 @@ class _LensFrame:
 
 
 def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: float, max_iter: int,
-                 tol_px: float, camera: Camera | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                 tol_px: float, camera: Camera | None = None, warm: bool = False,
+                 bent: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg–Marquardt fit of the blurred saddle of :func:`fit_corners` to ``g`` for corners with starting
-    parameters ``P`` (n, 13) and window radii ``radius`` (n,) px: the fitted parameters
-    and the weighted mean squared residual (n,).  With ``camera``, the model is fitted in
+    parameters ``P`` (n, 13) and window radii ``radius`` (n,) px: the fitted parameters, the weighted
+    mean squared residual (n,) and, with ``bent``, the corners' derivatives in the bends (n, 2, 2) (the
+    kernel's ``sens``; else NaN).  With ``camera``, the model is fitted in
     the :class:`_LensFrame` about the starting corners (the corners returned in distorted px).
     ``warm``: ``P`` is a whole fitted parameter set (else only the corner, edge angles and blur:
     the linear parameters are solved for first).  The iteration is :func:`_corner_kernels.fit_saddles`
@@ -163,12 +166,13 @@ def _fit_saddles(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper_px: flo
     P = np.array(P, dtype=np.float64, order="C")
     best_P = np.empty_like(P)
     best_cost = np.empty(len(P))
+    sens = np.empty((len(P) if bent and frame is None else 0, 2, 2))  # the lens frame's edges are straight
     fit_saddles(np.ascontiguousarray(px, dtype=np.float64), np.ascontiguousarray(py, dtype=np.float64), img,
                 np.ascontiguousarray(w0, dtype=np.float64), np.ascontiguousarray(radius, dtype=np.float64),
-                float(taper_px), P, bool(warm), int(max_iter), float(tol_px), best_P, best_cost)
+                float(taper_px), P, bool(warm), int(max_iter), float(tol_px), best_P, best_cost, sens)
     if frame is not None:
         best_P[:, :2] = frame.back(best_P[:, :2])
-    return best_P, best_cost
+    return best_P, best_cost, sens if len(sens) else np.full((len(P), 2, 2), np.nan)
 
 
 @dataclass(frozen=True)
@@ -251,12 +255,13 @@ def fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int]
     alone bends it, and its bend at a corner is that of the corners on it (a cubic through the
     corner and its neighbours on the line, :func:`_grid_bends`; ``κ_i`` held in the fit).  The bend's
     quadratic part is what breaks the symmetry (a cubic one is point-symmetric about ``q``), so the
-    pull is gone.  The bends are measured on the start corners first, then again on the fitted ones,
-    and the corners whose bends that changed by more than :data:`BEND_TOL_PX` across the window are
-    fitted again (a noisy start, ~0.1 px, bends its neighbours' lines).  On 10 realistic renders of
-    each lens: wide 6 mm lens +0.0003 / +0.0001 / +0.0000 px at r < 200 / 200–400 / 400–600 px,
+    pull is gone.  The bends are measured on the start corners for the fit, then again on the fitted
+    corners, which are moved by their derivatives in the bends (the fit's, to first order) until the
+    two agree: the corners are those of the bends of their own grid, whatever the start
+    (:func:`_rebent`; a noisy start, ~0.1 px, bends its neighbours' lines).  On 10 realistic renders
+    of each lens: wide 6 mm lens +0.0003 / +0.0002 / +0.0000 px at r < 200 / 200–400 / 400–600 px,
     0.0070 px RMS (straight edges 0.0101 px); fisheye within ±0.0008 px, 0.0104 px RMS (0.0232 px);
-    the default 16 mm lens 0.0060 px RMS either way; ~1.06x the straight fit's time.  With ``camera``
+    the default 16 mm lens 0.0060 px RMS either way; ~1.2x the straight fit's time.  With ``camera``
     (a lens known, e.g. from a calibration) the straight model is fitted in the lens frame about each
     corner instead (:class:`_LensFrame`: the pixel centres mapped through the undistortion and back
     by the local Jacobian, so the first-order geometry is unchanged and only the bending removed;
@@ -313,25 +318,49 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
         P[~warm, 11:13] = _clipped_bends(q0, (cols, rows), radius, np.ones(n, bool))[~warm]
     else:  # straight edges (in the lens frame the lens's bending is taken out)
         P[:, 11:13] = 0.0
-    P, cost = _fit_groups(g, P, radius, [sel & ~warm, sel & warm], opts, camera)
+    P, cost, sens = _fit_groups(g, P, radius, [sel & ~warm, sel & warm], opts, camera, bent)
     geometry = (q0, gap, radius, e_row, e_col)
     bad = _failed(P, cost, geometry, opts) | ~sel
-    for _ in range(3 if bent else 0):
-        # the bends again from the fitted corners (the start's noise, ~0.02 px from Förstner's step, bends
-        # its neighbours' lines by ~0.15 of it); refit where they moved a window's edge by > BEND_TOL_PX
-        bends = _clipped_bends(np.where(bad[:, None], q0, P[:, :2]), (cols, rows), radius, ~bad)
-        again = ~bad & (np.max(np.abs(bends - P[:, 11:13]), axis=1) * radius**2 > BEND_TOL_PX)
-        if not again.any():
-            break
-        P[again, 11:13] = bends[again]
-        P2, cost2 = _fit_groups(g, P, radius, [np.zeros(n, bool), again], opts, camera)
-        P[again], cost[again] = P2[again], cost2[again]
-        bad[again] = _failed(P, cost, geometry, opts)[again]
+    if bent:
+        P, bad = _rebent(g, P, cost, sens, bad, (cols, rows), geometry, opts)
     q = np.where(bad[:, None], q0, P[:, :2])
     blur = np.abs(P[:, 4])  # the model is even in s (with b): only |s| means something
     blur[~sel] = np.nan
     P[bad] = np.nan
     return q, blur, ~bad, P
+
+
+def _rebent(g: np.ndarray, P: np.ndarray, cost: np.ndarray, sens: np.ndarray, bad: np.ndarray,
+            board: tuple[int, int], geometry: tuple, opts: CornerFitOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted corners with the bends of the fitted grid instead of the start's (its noise, ~0.02 px
+    from Förstner's step, bends its neighbours' lines by ~0.15 of it): each corner moved by its derivative
+    in the bends (``sens`` (N, 2, 2)) times their change, the bends measured again on the moved corners
+    until they stop moving (to first order the corners are then those of a fit with the final bends,
+    whatever the start); where a bend changed by more than :data:`BEND_REFIT_PX` across the window (a
+    misplaced start corner) the corner is fitted again with it first.  The parameters (N, 13) (corners
+    and bends replaced) and which fits failed (N,)."""
+    q0, radius = geometry[0], geometry[2]
+    P, cost, sens = P.copy(), cost.copy(), sens.copy()
+    q = P[:, :2].copy()
+    for _ in range(4):
+        bends = _clipped_bends(np.where(bad[:, None], q0, q), board, radius, ~bad)
+        change = bends - P[:, 11:13]
+        refit = ~bad & ((np.max(np.abs(change), axis=1) * radius**2 > BEND_REFIT_PX)
+                        | ~np.all(np.isfinite(sens), axis=(1, 2)))
+        if refit.any():
+            P[refit, 11:13] = bends[refit]
+            P2, cost2, sens2 = _fit_groups(g, P, radius, [np.zeros(len(P), bool), refit], opts, None, True)
+            P[refit], cost[refit], sens[refit] = P2[refit], cost2[refit], sens2[refit]
+            bad[refit] = _failed(P, cost, geometry, opts)[refit]
+            change[refit] = 0.0
+        moved = P[:, :2] + np.einsum("nij,nj->ni", np.nan_to_num(sens), change)
+        step = np.max(np.abs(moved - q)[~bad], initial=0.0)
+        q = moved
+        if step < 1e-6 and not refit.any():
+            break
+    P[:, :2] = np.where(bad[:, None], P[:, :2], q)
+    P[:, 11:13] = np.where(bad[:, None], P[:, 11:13], bends)
+    return P, bad
 
 
 def _failed(P: np.ndarray, cost: np.ndarray, geometry: tuple, opts: CornerFitOptions) -> np.ndarray:
@@ -354,20 +383,22 @@ def _failed(P: np.ndarray, cost: np.ndarray, geometry: tuple, opts: CornerFitOpt
 
 
 def _fit_groups(g: np.ndarray, P: np.ndarray, radius: np.ndarray, groups: list, opts: CornerFitOptions,
-                camera: Camera | None) -> tuple[np.ndarray, np.ndarray]:
+                camera: Camera | None, bent: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The saddle fits of the corners of ``groups`` ([cold, warm] (N,) bool: started from their geometry
     alone, or from a whole parameter set), in chunks of similar radius (bounded memory, few padded
-    pixels): the parameters (N, 13) (the others as they were) and costs (N,) (inf where not fitted)."""
+    pixels): the parameters (N, 13) (the others as they were), costs (N,) (inf where not fitted) and,
+    with ``bent``, the corners' derivatives in the bends (N, 2, 2) (NaN where not fitted or not ``bent``)."""
     P = P.copy()
     cost = np.full(len(P), np.inf)
+    sens = np.full((len(P), 2, 2), np.nan)
     for group, is_warm in zip(groups, (False, True)):
         order = np.flatnonzero(group)[np.argsort(radius[group])]
         for chunk in np.array_split(order, max(1, int(np.ceil(order.size / opts.chunk_size)))):
             if chunk.size == 0:
                 continue
-            P[chunk], cost[chunk] = _fit_saddles(g, P[chunk], radius[chunk], opts.taper_px, opts.max_iter,
-                                                 opts.tol_px, camera, warm=is_warm)
-    return P, cost
+            P[chunk], cost[chunk], sens[chunk] = _fit_saddles(g, P[chunk], radius[chunk], opts.taper_px, opts.max_iter,
+                                                              opts.tol_px, camera, warm=is_warm, bent=bent)
+    return P, cost, sens
 
 
 def _clipped_bends(q: np.ndarray, board: tuple[int, int], radius: np.ndarray, use: np.ndarray) -> np.ndarray:

@@ -11,15 +11,15 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from lightplane.core.jit import njit_cached
 
 from lightplane.camera.lens import distort_jac, undistort_guess  # noqa: E402
 
-distort_jac_kernel = njit(cache=True, nogil=True, inline="always", error_model="numpy")(distort_jac)
-_undistort_guess = njit(cache=True, nogil=True, inline="always", error_model="numpy")(undistort_guess)
+distort_jac_kernel = njit_cached(nogil=True, inline="always", error_model="numpy")(distort_jac)
+_undistort_guess = njit_cached(nogil=True, inline="always", error_model="numpy")(undistort_guess)
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit_cached(nogil=True, inline="always", error_model="numpy")
 def newton_step_kernel(x, y, tx, ty, lens):  # pragma: no cover - compiled
     """One Newton step towards the undistorted point whose distortion is ``(tx, ty)``, from ``(x, y)``:
     the new point, the step taken ``(dx, dy)`` and the distortion's Jacobian at ``(x, y)``."""
@@ -32,7 +32,7 @@ def newton_step_kernel(x, y, tx, ty, lens):  # pragma: no cover - compiled
     return x - dx, y - dy, dx, dy, j11, j12, j21, j22
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover - compiled
     """For each point ``k``: the normalised undistorted ``xy[k]`` whose distortion is the normalised
     distorted ``(tx[k], ty[k])`` (K⁻¹ of the pixel ``(u[k], v[k])``), by Newton from
@@ -52,7 +52,7 @@ def newton_undistort(tx, ty, lens, K, u, v, iters, xy, err):  # pragma: no cover
         err[k] = math.sqrt(du * du + dv * dv)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def newton_undistort_from(tx, ty, sx, sy, lens, tol, iters, xy, jac, done):  # pragma: no cover - compiled
     """:meth:`lightplane.camera.model.Camera._undistort_near`'s Newton, a point at a time: from the start
     ``(sx[k], sy[k])`` until a step is below ``tol`` (normalised; ``iters`` steps at most), ``xy[k]``

@@ -13,13 +13,13 @@ import math
 
 import numpy as np
 
-from numba import njit
+from lightplane.core.jit import njit_cached
 
 #: :func:`hermite_lookup`'s status of each point
 NOT_FINITE, DONE, OFF_GRID, NOT_BUILT = 0, 1, 2, 3
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def hermite_lookup(tab_xy, tab_dxy, built, block_lines, block_samples, line, t, out, status):  # pragma: no cover
     """For each point ``k`` at line ``line[k]`` (an integer, as a float, off the grid otherwise) and
     sample ``t[k]`` of the tables (roi-relative): the cubic Hermite interpolation of ``tab_xy``
@@ -63,7 +63,7 @@ def hermite_lookup(tab_xy, tab_dxy, built, block_lines, block_samples, line, t, 
         status[k] = DONE
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def median_where(w, mask):  # pragma: no cover
     """``(np.median(w[mask & isfinite(w)]), count)``; ``(NaN, 0)`` when none (numpy's median, bit for
     bit: the middle value, or the two middle ones' sum halved)."""

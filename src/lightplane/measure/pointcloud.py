@@ -47,7 +47,11 @@ renamed when complete; an existing file is replaced only with ``force``.
 from __future__ import annotations
 
 import os
+import re
+import socket
+import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -56,7 +60,8 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import atomic_write
 
-__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format"]
+__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format",
+           "remove_stale_spools", "SPOOL_PREFIX", "STALE_SPOOL_S"]
 
 POINT_DTYPE = np.dtype([
     ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
@@ -130,16 +135,74 @@ def cloud_format(path: str | os.PathLike, fmt: str | None = None) -> str:
     return suffix
 
 
+#: the start of a spool file's name: ``.lightplane-spool-<host>-<pid>-<random>.bin``
+SPOOL_PREFIX = ".lightplane-spool-"
+_SPOOL_SUFFIX = ".bin"
+#: a spool file whose process cannot be checked (another machine, an older name) is left over from a
+#: killed run once it has not been written for this long, s
+STALE_SPOOL_S = 6 * 3600.0
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname()) or "host"
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this machine exists (POSIX; elsewhere: assumed alive)."""
+    if sys.platform.startswith("win"):   # os.kill(pid, 0) would send CTRL_C_EVENT there
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:   # someone else's process
+        return True
+    return True
+
+
+def remove_stale_spools(directory: str | os.PathLike | None = None, *, max_age_s: float = STALE_SPOOL_S) -> list[Path]:
+    """Remove the spool files (:class:`PointSpool`) that killed runs left in ``directory`` (None: the
+    temporary folder): those of a process of this machine that no longer runs, and any other not
+    written for ``max_age_s``.  Returns the files removed; the files of running processes stay."""
+    folder = Path(tempfile.gettempdir() if directory is None else directory)
+    removed: list[Path] = []
+    try:
+        names = [n for n in os.listdir(folder) if n.startswith(SPOOL_PREFIX) and n.endswith(_SPOOL_SUFFIX)]
+    except OSError:
+        return removed
+    host, now = _host(), time.time()
+    for name in names:
+        parts = name[len(SPOOL_PREFIX):-len(_SPOOL_SUFFIX)].rsplit("-", 2)
+        path = folder / name
+        try:
+            if len(parts) == 3 and parts[0] == host and parts[1].isdigit():
+                pid = int(parts[1])
+                stale = pid != os.getpid() and not _pid_alive(pid)
+            else:
+                stale = now - path.stat().st_mtime > max_age_s
+            if stale:
+                path.unlink()
+                removed.append(path)
+        except OSError:   # removed meanwhile, or not ours to remove
+            continue
+    return removed
+
+
 class PointSpool:
     """Append-only temporary file of :data:`POINT_DTYPE` records (streaming accumulation).
 
     ``append`` writes records straight to disk; ``chunks`` reads them back in order,
-    a bounded number at a time.  Use as a context manager (the file is removed on exit).
+    a bounded number at a time.  Use as a context manager: the file is removed on exit,
+    whatever ends the block (an error, an interrupt; the command line turns SIGTERM into an
+    exit too).  A run killed outright leaves its file behind: the file's name carries the
+    host and process id, and the next spool made in that folder removes the files of
+    processes that are gone (:func:`remove_stale_spools`).
     """
 
     def __init__(self, directory: str | os.PathLike | None = None, dtype: np.dtype = POINT_DTYPE) -> None:
         self.dtype = np.dtype(dtype)
-        fd, self.path = tempfile.mkstemp(prefix=".lightplane-spool-", suffix=".bin",
+        remove_stale_spools(directory)
+        fd, self.path = tempfile.mkstemp(prefix=f"{SPOOL_PREFIX}{_host()}-{os.getpid()}-", suffix=_SPOOL_SUFFIX,
                                          dir=None if directory is None else str(directory))
         self._f = os.fdopen(fd, "wb")
         self.count = 0

@@ -16,7 +16,7 @@ import numpy as np
 from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
-from numba import njit
+from lightplane.core.jit import njit_cached
 
 __all__ = ["triangulate", "triangulate_normalized", "Triangulation", "GRAZING_COS", "AXES", "profile_axis",
            "points_sigma_mm"]
@@ -122,7 +122,7 @@ def points_sigma_mm(plane: LightPlane, xy: np.ndarray, *, covariance: np.ndarray
     return s
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit_cached(nogil=True, error_model="numpy")
 def triangulate_rays(xy, a, b, c, d, min_cos, pts, grazing, behind):  # pragma: no cover
     """The rays ``(x, y, 1)`` of ``xy`` (N, 2) on the plane ``(a, b, c, d)`` in one pass
     (:func:`triangulate_normalized`): ``grazing[k]`` where the ray's cosine with

@@ -43,6 +43,8 @@ from lightplane.plane.calibrate import PlaneCalibrationOptions, observe_images, 
 from lightplane.plane.zhou import BoardFrames, calibrate_plane_board
 from lightplane.report.html import Section, write_report
 from lightplane.simulate import render as R
+from lightplane.simulate import render_core
+from lightplane.core import jit
 from lightplane.simulate.scene import default_camera, default_plane
 
 __all__ = ["run_demo", "DEMO_SETTINGS"]
@@ -222,6 +224,8 @@ def _stage_render(run: _Run) -> dict:
             "scan": cfg["scan_frames"]}
     jobs = {k: v for k, v in jobs.items() if v}
     run.say(f"[2] rendering {', '.join(f'{v} {k}' for k, v in jobs.items())} (1280x960, ray-traced, noise) ...")
+    if jit.is_cold((render_core.render_modes, render_core.probe_corners, render_core.undistort_grid)):
+        jit.notify_compiling()   # the worker processes compile the renderer: say so here, where it is seen
 
     def render_all():
         import importlib

@@ -40,6 +40,7 @@ import numba as nb
 import numpy as np
 
 from lightplane.core.threads import ensure_configured
+from lightplane.core.jit import njit_cached
 from lightplane.camera.lens_kernels import distort_jac_kernel, newton_step_kernel
 from lightplane.camera.lens import lens_params, undistort_guess
 from lightplane.core.errors import LightplaneError
@@ -149,10 +150,10 @@ _R0_MM = 450.0
 # 1 / std of _value_noise (measured over 20000 random points: 0.3706): unit-variance noise
 _NOISE_UNIT = 2.7
 
-_jit = dict(cache=True, fastmath=False)
+_jit = dict(fastmath=False)
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _mix(x):
     # splitmix64 finaliser on uint64
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -160,7 +161,7 @@ def _mix(x):
     return x ^ (x >> np.uint64(31))
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _hash01(a, b, c, d):
     """Deterministic uniform [0, 1) from four integers."""
     h = _mix(np.uint64(a & 0xFFFFFFFF) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(0x632BE59BD9B4E019))
@@ -170,13 +171,13 @@ def _hash01(a, b, c, d):
     return float(h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _pixel_state(u, v, salt):
     return _mix(np.uint64(u & 0xFFFFFFFF) * np.uint64(0x9E3779B97F4A7C15) ^ _mix(np.uint64(v & 0xFFFFFFFF)
                 * np.uint64(0xC2B2AE3D27D4EB4F) + np.uint64(salt & 0xFFFFFFFF)))
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _next01(state):
     """PCG-style step: (new state, uniform [0, 1))."""
     state = state * np.uint64(6364136223846793005) + np.uint64(1442695040888963407)
@@ -185,7 +186,7 @@ def _next01(state):
     return state, float(x >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _value_noise(x, y, z, seed):
     """Smooth 3-D value noise (unit lattice), values in about [-1, 1]."""
     ix = int(np.floor(x))
@@ -207,10 +208,10 @@ def _value_noise(x, y, z, seed):
     return acc
 
 
-_undistort_guess = nb.njit(**_jit)(undistort_guess)
+_undistort_guess = njit_cached(**_jit)(undistort_guess)
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _undistort(xd, yd, x, y, lens, max_iter):
     """Newton's method for distort(x, y) = (xd, yd), started at (x, y); ``lens`` the packed model of
     :func:`lightplane.camera.lens.lens_params` (the one implementation of every lens model)."""
@@ -221,7 +222,7 @@ def _undistort(xd, yd, x, y, lens, max_iter):
     return x, y
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _hit_patch(row, ox, oy, oz, dx, dy, dz, tmin, tmax):
     """Ray o + t d against one patch: (t, u, v) or t = -1 when missed."""
     nx, ny, nz = row[9], row[10], row[11]
@@ -248,7 +249,7 @@ def _hit_patch(row, ox, oy, oz, dx, dy, dz, tmin, tmax):
     return t, u, v
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _hit_sphere(row, ox, oy, oz, dx, dy, dz, tmin, tmax):
     cx = ox - row[0]
     cy = oy - row[1]
@@ -269,7 +270,7 @@ def _hit_sphere(row, ox, oy, oz, dx, dy, dz, tmin, tmax):
     return -1.0
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _occluded(patches, spheres, px, py, pz, lx, ly, lz):
     dx = lx - px
     dy = ly - py
@@ -284,7 +285,7 @@ def _occluded(patches, spheres, px, py, pz, lx, ly, lz):
     return False
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _bitmap_ink(row, tex, u, v):
     """Is the bitmap texel under (u, v) ink?  (Nearest cell; outside the bitmap: no.)"""
     cell = row[19]
@@ -296,7 +297,7 @@ def _bitmap_ink(row, tex, u, v):
     return tex[int(row[24]) + iv * nx + iu] != 0
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _dot_ink(row, u, v):
     """Is (u, v) inside one of the grid's dots?  The two nearest rows (and, unstaggered, the
     two nearest columns) hold the only dot a point can be in when the dots do not overlap."""
@@ -328,7 +329,7 @@ def _dot_ink(row, u, v):
     return False
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _ink(row, tex, u, v):
     """Is the point (u, v) of a bitmap- or dot-textured patch ``row`` in its ink (the second albedo)?
     (Off :func:`_shade`'s hot path, which tests the chessboard itself.)"""
@@ -339,7 +340,7 @@ def _ink(row, tex, u, v):
     return False
 
 
-@nb.njit(inline="always", **_jit)  # inlined where it is called: 0.7-0.75x the corner probe's time, the compile ~6 s longer once
+@njit_cached(inline="always", **_jit)  # inlined where it is called: 0.7-0.75x the corner probe's time, the compile ~6 s longer once
 def _shade(patches, spheres, laser, ambient, x, y, tex):
     """Radiance and material id seen along the ray (x, y, 1)."""
     dx, dy, dz = x, y, 1.0
@@ -423,7 +424,7 @@ def _shade(patches, spheres, laser, ambient, x, y, tex):
     return albedo * e, mat, dist
 
 
-@nb.njit(parallel=True, **_jit)
+@njit_cached(parallel=True, **_jit)
 def undistort_grid(fx, fy, cx, cy, skew, lens, width, height, offset):
     """Normalised undistorted ``(x, y)`` of the pixel positions ``(j + offset, i + offset)``,
     ``i < height, j < width``: ``(height, width, 2)`` float64 (Newton, docs/conventions.md §Lens model)."""
@@ -433,13 +434,13 @@ def undistort_grid(fx, fy, cx, cy, skew, lens, width, height, offset):
             yd = (i + offset - cy) / fy
             xd = (j + offset - cx - skew * yd) / fx
             x0, y0 = _undistort_guess(xd, yd, lens)
-            x, y = _undistort(xd, yd, x0, y0, lens, 50)
+            x, y = _undistort(xd, yd, x0, y0, lens, np.int64(50))   # not a literal: one compiled variant
             out[i, j, 0] = x
             out[i, j, 1] = y
     return out
 
 
-@nb.njit(parallel=True, **_jit)
+@njit_cached(parallel=True, **_jit)
 def probe_corners(corner_xy, patches, spheres, laser, ambient, tex):
     """Material id and signed distance to the light plane (mm) seen at every pixel corner.
 
@@ -457,7 +458,7 @@ def probe_corners(corner_xy, patches, spheres, laser, ambient, tex):
     return mat, dst
 
 
-@nb.njit(**_jit)
+@njit_cached(**_jit)
 def _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, ambient, S, salt, tex):
     """S x S stratified jittered samples over pixel (u, v): (mean radiance, mixed materials?)."""
     inv_s = 1.0 / S
@@ -478,7 +479,7 @@ def _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, am
             xd = (u - 0.5 + (i + ju) * inv_s - cx - skew * yd) / fx
             ex = xd - xc
             ey = yd - yc
-            x, y = _undistort(xd, yd, x0 + i11 * ex + i12 * ey, y0 + i21 * ex + i22 * ey, lens, 4)
+            x, y = _undistort(xd, yd, x0 + i11 * ex + i12 * ey, y0 + i21 * ex + i22 * ey, lens, np.int64(4))
             r, mat, d = _shade(patches, spheres, laser, ambient, x, y, tex)
             acc += r
             if mat0 == -2:
@@ -488,13 +489,14 @@ def _pixel(u, v, fx, fy, cx, cy, skew, lens, x0, y0, patches, spheres, laser, am
     return acc * inv_s * inv_s, mix
 
 
-@nb.njit(parallel=True, **_jit)
+@njit_cached(parallel=True, **_jit)
 def render_modes(fx, fy, cx, cy, skew, lens, centre_xy, patches, spheres, laser, ambient, mode, S, F, salt, tex):
     """Integrate every pixel by its mode: 0 uniform (one sample is the exact mean), 1 S x S
     samples (upgraded to F x F if they see several materials), 2 F x F samples."""
     height, width = mode.shape
     img = np.zeros((height, width))
-    for v in nb.prange(height):
+    for vp in nb.prange(height):
+        v = np.int64(vp)   # prange's index is unsigned in the parallel loop: one type for _pixel
         for u in range(width):
             x0 = centre_xy[v, u, 0]
             y0 = centre_xy[v, u, 1]

@@ -123,6 +123,8 @@ __all__ = [
     "estimate_width",
     "sigma_for_width",
     "PROFILE_STATUS",
+    "KERNEL_PIXEL_TYPES",
+    "kernel_pixels",
 ]
 
 #: meaning of :attr:`StripeProfile.status`
@@ -217,8 +219,21 @@ class StripeProfile:
 # ----------------------------------------------------------------------------------------
 # input handling
 
+#: the pixel types the numba kernels are compiled for: 8-bit images as they are (the fast path: a
+#: quarter of float32's memory traffic), every other image as float32 (exact for 16-bit and
+#: integer data up to 2**24; float64 frames lose digits below 1e-7 of their value).  numba compiles
+#: a kernel once per argument type: one more type would compile every kernel again (~25 s, once)
+KERNEL_PIXEL_TYPES = (np.uint8, np.float32)
+
+
+def kernel_pixels(image: np.ndarray) -> np.ndarray:
+    """``image`` in one of :data:`KERNEL_PIXEL_TYPES`: uint8 stays, any other type becomes float32
+    (no copy when it is already float32)."""
+    return image if image.dtype == np.uint8 else image.astype(np.float32, copy=False)
+
+
 def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
-    """2-D uint8, uint16 or float32 array from gray or BGR input, and its full scale.
+    """2-D uint8 or float32 array (:func:`kernel_pixels`) from gray or BGR input, and its full scale.
 
     ``channel``: None / ``"gray"`` (weighted gray), ``"red"``, ``"green"``,
     ``"blue"``, or ``"sum"`` (unweighted B + G + R: a laser that saturates its own
@@ -245,9 +260,9 @@ def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") 
         fs *= 3.0
     if out.shape[0] < 3 or out.shape[1] < 3:
         raise LightplaneError(f"{name} is too small ({out.shape[1]}x{out.shape[0]} px)")
-    # to_gray_float(native=True) gives one float type and two integer types: fewer numba
-    # specialisations to compile
-    return out, fs
+    # one integer type and one float type: the kernels compile once for each (16-bit data and the
+    # 8-bit "sum" (uint16) as float32, exactly)
+    return kernel_pixels(out), fs
 
 
 def _default_min_peak(full_scale: float) -> float:
@@ -416,8 +431,12 @@ def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prep
     mp = _default_min_peak(fs) if options.min_peak is None else float(options.min_peak)
     w = _check_width(options.width_px)
     if w is None:
-        # lines="rows": the image's own rows, read along memory (the same values as A's columns)
-        E = img[line0:line0 + L, sample0:sample0 + S].T if prepared is None and axis == "rows" else A
+        # lines="rows": the image's own rows, read along memory (the same values as A's columns) when
+        # they are whole rows; a roi's block (not contiguous: a kernel layout of its own) from A
+        E = A
+        if prepared is None and axis == "rows":
+            block = img[line0:line0 + L, sample0:sample0 + S]
+            E = block.T if block.flags.c_contiguous else A
         w, n = _fwhm_median(E, mp, every=max(1, L // 160))
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
@@ -496,12 +515,12 @@ def _stack_lines(frames, axis: str, channel, roi):
             raise LightplaneError("frames contain NaN or infinite values")
         x, y, w, h = check_roi(roi, W, H)
         sub = frames[:, y:y + h, x:x + w]
-        if axis == "columns":
-            A3, line0, sample0 = np.ascontiguousarray(sub), x, y
-        elif axis == "rows":
-            A3, line0, sample0 = np.ascontiguousarray(sub.transpose(0, 2, 1)), y, x
-        else:
+        if axis not in ("columns", "rows"):
             raise LightplaneError(f"axis must be 'columns' or 'rows', got {axis!r}")
+        view = sub if axis == "columns" else sub.transpose(0, 2, 1)
+        # C-contiguous, in the kernels' pixel type (no copy where the stack already is)
+        A3 = np.ascontiguousarray(view, dtype=np.uint8 if frames.dtype == np.uint8 else np.float32)
+        line0, sample0 = (x, y) if axis == "columns" else (y, x)
         if frames.dtype == np.uint8:
             fs = np.full(N, 255.0)
         else:
@@ -1002,7 +1021,7 @@ def _ridge_maps(img: np.ndarray, sc: _StripeScales) -> tuple[_RidgeMaps, list]:
             cv2.filter2D(sub, cv2.CV_32F, k.reshape(1, -1), dst=x, borderType=border)
         for x, k, out in ((vx1, w0, vru), (vx0, w1, vrv), (vx2, w0, vruu), (vx1, w1, vruv), (vx0, w2, vrvv)):
             cv2.filter2D(x, cv2.CV_32F, k.reshape(-1, 1), dst=out, borderType=border)
-        K.ridge_points(vru, vrv, vruu, vruv, vrvv, sc.lo, vsu, vsv, vsnu, vsnv, vsstr, a0, b0)
+        K.ridge_points(ru, rv, ruu, ruv, rvv, sc.lo, su, sv, snu, snv, sstr, a0, b0, a1, b1)
         # a region's inner edges (not the image's): the replicated border there is not the image
         m = R + 1
         if a0 > 0:
@@ -1357,7 +1376,7 @@ def _stripe_cores(image, img, channel, maps: _RidgeMaps, hi, w, resp, min_chroma
     if not ref > 0:
         return None
     ch = {"blue": 0, "green": 1, "red": 2}[channel]
-    bgr = np.ascontiguousarray(image[:, :, :3])
+    bgr = kernel_pixels(np.ascontiguousarray(image[:, :, :3]))   # the kernels take uint8 or float32
     H, W = img.shape
     max_len = 2.5 * w + 2.0
     reach = int(math.ceil(w)) + 2

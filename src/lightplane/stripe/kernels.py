@@ -20,7 +20,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from numba import njit, prange  # noqa: E402
+from numba import prange  # noqa: E402
+
+from lightplane.core.jit import njit_cached
 
 __all__ = ["gaussian_derivative_kernels"]
 
@@ -121,7 +123,7 @@ HERMITE_TOL = 1e-7   # ... or fewer: a root stops after the first step below thi
 #                     quadratically, so the root is then within ~1e-14 samples (centres moved <= 2e-13 px from 1e-12)
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _hermite_root(g0, d0, g1, d1):
     """Root in [0, 1] of the cubic Hermite interpolant (values g, slopes d) with g0*g1 <= 0.
 
@@ -157,7 +159,7 @@ def _hermite_root(g0, d0, g1, d1):
     return t
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _ridge_normal(ruu, ruv, rvv):
     """Most negative Hessian eigenvalue and its unit eigenvector (n_u, n_v), n_v >= 0."""
     half_tr = 0.5 * (ruu + rvv)
@@ -192,7 +194,7 @@ BLOCK = 16      # samples per block of the candidate search (at most 256: a bloc
 _CHUNK = 128
 
 
-@njit(cache=True)
+@njit_cached
 def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
     # numba's parfor lowering slows this body ~5x when it is inlined in prange:
     # keep it a separate serial function.  Every loop runs over the lines (contiguous: vectorised);
@@ -260,7 +262,7 @@ def _candidates_chunk(A, sep, p1, v1, p2, v2, l0, l1):
             q2[l] = (s0 + np.int64(arg[l])) if take else p
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit_cached(parallel=True, nogil=True)
 def profile_candidates(A, sep, p1, v1, p2, v2):
     """Per line the highest sample (p1, v1) and a second, farther candidate (p2, v2).
 
@@ -278,7 +280,7 @@ def profile_candidates(A, sep, p1, v1, p2, v2):
         _candidates_chunk(A, sep, p1, v1, p2, v2, ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK))
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
     """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
     L = p1.shape[0]
@@ -300,7 +302,7 @@ def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _clamp(i, n):
     if i < 0:
         return 0
@@ -309,7 +311,7 @@ def _clamp(i, n):
     return i
 
 
-@njit(cache=True, inline="always")
+@njit_cached(inline="always")
 def _fwhm_line(A, l, c, half, min_peak):
     """Raw full width at half level along line ``l`` around sample ``c``.
 
@@ -352,7 +354,7 @@ def _fwhm_line(A, l, c, half, min_peak):
     return right - left, left, right, best, bg
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def _peaks_across(A, every, n, p):
     """``p[j]`` = the first sample holding line ``j * every``'s maximum when the lines run
     across memory (``A`` row-major: a line is a column).  One pass over the rows in memory
@@ -399,7 +401,7 @@ def _peaks_across(A, every, n, p):
         p[j] = s
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def _peaks_along(A, every, n, p):
     """:func:`_peaks_across` for lines that run along memory (``A`` the transposed view of a
     row-major image): per line the maxima of chunks of 128 samples, then the first sample
@@ -425,7 +427,7 @@ def _peaks_along(A, every, n, p):
         p[j] = c
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def fwhm_median(A, every, half, min_peak):
     """Median raw FWHM (samples) at the highest sample (first ``argmax``, the peak the
     candidates kernel finds) of every ``every``-th line of ``A[s, l]``, and the number of
@@ -451,7 +453,7 @@ def fwhm_median(A, every, half, min_peak):
     return np.median(out[:m]), m
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _is_flat(A, l, p, fw, best, bg, half):
     """Whether line ``l`` has a flat (clipped) top at sample ``p`` (see FLAT_TOL)."""
     if not (fw == fw) or best - bg <= 0.0:
@@ -473,7 +475,7 @@ def _is_flat(A, l, p, fw, best, bg, half):
     return n >= 3 and n > FLAT_RUN_PER_FWHM * fw + 1.5
 
 
-@njit(cache=True)
+@njit_cached
 def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
     """Midpoint of the half-level crossings of line ``l`` smoothed across the lines
     (kernel ``xw[re, 0]``), around sample ``p``; NaN where a flank is missing."""
@@ -505,7 +507,7 @@ BAND_DRIFT = 8      # lines whose centre is within this many samples of the band
 N_SUMS = 6          # derivative sums per row: r_s, r_ss, r_l, r_ls, r_ll, r (see _band_sums)
 
 
-@njit(cache=True, inline="always")
+@njit_cached(inline="always")
 def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
     """The derivative sums at the rows ``d0 .. d0 + nd - 1`` of the lines ``l0 .. l0 + n - 1``:
     ``D[k, r, j]`` for row ``d0 + r`` of line ``l0 + j``, k = r_s, r_ss, r_l, r_ls, r_ll, r;
@@ -665,7 +667,7 @@ def _band_sums(A, d0, nd, l0, n, RX, w0, w1, w2, k0, k1, k2, Fb, C, D):
             D0[j] += u * x0
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _line_sums(A, l, c, re, RX, w0, w1, w2, xw, T, sm):
     """The derivative sums of line ``l`` alone at the rows c-1, c, c+1 (:func:`_band_sums`'s
     numbers, by the same operations: the same pairs of taps in the same order; the
@@ -747,7 +749,7 @@ def _line_sums(A, l, c, re, RX, w0, w1, w2, xw, T, sm):
             sm[13] = s0
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _nan_outputs(l, centre, normal, strength, intensity, width):
     """Line ``l``'s centre, normal, strength, intensity and width set to NaN (a line that ends early)."""
     centre[l] = np.nan
@@ -758,7 +760,7 @@ def _nan_outputs(l, centre, normal, strength, intensity, width):
     width[l] = np.nan
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
     """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
 
@@ -783,7 +785,7 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
     return c, fw, best, bg, _is_flat(A, l, p, fw, best, bg, half)
 
 
-@njit(cache=True, inline="always")
+@njit_cached(inline="always")
 def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
                 cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec):
     """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``: the same numbers, bit for bit,
@@ -962,7 +964,7 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
         flats[j] = _is_flat(A, q, p, fw, best, bg, half) if run3 else False
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_peak, max_width, min_cos, tmp,
                  centre, normal, strength, intensity, width, status):
     """The rest of a profile line from its derivative sums ``sm`` (:func:`_line_sums`):
@@ -1029,7 +1031,7 @@ def _line_finish(A, l, p, c, fw, best, bg, flat, sm, xw, re, qpeak, half, min_pe
     status[l] = OK
 
 
-@njit(cache=True, inline="always")
+@njit_cached(error_model="numpy")
 def _line_alone(A, l, p, c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos, tmp,
                 T, sm, centre, normal, strength, intensity, width, status):
     """A profile line from ``c`` on (after :func:`_line_start`), its sums computed alone."""
@@ -1046,7 +1048,7 @@ _V_LAM, _V_NL, _V_NS, _V_G0, _V_D0, _V_G1, _V_D1, _V_T, _V_LO, _V_HI = 0, 1, 2, 
 _V_ROWS = 10
 
 
-@njit(cache=True, inline="always")
+@njit_cached(inline="always")
 def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act, xw, RX, qpeak, half, min_peak,
                  max_width, min_cos, tmp, sm, centre, normal, strength, intensity, width, status):
     """:func:`_line_finish` of the band's lines whose middle ``c`` is in ``lo .. hi``, from
@@ -1231,7 +1233,7 @@ def _band_finish(A, pos, l0, n, lo, hi, cs, fws, bests, bgs, flats, D, E, V, act
         status[q] = OK
 
 
-@njit(cache=True, error_model="numpy")
+@njit_cached(error_model="numpy")
 def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                    centre, normal, strength, intensity, width, status, la, lb):
     """The profile of lines ``la .. lb - 1`` (see :func:`profile_centres`).
@@ -1333,7 +1335,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
             l += 1
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit_cached(parallel=True, nogil=True)
 def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
                     centre, normal, strength, intensity, width, status):
     """Sub-pixel ridge centre per line at the candidate sample ``pos[l]``.
@@ -1369,7 +1371,7 @@ def profile_centres(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, mi
 # ----------------------------------------------------------------------------------------
 # 2-D kernels (full derivative images)
 
-@njit(cache=True)
+@njit_cached
 def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row, u0, v0):
     """One row of :func:`ridge_points` (serial: see :func:`_centres_range`)."""
     H, W = ru.shape
@@ -1438,8 +1440,8 @@ def _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row,
         sstr[v, u] = -lam
 
 
-@njit(cache=True, parallel=True)
-def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, u0=0, v0=0):
+@njit_cached(parallel=True)
+def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, u0, v0, u1, v1):
     """Steger points of bright lines from the five derivative images (H, W).
 
     For every pixel p with ridge strength ``-lambda >= low``: normal n from the
@@ -1447,21 +1449,33 @@ def ridge_points(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, u0=0, v0=
     image axis closer to n (column if |n_v| >= |n_u|, else row); the zero of ``g``
     on the cubic Hermite interpolant of (g, dg/de) is the centre, kept by the
     pixel whose half-open cell [-0.5, 0.5) along e contains it, so each crossing
-    of a grid line by the centre line gives exactly one point.  The arrays may be
-    a region of the image whose top-left pixel is (u0, v0): positions are written
-    in full-image pixels.  Outputs: sub-pixel
+    of a grid line by the centre line gives exactly one point.  Only the region
+    ``u0 <= u < u1``, ``v0 <= v < v1`` of the (H, W) arrays is read and written (as that
+    region's own image: its border is its edge), positions in full-image pixels; the
+    arrays are whole and C-contiguous, so that the kernel compiles once whatever the
+    region (a view of a region would be another array layout).  Outputs: sub-pixel
     (u, v) in ``su, sv``, normal in ``sn_u, sn_v``, strength in ``sstr`` (0 where no
     point).
     """
-    H, W = ru.shape
+    r_u = ru[v0:v1, u0:u1]
+    r_v = rv[v0:v1, u0:u1]
+    r_uu = ruu[v0:v1, u0:u1]
+    r_uv = ruv[v0:v1, u0:u1]
+    r_vv = rvv[v0:v1, u0:u1]
+    o_u = su[v0:v1, u0:u1]
+    o_v = sv[v0:v1, u0:u1]
+    o_nu = sn_u[v0:v1, u0:u1]
+    o_nv = sn_v[v0:v1, u0:u1]
+    o_s = sstr[v0:v1, u0:u1]
+    H, W = r_u.shape
     nch = (H + 31) // 32
     for ch in prange(nch):
         lam_row = np.empty(W, dtype=np.float32)
         for v in range(ch * 32, min(H, ch * 32 + 32)):
-            _ridge_row(ru, rv, ruu, ruv, rvv, low, su, sv, sn_u, sn_v, sstr, v, lam_row, u0, v0)
+            _ridge_row(r_u, r_v, r_uu, r_uv, r_vv, low, o_u, o_v, o_nu, o_nv, o_s, v, lam_row, u0, v0)
 
 
-@njit(cache=True)
+@njit_cached
 def _bilinear(img, x, y):
     H, W = img.shape
     if x < 0.0:
@@ -1482,7 +1496,7 @@ def _bilinear(img, x, y):
             + (1 - fx) * fy * img[y1, x0] + fx * fy * img[y1, x1])
 
 
-@njit(cache=True, parallel=True)
+@njit_cached(parallel=True)
 def normal_profiles(img, uv, nrm, reach, step, out_width, out_bg):
     """FWHM (px) across the stripe at each point, sampling ``img`` bilinearly along the normal.
 
@@ -1529,7 +1543,7 @@ def normal_profiles(img, uv, nrm, reach, step, out_width, out_bg):
         out_width[k] = tot if ok else np.nan
 
 
-@njit(cache=True)
+@njit_cached
 def link_points(index_map, pu, pv, su, sv, order, curve, max_gap):
     """Order points into chains; index_map (H, W) holds point ids (-1: none), pu/pv their pixels.
 
@@ -1609,7 +1623,7 @@ def edge_kernels_cached(sigma_px: float) -> np.ndarray:
     return _edge_cached(int(round(float(sigma_px) * 1000.0)))
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def profile_curvature(uv, nrm, valid, c2, m, k):
     """Numba version of ``stripe._profile_curvature`` (same arithmetic), in place on ``uv``."""
     L = uv.shape[0]
@@ -1631,19 +1645,7 @@ def profile_curvature(uv, nrm, valid, c2, m, k):
         uv[i, k] -= shift[i]
 
 
-@njit(cache=True, nogil=True)
-def _candidates_frame(A, sep, p1, v1, p2, v2):
-    _candidates_chunk(A, sep, p1, v1, p2, v2, 0, A.shape[1])
-
-
-@njit(cache=True, nogil=True)
-def _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                   centre, normal, strength, intensity, width, status):
-    _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                   centre, normal, strength, intensity, width, status, 0, A.shape[1])
-
-
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def profile_frame(A, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
                   centre, normal, strength, intensity, width, status):
     """The whole profile of one frame on the calling thread: candidates, the choice
@@ -1654,16 +1656,18 @@ def profile_frame(A, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half
     p2 = np.empty(L, np.int64)
     v1 = np.empty(L, np.float64)
     v2 = np.empty(L, np.float64)
-    _candidates_frame(A, sep, p1, v1, p2, v2)
+    # the serial kernels called directly (a wrapper kernel between would compile the code under it
+    # once more); np.int64(0), not 0: a literal argument would compile a variant of its own
+    _candidates_chunk(A, sep, p1, v1, p2, v2, np.int64(0), L)
     if continuity:
         pos = choose_consistent(p1, v1, p2, v2, min_peak, 5, tol)
     else:
         pos = p1
-    _centres_frame(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
-                   centre, normal, strength, intensity, width, status)
+    _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,
+                   centre, normal, strength, intensity, width, status, np.int64(0), L)
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit_cached(parallel=True, nogil=True)
 def profiles_batch(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
                    centre, normal, strength, intensity, width, status):
     """:func:`profile_frame` of every frame of a stack (N, S, L), frames across numba's
@@ -1673,7 +1677,7 @@ def profiles_batch(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, ha
                       centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def profiles_batch_serial(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half, max_width, min_cos,
                           centre, normal, strength, intensity, width, status):
     """:func:`profiles_batch` on the calling thread only."""
@@ -1682,7 +1686,7 @@ def profiles_batch_serial(A3, sep, min_peak, continuity, tol, w0, w1, w2, xw, qp
                       centre[f], normal[f], strength[f], intensity[f], width[f], status[f])
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit_cached(nogil=True, inline="always")
 def _frame_points(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
     """A frame's profile in image coordinates (as ``stripe._profile_finish`` makes them):
     ``uv`` (NaN off the valid lines), ``nrm`` (u, v), ``valid``; the curvature correction
@@ -1703,21 +1707,21 @@ def _frame_points(centre, normal, status, lines, sample0, columns, curv, c2, m, 
         profile_curvature(uv, nrm, valid, c2, m, 1 - iu)
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit_cached(parallel=True, nogil=True)
 def frames_points(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
     """:func:`_frame_points` of every frame of a batch, frames across numba's threads."""
     for f in prange(centre.shape[0]):
         _frame_points(centre[f], normal[f], status[f], lines, sample0, columns, curv, c2, m, uv[f], nrm[f], valid[f])
 
 
-@njit(cache=True, nogil=True)
+@njit_cached(nogil=True)
 def frames_points_serial(centre, normal, status, lines, sample0, columns, curv, c2, m, uv, nrm, valid):
     """:func:`frames_points` on the calling thread only."""
     for f in range(centre.shape[0]):
         _frame_points(centre[f], normal[f], status[f], lines, sample0, columns, curv, c2, m, uv[f], nrm[f], valid[f])
 
 
-@njit(cache=True)
+@njit_cached
 def saturated_core_runs(bgr, ch, min_chroma, bright_sum, bright_max, laser_min, max_len, reach, out_c, out_len):
     """Whitish (saturated) stripe cores down each column of a BGR image.
 
@@ -1785,7 +1789,7 @@ def saturated_core_runs(bgr, ch, min_chroma, bright_sum, bright_max, laser_min, 
             out_len[p, u] = eb - ea
 
 
-@njit(cache=True)
+@njit_cached
 def smooth_along_quadratic(uv, nrm, first, last, sig, rmax, rad, side):
     """Intercepts of local quadratic fits along ordered curves (see ``stripe._smooth_along``).
 
