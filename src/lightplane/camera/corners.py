@@ -1,6 +1,6 @@
 """Calibration boards in images: OpenCV's chessboard detection, the corners refined by gradient orthogonality
-(Förstner) or by the blurred-saddle fit, in the lens's own frame where the lens bends the board's lines
-(docs/method.md §Camera calibration).  The board's point layout is
+(Förstner) or by the blurred-saddle fit, its edges bent as the lens bends the board's lines (or fitted in
+a known lens's own frame; docs/method.md §Camera calibration, docs/lens-models.md).  The board's point layout is
 :func:`lightplane.camera.targets.board_object_points`."""
 
 from __future__ import annotations
