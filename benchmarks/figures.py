@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 BEGIN = "<!-- figures:begin -->"
+BEGIN_TARGETS = "<!-- figures:begin targets -->"  # only the figures that have a target
 END = "<!-- figures:end -->"
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -86,12 +87,14 @@ def target_text(t: dict | None) -> tuple[str, str]:
     return text, met
 
 
-def rows(doc: dict) -> list[str]:
-    """The table rows of one results file."""
+def rows(doc: dict, targets_only: bool = False) -> list[str]:
+    """The table rows of one results file (only those with a target when ``targets_only``)."""
     where = f"{machine_name(doc.get('machine', {}))}, {str(doc.get('date', ''))[:10]}"
     script = Path(doc.get("script") or f"{doc.get('bench', '?')}.py").name
     out = []
     for f in doc.get("figures", []):
+        if targets_only and not f.get("target"):
+            continue
         value = quantity(f.get("value"), f.get("unit", ""))
         if "truth" in f and f.get("value") is not None:  # more digits, and the error against the truth
             err = f.get("error")
@@ -106,18 +109,19 @@ def rows(doc: dict) -> list[str]:
     return out
 
 
-def table(results: Path = RESULTS) -> str:
-    """The whole table (header and one row per figure, the files in name order), no trailing newline."""
+def table(results: Path = RESULTS, targets_only: bool = False) -> str:
+    """The whole table (header and one row per figure, the files in name order; only the figures with a
+    target when ``targets_only``), no trailing newline."""
     lines = [HEADER]
     for p in sorted(Path(results).glob("*.json")):
-        lines += rows(json.loads(p.read_text()))
+        lines += rows(json.loads(p.read_text()), targets_only)
     return "\n".join(lines)
 
 
 def _region(text: str) -> tuple[int, int]:
     """(the end of the BEGIN line, the start of the END line) in ``text``."""
     lines = text.splitlines(keepends=True)
-    b = [i for i, line in enumerate(lines) if line.strip() == BEGIN]
+    b = [i for i, line in enumerate(lines) if line.strip() in (BEGIN, BEGIN_TARGETS)]
     e = [i for i, line in enumerate(lines) if line.strip() == END]
     if len(b) != 1 or len(e) != 1 or e[0] <= b[0]:
         raise MarkersMissing(f"needs the lines {BEGIN!r} and {END!r}, once each, in that order "
@@ -140,12 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 with a diff when it differs")
     ap.add_argument("--results", type=Path, default=RESULTS, help="folder of the results/*.json files")
     args = ap.parse_args(argv)
-    body = table(args.results)
     status = 0
     for md in args.markdown:
         text = md.read_text()
         try:
-            new = fill(text, body)
+            new = fill(text, table(args.results, targets_only=BEGIN_TARGETS in text.splitlines()))
         except MarkersMissing as e:
             print(f"{md}: {e}", file=sys.stderr)
             status = 1
