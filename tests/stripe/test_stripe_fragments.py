@@ -58,13 +58,13 @@ def scene():
 
 
 def test_no_fragments_on_textured_render(scene):
-    """Defaults: <= 0.5 % of the points more than 1 px from the true stripe (the edge residuals
+    """``reject_fragments=True`` (opt-in: as default it drops real stripe rows on FabScan): <= 0.5 % of the points more than 1 px from the true stripe (the edge residuals
     return 80 % false points without the rule), and the stripe's own points stay: the true
     stripe's samples on the board with a point within 1 px are at least 98 % of those without
     the rule (the stripe is only visible on the white squares: about half the board)."""
     diff, board, back = scene
     truth = cKDTree(np.concatenate([board, back]))
-    sp = extract_stripe(diff)
+    sp = extract_stripe(diff, StripePointsOptions(reject_fragments=True))
     old = extract_stripe(diff, StripePointsOptions(reject_fragments=False))
     false = np.mean(truth.query(sp.uv)[0] > OFF_PX)
     false_old = np.mean(truth.query(old.uv)[0] > OFF_PX)

@@ -250,14 +250,14 @@ def _band_fit(uv: np.ndarray, cid: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("channel", [None, "red"])
 @pytest.mark.parametrize("frame", FRAMES)
-def test_extract_stripe_defaults_no_fragments(frames, frame, channel):
-    """Default ``extract_stripe`` over the whole frame (no mask): of the points within 40 rows of
+def test_extract_stripe_no_fragments(frames, frame, channel):
+    """``extract_stripe`` with ``reject_fragments=True`` over the whole frame (no mask): of the points within 40 rows of
     each stripe (its band), >= 95 % lie within 1 px of the stripe's robust curve; texture
     fragments along the board's squares are rejected.  Without the rule the band holds such
     fragments (fewer points within 1 px), and the rule keeps the stripe: at least 95 % of the
     band's points on the line without it are still there with it."""
     diff = frames[frame]
-    sp = extract_stripe(diff, StripePointsOptions(channel=channel))
+    sp = extract_stripe(diff, StripePointsOptions(channel=channel, reject_fragments=True))
     old = extract_stripe(diff, StripePointsOptions(channel=channel, reject_fragments=False))
     for k, v0 in enumerate(_stripe_rows(diff)):
         sel = np.abs(sp.uv[:, 1] - v0) < BAND_ROWS

@@ -147,7 +147,8 @@ class StripePointsOptions:
         bright (B + G + R) as the stripe's typical peak in its channel, and flanked on
         both sides by laser-coloured pixels within ``w + 2`` px, so white ambient light
         on a raw frame does not qualify.  Chroma threshold: ``min_chroma`` or 0.5.
-    reject_fragments : a stripe is a long, continuous, consistently bright ridge; short
+    reject_fragments : (off by default: it still drops real stripe rows on FabScan's scans
+        and boards) a stripe is a long, continuous, consistently bright ridge; short
         responses on texture edges are not.  Curves split where their normal turns by more
         than 45 degrees at once (a texture edge that joins a stripe); curves that continue
         one another across gaps of up to ``max(3 w, 10)`` px (end tangents within 30 degrees)
@@ -173,7 +174,7 @@ class StripePointsOptions:
     sigma_along_px: float | None = None
     suppress_weaker: float | None = 0.5
     saturated_centre: bool | None = None
-    reject_fragments: bool = True
+    reject_fragments: bool = False
 
     def __post_init__(self) -> None:
         _check_width(self.width_px)
