@@ -18,14 +18,17 @@ LAYERS = {
     "plane": 2, "motion": 2,
     "measure": 3,
     "simulate": 4,
-    "evaluate": 5,
+    "evaluate": 5, "plan": 5,
     "report": 6,
-    "cli": 7,
-    "__init__": 8, "__main__": 9,
+    "live": 7,
+    "cli": 8,
+    "__init__": 9, "__main__": 10,
 }
 #: optional heavy dependencies: imported inside functions, each in one named module
 OPTIONAL = {"dask": {"measure.batch"}, "distributed": {"measure.batch"}, "pyarrow": {"measure.batch"},
-            "matplotlib": {"report.plots"}}
+            "matplotlib": {"report.plots"},
+            "starlette": {"live.server"}, "uvicorn": {"live.server"}, "serial": {"live.hardware"},
+            "harvesters": {"live.genicam"}, "gi": {"live.aravis"}}
 
 
 def _modules() -> dict[str, Path]:
