@@ -26,6 +26,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.core.io import CHANNELS
 from lightplane.live.recording import Recorder
 from lightplane.live.scanning import ScanJob
 from lightplane.live.source import Frame, Hardware, Source
@@ -52,7 +53,7 @@ PREVIEW_POINTS = 2000
 class LiveSettings:
     """The stripe settings of the live profile (checked on construction; a bad value raises
     :class:`LightplaneError`).  The measuring ones are those of ``lightplane measure``: ``channel``
-    (red, green, blue, gray or None: the image as it is), ``width_px`` (stripe FWHM; None: estimated on
+    (red, green, blue, gray, sum or None: weighted grey), ``width_px`` (stripe FWHM; None: estimated on
     the first frame after each change), ``sigma_along_px``, ``axis`` (auto, columns, rows; auto without a
     sensor: columns), ``roi`` (x, y, width, height px), ``smooth_lines``, ``keep_outliers``.  Live only:
     ``laser`` (the sensor plane the live profile uses; None: its first), ``settle_frames`` (a scan takes the
@@ -82,6 +83,8 @@ class LiveSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise LightplaneError(f"{name} must be an integer {lo}..{hi}, got {v!r}")
+        if self.channel is not None and self.channel not in CHANNELS:
+            raise LightplaneError(f"channel must be one of {', '.join(CHANNELS)} or None, got {self.channel!r}")
         if self.laser is not None and not isinstance(self.laser, str):
             raise LightplaneError(f"laser must be a plane name, got {self.laser!r}")
         self.measure_options()  # the measuring options check themselves
