@@ -1,9 +1,10 @@
 """The live loop: frames from a source, a stripe profile of each, the latest profile and a preview image
 for a page, profile events for subscribers, recording and scans.
 
-Two threads: one reads the source and keeps only the newest frame; one profiles the newest frame.  A frame
-replaced before it was profiled is counted as dropped (with the frames the source itself dropped), so a
-profile is always of the newest frame and the latency does not grow when the processing falls behind.
+Two threads: one reads the source into a short queue (:data:`INBOX_FRAMES`), one profiles the frames in
+order.  The queue absorbs a moment's delay of the processing (another process taking the core); when it
+is full the oldest frame waiting is dropped and counted (with the frames the source itself dropped), so
+the latency stays bounded when the processing falls behind for longer.
 With a sensor (:class:`lightplane.measure.sensor.Sensor`) a profile is in mm
 (:class:`lightplane.measure.profile.ProfileMeasurer`: the camera and one of the sensor's light planes),
 else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).
@@ -45,6 +46,8 @@ __all__ = ["LiveEngine", "LiveSettings", "plane_axes"]
 STATS_WINDOW = 600
 #: events a subscriber's queue holds before its oldest are dropped
 SUBSCRIBER_QUEUE = 16
+#: frames waiting for the profiling thread before the oldest is dropped
+INBOX_FRAMES = 3
 #: stripe centres drawn on a preview at most
 PREVIEW_POINTS = 2000
 
@@ -149,7 +152,7 @@ class LiveEngine:
         self._measurer: ProfileMeasurer | None = None
         self._stripe: tuple[str, StripeOptions] | None = None  # px: axis and resolved options
         self._cond = threading.Condition()
-        self._inbox: Frame | None = None
+        self._inbox: deque[Frame] = deque()
         self._grabbed: Frame | None = None
         self._latest: _Latest | None = None
         self._running = False
@@ -233,20 +236,21 @@ class LiveEngine:
                     self._ended = True
                     self._cond.notify_all()
                     return
-                if self._inbox is not None:
+                if len(self._inbox) >= INBOX_FRAMES:
+                    self._inbox.popleft()
                     self._skipped += 1
-                self._inbox = self._grabbed = frame
+                self._inbox.append(frame)
+                self._grabbed = frame
                 self._cond.notify_all()
 
     def _process_loop(self) -> None:
         while True:
             with self._cond:
-                while self._running and self._inbox is None and not self._ended:
+                while self._running and not self._inbox and not self._ended:
                     self._cond.wait(0.5)
-                if not self._running or (self._inbox is None and self._ended):
+                if not self._running or (not self._inbox and self._ended):
                     return
-                frame, self._inbox = self._inbox, None
-            assert frame is not None  # waited for above
+                frame = self._inbox.popleft()
             try:
                 self._process(frame)
             except LightplaneError as e:  # e.g. a frame of another size than the sensor's camera
