@@ -177,3 +177,25 @@ def test_recording(tmp_path):
     assert sorted(int(p.stem) for p in files["frames"].iterdir()) == t.column("frame").to_pylist()
     cloud = read_cloud(files["cloud"])
     assert cloud.size == sum(len(x) for x in t.column("x").to_pylist())
+
+
+def test_preview_shows_the_circle_target():
+    sim = SimulatedSensor("target", fps=30.0, scale=0.5)
+    sim.set_placement(1)
+    eng = LiveEngine(sim, settings=LiveSettings(target=True))
+    eng.start()
+    try:
+        wait_for(lambda: eng.latest_points() is not None)
+        frame, _, _ = eng.latest_points()
+        _, info = eng.latest_preview(max_width=320)
+    finally:
+        eng.stop()
+    from lightplane.simulate.scene import TargetPlacement
+
+    pl = frame.meta["truth"]["placement"]
+    rim = sim.camera.project(TargetPlacement(pl["center_mm"], pl["normal"], pl["diameter_mm"]).rim_points(360))
+    centre = (rim.min(axis=0) + rim.max(axis=0)) / 2  # the rim's image: its box's centre is the ellipse's
+    t = info["target"]
+    assert t is not None and info["scale"] == 0.5
+    assert np.allclose(np.array(t["centre"]) / info["scale"], centre, atol=1.5)
+    assert abs(t["axes"][0] / info["scale"] - np.ptp(rim, axis=0).max() / 2) < 3.0

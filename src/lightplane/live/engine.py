@@ -28,6 +28,8 @@ import numpy as np
 
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import CHANNELS
+from lightplane.ellipse.detect import EllipseDetectionOptions, detect_ellipses
+from lightplane.ellipse.target import select_target
 from lightplane.live.recording import Recorder
 from lightplane.live.scanning import ScanJob
 from lightplane.live.source import Frame, Hardware, Source
@@ -48,6 +50,8 @@ STATS_WINDOW = 600
 SUBSCRIBER_QUEUE = 16
 #: frames waiting for the profiling thread before the oldest is dropped
 INBOX_FRAMES = 3
+#: the circle target is looked for in a preview's frame at most this often (s)
+TARGET_EVERY_S = 0.5
 #: stripe centres drawn on a preview at most
 PREVIEW_POINTS = 2000
 
@@ -60,7 +64,8 @@ class LiveSettings:
     the first frame after each change), ``sigma_along_px``, ``axis`` (auto, columns, rows; auto without a
     sensor: columns), ``roi`` (x, y, width, height px), ``smooth_lines``, ``keep_outliers``.  Live only:
     ``laser`` (the sensor plane the live profile uses; None: its first), ``settle_frames`` (a scan takes the
-    n-th frame exposed after each switch of the lasers), ``jpeg_quality`` (preview, 10..100)."""
+    n-th frame exposed after each switch of the lasers), ``jpeg_quality`` (preview, 10..100), ``target``
+    (find the circle target for the preview, at most every :data:`TARGET_EVERY_S`)."""
 
     channel: str | None = None
     width_px: float | None = None
@@ -72,6 +77,7 @@ class LiveSettings:
     laser: str | None = None
     settle_frames: int = 1
     jpeg_quality: int = 80
+    target: bool = False
 
     def __post_init__(self) -> None:
         if self.roi is not None:
@@ -168,6 +174,7 @@ class LiveEngine:
         self._recorder: Recorder | None = None
         self._scan: ScanJob | None = None
         self._preview_cache: tuple[int, int, tuple[bytes, dict]] | None = None
+        self._target: tuple[float, dict | None] = (-np.inf, None)  # when it was looked for, what was found
 
     # ------------------------------------------------------------------ set-up
     def _check_laser(self, laser: str | None) -> LightPlane | None:
@@ -190,6 +197,7 @@ class LiveEngine:
             raise LightplaneError(f"no stripe setting {bad[0]!r} (settings: {', '.join(sorted(names))})")
         new = replace(self._settings, **changes)
         plane = self._check_laser(new.laser)
+        self._target = (-np.inf, None)
         with self._proc_lock:
             self._settings, self._plane = new, plane
             self._axes = None if plane is None else plane_axes(plane)
@@ -374,10 +382,31 @@ class LiveEngine:
         uv = latest.uv
         if len(uv) > PREVIEW_POINTS:
             uv = uv[np.linspace(0, len(uv) - 1, PREVIEW_POINTS).astype(int)]
-        out = (buf.tobytes(), {"scale": scale, "stripe_uv": np.round(uv * scale, 2).tolist(), "target": None,
+        target = self._find_target(latest) if self._settings.target else None
+        if target is not None:
+            target = {**target, "centre": [v * scale for v in target["centre"]],
+                      "axes": [v * scale for v in target["axes"]]}
+        out = (buf.tobytes(), {"scale": scale, "stripe_uv": np.round(uv * scale, 2).tolist(), "target": target,
                                "frame": int(latest.frame.index)})
         self._preview_cache = (key[0], key[1], out)
         return out
+
+    def _find_target(self, latest: _Latest) -> dict | None:
+        """The circle target crossed by the stripe in the latest frame (image px: ``centre``, semi-axes
+        ``axes``, ``angle_deg``, ``score``, ``frame``), looked for at most every :data:`TARGET_EVERY_S`."""
+        t_last, found = self._target
+        now = time.monotonic()
+        if now - t_last < TARGET_EVERY_S:
+            return found
+        img = latest.frame.image
+        ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(5.0, img.shape[1] / 100), max_count=8))
+        hint = latest.uv if len(latest.uv) >= 10 else None
+        e = select_target(img, ellipses, hint).ellipse if ellipses else None
+        found = None if e is None else {"centre": [float(e.centre[0]), float(e.centre[1])], "axes": [float(e.a), float(e.b)],
+                                        "angle_deg": float(np.degrees(e.angle)), "score": float(e.score),
+                                        "frame": int(latest.frame.index)}
+        self._target = (now, found)
+        return found
 
     # ------------------------------------------------------------------ subscribers
     def subscribe(self) -> "queue.Queue[dict]":
