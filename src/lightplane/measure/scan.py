@@ -534,6 +534,8 @@ class Dropped:
 
     totals: dict = field(default_factory=dict)
     frames: list = field(default_factory=list)
+    #: frames without a stripe when ``frames`` is not the whole list (a batch's summary keeps only the first ones)
+    n_frames_without_stripe: int | None = None
 
     def add(self, r: FrameResult) -> None:
         if r.dropped:
@@ -543,6 +545,8 @@ class Dropped:
 
     @property
     def frames_without_stripe(self) -> int:
+        if self.n_frames_without_stripe is not None:
+            return self.n_frames_without_stripe
         return sum("no stripe" in d for _, _, d in self.frames)
 
     def summary(self) -> str:
