@@ -199,3 +199,44 @@ def test_preview_shows_the_circle_target():
     assert t is not None and info["scale"] == 0.5
     assert np.allclose(np.array(t["centre"]) / info["scale"], centre, atol=1.5)
     assert abs(t["axes"][0] / info["scale"] - np.ptp(rim, axis=0).max() / 2) < 3.0
+
+
+def test_a_finite_source_ends_and_every_frame_is_profiled_or_counted(tmp_path):
+    n = 40
+    eng = LiveEngine(ArraySource(stripe_frames(n), fps=None, loop=False), settings=LiveSettings(width_px=3.5))
+    eng.start_recording(tmp_path / "rec")
+    eng.start()
+    try:
+        wait_for(lambda: eng.status()["ended"])
+        st = eng.status()
+        files = eng.stop_recording()
+    finally:
+        eng.stop()
+    assert st["frames"] + st["dropped"] == n and st["frames"] >= 1  # as fast as it reads: some may be dropped
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(files["profiles"])
+    assert t.schema.metadata[b"units"] == b"px" and set(t.column_names) >= {"frame", "u", "v"}
+    assert "cloud" not in files and t.num_rows == st["frames"]
+    with pytest.raises(LightplaneError, match="not running"):
+        eng.capture(time.monotonic(), timeout=0.1)
+
+
+def test_stopping_the_engine_stops_a_scan(tmp_path):
+    sim = SimulatedSensor("turntable", fps=30.0, scale=0.25)
+    eng = LiveEngine(sim)
+    with pytest.raises(LightplaneError, match="start the engine"):
+        eng.start_scan("turntable", 3, 10.0, tmp_path / "s0")
+    eng.start()
+    try:
+        with pytest.raises(LightplaneError, match="linear stage"):
+            eng.start_scan("linear", 3, 1.0, tmp_path / "s1")
+        with pytest.raises(LightplaneError, match="steps"):
+            eng.start_scan("turntable", 0, 10.0, tmp_path / "s2")
+        eng.start_scan("turntable", 200, 1.0, tmp_path / "s3")
+        wait_for(lambda: eng.scan_status()["done"] >= 1)
+    finally:
+        eng.stop()
+    st = eng.scan_status()
+    assert st["state"] == "stopped" and 1 <= st["done"] < 200
+    assert sim.hardware.laser_states() == (True,)  # the lasers as before the scan

@@ -163,6 +163,7 @@ class LiveEngine:
         self._latest: _Latest | None = None
         self._running = False
         self._ended = False
+        self._busy = False
         self._error: str | None = None
         self._threads: list[threading.Thread] = []
         self._skipped = 0
@@ -259,10 +260,13 @@ class LiveEngine:
                 if not self._running or (not self._inbox and self._ended):
                     return
                 frame = self._inbox.popleft()
+                self._busy = True
             try:
                 self._process(frame)
             except LightplaneError as e:  # e.g. a frame of another size than the sensor's camera
                 self._error = str(e)
+            finally:
+                self._busy = False
 
     def _process(self, frame: Frame) -> None:
         with self._proc_lock:
@@ -329,7 +333,10 @@ class LiveEngine:
                "dropped": int(self.source.dropped) + self._skipped, "frames": self._frames,
                "points": 0 if latest is None else int(len(latest.uv)), "units": self.units,
                "recording": self._recorder is not None, "scan": scan}
-        out["running"], out["ended"], out["error"] = self._running, self._ended, self._error
+        # ended: the source has no more frames and every frame read has been measured
+        out["running"], out["error"] = self._running, self._error
+        with self._cond:
+            out["ended"] = self._ended and not self._inbox and not self._busy
         return out
 
     def _event(self, latest: _Latest) -> dict:
