@@ -129,7 +129,7 @@ def test_status_preview_subscribers_and_px_profiles():
         eng.stop()
     assert set(st) >= {"source", "fps", "latency_ms", "dropped", "frames", "points", "units", "recording", "scan"}
     assert st["units"] == "px" and st["points"] == 128 and st["fps"] > 0 and st["latency_ms"]["median"] >= 0
-    assert prof is not None and prof["units"] == "px" and len(prof["u"]) == 128
+    assert prof is not None and prof["units"] == "px" and len(prof["u"]) == 128 and prof["sigma_mm"] is None
     k = prof["frame"] % 4
     assert np.allclose(prof["v"], 40.3 + k, atol=0.05)
     assert slow.qsize() == SUBSCRIBER_QUEUE  # full, its oldest events dropped; the loop went on

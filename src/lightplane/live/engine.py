@@ -350,6 +350,7 @@ class LiveEngine:
             ev["sigma_mm"] = None if sig is None or not np.isfinite(sig).all() else sig.tolist()
         else:
             ev["u"], ev["v"] = latest.uv[:, 0].tolist(), latest.uv[:, 1].tolist()
+            ev["sigma_mm"] = None
         return ev
 
     def latest_profile(self) -> dict | None:
