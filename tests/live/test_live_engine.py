@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shlex
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +42,31 @@ def wait_for(cond, timeout: float = 30.0) -> None:
         time.sleep(0.02)
 
 
-@pytest.mark.parametrize("kind, steps, step", [("turntable", 3, 40.0), ("linear", 3, 4.0)])
-def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, step):
-    sim = SimulatedSensor(kind, fps=60.0, scale=0.5, lasers=2 if kind == "turntable" else 1)
+class TurnedCamera:
+    """The simulated sensor's camera mounted turned: its frames rotated 90° counter-clockwise, so that a
+    sensor file with ``rotate_deg`` 90 reads them upright again (as FabScan's)."""
+
+    def __init__(self, sim: SimulatedSensor) -> None:
+        self.sim, self.name, self.nominal_fps, self.hardware = sim, "turned " + sim.name, sim.nominal_fps, sim.hardware
+        self.sensor = replace(sim.sensor, rotate_deg=90)
+
+    dropped = property(lambda self: self.sim.dropped)
+
+    def read(self, timeout=None):
+        f = self.sim.read(timeout)
+        return replace(f, image=np.ascontiguousarray(np.rot90(f.image)))
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+
+@pytest.mark.parametrize("kind, steps, step, turned", [("turntable", 3, 40.0, False), ("linear", 3, 4.0, False),
+                                                       ("turntable", 2, 40.0, True)])
+def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, step, turned):
+    sim = SimulatedSensor(kind, fps=60.0, scale=0.5, lasers=2 if kind == "turntable" and not turned else 1)
     if kind == "linear":
         sim.hardware.move_stage(-step)  # start before the sheet
-    eng = LiveEngine(sim)
+    eng = LiveEngine(TurnedCamera(sim) if turned else sim)
     eng.start()
     try:
         eng.start_scan(kind, steps, step, tmp_path / "scan")
@@ -79,6 +99,7 @@ def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, st
     off = cv2.imread(str(folder / "pattern" / "0001.png"), cv2.IMREAD_UNCHANGED)
     on = cv2.imread(str(folder / "laser0" / "0001.png"), cv2.IMREAD_UNCHANGED)
     assert off.max() < 60 <= on.max()
+    assert on.shape == ((sim.camera.width, sim.camera.height) if turned else (sim.camera.height, sim.camera.width))
 
 
 def test_live_profile_agrees_with_the_truth_within_its_sigma():

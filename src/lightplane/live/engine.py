@@ -7,7 +7,9 @@ is full the oldest frame waiting is dropped and counted (with the frames the sou
 the latency stays bounded when the processing falls behind for longer.
 With a sensor (:class:`lightplane.measure.sensor.Sensor`) a profile is in mm
 (:class:`lightplane.measure.profile.ProfileMeasurer`: the camera and one of the sensor's light planes),
-else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).
+else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).  A sensor whose frames
+are rotated (``Sensor.rotate_deg``, e.g. FabScan's) has every frame rotated so before it is measured, as
+``lightplane measure`` rotates its image files; the preview shows the rotated frame.
 
 A profile in mm is given in the light plane's own coordinates: ``z`` the distance from the camera along
 the plane (the camera's optical axis projected into the plane), ``x`` across, along the laser line (see
@@ -27,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import CHANNELS
+from lightplane.core.io import CHANNELS, rotate_image
 from lightplane.ellipse.detect import EllipseDetectionOptions, detect_ellipses
 from lightplane.ellipse.target import select_target
 from lightplane.live.recording import Recorder
@@ -127,11 +129,11 @@ def plane_axes(plane: LightPlane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class _Latest:
     """One profiled frame: the frame, its profile's valid points and where they came from."""
 
-    __slots__ = ("frame", "uv", "xyz", "sigma", "records", "t_done", "units")
+    __slots__ = ("frame", "image", "uv", "xyz", "sigma", "records", "t_done", "units")
 
-    def __init__(self, frame: Frame, uv: np.ndarray, xyz: np.ndarray | None, sigma: np.ndarray | None,
-                 records: np.ndarray | None, t_done: float, units: str) -> None:
-        self.frame, self.uv, self.xyz, self.sigma = frame, uv, xyz, sigma
+    def __init__(self, frame: Frame, image: np.ndarray, uv: np.ndarray, xyz: np.ndarray | None,
+                 sigma: np.ndarray | None, records: np.ndarray | None, t_done: float, units: str) -> None:
+        self.frame, self.image, self.uv, self.xyz, self.sigma = frame, image, uv, xyz, sigma
         self.records, self.t_done, self.units = records, t_done, units
 
 
@@ -288,6 +290,8 @@ class LiveEngine:
     def _profile(self, frame: Frame) -> _Latest:
         """The frame's profile with the current settings (the measurer built on the first frame after a change)."""
         img = frame.image
+        if self.sensor is not None and self.sensor.rotate_deg:
+            img = rotate_image(img, self.sensor.rotate_deg)  # as the sensor's frames are read from files
         s = self._settings
         if self.sensor is not None and self._plane is not None:
             if self._measurer is None:
@@ -307,7 +311,7 @@ class LiveEngine:
             rec["frame"] = frame.index
             rec["intensity"], rec["sigma_mm"] = prof.intensity[ok], prof.sigma_mm[ok]
             rec["u"], rec["v"] = prof.uv[ok, 0], prof.uv[ok, 1]
-            return _Latest(frame, prof.uv[ok], p, prof.sigma_mm[ok], rec, time.monotonic(), "mm")
+            return _Latest(frame, img, prof.uv[ok], p, prof.sigma_mm[ok], rec, time.monotonic(), "mm")
         if self._stripe is None:
             opts = s.measure_options()
             axis = "columns" if opts.axis == "auto" else opts.axis
@@ -318,7 +322,7 @@ class LiveEngine:
             self._stripe = (axis, replace(opts.stripe, width_px=w))
         axis, stripe = self._stripe
         sp = extract_profile(img, axis, stripe, roi=s.roi)
-        return _Latest(frame, sp.uv[sp.valid], None, None, None, time.monotonic(), "px")
+        return _Latest(frame, img, sp.uv[sp.valid], None, None, None, time.monotonic(), "px")
 
     # ------------------------------------------------------------------ what a page reads
     def status(self) -> dict:
@@ -377,7 +381,7 @@ class LiveEngine:
         cached = self._preview_cache
         if cached is not None and cached[:2] == key:
             return cached[2]
-        img = latest.frame.image
+        img = latest.image
         h, w = img.shape[:2]
         scale = min(1.0, max(16, int(max_width)) / w)
         small = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA) \
@@ -406,7 +410,7 @@ class LiveEngine:
         now = time.monotonic()
         if now - t_last < TARGET_EVERY_S:
             return found
-        img = latest.frame.image
+        img = latest.image
         ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(5.0, img.shape[1] / 100), max_count=8))
         hint = latest.uv if len(latest.uv) >= 10 else None
         e = select_target(img, ellipses, hint).ellipse if ellipses else None
