@@ -89,6 +89,10 @@ def test_video_file(tmp_path):
         got.append(float(f.image.mean()))
     src.stop()
     assert len(got) == 6 and all(abs(g - 40 * i) < 8 for i, g in enumerate(got))  # MJPG is lossy
+    src.start()  # a stopped video starts again from its first frame
+    again = src.read()
+    src.stop()
+    assert again is not None and again.index == 0 and abs(float(again.image.mean()) - got[0]) < 1e-9
 
 
 def test_specs():
