@@ -80,6 +80,11 @@ class Recorder:
     memory until :meth:`finish` writes ``profiles.parquet`` and ``cloud.ply``."""
 
     def __init__(self, folder: str | Path, units: str, meta: dict[str, Any]) -> None:
+        import importlib.util
+
+        if importlib.util.find_spec("pyarrow") is None:  # checked before anything is written
+            raise LightplaneError("recording writes profiles as Parquet, which needs pyarrow (pip install "
+                                  "'lightplane[live]')")
         self.folder = prepare_folder(folder)
         self.frames_dir = self.folder / "frames"
         self.frames_dir.mkdir()
