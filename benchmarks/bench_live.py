@@ -113,7 +113,7 @@ def profile_alone(frames, sim: SimulatedSensor, repeat: int = 50) -> float:
     """One frame's profile on its own (ms, median): the loop's least possible cost per frame."""
     eng = LiveEngine(ArraySource(frames), sensor=sim.sensor)
     eng._process(eng.source.read())  # builds the measurer as the loop does (width estimated once)
-    m = eng._measurer
+    m = next(iter(eng._measurers.values()))
     assert isinstance(m, ProfileMeasurer)
     ts = []
     for k in range(repeat):

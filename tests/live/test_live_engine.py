@@ -93,12 +93,14 @@ def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, st
     assert live.dtype == again.dtype and live.size > 100 * steps
     assert live.tobytes() == again.tobytes()  # bit for bit
     assert np.array_equal(np.sort(live_points[:, 0]), np.sort(live["x"].astype(np.float64)))
-    # the laser-off frames show no stripe: far darker than the laser frames
+    # every step's laser-off frame shows no stripe and every laser frame shows one (none is a stale frame)
     import cv2
 
-    off = cv2.imread(str(folder / "pattern" / "0001.png"), cv2.IMREAD_UNCHANGED)
-    on = cv2.imread(str(folder / "laser0" / "0001.png"), cv2.IMREAD_UNCHANGED)
-    assert off.max() < 60 <= on.max()
+    for k in range(steps):
+        off = cv2.imread(str(folder / "pattern" / f"{k:04d}.png"), cv2.IMREAD_UNCHANGED)
+        on = cv2.imread(str(folder / "laser0" / f"{k:04d}.png"), cv2.IMREAD_UNCHANGED)
+        assert off.max() < 60 <= on.max(), k
+        assert np.count_nonzero(live["frame"][live["laser"] == 0] == k) > 100, k
     assert on.shape == ((sim.camera.width, sim.camera.height) if turned else (sim.camera.height, sim.camera.width))
 
 
@@ -261,3 +263,24 @@ def test_stopping_the_engine_stops_a_scan(tmp_path):
     st = eng.scan_status()
     assert st["state"] == "stopped" and 1 <= st["done"] < 200
     assert sim.hardware.laser_states() == (True,)  # the lasers as before the scan
+
+
+def test_the_profile_follows_the_laser_that_is_on():
+    sim = SimulatedSensor("turntable", fps=30.0, scale=0.5, lasers=2)
+    eng = LiveEngine(sim)
+    eng.start()
+    try:
+        for i, on in enumerate(((True, False), (False, True))):
+            for k, v in enumerate(on):
+                sim.hardware.set_laser(k, v)
+            t = time.monotonic()
+            wait_for(lambda: (lp := eng.latest_points()) is not None and lp[0].t_exposure > t)
+            frame, p, sig = eng.latest_points()
+            assert eng.latest_profile()["laser"] == f"laser{i}"
+            truth = frame.meta["truth"]
+            c, R = truth["sphere"]["center_mm"], truth["sphere"]["radius_mm"]
+            res = np.minimum(np.abs(np.linalg.norm(p - c, axis=1) - R),
+                             np.abs(p @ truth["table"]["normal"] + truth["table"]["d"]))
+            assert len(p) > 100 and np.median(res) < 0.02  # on the wrong plane: millimetres off
+    finally:
+        eng.stop()
