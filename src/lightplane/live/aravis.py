@@ -1,0 +1,442 @@
+"""GigE Vision and USB3 Vision cameras through Aravis (the open-source GenICam library), as a ``live.source.Source``.
+
+Aravis is reached through its GObject introspection data (Debian: ``gir1.2-aravis-0.8``) and PyGObject; only this
+module imports ``gi``, inside the functions that need it, so that ``import lightplane`` works without them.
+
+Frame counter: the frame's GVSP block id (GigE Vision; 16 bits, wrapping from 65535 to 1) or the USB3 Vision block
+id, unwrapped to a counter that only grows; every id missing between two delivered frames is a dropped frame, and
+so is every buffer Aravis delivers incomplete.  Aravis' own stream counters (completed buffers, failures,
+underruns, missing packets) are in :meth:`AravisSource.statistics`.
+
+Times: ``t_received`` is when the buffer left Aravis' queue.  ``t_exposure`` is, with ``timestamps="camera"``, the
+camera's own frame timestamp moved onto ``time.monotonic()`` by the smallest (host arrival - camera timestamp) seen
+so far: the camera clock's offset is taken from the fastest frame, so the time from exposure to arrival is
+underestimated by that fastest frame's transfer time.  With ``timestamps="system"`` it is the host time at which
+Aravis completed the buffer (an upper bound of the exposure's end).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import parse_qsl
+
+import cv2
+import numpy as np
+
+from lightplane.core.errors import LightplaneError
+from lightplane.live.source import Control, Frame
+
+#: GenICam PFNC pixel format code -> (name, kind, bits): kind "mono", "bayer_XX" or "rgb"/"bgr"
+PIXEL_FORMATS: dict[int, tuple[str, str, int]] = {
+    0x01080001: ("Mono8", "mono", 8),
+    0x01100003: ("Mono10", "mono", 16),
+    0x01100005: ("Mono12", "mono", 16),
+    0x01100025: ("Mono14", "mono", 16),
+    0x01100007: ("Mono16", "mono", 16),
+    0x01080008: ("BayerGR8", "bayer_GR", 8),
+    0x01080009: ("BayerRG8", "bayer_RG", 8),
+    0x0108000A: ("BayerGB8", "bayer_GB", 8),
+    0x0108000B: ("BayerBG8", "bayer_BG", 8),
+    0x0110000C: ("BayerGR10", "bayer_GR", 16),
+    0x0110000D: ("BayerRG10", "bayer_RG", 16),
+    0x0110000E: ("BayerGB10", "bayer_GB", 16),
+    0x0110000F: ("BayerBG10", "bayer_BG", 16),
+    0x01100010: ("BayerGR12", "bayer_GR", 16),
+    0x01100011: ("BayerRG12", "bayer_RG", 16),
+    0x01100012: ("BayerGB12", "bayer_GB", 16),
+    0x01100013: ("BayerBG12", "bayer_BG", 16),
+    0x0110002E: ("BayerGR16", "bayer_GR", 16),
+    0x0110002F: ("BayerRG16", "bayer_RG", 16),
+    0x01100030: ("BayerGB16", "bayer_GB", 16),
+    0x01100031: ("BayerBG16", "bayer_BG", 16),
+    0x02180014: ("RGB8", "rgb", 8),
+    0x02180015: ("BGR8", "bgr", 8),
+}
+_PATTERNS = ("RG", "BG", "GR", "GB")
+_bayer_codes: dict[str, int] = {}
+
+
+_BOTTOM_ROW = {"RG": "GB", "BG": "GR", "GR": "BG", "GB": "RG"}
+
+
+def _bayer_code(pattern: str) -> int:
+    """The OpenCV conversion code that turns a mosaic whose top-left 2x2 cell starts with ``pattern`` (GenICam's
+    naming: ``RG`` = red at (0, 0), green at (0, 1)) into BGR.  OpenCV's own names for the patterns changed between
+    releases, so the code is found once by converting a probe mosaic of known colours with each candidate."""
+    if not _bayer_codes:
+        value = {"R": 200, "G": 100, "B": 50}
+        for name in _PATTERNS:
+            cell = np.array([[value[c] for c in name], [value[c] for c in _BOTTOM_ROW[name]]], np.uint8)
+            probe = np.tile(cell, (3, 3))
+            for cv_name in _PATTERNS:
+                code = getattr(cv2, f"COLOR_Bayer{cv_name}2BGR")
+                if tuple(int(v) for v in cv2.cvtColor(probe, code)[2, 2]) == (50, 100, 200):
+                    _bayer_codes[name] = code
+                    break
+        if set(_bayer_codes) != set(_PATTERNS):
+            raise LightplaneError("OpenCV's Bayer conversions could not be matched to the GenICam patterns")
+    return _bayer_codes[pattern]
+
+
+def convert_pixels(data: bytes, width: int, height: int, pixel_format: int) -> np.ndarray:
+    """A camera buffer as an image: 2-D uint8/uint16 for mono formats, H x W x 3 BGR (uint8/uint16) for Bayer
+    and RGB/BGR formats.  10/12/14-bit formats arrive unpacked in 16-bit words and stay uint16 with their own
+    range.  Packed formats (Mono12p, ...) are refused: choose an unpacked one on the camera."""
+    if pixel_format not in PIXEL_FORMATS:
+        raise LightplaneError(f"pixel format 0x{pixel_format:08x} is not supported: set the camera to Mono8, Mono16, "
+                              "an unpacked Bayer format, RGB8 or BGR8")
+    name, kind, bits = PIXEL_FORMATS[pixel_format]
+    dtype = np.dtype("u1") if bits == 8 else np.dtype("<u2")
+    channels = 3 if kind in ("rgb", "bgr") else 1
+    need = width * height * channels * dtype.itemsize
+    if len(data) < need:
+        raise LightplaneError(f"a {name} buffer of {width}x{height} px needs {need} bytes, got {len(data)}")
+    flat = np.frombuffer(data, dtype=dtype, count=width * height * channels).astype(dtype.newbyteorder("="))
+    if channels == 3:
+        img = flat.reshape(height, width, 3)
+        return np.ascontiguousarray(img[:, :, ::-1]) if kind == "rgb" else img
+    raw = flat.reshape(height, width)
+    if kind.startswith("bayer_"):
+        return cv2.cvtColor(raw, _bayer_code(kind[len("bayer_"):]))
+    return raw
+
+
+@dataclass
+class FrameCounter:
+    """Turns the camera's frame ids into a counter that only grows and counts the ids that never arrived.
+
+    ``wrap`` is the largest id before the counter starts again at 1 (GigE Vision's 16-bit block id: 65535, id 0
+    is never used); ``None`` for 64-bit ids.  An id that goes backwards without a wrap (the camera restarted its
+    counter) continues the count without a gap."""
+
+    wrap: int | None = 65535
+    index: int = -1
+    last_id: int | None = None
+    dropped: int = 0
+    _restarts: int = field(default=0, repr=False)
+
+    def advance(self, frame_id: int) -> int:
+        """The counter for ``frame_id``; adds the ids skipped since the previous frame to ``dropped``."""
+        frame_id = int(frame_id)
+        if self.last_id is None:
+            step = 1
+        elif frame_id > self.last_id:
+            step = frame_id - self.last_id
+        elif self.wrap is not None and self.last_id <= self.wrap and frame_id >= 1 \
+                and self.last_id - frame_id > self.wrap // 2:
+            step = self.wrap - self.last_id + frame_id
+        else:
+            step = 1
+            self._restarts += 1
+        self.dropped += step - 1
+        self.index += step
+        self.last_id = frame_id
+        return self.index
+
+
+@dataclass(frozen=True)
+class AravisOptions:
+    """Which camera and how to set it up.  ``device``: Aravis' device id (``Vendor-Model-Serial`` as
+    ``arv-tool-0.8`` lists it, or the camera's IP address), ``None`` for the first camera found.  ``pixel_format``
+    (a GenICam name such as ``Mono8``), ``exposure_us`` (µs), ``gain_db`` (dB), ``roi`` (x, y, width, height in px)
+    and ``frame_rate_hz`` are set on the camera when given.  ``n_buffers`` buffers circulate between Aravis and
+    lightplane.  ``timestamps``: ``"camera"`` or ``"system"`` (module doc).  ``packet_socket``: Aravis' faster
+    GigE receiver (needs CAP_NET_RAW); ``None`` uses it except for cameras on the loopback address."""
+
+    device: str | None = None
+    pixel_format: str | None = None
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    roi: tuple[int, int, int, int] | None = None
+    frame_rate_hz: float | None = None
+    n_buffers: int = 8
+    timestamps: str = "camera"
+    packet_socket: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.exposure_us is not None and not self.exposure_us > 0:
+            raise LightplaneError(f"exposure_us must be > 0, got {self.exposure_us}")
+        if self.frame_rate_hz is not None and not self.frame_rate_hz > 0:
+            raise LightplaneError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
+        if self.roi is not None and (len(self.roi) != 4 or min(self.roi[2:]) <= 0 or min(self.roi[:2]) < 0):
+            raise LightplaneError(f"roi must be x, y, width, height with width, height > 0, got {self.roi}")
+        if not 2 <= self.n_buffers <= 256:
+            raise LightplaneError(f"n_buffers must be 2 to 256, got {self.n_buffers}")
+        if self.timestamps not in ("camera", "system"):
+            raise LightplaneError(f"timestamps must be 'camera' or 'system', got {self.timestamps!r}")
+
+
+def _aravis() -> tuple[Any, Any]:
+    """(Aravis, GLib) from GObject introspection, or one LightplaneError that says what to install."""
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis, GLib
+    except (ImportError, ValueError) as e:
+        raise LightplaneError(
+            f"Aravis is not available to Python ({e}): install Aravis' introspection data (Debian: "
+            "gir1.2-aravis-0.8) and PyGObject (pip install 'lightplane[aravis]'); docs/live-hardware.md") from None
+    return Aravis, GLib
+
+
+def aravis_devices() -> list[str]:
+    """The device ids of the cameras Aravis finds now."""
+    Aravis, _ = _aravis()
+    Aravis.update_device_list()
+    return [Aravis.get_device_id(i) for i in range(Aravis.get_n_devices())]
+
+
+class AravisSource:
+    """A GenICam camera through Aravis (module doc for the counter and the times).  Exposure (µs), gain (dB),
+    region of interest (x, y, w, h in px), frame rate (Hz) and pixel format are controls where the camera has
+    them; changing the region or the pixel format restarts the stream."""
+
+    def __init__(self, options: AravisOptions | None = None) -> None:
+        self.options = options or AravisOptions()
+        self.name = f"aravis:{self.options.device or ''}"
+        self.nominal_fps: float | None = None
+        self.dropped = 0
+        self._cam: Any = None
+        self._stream: Any = None
+        self._counter = FrameCounter()
+        self._clock_offset: float | None = None
+        self._wall_minus_mono = 0.0
+        self._address = ""
+
+    # --- life cycle ----------------------------------------------------------------------------------------
+    def start(self) -> None:
+        Aravis, GLib = _aravis()
+        o = self.options
+        # the device list is read before the camera is opened: refreshing it while a stream runs disturbs the
+        # stream's packet reception
+        seen = aravis_devices()
+        addresses = {Aravis.get_device_id(i): str(Aravis.get_device_address(i) or "") for i in range(len(seen))}
+        self._address = addresses.get(o.device or (seen[0] if seen else ""), o.device or "")
+        try:
+            self._cam = Aravis.Camera.new(o.device)
+        except GLib.Error as e:
+            which = f"camera {o.device!r}" if o.device else "camera"
+            raise LightplaneError(f"no Aravis {which} ({e.message}); cameras found: "
+                                  f"{', '.join(seen) if seen else 'none'}") from None
+        self.name = f"aravis:{o.device or self._cam.get_device_id()}"
+        self._counter = FrameCounter(wrap=65535 if self._cam.is_gv_device() else None)
+        self._configure()
+        self._open_stream()
+
+    def _configure(self) -> None:
+        o = self.options
+        if o.pixel_format is not None:
+            self._set("pixel_format", o.pixel_format, restart=False)
+        if o.roi is not None:
+            self._set("roi", o.roi, restart=False)
+        if o.exposure_us is not None:
+            self._set("exposure_us", o.exposure_us, restart=False)
+        if o.gain_db is not None:
+            self._set("gain_db", o.gain_db, restart=False)
+        if o.frame_rate_hz is not None:
+            self._set("frame_rate_hz", o.frame_rate_hz, restart=False)
+
+    def _open_stream(self) -> None:
+        Aravis, GLib = _aravis()
+        cam = self._cam
+        try:
+            if cam.is_gv_device():
+                use_packet_socket = self.options.packet_socket
+                if use_packet_socket is None:
+                    use_packet_socket = not self._address.startswith("127.")
+                if not use_packet_socket:
+                    cam.gv_set_stream_options(Aravis.GvStreamOption.PACKET_SOCKET_DISABLED)
+            stream = cam.create_stream(None, None)
+            if cam.is_gv_device():
+                stream.set_property("socket-buffer", Aravis.GvStreamSocketBuffer.AUTO)
+            payload = cam.get_payload()
+            for _ in range(self.options.n_buffers):
+                stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+            self.nominal_fps = float(cam.get_frame_rate()) if cam.is_frame_rate_available() else None
+            self._wall_minus_mono = time.time() - time.monotonic()
+            cam.start_acquisition()
+        except GLib.Error as e:
+            raise LightplaneError(f"{self.name}: the stream did not start ({e.message})") from None
+        self._stream = stream
+
+    def _close_stream(self) -> None:
+        if self._cam is not None and self._stream is not None:
+            _, GLib = _aravis()
+            try:
+                self._cam.stop_acquisition()
+            except GLib.Error:
+                pass
+        self._stream = None
+
+    def stop(self) -> None:
+        self._close_stream()
+        self._cam = None
+
+    # --- frames --------------------------------------------------------------------------------------------
+    def read(self, timeout: float | None = None) -> Frame | None:
+        if self._stream is None:
+            raise LightplaneError(f"{self.name} is not started")
+        Aravis, _ = _aravis()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            wait_us = 1_000_000 if deadline is None else max(0, int((deadline - time.monotonic()) * 1e6))
+            buf = self._stream.timeout_pop_buffer(wait_us) if wait_us > 0 else self._stream.try_pop_buffer()
+            if buf is None:
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise TimeoutError(f"{self.name}: no frame within {timeout:g} s")
+                continue
+            t_received = time.monotonic()
+            try:
+                if buf.get_status() != Aravis.BufferStatus.SUCCESS:
+                    self._counter.advance(buf.get_frame_id())
+                    self._counter.dropped += 1
+                    self.dropped = self._counter.dropped
+                    continue
+                return self._frame(buf, t_received)
+            finally:
+                self._stream.push_buffer(buf)
+
+    def _frame(self, buf: Any, t_received: float) -> Frame:
+        image = convert_pixels(buf.get_image_data(), buf.get_image_width(), buf.get_image_height(),
+                               buf.get_image_pixel_format())
+        frame_id = int(buf.get_frame_id())
+        index = self._counter.advance(frame_id)
+        self.dropped = self._counter.dropped
+        t_system_ns = int(buf.get_system_timestamp())
+        t_system = t_system_ns * 1e-9 - self._wall_minus_mono if t_system_ns else t_received
+        t_camera_ns = int(buf.get_timestamp())
+        t_exposure = t_system
+        if self.options.timestamps == "camera" and t_camera_ns:
+            offset = t_system - t_camera_ns * 1e-9
+            self._clock_offset = offset if self._clock_offset is None else min(self._clock_offset, offset)
+            t_exposure = t_camera_ns * 1e-9 + self._clock_offset
+        fmt = PIXEL_FORMATS[buf.get_image_pixel_format()][0]
+        meta = {"frame_id": frame_id, "t_camera_ns": t_camera_ns, "pixel_format": fmt}
+        return Frame(image=image, index=index, t_exposure=t_exposure, t_received=t_received, meta=meta)
+
+    def statistics(self) -> dict[str, int]:
+        """Aravis' stream counters (``n_completed_buffers``, ``n_failures``, ``n_underruns``, ... as Aravis names
+        them) and lightplane's ``dropped``."""
+        out = {"dropped": self.dropped}
+        if self._stream is not None:
+            for i in range(self._stream.get_n_infos()):
+                if self._stream.get_info_type(i).name == "guint64":
+                    out[self._stream.get_info_name(i)] = int(self._stream.get_info_uint64(i))
+        return out
+
+    # --- controls ------------------------------------------------------------------------------------------
+    def controls(self) -> dict[str, Control]:
+        cam = self._require_camera()
+        out: dict[str, Control] = {}
+        if cam.is_exposure_time_available():
+            lo, hi = cam.get_exposure_time_bounds()
+            out["exposure_us"] = Control("exposure_us", float(cam.get_exposure_time()), "µs", lo, hi)
+        if cam.is_gain_available():
+            lo, hi = cam.get_gain_bounds()
+            out["gain_db"] = Control("gain_db", float(cam.get_gain()), "dB", lo, hi)
+        if cam.is_frame_rate_available():
+            lo, hi = cam.get_frame_rate_bounds()
+            out["frame_rate_hz"] = Control("frame_rate_hz", float(cam.get_frame_rate()), "Hz", lo, hi)
+        x, y, w, h = cam.get_region()
+        out["roi"] = Control("roi", (int(x), int(y), int(w), int(h)), "px")
+        out["pixel_format"] = Control("pixel_format", cam.get_pixel_format_as_string())
+        return out
+
+    def set_control(self, name: str, value: Any) -> None:
+        self._set(name, value, restart=True)
+
+    def _require_camera(self) -> Any:
+        if self._cam is None:
+            raise LightplaneError(f"{self.name} is not started")
+        return self._cam
+
+    def _set(self, name: str, value: Any, restart: bool) -> None:
+        cam = self._require_camera()
+        _, GLib = _aravis()
+        needs_restart = name in ("roi", "pixel_format") and restart and self._stream is not None
+        if needs_restart:
+            self._close_stream()
+        try:
+            _SETTERS[name](cam, value)
+        except KeyError:
+            raise LightplaneError(f"{self.name} has no control {name!r}: use {', '.join(_SETTERS)}") from None
+        except (GLib.Error, TypeError, ValueError) as e:
+            message = getattr(e, "message", str(e))
+            raise LightplaneError(f"{self.name}: cannot set {name} to {value!r} ({message})") from None
+        finally:
+            if needs_restart:
+                self._open_stream()
+        if name == "frame_rate_hz":
+            self.nominal_fps = float(cam.get_frame_rate())
+
+
+def _set_exposure(cam: Any, value: Any) -> None:
+    if not cam.is_exposure_time_available():
+        raise ValueError("the camera has no exposure time")
+    cam.set_exposure_time(float(value))
+
+
+def _set_gain(cam: Any, value: Any) -> None:
+    if not cam.is_gain_available():
+        raise ValueError("the camera has no gain")
+    cam.set_gain(float(value))
+
+
+def _set_roi(cam: Any, value: Any) -> None:
+    x, y, w, h = (int(v) for v in value)
+    if w <= 0 or h <= 0 or x < 0 or y < 0:
+        raise ValueError("x, y must be >= 0 and width, height > 0")
+    cam.set_region(x, y, w, h)
+    if tuple(int(v) for v in cam.get_region()) != (x, y, w, h):
+        raise ValueError(f"the camera took {tuple(cam.get_region())} instead (its steps or limits)")
+
+
+_SETTERS = {
+    "exposure_us": _set_exposure,
+    "gain_db": _set_gain,
+    "frame_rate_hz": lambda cam, v: cam.set_frame_rate(float(v)),
+    "roi": _set_roi,
+    "pixel_format": lambda cam, v: cam.set_pixel_format_from_string(str(v)),
+}
+
+_SPEC_KEYS = {"pixel": "pixel_format", "exposure": "exposure_us", "gain": "gain_db", "roi": "roi",
+              "fps": "frame_rate_hz", "buffers": "n_buffers", "timestamps": "timestamps",
+              "packet_socket": "packet_socket"}
+
+
+def _spec_value(key: str, value: str) -> Any:
+    field_name = _SPEC_KEYS[key]
+    try:
+        if field_name == "roi":
+            parts = tuple(int(v) for v in value.split(","))
+            if len(parts) != 4:
+                raise ValueError
+            return parts
+        if field_name == "n_buffers":
+            return int(value)
+        if field_name == "packet_socket":
+            return value.lower() in ("1", "true", "yes", "on")
+        if field_name in ("pixel_format", "timestamps"):
+            return value
+        return float(value)
+    except ValueError:
+        raise LightplaneError(f"aravis option {key}={value!r} is not valid (roi is x,y,w,h in px)") from None
+
+
+def open_aravis(spec: str) -> AravisSource:
+    """An Aravis camera from ``aravis[:DEVICE][?exposure=US&gain=DB&roi=X,Y,W,H&fps=HZ&pixel=Mono8&buffers=N&
+    timestamps=camera|system&packet_socket=0|1]``; DEVICE is Aravis' device id or an IP address, none for the first
+    camera.  The source is returned unstarted."""
+    head, _, query = spec.strip().partition("?")
+    scheme, _, device = head.partition(":")
+    if scheme != "aravis":
+        raise LightplaneError(f"not an Aravis source: {spec!r} (write aravis:DEVICE)")
+    kwargs: dict[str, Any] = {"device": device or None}
+    for key, value in parse_qsl(query, keep_blank_values=True):
+        if key not in _SPEC_KEYS:
+            raise LightplaneError(f"unknown aravis option {key!r}: use {', '.join(_SPEC_KEYS)}")
+        kwargs[_SPEC_KEYS[key]] = _spec_value(key, value)
+    return AravisSource(AravisOptions(**kwargs))
