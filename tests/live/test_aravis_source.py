@@ -206,12 +206,20 @@ def test_pixel_formats_from_the_camera(source):
     jet[idx] = f.image
     assert np.array_equal(f.image, jet[idx])
     assert jet[0][0] > 100 and jet[0][2] == 0 and jet[254][2] > 100 and jet[254][0] == 0  # BGR order
-    for fmt in ("BayerRG8", "BayerBG8", "BayerGR8", "BayerGB8"):
-        # demosaiced to BGR (the exact GenICam placement of the samples is checked on synthetic mosaics above)
+    rgb_jet = jet[:, ::-1]  # the map as R, G, B
+    for fmt in ("BayerBG8", "BayerGR8", "BayerGB8", "BayerRG8"):
         source.set_control("pixel_format", fmt)
         f = source.read(timeout=2.0)
         assert f.meta["pixel_format"] == fmt and f.image.shape == (128, 256, 3) and f.image.dtype == np.uint8
         assert np.abs(f.image[:, :, 0].astype(int) - f.image[:, :, 2]).mean() > 50  # a colour image
+    # GenICam's BayerRG: the sample at (even x, even y) is red and stays the red channel there (demosaicing keeps
+    # the samples; OpenCV's border pixels aside).  This fake camera writes the map's blue at those sites and its red
+    # at the odd/odd ones, i.e. its "BayerRG8" mosaic is R/B swapped against GenICam's naming.
+    idx = _ramp(f.meta["frame_id"], (128, 256))
+    inner = (slice(1, -1), slice(1, -1))
+    assert np.array_equal(f.image[0::2, 0::2, 2][inner], rgb_jet[idx[0::2, 0::2], 2][inner])
+    assert np.array_equal(f.image[1::2, 1::2, 0][inner], rgb_jet[idx[1::2, 1::2], 0][inner])
+    assert np.array_equal(f.image[0::2, 1::2, 1][inner], rgb_jet[idx[0::2, 1::2], 1][inner])
 
 
 def test_missing_camera_is_one_error(fake_camera):

@@ -188,7 +188,7 @@ class CiclopBoard:
         self._line.discard_input()
         self._line.write(CICLOP_RESET)
         deadline = time.monotonic() + self.options.timeout_s + 1.0  # a board that has just been reset boots first
-        seen = []
+        seen: list[str] = []
         while True:
             line = self._reader.readline(deadline)
             if line is None:
@@ -294,7 +294,8 @@ class FabScanBoard:
         self._line.write(cmd.encode("ascii") + b"\n")
         wait = self.options.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + wait
-        echoed, out = False, []
+        echoed = False
+        out: list[str] = []
         while True:
             line = self._reader.readline(deadline, prompt=FABSCAN_PROMPT)
             if line is None:

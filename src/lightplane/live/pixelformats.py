@@ -79,7 +79,8 @@ def convert_pixels(data: bytes, width: int, height: int, pixel_format: int) -> n
     need = width * height * channels * dtype.itemsize
     if len(data) < need:
         raise LightplaneError(f"a {name} buffer of {width}x{height} px needs {need} bytes, got {len(data)}")
-    flat = np.frombuffer(data, dtype=dtype, count=width * height * channels).astype(dtype.newbyteorder("="))
+    flat: np.ndarray = np.frombuffer(data, dtype=dtype, count=width * height * channels).astype(
+        np.uint8 if bits == 8 else np.uint16)
     if channels > 1:
         img = flat.reshape(height, width, channels)
         return np.ascontiguousarray(img[:, :, 2::-1] if kind.startswith("rgb") else img[:, :, :3])
