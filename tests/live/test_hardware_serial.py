@@ -15,6 +15,7 @@ from lightplane.live.hardware import (
     FabScanBoard,
     FabScanOptions,
     SimulatedDeviceBoard,
+    SimulatedFabScanBoard,
     open_hardware,
 )
 from lightplane.live.protocols import FABSCAN_VERSION_TEXT, move_duration_s, move_fraction
@@ -49,6 +50,7 @@ def test_ciclop_handshake_lasers_and_commands(ciclop):
     board = CiclopBoard(ciclop.port, FAST)
     try:
         assert isinstance(board, Hardware)
+        assert isinstance(ciclop.state, Hardware)  # what a simulated sensor reads, like SimulatedHardware
         assert board.firmware == "0.2"
         # what Horus sends on connect: origin, speed, acceleration
         assert ciclop.commands[:3] == ["G50", "G1F200", "$120=200"]
@@ -119,7 +121,7 @@ def test_ciclop_timeout_and_unplugged_board(ciclop):
         assert 0.5 <= time.monotonic() - t0 < 1.5
         ciclop.silent = False
         ciclop.unplug()
-        with pytest.raises(LightplaneError, match="Ciclop board on .* is gone|did not answer"):
+        with pytest.raises(LightplaneError, match=r"the Ciclop board on /dev/pts/\d+ is gone"):
             board.set_laser(0, True)
     finally:
         board.close()
@@ -174,7 +176,15 @@ def test_open_hardware_specs():
         assert board.state.angle_deg == pytest.approx(2.0)
     finally:
         board.close()
-    for spec, msg in [("ciclop:", "names no serial port"), ("webcam:/dev/video0", "unknown hardware"),
+    fab = open_hardware("simdevice:fabscan?settle=0&rate=6400&timeout=0.5")
+    try:
+        assert isinstance(fab, SimulatedFabScanBoard) and isinstance(fab, Hardware)
+        fab.set_laser(1, True)
+        fab.move_turntable(45.0)
+        assert fab.state.laser_states() == (False, True) and fab.state.angle_deg == pytest.approx(45.0)
+    finally:
+        fab.close()
+    for spec, msg in [("ciclop:", "names no serial port"), ("simdevice:grbl", "unknown simulated device"), ("webcam:/dev/video0", "unknown hardware"),
                       ("ciclop:/dev/x?speed=fast", "speed='fast' is not a number"),
                       ("fabscan:/dev/x?speed=3", "unknown fabscan option 'speed'"),
                       ("simdevice?settle=-1", "settle_s must be >= 0"), ("sim:many", "needs a number of lasers")]:

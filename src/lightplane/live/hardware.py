@@ -362,6 +362,26 @@ class SimulatedDeviceBoard(CiclopBoard):
         self.device.close()
 
 
+class SimulatedFabScanBoard(FabScanBoard):
+    """A :class:`FabScanBoard` on a :class:`~lightplane.live.simdevice.SimulatedDevice` (FabScanPi protocol) that
+    it owns and closes; ``state`` is the device's :class:`~lightplane.live.simdevice.DeviceState`."""
+
+    def __init__(self, options: FabScanOptions | None = None) -> None:
+        o = options or FabScanOptions(boot_s=0.0)
+        self.device = SimulatedDevice("fabscan", n_lasers=o.n_lasers, fabscan_steps_per_turn=o.steps_per_turn,
+                                      fabscan_step_rate=o.step_rate)
+        self.state = self.device.state
+        try:
+            super().__init__(self.device.port, o)
+        except LightplaneError:
+            self.device.close()
+            raise
+
+    def close(self) -> None:
+        super().close()
+        self.device.close()
+
+
 def _check_laser(index: int, n: int) -> None:
     if not 0 <= index < n:
         raise LightplaneError(f"laser {index} does not exist: this hardware has lasers 0 to {n - 1}")
@@ -379,8 +399,8 @@ _FABSCAN_KEYS = {"steps": "steps_per_turn", "rate": "step_rate", "settle": "sett
                  "boot": "boot_s", "lasers": "n_lasers", "baud": "baud"}
 
 
-def _options(kind: str, query: str, keys: dict[str, str], cls: Any) -> Any:
-    kwargs: dict[str, Any] = {}
+def _options(kind: str, query: str, keys: dict[str, str], cls: Any, **defaults: Any) -> Any:
+    kwargs: dict[str, Any] = dict(defaults)
     for key, value in parse_qsl(query, keep_blank_values=True):
         if key not in keys:
             raise LightplaneError(f"unknown {kind} option {key!r}: use {', '.join(sorted(keys))}")
@@ -399,7 +419,8 @@ def open_hardware(spec: str) -> Hardware:
       board with the Horus firmware;
     - ``fabscan:PORT[?steps=3200&rate=1600&settle=0.2&timeout=2&boot=2&lasers=2&baud=115200]``: a FabScanPi HAT;
     - ``sim[:N]``: ``SimulatedHardware`` with N lasers (1 by default), no serial line;
-    - ``simdevice[?...]``: a Ciclop board on a simulated device (pseudo-terminal), same options as ``ciclop``."""
+    - ``simdevice[:ciclop][?...]``: a Ciclop board on a simulated device (pseudo-terminal), options as ``ciclop``;
+      ``simdevice:fabscan[?...]``: a FabScanPi board on a simulated device, options as ``fabscan`` (``boot`` 0)."""
     head, _, query = spec.strip().partition("?")
     kind, _, target = head.partition(":")
     if kind == "sim":
@@ -410,12 +431,16 @@ def open_hardware(spec: str) -> Hardware:
         if not 1 <= n <= 4:
             raise LightplaneError(f"sim needs 1 to 4 lasers, got {n}")
         return SimulatedHardware(n_lasers=n)
-    if kind == "simdevice":
+    if kind == "simdevice" and target in ("", "ciclop"):
         return SimulatedDeviceBoard(_options("simdevice", query, _CICLOP_KEYS, CiclopOptions))
+    if kind == "simdevice" and target == "fabscan":
+        return SimulatedFabScanBoard(_options("simdevice", query, _FABSCAN_KEYS, FabScanOptions, boot_s=0.0))
+    if kind == "simdevice":
+        raise LightplaneError(f"unknown simulated device {target!r}: use simdevice:ciclop or simdevice:fabscan")
     if kind in ("ciclop", "fabscan") and not target:
         raise LightplaneError(f"'{spec}' names no serial port: write {kind}:/dev/ttyUSB0")
     if kind == "ciclop":
         return CiclopBoard(target, _options("ciclop", query, _CICLOP_KEYS, CiclopOptions))
     if kind == "fabscan":
         return FabScanBoard(target, _options("fabscan", query, _FABSCAN_KEYS, FabScanOptions))
-    raise LightplaneError(f"unknown hardware {spec!r}: use ciclop:PORT, fabscan:PORT, sim or simdevice")
+    raise LightplaneError(f"unknown hardware {spec!r}: use ciclop:PORT, fabscan:PORT, sim[:N] or simdevice[:fabscan]")
