@@ -127,6 +127,16 @@ def test_ciclop_timeout_and_unplugged_board(ciclop):
         board.close()
 
 
+def test_ciclop_first_firmware_has_no_origin_command():
+    with SimulatedDevice("ciclop", greeting="Horus 0.1 ['$' for help]") as dev:
+        board = CiclopBoard(dev.port, FAST)
+        try:
+            assert board.firmware == "0.1" and "G50" not in dev.commands
+            assert dev.commands[:2] == ["G1F200", "$120=200"]
+        finally:
+            board.close()
+
+
 def test_ciclop_wrong_or_missing_device():
     with SimulatedDevice("ciclop", greeting="Grbl 1.1h ['$' for help]") as dev:
         with pytest.raises(LightplaneError, match="did not greet as the Horus firmware.*Grbl 1.1h"):
