@@ -72,8 +72,11 @@ def test_aravis_spec_errors():
     o = src.options
     assert (o.device, o.exposure_us, o.gain_db, o.roi, o.frame_rate_hz, o.n_buffers) == \
         ("Cam-1", 2000.0, 3.0, (0, 0, 64, 32), 30.0, 4)
+    # the same with the options after commas, without the scheme, and overridden by keywords
+    src = open_aravis("Cam-1,exposure=2000,roi=0:0:64:32,buffers=4", gain=3, frame_rate_hz=30.0)
+    assert src.options == o.__class__(**{**o.__dict__, "pixel_format": None})
     for spec, msg in [("aravis:x?roi=1,2,3", "roi is x,y,w,h"), ("aravis:x?shutter=3", "unknown aravis option"),
-                      ("aravis:x?exposure=-1", "exposure_us must be > 0"), ("v4l2:0", "not an Aravis source"),
+                      ("aravis:x?exposure=-1", "exposure_us must be > 0"), ("aravis:x,exposure", "write key=value"),
                       ("aravis:x?timestamps=gps", "timestamps must be")]:
         with pytest.raises(LightplaneError, match=msg):
             open_aravis(spec)

@@ -94,6 +94,12 @@ def test_dropped_frames_are_counted(viky):
         src.stop()
 
 
+def test_spec_forms():
+    a = open_genicam("genicam:/opt/p.cti?serial=5&roi=0,0,64,32&exposure=100").options
+    b = open_genicam("/opt/p.cti,serial=5,roi=0:0:64:32", exposure_us=100.0).options
+    assert a == b and a.cti == "/opt/p.cti" and a.roi == (0, 0, 64, 32) and a.serial == "5"
+
+
 def test_missing_camera_producer_and_bad_specs(viky, tmp_path):
     with pytest.raises(LightplaneError, match=r"no camera with serial '7' behind viky.cti; cameras found: Viky #0"):
         open_genicam(f"genicam:{viky}?serial=7").start()
@@ -104,6 +110,6 @@ def test_missing_camera_producer_and_bad_specs(viky, tmp_path):
     with pytest.raises(LightplaneError, match="could not be loaded|cameras found: none"):
         open_genicam(f"genicam:{bogus}").start()
     for spec, msg in [("genicam:", "needs the GenTL producer"), ("genicam:x.cti?shutter=1", "unknown genicam option"),
-                      ("genicam:x.cti?roi=1,2", "roi is x,y,w,h"), ("aravis:x", "not a GenICam source")]:
+                      ("genicam:x.cti?roi=1,2", "roi is x,y,w,h"), ("genicam:x.cti,roi=1:2", "roi is x,y,w,h")]:
         with pytest.raises(LightplaneError, match=msg):
             open_genicam(spec)

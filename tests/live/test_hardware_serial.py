@@ -186,7 +186,7 @@ def test_open_hardware_specs():
         assert board.state.angle_deg == pytest.approx(2.0)
     finally:
         board.close()
-    fab = open_hardware("simdevice:fabscan?settle=0&rate=6400&timeout=0.5")
+    fab = open_hardware("simdevice:fabscan,settle=0,rate=6400,timeout=0.5")
     try:
         assert isinstance(fab, SimulatedFabScanBoard) and isinstance(fab, Hardware)
         fab.set_laser(1, True)

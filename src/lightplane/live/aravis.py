@@ -20,11 +20,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import parse_qsl
-
 from lightplane.core.errors import LightplaneError
 from lightplane.live.pixelformats import PIXEL_FORMATS, FrameCounter, convert_pixels
 from lightplane.live.source import Control, Frame
+from lightplane.live.spec import parse_roi, split_spec
 
 __all__ = ["AravisOptions", "AravisSource", "FrameCounter", "PIXEL_FORMATS", "aravis_devices", "convert_pixels",
            "open_aravis"]
@@ -300,14 +299,13 @@ _SPEC_KEYS = {"pixel": "pixel_format", "exposure": "exposure_us", "gain": "gain_
               "packet_socket": "packet_socket"}
 
 
-def _spec_value(key: str, value: str) -> Any:
-    field_name = _SPEC_KEYS[key]
+def _spec_value(key: str, value: Any) -> Any:
+    field_name = _SPEC_KEYS.get(key, key)
+    if not isinstance(value, str):
+        return tuple(int(v) for v in value) if field_name == "roi" else value
     try:
         if field_name == "roi":
-            parts = tuple(int(v) for v in value.split(","))
-            if len(parts) != 4:
-                raise ValueError
-            return parts
+            return parse_roi(value)
         if field_name == "n_buffers":
             return int(value)
         if field_name == "packet_socket":
@@ -319,17 +317,17 @@ def _spec_value(key: str, value: str) -> Any:
         raise LightplaneError(f"aravis option {key}={value!r} is not valid (roi is x,y,w,h in px)") from None
 
 
-def open_aravis(spec: str) -> AravisSource:
+def open_aravis(spec: str, **kw: Any) -> AravisSource:
     """An Aravis camera from ``aravis[:DEVICE][?exposure=US&gain=DB&roi=X,Y,W,H&fps=HZ&pixel=Mono8&buffers=N&
-    timestamps=camera|system&packet_socket=0|1]``; DEVICE is Aravis' device id or an IP address, none for the first
-    camera.  The source is returned unstarted."""
-    head, _, query = spec.strip().partition("?")
-    scheme, _, device = head.partition(":")
-    if scheme != "aravis":
-        raise LightplaneError(f"not an Aravis source: {spec!r} (write aravis:DEVICE)")
+    timestamps=camera|system&packet_socket=0|1]`` (or the same options after commas: ``aravis:DEVICE,exposure=US,
+    roi=X:Y:W:H``); DEVICE is Aravis' device id or an IP address, none for the first camera.  The leading
+    ``aravis:`` may be left out.  Keyword arguments (the short names above or ``AravisOptions``' fields) override
+    the spec.  The source is returned unstarted."""
+    device, pairs = split_spec(spec, "aravis")
     kwargs: dict[str, Any] = {"device": device or None}
-    for key, value in parse_qsl(query, keep_blank_values=True):
-        if key not in _SPEC_KEYS:
+    fields = set(_SPEC_KEYS.values())
+    for key, value in [*pairs, *kw.items()]:
+        if key not in _SPEC_KEYS and key not in fields:
             raise LightplaneError(f"unknown aravis option {key!r}: use {', '.join(_SPEC_KEYS)}")
-        kwargs[_SPEC_KEYS[key]] = _spec_value(key, value)
+        kwargs[_SPEC_KEYS.get(key, key)] = _spec_value(key, value)
     return AravisSource(AravisOptions(**kwargs))

@@ -13,11 +13,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl
-
 from lightplane.core.errors import LightplaneError
 from lightplane.live.pixelformats import PIXEL_FORMAT_CODES, FrameCounter, convert_pixels
 from lightplane.live.source import Control, Frame
+from lightplane.live.spec import parse_roi, split_spec
 
 #: lightplane's control -> the GenICam SFNC feature names that carry it, first found wins
 _FEATURES = {
@@ -245,24 +244,24 @@ _SPEC_KEYS = {"serial": "serial", "index": "index", "pixel": "pixel_format", "ex
               "gain": "gain_db", "roi": "roi", "fps": "frame_rate_hz", "buffers": "n_buffers"}
 
 
-def open_genicam(spec: str) -> GenICamSource:
+def open_genicam(spec: str, **kw: Any) -> GenICamSource:
     """A GenICam camera from ``genicam:/path/to/producer.cti[?serial=S|index=N&exposure=US&gain=DB&roi=X,Y,W,H&
-    fps=HZ&pixel=Mono8&buffers=N]``; the first camera of the producer by default.  Returned unstarted."""
-    head, _, query = spec.strip().partition("?")
-    scheme, _, cti = head.partition(":")
-    if scheme != "genicam":
-        raise LightplaneError(f"not a GenICam source: {spec!r} (write genicam:/path/to/producer.cti)")
+    fps=HZ&pixel=Mono8&buffers=N]`` (or the options after commas, ``roi=X:Y:W:H``); the first camera of the
+    producer by default; the leading ``genicam:`` may be left out.  Keyword arguments (short names or
+    ``GenICamOptions``' fields) override the spec.  Returned unstarted."""
+    cti, pairs = split_spec(spec, "genicam")
     kwargs: dict[str, Any] = {"cti": cti}
-    for key, value in parse_qsl(query, keep_blank_values=True):
-        if key not in _SPEC_KEYS:
+    fields = set(_SPEC_KEYS.values())
+    for key, value in [*pairs, *kw.items()]:
+        if key not in _SPEC_KEYS and key not in fields:
             raise LightplaneError(f"unknown genicam option {key!r}: use {', '.join(_SPEC_KEYS)}")
-        field = _SPEC_KEYS[key]
+        field = _SPEC_KEYS.get(key, key)
+        if not isinstance(value, str):
+            kwargs[field] = tuple(int(v) for v in value) if field == "roi" else value
+            continue
         try:
             if field == "roi":
-                parts = tuple(int(v) for v in value.split(","))
-                if len(parts) != 4:
-                    raise ValueError
-                kwargs[field] = parts
+                kwargs[field] = parse_roi(value)
             elif field in ("index", "n_buffers"):
                 kwargs[field] = int(value)
             elif field in ("serial", "pixel_format"):

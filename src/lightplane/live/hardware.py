@@ -8,10 +8,10 @@ Every failure of the line (no such port, a wrong firmware, no reply in time, the
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import parse_qsl
 
 from lightplane.core.errors import LightplaneError
 from lightplane.live.protocols import (
@@ -24,6 +24,7 @@ from lightplane.live.protocols import (
 )
 from lightplane.live.simdevice import SimulatedDevice
 from lightplane.live.source import Hardware, SimulatedHardware
+from lightplane.live.spec import split_spec
 
 
 def _positive(name: str, value: float, allow_zero: bool = False) -> None:
@@ -399,9 +400,9 @@ _FABSCAN_KEYS = {"steps": "steps_per_turn", "rate": "step_rate", "settle": "sett
                  "boot": "boot_s", "lasers": "n_lasers", "baud": "baud"}
 
 
-def _options(kind: str, query: str, keys: dict[str, str], cls: Any, **defaults: Any) -> Any:
+def _options(kind: str, pairs: list[tuple[str, str]], keys: dict[str, str], cls: Any, **defaults: Any) -> Any:
     kwargs: dict[str, Any] = dict(defaults)
-    for key, value in parse_qsl(query, keep_blank_values=True):
+    for key, value in pairs:
         if key not in keys:
             raise LightplaneError(f"unknown {kind} option {key!r}: use {', '.join(sorted(keys))}")
         field = keys[key]
@@ -413,7 +414,7 @@ def _options(kind: str, query: str, keys: dict[str, str], cls: Any, **defaults: 
 
 
 def open_hardware(spec: str) -> Hardware:
-    """Open lasers and turntable from a specification:
+    """Open lasers and turntable from a specification (options after ``?`` joined by ``&``, or after commas):
 
     - ``ciclop:PORT[?speed=200&accel=200&max_rate=180&settle=0.2&timeout=2&lasers=2&baud=115200]``: a Ciclop
       board with the Horus firmware;
@@ -421,8 +422,9 @@ def open_hardware(spec: str) -> Hardware:
     - ``sim[:N]``: ``SimulatedHardware`` with N lasers (1 by default), no serial line;
     - ``simdevice[:ciclop][?...]``: a Ciclop board on a simulated device (pseudo-terminal), options as ``ciclop``;
       ``simdevice:fabscan[?...]``: a FabScanPi board on a simulated device, options as ``fabscan`` (``boot`` 0)."""
-    head, _, query = spec.strip().partition("?")
-    kind, _, target = head.partition(":")
+    m = re.match(r"[a-z]+", spec.strip())
+    kind = m.group(0) if m else ""
+    target, pairs = split_spec(spec, kind)
     if kind == "sim":
         try:
             n = int(target) if target else 1
@@ -432,15 +434,15 @@ def open_hardware(spec: str) -> Hardware:
             raise LightplaneError(f"sim needs 1 to 4 lasers, got {n}")
         return SimulatedHardware(n_lasers=n)
     if kind == "simdevice" and target in ("", "ciclop"):
-        return SimulatedDeviceBoard(_options("simdevice", query, _CICLOP_KEYS, CiclopOptions))
+        return SimulatedDeviceBoard(_options("simdevice", pairs, _CICLOP_KEYS, CiclopOptions))
     if kind == "simdevice" and target == "fabscan":
-        return SimulatedFabScanBoard(_options("simdevice", query, _FABSCAN_KEYS, FabScanOptions, boot_s=0.0))
+        return SimulatedFabScanBoard(_options("simdevice", pairs, _FABSCAN_KEYS, FabScanOptions, boot_s=0.0))
     if kind == "simdevice":
         raise LightplaneError(f"unknown simulated device {target!r}: use simdevice:ciclop or simdevice:fabscan")
     if kind in ("ciclop", "fabscan") and not target:
         raise LightplaneError(f"'{spec}' names no serial port: write {kind}:/dev/ttyUSB0")
     if kind == "ciclop":
-        return CiclopBoard(target, _options("ciclop", query, _CICLOP_KEYS, CiclopOptions))
+        return CiclopBoard(target, _options("ciclop", pairs, _CICLOP_KEYS, CiclopOptions))
     if kind == "fabscan":
-        return FabScanBoard(target, _options("fabscan", query, _FABSCAN_KEYS, FabScanOptions))
+        return FabScanBoard(target, _options("fabscan", pairs, _FABSCAN_KEYS, FabScanOptions))
     raise LightplaneError(f"unknown hardware {spec!r}: use ciclop:PORT, fabscan:PORT, sim[:N] or simdevice[:fabscan]")
