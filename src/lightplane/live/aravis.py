@@ -207,7 +207,9 @@ class AravisSource:
             t_exposure = t_camera_ns * 1e-9 + self._clock_offset
         fmt = PIXEL_FORMATS[buf.get_image_pixel_format()][0]
         meta = {"frame_id": frame_id, "t_camera_ns": t_camera_ns, "pixel_format": fmt}
-        return Frame(image=image, index=index, t_exposure=t_exposure, t_received=t_received, meta=meta)
+        # the host clock mapping is good to microseconds: an exposure never ends after its frame arrived
+        return Frame(image=image, index=index, t_exposure=min(t_exposure, t_received), t_received=t_received,
+                     meta=meta)
 
     def statistics(self) -> dict[str, int]:
         """Aravis' stream counters (``n_completed_buffers``, ``n_failures``, ``n_underruns``, ... as Aravis names
