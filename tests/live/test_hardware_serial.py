@@ -83,7 +83,7 @@ def test_ciclop_move_waits_for_the_table_to_settle(ciclop):
         elapsed = time.monotonic() - t0
         watcher.join()
         assert elapsed >= expected + 0.05
-        assert elapsed < expected + 0.05 + 0.3
+        assert elapsed < expected + 0.05 + 1.0  # generous: a busy machine schedules late
         # settled: the device has arrived and stands still
         assert not ciclop.state.moving
         assert ciclop.state.angle_deg == pytest.approx(18.0, abs=1e-9)
@@ -118,7 +118,7 @@ def test_ciclop_timeout_and_unplugged_board(ciclop):
         t0 = time.monotonic()
         with pytest.raises(LightplaneError, match=r"did not answer 'M71T1' within 0.5 s"):
             board.set_laser(0, True)
-        assert 0.5 <= time.monotonic() - t0 < 1.5
+        assert 0.5 <= time.monotonic() - t0 < 2.5
         ciclop.silent = False
         ciclop.unplug()
         with pytest.raises(LightplaneError, match=r"the Ciclop board on /dev/pts/\d+ is gone"):
