@@ -12,7 +12,6 @@ import re
 import select
 import threading
 import time
-import tty
 from dataclasses import dataclass
 
 from lightplane.core.errors import LightplaneError
@@ -147,6 +146,8 @@ class SimulatedDevice:
         self.step_rate = float(fabscan_step_rate)
         self.silent = False
         self.commands: list[str] = []
+        import tty  # POSIX only: the simulated device needs a pseudo-terminal
+
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
