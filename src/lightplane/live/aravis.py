@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from typing import Any
+
 from lightplane.core.errors import LightplaneError
 from lightplane.live.pixelformats import PIXEL_FORMATS, FrameCounter, convert_pixels
 from lightplane.live.source import Control, Frame
@@ -27,6 +28,7 @@ from lightplane.live.spec import parse_roi, split_spec
 
 __all__ = ["AravisOptions", "AravisSource", "FrameCounter", "PIXEL_FORMATS", "aravis_devices", "convert_pixels",
            "open_aravis"]
+
 
 @dataclass(frozen=True)
 class AravisOptions:

@@ -3,7 +3,7 @@ frame ids into a growing index with the dropped frames counted; shared by the Ar
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -96,13 +96,13 @@ class FrameCounter:
 
     ``wrap`` is the largest id before the counter starts again at 1 (GigE Vision's 16-bit block id: 65535, id 0
     is never used); ``None`` for 64-bit ids.  An id that goes backwards without a wrap (the camera restarted its
-    counter) continues the count without a gap."""
+    counter; counted in ``restarts``) continues the count without a gap."""
 
     wrap: int | None = 65535
     index: int = -1
     last_id: int | None = None
     dropped: int = 0
-    _restarts: int = field(default=0, repr=False)
+    restarts: int = 0
 
     def advance(self, frame_id: int) -> int:
         """The counter for ``frame_id``; adds the ids skipped since the previous frame to ``dropped``."""
@@ -116,7 +116,7 @@ class FrameCounter:
             step = self.wrap - self.last_id + frame_id
         else:
             step = 1
-            self._restarts += 1
+            self.restarts += 1
         self.dropped += step - 1
         self.index += step
         self.last_id = frame_id
