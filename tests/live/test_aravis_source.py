@@ -234,3 +234,31 @@ def test_missing_camera_is_one_error(fake_camera):
         src.start()
     with pytest.raises(LightplaneError, match="is not started"):
         src.read(timeout=0.1)
+
+
+def test_controls_change_while_another_thread_reads(source):
+    import threading
+
+    shapes, errors, stop = [], [], threading.Event()
+
+    def reader():
+        while not stop.is_set():
+            try:
+                shapes.append(source.read(timeout=2.0).image.shape)
+            except Exception as e:  # noqa: BLE001 - the test reports whatever the reader met
+                errors.append(e)
+                return
+
+    t = threading.Thread(target=reader)
+    t.start()
+    try:
+        time.sleep(0.2)
+        source.set_control("roi", (0, 0, 64, 48))  # restarts the stream under the reader
+        time.sleep(0.3)
+        source.set_control("pixel_format", "RGB8")
+        time.sleep(0.3)
+    finally:
+        stop.set()
+        t.join(timeout=5.0)
+    assert not errors, errors
+    assert shapes[0] == (128, 256) and shapes[-1] == (48, 64, 3) and (48, 64) in shapes

@@ -117,3 +117,32 @@ def test_missing_camera_producer_and_bad_specs(viky, tmp_path):
                       ("genicam:x.cti?roi=1,2", "roi is x,y,w,h"), ("genicam:x.cti,roi=1:2", "roi is x,y,w,h")]:
         with pytest.raises(LightplaneError, match=msg):
             open_genicam(spec)
+
+
+def test_controls_change_while_another_thread_reads(viky):
+    import threading
+
+    src = open_genicam(f"genicam:{viky}?serial=0&pixel=Mono8&fps=50")
+    src.start()
+    shapes, errors, stop = [], [], threading.Event()
+
+    def reader():
+        while not stop.is_set():
+            try:
+                shapes.append(src.read(timeout=2.0).image.shape)
+            except Exception as e:  # noqa: BLE001 - the test reports whatever the reader met
+                errors.append(e)
+                return
+
+    t = threading.Thread(target=reader)
+    t.start()
+    try:
+        time.sleep(0.2)
+        src.set_control("roi", (0, 0, 200, 100))  # stops and restarts the acquisition under the reader
+        time.sleep(0.3)
+    finally:
+        stop.set()
+        t.join(timeout=5.0)
+        src.stop()
+    assert not errors, errors
+    assert shapes[0] == (400, 400) and shapes[-1] == (100, 200)

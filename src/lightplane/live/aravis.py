@@ -17,6 +17,7 @@ Aravis completed the buffer (an upper bound of the exposure's end).
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -99,6 +100,7 @@ class AravisSource:
         self._clock_offset: float | None = None
         self._wall_minus_mono = 0.0
         self._address = ""
+        self._lock = threading.RLock()
 
     # --- life cycle ----------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -166,32 +168,40 @@ class AravisSource:
         self._stream = None
 
     def stop(self) -> None:
-        self._close_stream()
-        self._cam = None
+        with self._lock:
+            self._close_stream()
+            self._cam = None
 
     # --- frames --------------------------------------------------------------------------------------------
     def read(self, timeout: float | None = None) -> Frame | None:
-        if self._stream is None:
-            raise LightplaneError(f"{self.name} is not started")
         Aravis, _ = _aravis()
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            wait_us = 1_000_000 if deadline is None else max(0, int((deadline - time.monotonic()) * 1e6))
-            buf = self._stream.timeout_pop_buffer(wait_us) if wait_us > 0 else self._stream.try_pop_buffer()
-            if buf is None:
-                if deadline is not None and time.monotonic() >= deadline:
-                    raise TimeoutError(f"{self.name}: no frame within {timeout:g} s")
-                continue
-            t_received = time.monotonic()
-            try:
-                if buf.get_status() != Aravis.BufferStatus.SUCCESS:
-                    self._counter.advance(buf.get_frame_id())
-                    self._counter.dropped += 1
-                    self.dropped = self._counter.dropped
+            left = 1.0 if deadline is None else deadline - time.monotonic()
+            with self._lock:  # short waits under the lock: a control change from another thread gets its turn
+                if self._stream is None:
+                    raise LightplaneError(f"{self.name} is not started")
+                wait_us = int(min(left, 0.1) * 1e6)
+                buf = self._stream.timeout_pop_buffer(wait_us) if wait_us > 0 else self._stream.try_pop_buffer()
+                if buf is not None:
+                    frame = self._take(Aravis, buf)
+                    if frame is not None:
+                        return frame
                     continue
-                return self._frame(buf, t_received)
-            finally:
-                self._stream.push_buffer(buf)
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"{self.name}: no frame within {timeout:g} s")
+
+    def _take(self, Aravis: Any, buf: Any) -> Frame | None:
+        t_received = time.monotonic()
+        try:
+            if buf.get_status() != Aravis.BufferStatus.SUCCESS:
+                self._counter.advance(buf.get_frame_id())
+                self._counter.dropped += 1
+                self.dropped = self._counter.dropped
+                return None
+            return self._frame(buf, t_received)
+        finally:
+            self._stream.push_buffer(buf)
 
     def _frame(self, buf: Any, t_received: float) -> Frame:
         image = convert_pixels(buf.get_image_data(), buf.get_image_width(), buf.get_image_height(),
@@ -250,6 +260,10 @@ class AravisSource:
         return self._cam
 
     def _set(self, name: str, value: Any, restart: bool) -> None:
+        with self._lock:
+            self._set_locked(name, value, restart)
+
+    def _set_locked(self, name: str, value: Any, restart: bool) -> None:
         cam = self._require_camera()
         _, GLib = _aravis()
         needs_restart = name in ("roi", "pixel_format") and restart and self._stream is not None

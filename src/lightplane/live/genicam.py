@@ -9,6 +9,7 @@ arrival time when the producer gives no timestamp (``meta["timestamp"]`` says wh
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +78,7 @@ class GenICamSource:
         self._ia: Any = None
         self._counter = FrameCounter(wrap=None)
         self._clock_offset: float | None = None
+        self._lock = threading.RLock()
 
     def start(self) -> None:
         o = self.options
@@ -115,6 +117,10 @@ class GenICamSource:
         self._ia.start()
 
     def stop(self) -> None:
+        with self._lock:
+            self._stop()
+
+    def _stop(self) -> None:
         if self._ia is not None:
             try:
                 self._ia.stop()
@@ -126,23 +132,24 @@ class GenICamSource:
             self._h = None
 
     def read(self, timeout: float | None = None) -> Frame | None:
-        if self._ia is None:
-            raise LightplaneError(f"{self.name} is not started")
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            wait = 1.0 if deadline is None else max(0.0, deadline - time.monotonic())
-            buf = self._ia.try_fetch(timeout=wait) if wait > 0 else None
-            if buf is None:
-                if deadline is not None and time.monotonic() >= deadline:
-                    raise TimeoutError(f"{self.name}: no frame within {timeout:g} s")
-                continue
-            t_received = time.monotonic()
-            try:
-                frame = self._frame(buf, t_received)
-            finally:
-                buf.queue()
-            if frame is not None:
-                return frame
+            left = 1.0 if deadline is None else deadline - time.monotonic()
+            with self._lock:  # short waits under the lock: a control change from another thread gets its turn
+                if self._ia is None:
+                    raise LightplaneError(f"{self.name} is not started")
+                buf = self._ia.try_fetch(timeout=min(left, 0.1)) if left > 0 else None
+                if buf is not None:
+                    t_received = time.monotonic()
+                    try:
+                        frame = self._frame(buf, t_received)
+                    finally:
+                        buf.queue()
+                    if frame is not None:
+                        return frame
+                    continue
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"{self.name}: no frame within {timeout:g} s")
 
     def _frame(self, buf: Any, t_received: float) -> Frame | None:
         frame_id = int(buf.frame_id)
@@ -205,6 +212,10 @@ class GenICamSource:
         return out
 
     def set_control(self, name: str, value: Any) -> None:
+        with self._lock:
+            self._set_control(name, value)
+
+    def _set_control(self, name: str, value: Any) -> None:
         nm = self._node_map()
         was_acquiring = bool(self._ia.is_acquiring()) if name in ("roi", "pixel_format") else False
         if was_acquiring:
