@@ -200,3 +200,31 @@ def test_open_hardware_specs():
                       ("simdevice?settle=-1", "settle_s must be >= 0"), ("sim:many", "needs a number of lasers")]:
         with pytest.raises(LightplaneError, match=msg):
             open_hardware(spec)
+
+
+def test_ciclop_lasers_and_moves_from_two_threads(ciclop):
+    board = CiclopBoard(ciclop.port, CiclopOptions(settle_s=0.0, timeout_s=1.0, acceleration_deg_s2=2000.0))
+    errors: list[BaseException] = []
+
+    def toggle():
+        try:
+            for i in range(30):
+                board.set_laser(i % 2, i % 4 < 2)
+        except BaseException as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    t = threading.Thread(target=toggle)
+    try:
+        t.start()
+        for _ in range(4):
+            board.move_turntable(2.5)
+        t.join(timeout=10.0)
+        assert not errors, errors
+        assert ciclop.state.angle_deg == pytest.approx(10.0) and board.angle_deg == pytest.approx(10.0)
+        # every command arrived whole, in one of the two threads' orders
+        moves = [c for c in ciclop.commands if c.startswith("G1X")]
+        assert moves == ["G1X2.5", "G1X5", "G1X7.5", "G1X10"]
+        assert len([c for c in ciclop.commands if c.startswith("M7")]) == 30
+        assert board.laser_states() == ciclop.state.laser_states()
+    finally:
+        board.close()

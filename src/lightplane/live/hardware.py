@@ -9,6 +9,7 @@ Every failure of the line (no such port, a wrong firmware, no reply in time, the
 from __future__ import annotations
 
 import re
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -170,6 +171,7 @@ class CiclopBoard:
         self.options = options or CiclopOptions()
         self.n_lasers = self.options.n_lasers
         self.port = port
+        self._lock = threading.RLock()
         self._line = _SerialLine("Ciclop board", port, self.options.baud)
         self._reader = _LineReader(self._line)
         self._lasers = [False] * self.n_lasers
@@ -205,7 +207,12 @@ class CiclopBoard:
                 seen.append(line.strip())
 
     def command(self, cmd: str, timeout_s: float | None = None) -> list[str]:
-        """Send one G-code line and wait for ``ok``; returns the lines that came before it."""
+        """Send one G-code line and wait for ``ok``; returns the lines that came before it.  One command at a time
+        holds the line (other threads wait their turn)."""
+        with self._lock:
+            return self._command(cmd, timeout_s)
+
+    def _command(self, cmd: str, timeout_s: float | None) -> list[str]:
         self._line.write(cmd.encode("ascii") + b"\r\n")
         deadline = time.monotonic() + (self.options.timeout_s if timeout_s is None else timeout_s)
         before: list[str] = []
@@ -235,12 +242,13 @@ class CiclopBoard:
         return move_duration_s(degrees, o.move_speed_deg_s, o.acceleration_deg_s2)
 
     def move_turntable(self, degrees: float) -> None:
-        if not self._motor_on:
-            self.command("M17")
-            self._motor_on = True
-        target = self._target + float(degrees)
-        self.command(f"G1X{_num(target)}")
-        self._target = target
+        with self._lock:
+            if not self._motor_on:
+                self.command("M17")
+                self._motor_on = True
+            target = self._target + float(degrees)
+            self.command(f"G1X{_num(target)}")
+            self._target = target
         time.sleep(self.move_duration_s(degrees) + self.options.settle_s)
 
     @property
@@ -274,6 +282,7 @@ class FabScanBoard:
         self.options = options or FabScanOptions()
         self.n_lasers = self.options.n_lasers
         self.port = port
+        self._lock = threading.RLock()
         self._line = _SerialLine("FabScanPi board", port, self.options.baud)
         self._reader = _LineReader(self._line)
         self._lasers = [False] * self.n_lasers
@@ -291,7 +300,12 @@ class FabScanBoard:
             raise
 
     def command(self, cmd: str, timeout_s: float | None = None) -> list[str]:
-        """Send one command, wait for its echo and the prompt; returns the lines printed in between."""
+        """Send one command, wait for its echo and the prompt; returns the lines printed in between.  One command
+        at a time holds the line (other threads wait their turn)."""
+        with self._lock:
+            return self._command(cmd, timeout_s)
+
+    def _command(self, cmd: str, timeout_s: float | None) -> list[str]:
         self._line.write(cmd.encode("ascii") + b"\n")
         wait = self.options.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + wait
@@ -324,8 +338,9 @@ class FabScanBoard:
         steps = int(round(float(degrees) * o.steps_per_turn / 360.0))
         if steps == 0:
             return
-        self.command(f"G04 T{steps} F{_num(o.step_rate)};", timeout_s=o.timeout_s + abs(steps) / o.step_rate)
-        self._steps += steps
+        with self._lock:
+            self.command(f"G04 T{steps} F{_num(o.step_rate)};", timeout_s=o.timeout_s + abs(steps) / o.step_rate)
+            self._steps += steps
         time.sleep(o.settle_s)
 
     @property
