@@ -167,6 +167,8 @@ def test_fabscan_lasers_moves_and_silence():
             assert dev.state.angle_deg == pytest.approx(90.0) and not dev.state.moving
             assert dev.commands[-1] == "G04 T800 F3200;"
             assert board.angle_deg == pytest.approx(90.0)
+            # the firmware ignores what it does not know: only the prompt comes back, nothing to detect
+            assert board.command("M99;") == []
             dev.silent = True
             with pytest.raises(LightplaneError, match="FabScanPi board .* did not answer 'M21;' with an echo"):
                 board.set_laser(0, True)
