@@ -225,6 +225,8 @@ class LiveEngine:
         if self._running:
             return
         self._running, self._ended, self._error = True, False, None
+        self._inbox.clear()
+        self._grabbed = None
         self.source.start()
         self._threads = [threading.Thread(target=self._grab_loop, name="lightplane-grab", daemon=True),
                          threading.Thread(target=self._process_loop, name="lightplane-profile", daemon=True)]
@@ -279,6 +281,8 @@ class LiveEngine:
                 self._process(frame)
             except LightplaneError as e:  # e.g. a frame of another size than the sensor's camera
                 self._error = str(e)
+            except Exception as e:  # noqa: BLE001 - the loop goes on with the next frame; the status says why
+                self._error = f"frame {frame.index}: {type(e).__name__}: {e}"
             finally:
                 self._busy = False
 
