@@ -284,3 +284,15 @@ def test_the_profile_follows_the_laser_that_is_on():
             assert len(p) > 100 and np.median(res) < 0.02  # on the wrong plane: millimetres off
     finally:
         eng.stop()
+
+
+def test_frames_of_another_size_than_the_sensor_camera_are_reported():
+    sensor = SimulatedSensor("turntable", fps=None, scale=0.25).sensor
+    eng = LiveEngine(ArraySource(stripe_frames(2), fps=100.0), sensor=sensor)
+    eng.start()
+    try:
+        wait_for(lambda: eng.status()["error"] is not None)
+        st = eng.status()
+    finally:
+        eng.stop()
+    assert st["frames"] == 0 and st["units"] == "mm" and "128" in st["error"] and "320" in st["error"], st["error"]
