@@ -106,7 +106,7 @@ def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, st
 
 def test_live_profile_agrees_with_the_truth_within_its_sigma():
     # a clean full-size render: the stripe centres' own noise (not in sigma) stays below the plane's share
-    sim = SimulatedSensor("turntable", fps=None, seed=1)
+    sim = SimulatedSensor("turntable", fps=30.0, seed=1)
     eng = LiveEngine(sim)
     eng.start()
     try:
