@@ -471,7 +471,7 @@ def _wide_runs(flag: np.ndarray) -> list[tuple[int, int, int, int]]:
     ``[a, b)`` of at most :data:`LOCAL_BLOCK_LINES`."""
     f = _bridge(flag, 3)  # gaps of up to three lines (lines that found no crossing, say)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], f.view(np.int8), [0]])))
-    out = []
+    out: list[tuple[int, int, int, int]] = []
     for a, b in zip(edges[::2], edges[1::2]):
         if b - a < LOCAL_MIN_LINES:
             continue
