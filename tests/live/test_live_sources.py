@@ -106,6 +106,14 @@ def test_specs():
             open_source(spec)
     with pytest.raises(LightplaneError, match="cannot be opened|no camera"):
         open_source("uvc:97")
+    # GenICam cameras by their transport: the sources come back unstarted (nothing opened yet)
+    from lightplane.live.aravis import AravisSource
+    from lightplane.live.genicam import GenICamSource
+
+    assert isinstance(open_source("aravis:127.0.0.1,exposure=5000"), AravisSource)
+    assert isinstance(open_source("genicam:/no/such/producer.cti"), GenICamSource)
+    with pytest.raises(LightplaneError, match="unknown aravis option"):
+        open_source("aravis:cam,bogus=1")
     try:
         register_scheme("mine", lambda rest, **kw: ArraySource(frames(), name=rest))
         assert open_source("mine:abc").name.startswith("abc")

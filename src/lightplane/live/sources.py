@@ -25,6 +25,8 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, try_read_image
 from lightplane.live.pacing import Pacer
 from lightplane.live.simulated import SimulatedSensor
+from lightplane.live.aravis import open_aravis
+from lightplane.live.genicam import open_genicam
 from lightplane.live.source import Control, Frame, Source
 from lightplane.measure.scan import VIDEO_SUFFIXES
 
@@ -315,7 +317,8 @@ def _open_path(rest: str, **kw) -> Source:
 
 
 #: source schemes: ``SCHEME:REST`` → ``factory(REST, **kw)``; ``file`` also serves plain paths
-SCHEMES: dict[str, Callable[..., Source]] = {"sim": _open_sim, "uvc": _open_uvc, "file": _open_path}
+SCHEMES: dict[str, Callable[..., Source]] = {"sim": _open_sim, "uvc": _open_uvc, "file": _open_path,
+                                             "aravis": open_aravis, "genicam": open_genicam}
 
 
 def register_scheme(name: str, factory: Callable[..., Source]) -> None:
