@@ -48,7 +48,7 @@ class PoseLimits:
     margin_px: float = 20.0
     tilts_deg: tuple[float, ...] = (0.0, 25.0, 45.0)
     n_azimuth: int = 8
-    grid: tuple[int, int] = (5, 5)
+    grid: tuple[int, int] = (9, 9)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.diameter_mm) and self.diameter_mm > 0):

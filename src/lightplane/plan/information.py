@@ -90,9 +90,14 @@ class VolumeModel:
         return self.camera_share_note is None
 
     def sigma(self, info: np.ndarray) -> np.ndarray:
-        """(N,) or (k, N) point sigmas (mm) for one (3, 3) information or a stack (k, 3, 3)."""
-        S = np.linalg.inv(np.asarray(info, float))
+        """(N,) or (k, N) point sigmas (mm) for one (3, 3) information or a stack (k, 3, 3); infinite where an
+        information does not determine the plane."""
+        info = np.asarray(info, float)
+        w = np.linalg.eigvalsh(info)
+        ok = w[..., 0] > 1e-12 * np.maximum(w[..., -1], 1e-300)
+        S = np.linalg.inv(np.where(ok[..., None, None], info, np.eye(3)))
         var = np.einsum("...ij,nji->...n", S, self._parts.Q)
+        var = np.where(ok[..., None], var, np.inf)
         return np.sqrt(np.maximum(var, 0.0) + self._parts.cam_var)
 
     def camera_floor(self) -> np.ndarray:
@@ -101,7 +106,9 @@ class VolumeModel:
 
     def figure(self, sigma: np.ndarray, percentile: float) -> np.ndarray:
         """The stated percentile (100: the worst) of point sigmas over the volume (last axis)."""
-        return np.percentile(sigma, percentile, axis=-1)
+        s = np.where(np.isfinite(sigma), sigma, 1e300)
+        q = np.percentile(s, percentile, axis=-1)
+        return np.where(q >= 1e299, np.inf, q)
 
     def variance_shares(self, infos: np.ndarray) -> np.ndarray:
         """(n,) each placement's share of the volume's mean plane variance reduction: with ``S = (Σ I_i)⁻¹``

@@ -377,22 +377,42 @@ class CalibrationPlanner:
         if target is None:
             raise LightplaneError("no target sigma given: the stop rule needs one")
         st = self.state()
-        n, what = st.n_placements, self._figure_name()
+        n, what = st.n_placements, self.figure_name()
         if st.solved and n >= self.options.min_placements and st.sigma_mm <= target:
             return StopVerdict("reached", n, st.sigma_mm, target,
                                f"target reached: {what} {st.sigma_mm:.4f} mm <= {target:g} mm after {n} placements")
         if st.camera_floor_mm >= target:
-            return StopVerdict("unreachable", n, st.sigma_mm, target,
-                               f"unreachable: the camera's own share alone is {st.camera_floor_mm:.4f} mm ({what}), "
-                               f"above the target {target:g} mm; recalibrate the camera (more, more tilted views)")
+            return StopVerdict("unreachable", n, st.sigma_mm, target, self._camera_message(st.camera_floor_mm))
         rest = self.plan()
         if rest and rest[-1].sigma_after_mm > target:
-            return StopVerdict("unreachable", n, st.sigma_mm, target, self._angle_message(rest[-1].sigma_after_mm))
+            return StopVerdict("unreachable", n, st.sigma_mm, target, self.unreachable_message(rest[-1].sigma_after_mm))
         return StopVerdict("continue", n, st.sigma_mm, target,
                            f"continue: {what} {st.sigma_mm:.4f} mm > {target:g} mm after {n} placements; "
                            f"about {len(rest)} more expected")
 
-    def _figure_name(self) -> str:
+    def plan_verdict(self, steps: list[Suggestion]) -> StopVerdict:
+        """What a forward plan (:meth:`plan`) comes to: the target reached after how many placements in all,
+        or unreachable and why; without a target, the figure after the plan."""
+        target = self.options.target_sigma_mm
+        n = len(self.accepted) + len(steps)
+        end = steps[-1].sigma_after_mm if steps else float(self.model.figure(self.model.sigma(self.information()),
+                                                                              self.options.percentile))
+        if target is None:
+            return StopVerdict("continue", n, end, float("nan"),
+                               f"after {n} placements: predicted {self.figure_name()} {end:.4f} mm")
+        if end <= target:
+            return StopVerdict("reached", n, end, target,
+                               f"target {target:g} mm reached after {n} placements (predicted {end:.4f} mm)")
+        floor = float(self.model.figure(self.model.camera_floor(), self.options.percentile))
+        if floor >= target:
+            return StopVerdict("unreachable", n, end, target, self._camera_message(floor))
+        return StopVerdict("unreachable", n, end, target, self.unreachable_message(end))
+
+    def _camera_message(self, floor: float) -> str:
+        return (f"unreachable: the camera's own share alone is {floor:.4f} mm ({self.figure_name()}), above the "
+                f"target {self.options.target_sigma_mm:g} mm; recalibrate the camera (more, more tilted views)")
+
+    def figure_name(self) -> str:
         q = self.options.percentile
         where = "worst point" if q >= 100 else f"{q:g}th percentile of the points"
         return f"{where} sigma ({'camera frame' if self.options.frame == 'camera' else 'shape'})"
@@ -403,11 +423,11 @@ class CalibrationPlanner:
         rays = self.camera.rays(self.model.uv, unit=True)
         return float(np.degrees(np.arcsin(np.min(np.abs(rays @ self.plane.normal)))))
 
-    def _angle_message(self, sigma_end: float) -> str:
+    def unreachable_message(self, sigma_end: float) -> str:
         ang = self.triangulation_angle_deg()
         m = self.options.max_placements
         return (f"unreachable within {m} placements: the best plan ends at {sigma_end:.4f} mm "
-                f"({self._figure_name()}) against the target {self.options.target_sigma_mm:g} mm; the rays meet the "
+                f"({self.figure_name()}) against the target {self.options.target_sigma_mm:g} mm; the rays meet the "
                 f"light plane at {ang:.1f} deg at the least (errors of the plane grow by 1/sin = "
                 f"{1 / np.sin(np.radians(ang)):.1f}x there): a wider triangulation angle or a smaller working "
                 "volume would reach it")
