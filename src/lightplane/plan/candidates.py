@@ -26,7 +26,7 @@ from lightplane.plane.model import LightPlane
 from lightplane.plane.uncertainty import WorkingVolume
 from lightplane.simulate.scene import TargetPlacement
 
-__all__ = ["PoseLimits", "feasible_placements", "is_feasible", "outline_px", "tilt_deg"]
+__all__ = ["PoseLimits", "candidate_poses", "feasible_placements", "is_feasible", "outline_px", "tilt_deg"]
 
 
 @dataclass(frozen=True)
@@ -116,12 +116,8 @@ def _centres(plane: LightPlane, volume: WorkingVolume, limits: PoseLimits) -> np
     return c + A.ravel()[:, None] * e1 + B.ravel()[:, None] * e2
 
 
-def feasible_placements(camera: Camera, plane: LightPlane, volume: WorkingVolume,
-                        limits: PoseLimits) -> list[TargetPlacement]:
-    """The candidate placements that satisfy ``limits`` (module docstring).  Raises when none does."""
-    dist = limits.distance_mm
-    if dist is None:
-        dist = (volume.distance_mm[0] - 0.5 * limits.diameter_mm, volume.distance_mm[1] + 0.5 * limits.diameter_mm)
+def candidate_poses(plane: LightPlane, volume: WorkingVolume, limits: PoseLimits) -> list[TargetPlacement]:
+    """Every pose of the candidate grid (module docstring), before the feasibility checks."""
     out: list[TargetPlacement] = []
     for P in _centres(plane, volume, limits):
         view = -P / np.linalg.norm(P)
@@ -131,10 +127,18 @@ def feasible_placements(camera: Camera, plane: LightPlane, volume: WorkingVolume
             for k in range(1 if t == 0 else limits.n_azimuth):
                 phi = 2 * np.pi * k / limits.n_azimuth
                 axis = np.cos(phi) * a1 + np.sin(phi) * a2
-                N = np.cos(tr) * view + np.sin(tr) * np.cross(axis, view)
-                tp = TargetPlacement(P, N, limits.diameter_mm)
-                if is_feasible(camera, plane, tp, limits, dist):
-                    out.append(tp)
+                out.append(TargetPlacement(P, np.cos(tr) * view + np.sin(tr) * np.cross(axis, view),
+                                           limits.diameter_mm))
+    return out
+
+
+def feasible_placements(camera: Camera, plane: LightPlane, volume: WorkingVolume,
+                        limits: PoseLimits) -> list[TargetPlacement]:
+    """The candidate placements that satisfy ``limits`` (module docstring).  Raises when none does."""
+    dist = limits.distance_mm
+    if dist is None:
+        dist = (volume.distance_mm[0] - 0.5 * limits.diameter_mm, volume.distance_mm[1] + 0.5 * limits.diameter_mm)
+    out = [tp for tp in candidate_poses(plane, volume, limits) if is_feasible(camera, plane, tp, limits, dist)]
     if not out:
         raise LightplaneError(f"no feasible placement of a {limits.diameter_mm:g} mm disc at {dist[0]:.0f}–"
                               f"{dist[1]:.0f} mm with the rim {limits.margin_px:g} px inside the image and the "

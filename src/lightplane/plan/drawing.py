@@ -33,11 +33,15 @@ def draw_plan(camera: Camera, volume: WorkingVolume, outlines: Sequence[np.ndarr
     for u, v in np.round(volume.uv).astype(int):
         cv2.circle(img, (int(u), int(v)), 2, (110, 110, 110), -1, cv2.LINE_AA)
     n = len(outlines)
+    placed: list[tuple[float, float]] = []
     for k, poly in enumerate(outlines):
         c = ghost_colour(k, n)
         pts = np.round(np.asarray(poly) * 16).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(img, [pts], True, c, 2, cv2.LINE_AA, shift=4)
         cu, cv_ = np.mean(poly, axis=0)
+        repeats = sum(1 for a, b in placed if abs(a - cu) < 30 and abs(b - cv_) < 30)
+        placed.append((cu, cv_))
+        cv_ += 24 * repeats  # the same place again: its label below the earlier ones
         text = f"{k + 1}" + (f" {labels[k]}" if k < len(labels) and labels[k] else "")
         cv2.putText(img, text, (int(cu) - 10, int(cv_) + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, c, 2, cv2.LINE_AA)
     if title:

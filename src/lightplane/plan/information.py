@@ -94,7 +94,7 @@ class VolumeModel:
         information does not determine the plane."""
         info = np.asarray(info, float)
         w = np.linalg.eigvalsh(info)
-        ok = w[..., 0] > 1e-12 * np.maximum(w[..., -1], 1e-300)
+        ok = w[..., 0] > 1e-15 * np.maximum(w[..., -1], 1e-300)
         S = np.linalg.inv(np.where(ok[..., None, None], info, np.eye(3)))
         var = np.einsum("...ij,nji->...n", S, self._parts.Q)
         var = np.where(ok[..., None], var, np.inf)
