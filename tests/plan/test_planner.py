@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
+from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.ml import crlb, placement_information
-from lightplane.plane.model import LightPlane
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.triangulate import triangulate_normalized
-from lightplane.plane.uncertainty import point_error_basis, shape_error_basis
+from lightplane.plane.uncertainty import camera_param_names, point_error_basis, shape_error_basis
 from lightplane.plan.candidates import PoseLimits, feasible_placements, outline_px, tilt_deg
 from lightplane.plan.information import VolumeModel, covariance_from_information, information_from_covariance
 from lightplane.plan.planner import CalibrationPlanner, PlannerOptions
@@ -115,3 +116,24 @@ def test_unreachable_says_why():
     opts = PlannerOptions(PoseLimits(50.0, distance_mm=(380, 520)), target_sigma_mm=1e-5, max_placements=6)
     v = CalibrationPlanner(CAM, PLANE, vol, opts).stop()
     assert v.status == "unreachable" and "within 6 placements" in v.message and "deg" in v.message
+
+
+def test_camera_share_sets_a_floor_the_stop_names():
+    """A camera with a covariance and a plane that records its dependence on the intrinsics: the camera's share is
+    a floor under every point sigma; a target below it is unreachable, and the verdict gives the floor."""
+    names = camera_param_names(CAM)
+    cov = np.diag([4.0, 4.0, 1.0, 1.0] + [1e-6] * (len(names) - 4))  # px²: fx, fy, cx, cy; distortion
+    cam = Camera(CAM.K, CAM.dist, CAM.width, CAM.height, covariance=cov, covariance_params=names)
+    J = np.zeros((4, len(names)))
+    J[3, 0] = 0.01  # d moves 0.01 mm per px of fx
+    dep = CameraDependence(names, J, J @ cov @ J.T, "test")
+    plane = LightPlane(PLANE.normal, PLANE.d, meta={CameraDependence.KEY: dep.to_dict()})
+    vol = _volume()
+    opts = PlannerOptions(PoseLimits(50.0, distance_mm=(380, 520)), target_sigma_mm=1e-4)
+    pl = CalibrationPlanner(cam, plane, vol, opts)
+    floor = pl.model.camera_floor()
+    E, inc = point_error_basis(cam, plane, pl.model.uv, covariance=np.zeros((4, 4)))
+    assert inc and np.allclose(floor, np.sqrt(np.sum(E[:, :, 4:] ** 2, axis=(1, 2))))
+    assert floor.max() > 1e-4
+    v = pl.stop()
+    assert v.status == "unreachable" and "camera's own share" in v.message and f"{floor.max():.4f}" in v.message
