@@ -24,6 +24,7 @@ def draw_plan(camera: Camera, volume: WorkingVolume, outlines: Sequence[np.ndarr
     """(H, W, 3) uint8 BGR: ``background`` (or a dark frame of the camera's size), the working volume's samples
     (gray dots), each outline (px) numbered from 1 with its label beside it, and ``title`` at the top."""
     h, w = camera.height, camera.width
+    img: np.ndarray
     if background is None:
         img = np.full((h, w, 3), 24, np.uint8)
     else:
