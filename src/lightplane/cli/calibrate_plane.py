@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Literal, Optional
 
+import numpy as np
 import typer
 from rich.table import Table
 
@@ -212,7 +213,7 @@ def _shares(cal, cam, unc: dict) -> dict[int, float]:
     ``unc`` (the plane file's uncertainty record) by image name; empty where it does not apply."""
     try:
         shares = information_shares(cal, cam)
-    except LightplaneError:
+    except (LightplaneError, np.linalg.LinAlgError):  # another method, one placement, a singular set
         return {}
     if unc:
         unc["information_share"] = {o.name: shares[o.index] for o in cal.images if o.index in shares}
