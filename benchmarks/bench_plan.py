@@ -12,7 +12,8 @@ says its predicted figure is at most the target (at least 3 placements; 40 at mo
   a placement error of 3 mm (each axis) and 3° (the normal, about a random axis), redrawn
   while the displaced disc breaks the limits;
 - random: :func:`lightplane.simulate.scene.sample_placements` under the same limits
-  (centre 380–520 mm, tilt 0–55°, chord >= 0.4 of the diameter, rim 20 px inside the image).
+  (centre 380–520 mm, tilt 0–55°, chord >= 0.4 of the diameter, rim 20 px inside the image, the disc at
+  30° or more to the light sheet).
 
 Observations: the exact observation model (every run): rim points 1 per px of the rim's
 image, white noise 0.053 px; stripe points 1 per px of the chord's image, white noise
@@ -78,6 +79,14 @@ def user_places(p: TargetPlacement, rng: np.random.Generator) -> TargetPlacement
     return p
 
 
+def random_placement(rng: np.random.Generator) -> TargetPlacement:
+    """A random placement under the guide's limits (the sampler's draws, those meeting the sheet at 30° or more)."""
+    while True:
+        p = sample_placements(1, rng, RANDOM, camera=CAM, plane=TRUE)[0]
+        if is_feasible(CAM, TRUE, p, LIMITS, DIST):
+            return p
+
+
 def exact_observation(p: TargetPlacement, rng: np.random.Generator):
     per = np.sum(np.linalg.norm(np.diff(CAM.project(p.rim_points(360)), axis=0), axis=1))
     ch = p.chord(TRUE)
@@ -107,7 +116,7 @@ def run(strategy: str, seed: int, target: float, rendered: bool) -> dict:
         if strategy == "guided":
             p = user_places(pl.suggest().placement, rng)
         else:
-            p = sample_placements(1, rng, RANDOM, camera=CAM, plane=TRUE)[0]
+            p = random_placement(rng)
         try:
             st = pl.add(*observe(p, rng))
         except LightplaneError:

@@ -77,7 +77,9 @@ class PlannerOptions:
     ``max_placements``: the most placements a calibration may take (beyond: unreachable);
     ``min_placements``: fewest before a stop; ``prior_deg`` / ``prior_mm``: the rough plane's
     uncertainty (normal, offset) until two placements are solved; ``noise``: :class:`NoiseModel`
-    until then; ``limits``: :class:`lightplane.plan.candidates.PoseLimits` (its diameter is the disc's).
+    until then; ``limits``: :class:`lightplane.plan.candidates.PoseLimits` (its diameter is the disc's);
+    ``repeat_mm`` / ``repeat_deg``: a candidate this close to a placement taken (centre, normal) is not
+    suggested again (:meth:`CalibrationPlanner.near`; 0 allows repeats).
     """
 
     limits: PoseLimits
@@ -89,6 +91,8 @@ class PlannerOptions:
     prior_deg: float = 2.0
     prior_mm: float = 5.0
     noise: NoiseModel = field(default_factory=NoiseModel)
+    repeat_mm: float = 10.0
+    repeat_deg: float = 10.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.limits, PoseLimits):
@@ -104,6 +108,8 @@ class PlannerOptions:
                                   f"{self.max_placements}")
         if not (self.prior_deg > 0 and self.prior_mm > 0):
             raise LightplaneError("prior_deg and prior_mm must be positive")
+        if not (self.repeat_mm >= 0 and self.repeat_deg >= 0):
+            raise LightplaneError("repeat_mm and repeat_deg must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -332,17 +338,28 @@ class CalibrationPlanner:
             self._cands = (cands, self._placement_infos(cands))
         return self._cands
 
-    def _best(self, info: np.ndarray) -> tuple[int, float]:
+    def _best(self, info: np.ndarray, taken: list[TargetPlacement]) -> tuple[int, float]:
+        """The best candidate away from the poses ``taken`` (:meth:`near`), and the figure after it."""
         cands, infos = self.candidates()
         figs = self.model.figure(self.model.sigma(info[None] + infos), self.options.percentile)
-        k = int(np.argmin(figs))
+        free = np.array([not any(self.near(c, t) for t in taken) for c in cands])
+        k = int(np.argmin(np.where(free, figs, np.inf))) if free.any() else int(np.argmin(figs))
         return k, float(figs[k])
+
+    def near(self, a: TargetPlacement, b: TargetPlacement) -> bool:
+        """Whether two placements are nearly the same: centres within ``options.repeat_mm``, normals within
+        ``options.repeat_deg``.  The guide does not suggest a place again: errors shared by one image (a
+        pose's own bias in the rim or the stripe, which the noise model does not include) do not average
+        out over images taken at the same place."""
+        o = self.options
+        return bool(np.linalg.norm(a.center - b.center) < o.repeat_mm
+                    and np.degrees(np.arccos(np.clip(a.normal @ b.normal, -1, 1))) < o.repeat_deg)
 
     def suggest(self) -> Suggestion:
         """The feasible placement whose expected information most lowers the figure (module docstring)."""
         info = self.information()
         now = float(self.model.figure(self.model.sigma(info), self.options.percentile))
-        k, after = self._best(info)
+        k, after = self._best(info, [a.pose for a in self.accepted if a.pose is not None])
         p = self.candidates()[0][k]
         return Suggestion(p, outline_px(self.camera, p), now, after, tilt_deg(p), float(np.linalg.norm(p.center)))
 
@@ -356,10 +373,12 @@ class CalibrationPlanner:
         out = []
         cands, infos = self.candidates()
         target = self.options.target_sigma_mm
+        taken = [a.pose for a in self.accepted if a.pose is not None]
         for _ in range(max(limit, 0)):
             now = float(self.model.figure(self.model.sigma(info), self.options.percentile))
-            k, after = self._best(info)
+            k, after = self._best(info, taken)
             p = cands[k]
+            taken.append(p)
             out.append(Suggestion(p, outline_px(self.camera, p), now, after, tilt_deg(p),
                                   float(np.linalg.norm(p.center))))
             info = info + infos[k]
