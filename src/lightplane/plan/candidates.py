@@ -15,7 +15,7 @@ normal the line of sight tilted by a set of angles about a set of axes.  It is k
   across it, a bias no noise model covers.  Measured on the realistic renders: the stripe's mean offset
   from the true chord was 0.03–0.045 px on a disc at 15° to the sheet against under 0.01 px at 40–70°;
   without this limit the guide preferred such poses (their chords run steeply across depth) and its
-  σ at the stop was 1.4–3.8x too small on 4 of 5 rendered runs.
+  σ at the stop was 1.4–3.8x too small on 5 of 7 rendered guided runs.
 
 :func:`outline_px` gives a placement's rim in the image: the ghost outline to draw.
 """
