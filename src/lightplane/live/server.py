@@ -205,6 +205,8 @@ class LiveApi:
             raise ApiError(400, f"unknown setting {unknown[0]!r} (known: {', '.join(known)})")
         try:
             return jsonable(self.engine.update_settings(**body), 6)
+        except LightplaneError:
+            raise
         except (TypeError, ValueError) as e:
             raise ApiError(400, f"bad setting value: {e}") from None
 
@@ -384,7 +386,7 @@ def create_app(engine: "LiveEngine", options: ServerOptions | None = None, *, ma
             if manage_engine:
                 engine.stop()
 
-    routes = [*_api_routes(api, Route, WebSocketRoute),
+    routes = [Mount("/api", routes=_api_routes(api, Route, WebSocketRoute)),
               Mount("/", app=StaticFiles(packages=[("lightplane.live", "static")], html=True), name="page")]
     middleware = []
     if options.allowed_hosts is not None:
@@ -442,19 +444,19 @@ def _api_routes(api: LiveApi, Route, WebSocketRoute) -> list:
         await _ws_stream(websocket, api)
 
     return [
-        Route("/api/status", get(lambda r: api.status())),
-        Route("/api/profile", get(lambda r: api.profile())),
-        Route("/api/preview", get(lambda r: api.preview_json(_int_query(r, "max_width", None)))),
-        Route("/api/preview.jpg", preview_jpg),
-        Route("/api/settings", get(lambda r: api.settings())),
-        Route("/api/settings", post(api.update_settings), methods=["POST"]),
-        Route("/api/laser", post(api.laser), methods=["POST"]),
-        Route("/api/turntable", post(api.turntable), methods=["POST"]),
-        Route("/api/record", post(api.record), methods=["POST"]),
-        Route("/api/scan", get(lambda r: api.scan_status())),
-        Route("/api/scan", post(api.start_scan), methods=["POST"]),
-        Route("/api/scan/points", get(lambda r: api.scan_points(_int_query(r, "since", 0) or 0))),
-        WebSocketRoute("/api/ws", ws),
+        Route("/status", get(lambda r: api.status())),
+        Route("/profile", get(lambda r: api.profile())),
+        Route("/preview", get(lambda r: api.preview_json(_int_query(r, "max_width", None)))),
+        Route("/preview.jpg", preview_jpg),
+        Route("/settings", get(lambda r: api.settings())),
+        Route("/settings", post(api.update_settings), methods=["POST"]),
+        Route("/laser", post(api.laser), methods=["POST"]),
+        Route("/turntable", post(api.turntable), methods=["POST"]),
+        Route("/record", post(api.record), methods=["POST"]),
+        Route("/scan", get(lambda r: api.scan_status())),
+        Route("/scan", post(api.start_scan), methods=["POST"]),
+        Route("/scan/points", get(lambda r: api.scan_points(_int_query(r, "since", 0) or 0))),
+        WebSocketRoute("/ws", ws),
     ]
 
 
