@@ -88,7 +88,9 @@ def jsonable(obj: Any, digits: int = 4) -> Any:
         if obj.dtype.kind == "f":
             a = np.round(obj.astype(np.float64), digits)
             if not np.isfinite(a).all():
-                return np.where(np.isfinite(a), a, None).tolist()
+                b = a.astype(object)
+                b[~np.isfinite(a)] = None
+                return b.tolist()
             return a.tolist()
         return obj.tolist()
     if isinstance(obj, dict):

@@ -2,7 +2,7 @@
 "use strict";
 
 // What the page has seen (read by the browser test and handy in the console).
-const lp = window.lpState = {previews: 0, profiles: 0, statuses: 0, lastProfileFrame: null, lastPreviewFrame: null,
+const lp = window.lpState = {previews: 0, profiles: 0, statuses: 0, lastProfileFrame: null, lastPreviewFrame: null, stripePoints: 0,
   units: null, settings: null, cloudPoints: 0, scan: null, errors: []};
 
 const $ = (id) => document.getElementById(id);
@@ -111,6 +111,7 @@ function drawPreview(p) {
   for (const [u, v] of uv) ctx.fillRect(u * s - 1, v * s - 1, 2.5, 2.5);
   drawTarget(ctx, p.target, s);
   lp.previews += 1;
+  lp.stripePoints = uv.length;
   lp.lastPreviewFrame = p.frame === undefined ? null : p.frame;
   $("image-info").textContent = `${img.naturalWidth} × ${img.naturalHeight} px shown (scale ${fmt(s, 3)})` +
     `${p.frame !== undefined ? " · frame " + p.frame : ""} · ${uv.length} stripe centres`;
