@@ -4,6 +4,7 @@ JavaScript in it, take a screenshot."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import shutil
 import subprocess
@@ -46,7 +47,9 @@ class Chromium:
                 pages = [t for t in json.load(r) if t.get("type") == "page"]
             if not pages:
                 time.sleep(0.1)
-        self.ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout)
+        self._stack = contextlib.ExitStack()
+        self.ws = self._stack.enter_context(connect(pages[0]["webSocketDebuggerUrl"], max_size=None,
+                                                    open_timeout=timeout))
         self._id = 0
         self.size = size
 
@@ -92,9 +95,9 @@ class Chromium:
         return path
 
     def close(self) -> None:
-        ws = getattr(self, "ws", None)
-        if ws is not None:
-            ws.close()
+        stack = getattr(self, "_stack", None)
+        if stack is not None:
+            stack.close()
         if self.proc.poll() is None:
             self.proc.terminate()
             try:

@@ -16,18 +16,30 @@ from lightplane.live.source import Hardware, SimulatedHardware
 from lightplane.live.sources import open_source
 from lightplane.measure.sensor import Sensor
 
-SOURCE_HELP = ("Frame source: sim:turntable / sim:linear / sim:target (the simulated sensor), uvc:N or /dev/videoN "
-               "(a UVC camera), a video file or a folder of images (replayed at their frame rate).")
-HARDWARE_HELP = "Lasers and turntable: sim (simulated; the simulated sensor renders what it says)."
+SOURCE_HELP = ("Frame source: sim:turntable, sim:linear or sim:target (the simulated sensor; options after a comma, "
+               "e.g. sim:turntable,scale=0.5,fps=60), uvc:N or /dev/videoN (a UVC camera), a video file or a folder "
+               "of images (replayed at their frame rate).")
+HARDWARE_HELP = ("Lasers and turntable: sim[:N] (simulated, N lasers; with a simulated source, the lasers and table "
+                 "it renders). Default: the source's own (the simulated sensor has them), else none.")
 
 
-def open_hardware(spec: str | None) -> Hardware | None:
-    """The hardware a ``--hardware`` spec names (``None``: none)."""
+def open_hardware(spec: str | None, source: object) -> Hardware | None:
+    """The hardware a ``--hardware`` spec names; ``None``: the source's own, if it has any."""
+    own = getattr(source, "hardware", None)
     if spec is None:
-        return None
-    if spec == "sim":
-        return SimulatedHardware()
-    raise LightplaneError(f"--hardware: unknown hardware {spec!r} (known: sim)")
+        return own
+    kind, _, count = spec.partition(":")
+    if kind != "sim":
+        raise LightplaneError(f"--hardware: unknown hardware {spec!r} (known: sim, sim:N)")
+    if own is not None:
+        return own
+    try:
+        n = int(count) if count else 1
+    except ValueError:
+        raise LightplaneError(f"--hardware: 'sim:{count}' needs a number of lasers, e.g. sim:2") from None
+    if not 1 <= n <= 4:
+        raise LightplaneError(f"--hardware: sim needs 1 to 4 lasers, got {n}")
+    return SimulatedHardware(n_lasers=n)
 
 
 def _is_loopback(host: str) -> bool:
@@ -60,19 +72,25 @@ def live_cmd(
     are served from this computer; nothing is loaded from the internet. Ctrl+C stops.
     """
     sens = Sensor.load(sensor) if sensor is not None else None
-    hw = open_hardware(hardware)
-    src = open_source(source)
     if output_dir.exists() and not output_dir.is_dir():
         raise LightplaneError(f"--output-dir: {output_dir} exists and is not a folder")
+    src = open_source(source)
+    hw = open_hardware(hardware, src)
     sock = listen(host, port)
-    engine = LiveEngine(src, sensor=sens, hardware=hw)
-    options = ServerOptions(output_dir=output_dir, sensor_name=None if sensor is None else sensor.name,
-                            allowed_hosts=(*LOOPBACK_HOSTS, host) if _is_loopback(host) else None)
-    engine.start()
     try:
-        url = url_of(sock)
-        units = "mm" if sens is not None else "px (no --sensor)"
-        print(f"lightplane live: {url}  (source {source}, profiles in {units}; Ctrl+C stops)", flush=True)
+        engine = LiveEngine(src, sensor=sens, hardware=hw)
+        sensor_name = str(sensor) if sensor is not None else (
+            "simulated" if engine.sensor is not None else None)
+        options = ServerOptions(output_dir=output_dir, sensor_name=sensor_name,
+                                allowed_hosts=(*LOOPBACK_HOSTS, host) if _is_loopback(host) else None)
+        engine.start()
+    except BaseException:
+        sock.close()
+        raise
+    try:
+        units = "mm" if engine.units == "mm" else "px (no sensor file)"
+        print(f"lightplane live: {url_of(sock)}  (source {src.name}, profiles in {units}; Ctrl+C stops)",
+              flush=True)
         serve(engine, sock, options)
     finally:
         engine.stop()

@@ -44,6 +44,7 @@ function showStatus(s) {
   $("dropped").textContent = s.dropped === undefined ? "–" : String(s.dropped);
   $("frames").textContent = s.frames === undefined ? "–" : String(s.frames);
   $("dropped").style.color = s.dropped > 0 ? "var(--warn)" : "";
+  $("loop-msg").textContent = s.error ? `live loop: ${s.error}` : (s.ended ? "the source has ended" : "");
   showHardware(s.hardware);
   showRecording(s.recording);
   if (s.scan) showScan(s.scan);
@@ -108,7 +109,7 @@ function drawPreview(p) {
   const s = p.scale || 1;
   ctx.fillStyle = "#00e04b";
   const uv = stripePairs(p.stripe_uv);
-  for (const [u, v] of uv) ctx.fillRect(u * s - 1, v * s - 1, 2.5, 2.5);
+  for (const [u, v] of uv) ctx.fillRect(u - 1, v - 1, 2.5, 2.5);  // already in preview px
   drawTarget(ctx, p.target, s);
   lp.previews += 1;
   lp.stripePoints = uv.length;
@@ -151,11 +152,10 @@ function extent(a) {
 }
 
 function settleRange(old, lo, hi) {
-  // grow at once, shrink slowly: the axes do not jump with every frame
+  // grow at once, shrink over a few frames: the axes do not jump with every frame
   if (!old || !Number.isFinite(old[0])) return [lo, hi];
-  const span = Math.max(hi - lo, 1e-9);
-  const nlo = lo < old[0] ? lo : old[0] + Math.min(lo - old[0], 0.1 * span);
-  const nhi = hi > old[1] ? hi : old[1] - Math.min(old[1] - hi, 0.1 * span);
+  const nlo = lo < old[0] ? lo : old[0] + 0.25 * (lo - old[0]);
+  const nhi = hi > old[1] ? hi : old[1] - 0.25 * (old[1] - hi);
   return [nlo, nhi];
 }
 
@@ -166,7 +166,7 @@ function drawProfile(p) {
   const xs = mm ? p.x : p.u, ys = mm ? p.z : p.v;
   const unit = mm ? "mm" : "px";
   const xl = mm ? "x" : "u", yl = mm ? "z" : "v";
-  $("profile-units").textContent = mm ? "in mm (camera frame)" : "in px (no sensor file: image coordinates)";
+  $("profile-units").textContent = mm ? "in mm (in the light plane: x along the line, z away from the camera)" : "in px (no sensor file: image coordinates)";
   const cv = plot.canvas, ctx = cv.getContext("2d");
   const W = cv.width, H = cv.height, L = 64, R = 14, T = 14, B = 44;
   ctx.clearRect(0, 0, W, H);
@@ -226,15 +226,30 @@ function drawAxes(ctx, g, xlabel, ylabel) {
 }
 
 // ------------------------------------------------------------------ settings
+// settings with a few known values: a list to choose from ("" stands for none)
+const CHOICES = {channel: ["", "red", "green", "blue", "gray"], axis: ["auto", "columns", "rows"]};
+
 function settingInput(name, value) {
   let el;
+  if (CHOICES[name]) {
+    el = document.createElement("select");
+    for (const c of CHOICES[name]) {
+      const o = document.createElement("option");
+      o.value = c; o.textContent = c === "" ? "(image as it is)" : c;
+      el.append(o);
+    }
+    el.value = value === null ? "" : value;
+    el.id = "set-" + name; el.name = name; el.dataset.kind = "choice";
+    return el;
+  }
   if (typeof value === "boolean") {
     el = document.createElement("input"); el.type = "checkbox"; el.checked = value;
   } else if (typeof value === "number") {
     el = document.createElement("input"); el.type = "number"; el.step = "any"; el.value = String(value);
   } else {
     el = document.createElement("input"); el.type = "text";
-    el.value = value === null ? "" : (typeof value === "string" ? value : JSON.stringify(value));
+    el.value = value === null ? "" : (Array.isArray(value) ? value.join(", ") : String(value));
+    if (value === null) el.placeholder = "(none)";
   }
   el.id = "set-" + name; el.name = name;
   el.dataset.kind = value === null ? "null" : Array.isArray(value) ? "json" : typeof value;
@@ -243,13 +258,16 @@ function settingInput(name, value) {
 
 function settingValue(el) {
   const kind = el.dataset.kind;
+  if (kind === "choice") return el.value === "" ? null : el.value;
   if (kind === "boolean") return el.checked;
   if (kind === "number") return el.value === "" ? null : Number(el.value);
-  if (kind === "json" || kind === "object") return JSON.parse(el.value);
-  if (kind === "null") {
-    if (el.value.trim() === "") return null;
-    const n = Number(el.value);
-    return Number.isNaN(n) ? el.value : n;
+  const text = el.value.trim();
+  if (text === "") return null;
+  if (kind === "json" || kind === "object") return JSON.parse(text.startsWith("[") ? text : `[${text}]`);
+  if (kind === "null") {  // a number, a list (x, y, w, h) or a name
+    if (!Number.isNaN(Number(text))) return Number(text);
+    if (/^[\[\d]/.test(text)) return JSON.parse(text.startsWith("[") ? text : `[${text}]`);
+    return text;
   }
   return el.value;
 }
@@ -266,7 +284,7 @@ function showSettings(s) {
       form.append(label, el);
     } else if (document.activeElement !== el) {
       if (el.type === "checkbox") el.checked = !!value;
-      else el.value = value === null ? "" : (typeof value === "object" ? JSON.stringify(value) : String(value));
+      else el.value = value === null ? "" : (Array.isArray(value) ? value.join(", ") : String(value));
     }
   }
 }
@@ -330,7 +348,9 @@ function showRecording(rec) {
 function listFiles(id, files) {
   const ul = $(id); ul.textContent = "";
   for (const [k, v] of Object.entries(files || {})) {
-    const li = document.createElement("li"); li.textContent = `${k}: ${v}`; ul.append(li);
+    const li = document.createElement("li");
+    li.textContent = `${k}: ${String(v).split("/").pop()}`; li.title = String(v);
+    ul.append(li);
   }
 }
 
