@@ -1,9 +1,10 @@
 """The live loop: frames from a source, a stripe profile of each, the latest profile and a preview image
 for a page, profile events for subscribers, recording and scans.
 
-Two threads: one reads the source and keeps only the newest frame; one profiles the newest frame.  A frame
-replaced before it was profiled is counted as dropped (with the frames the source itself dropped), so a
-profile is always of the newest frame and the latency does not grow when the processing falls behind.
+Two threads: one reads the source into a short queue (:data:`INBOX_FRAMES`), one profiles the frames in
+order.  The queue absorbs a moment's delay of the processing (another process taking the core); when it
+is full the oldest frame waiting is dropped and counted (with the frames the source itself dropped), so
+the latency stays bounded when the processing falls behind for longer.
 With a sensor (:class:`lightplane.measure.sensor.Sensor`) a profile is in mm
 (:class:`lightplane.measure.profile.ProfileMeasurer`: the camera and one of the sensor's light planes),
 else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).
@@ -26,6 +27,9 @@ from typing import Any, Literal
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.core.io import CHANNELS
+from lightplane.ellipse.detect import EllipseDetectionOptions, detect_ellipses
+from lightplane.ellipse.target import select_target
 from lightplane.live.recording import Recorder
 from lightplane.live.scanning import ScanJob
 from lightplane.live.source import Frame, Hardware, Source
@@ -44,6 +48,10 @@ __all__ = ["LiveEngine", "LiveSettings", "plane_axes"]
 STATS_WINDOW = 600
 #: events a subscriber's queue holds before its oldest are dropped
 SUBSCRIBER_QUEUE = 16
+#: frames waiting for the profiling thread before the oldest is dropped
+INBOX_FRAMES = 3
+#: the circle target is looked for in a preview's frame at most this often (s)
+TARGET_EVERY_S = 0.5
 #: stripe centres drawn on a preview at most
 PREVIEW_POINTS = 2000
 
@@ -52,11 +60,12 @@ PREVIEW_POINTS = 2000
 class LiveSettings:
     """The stripe settings of the live profile (checked on construction; a bad value raises
     :class:`LightplaneError`).  The measuring ones are those of ``lightplane measure``: ``channel``
-    (red, green, blue, gray or None: the image as it is), ``width_px`` (stripe FWHM; None: estimated on
+    (red, green, blue, gray, sum or None: weighted grey), ``width_px`` (stripe FWHM; None: estimated on
     the first frame after each change), ``sigma_along_px``, ``axis`` (auto, columns, rows; auto without a
     sensor: columns), ``roi`` (x, y, width, height px), ``smooth_lines``, ``keep_outliers``.  Live only:
     ``laser`` (the sensor plane the live profile uses; None: its first), ``settle_frames`` (a scan takes the
-    n-th frame exposed after each switch of the lasers), ``jpeg_quality`` (preview, 10..100)."""
+    n-th frame exposed after each switch of the lasers), ``jpeg_quality`` (preview, 10..100), ``target``
+    (find the circle target for the preview, at most every :data:`TARGET_EVERY_S`)."""
 
     channel: str | None = None
     width_px: float | None = None
@@ -68,6 +77,7 @@ class LiveSettings:
     laser: str | None = None
     settle_frames: int = 1
     jpeg_quality: int = 80
+    target: bool = False
 
     def __post_init__(self) -> None:
         if self.roi is not None:
@@ -82,6 +92,8 @@ class LiveSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise LightplaneError(f"{name} must be an integer {lo}..{hi}, got {v!r}")
+        if self.channel is not None and self.channel not in CHANNELS:
+            raise LightplaneError(f"channel must be one of {', '.join(CHANNELS)} or None, got {self.channel!r}")
         if self.laser is not None and not isinstance(self.laser, str):
             raise LightplaneError(f"laser must be a plane name, got {self.laser!r}")
         self.measure_options()  # the measuring options check themselves
@@ -146,11 +158,12 @@ class LiveEngine:
         self._measurer: ProfileMeasurer | None = None
         self._stripe: tuple[str, StripeOptions] | None = None  # px: axis and resolved options
         self._cond = threading.Condition()
-        self._inbox: Frame | None = None
+        self._inbox: deque[Frame] = deque()
         self._grabbed: Frame | None = None
         self._latest: _Latest | None = None
         self._running = False
         self._ended = False
+        self._busy = False
         self._error: str | None = None
         self._threads: list[threading.Thread] = []
         self._skipped = 0
@@ -162,6 +175,7 @@ class LiveEngine:
         self._recorder: Recorder | None = None
         self._scan: ScanJob | None = None
         self._preview_cache: tuple[int, int, tuple[bytes, dict]] | None = None
+        self._target: tuple[float, dict | None] = (-np.inf, None)  # when it was looked for, what was found
 
     # ------------------------------------------------------------------ set-up
     def _check_laser(self, laser: str | None) -> LightPlane | None:
@@ -184,6 +198,7 @@ class LiveEngine:
             raise LightplaneError(f"no stripe setting {bad[0]!r} (settings: {', '.join(sorted(names))})")
         new = replace(self._settings, **changes)
         plane = self._check_laser(new.laser)
+        self._target = (-np.inf, None)
         with self._proc_lock:
             self._settings, self._plane = new, plane
             self._axes = None if plane is None else plane_axes(plane)
@@ -230,24 +245,28 @@ class LiveEngine:
                     self._ended = True
                     self._cond.notify_all()
                     return
-                if self._inbox is not None:
+                if len(self._inbox) >= INBOX_FRAMES:
+                    self._inbox.popleft()
                     self._skipped += 1
-                self._inbox = self._grabbed = frame
+                self._inbox.append(frame)
+                self._grabbed = frame
                 self._cond.notify_all()
 
     def _process_loop(self) -> None:
         while True:
             with self._cond:
-                while self._running and self._inbox is None and not self._ended:
+                while self._running and not self._inbox and not self._ended:
                     self._cond.wait(0.5)
-                if not self._running or (self._inbox is None and self._ended):
+                if not self._running or (not self._inbox and self._ended):
                     return
-                frame, self._inbox = self._inbox, None
-            assert frame is not None  # waited for above
+                frame = self._inbox.popleft()
+                self._busy = True
             try:
                 self._process(frame)
             except LightplaneError as e:  # e.g. a frame of another size than the sensor's camera
                 self._error = str(e)
+            finally:
+                self._busy = False
 
     def _process(self, frame: Frame) -> None:
         with self._proc_lock:
@@ -314,7 +333,10 @@ class LiveEngine:
                "dropped": int(self.source.dropped) + self._skipped, "frames": self._frames,
                "points": 0 if latest is None else int(len(latest.uv)), "units": self.units,
                "recording": self._recorder is not None, "scan": scan}
-        out["running"], out["ended"], out["error"] = self._running, self._ended, self._error
+        # ended: the source has no more frames and every frame read has been measured
+        out["running"], out["error"] = self._running, self._error
+        with self._cond:
+            out["ended"] = self._ended and not self._inbox and not self._busy
         return out
 
     def _event(self, latest: _Latest) -> dict:
@@ -367,10 +389,31 @@ class LiveEngine:
         uv = latest.uv
         if len(uv) > PREVIEW_POINTS:
             uv = uv[np.linspace(0, len(uv) - 1, PREVIEW_POINTS).astype(int)]
-        out = (buf.tobytes(), {"scale": scale, "stripe_uv": np.round(uv * scale, 2).tolist(), "target": None,
+        target = self._find_target(latest) if self._settings.target else None
+        if target is not None:
+            target = {**target, "centre": [v * scale for v in target["centre"]],
+                      "axes": [v * scale for v in target["axes"]]}
+        out = (buf.tobytes(), {"scale": scale, "stripe_uv": np.round(uv * scale, 2).tolist(), "target": target,
                                "frame": int(latest.frame.index)})
         self._preview_cache = (key[0], key[1], out)
         return out
+
+    def _find_target(self, latest: _Latest) -> dict | None:
+        """The circle target crossed by the stripe in the latest frame (image px: ``centre``, semi-axes
+        ``axes``, ``angle_deg``, ``score``, ``frame``), looked for at most every :data:`TARGET_EVERY_S`."""
+        t_last, found = self._target
+        now = time.monotonic()
+        if now - t_last < TARGET_EVERY_S:
+            return found
+        img = latest.frame.image
+        ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(5.0, img.shape[1] / 100), max_count=8))
+        hint = latest.uv if len(latest.uv) >= 10 else None
+        e = select_target(img, ellipses, hint).ellipse if ellipses else None
+        found = None if e is None else {"centre": [float(e.centre[0]), float(e.centre[1])], "axes": [float(e.a), float(e.b)],
+                                        "angle_deg": float(np.degrees(e.angle)), "score": float(e.score),
+                                        "frame": int(latest.frame.index)}
+        self._target = (now, found)
+        return found
 
     # ------------------------------------------------------------------ subscribers
     def subscribe(self) -> "queue.Queue[dict]":
