@@ -118,7 +118,8 @@ def test_app_starts_and_stops_the_engine(engine, tmp_path):
 def test_status_profile_preview(client, engine):
     s = client.get("/api/status").json()
     assert s["fps"] == 61.25 and s["latency_ms"] == {"median": 7.5, "p99": 12.0} and s["dropped"] == 3
-    assert s["hardware"] == {"lasers": [False, False], "n_lasers": 2, "turntable": True, "angle_deg": 0.0}
+    assert s["hardware"] == {"lasers": [False, False], "n_lasers": 2, "turntable": True, "angle_deg": 0.0,
+                             "stage": False, "position_mm": None}
     assert s["sensor"] == "s.json"
     _error(client.get("/api/profile"), 503, "no profile yet")
     engine.profile = {"frame": 7, "t_exposure": 1.5, "units": "mm", "x": np.array([1.0, np.nan]),
@@ -158,6 +159,16 @@ def test_lasers_and_turntable(client, engine):
     _error(client.post("/api/turntable", json={"degrees": True}), 400, "'degrees' must be a number")
     _error(client.post("/api/turntable", json={"degrees": 1e6}), 400, "within \\+-3600")
     _error(client.get("/api/turntable"), 405, "GET is not allowed on /api/turntable")
+    _error(client.post("/api/stage", json={"mm": 1}), 409, "no linear stage")
+
+
+def test_stage(tmp_path):
+    hw = SimulatedHardware(has_turntable=False, stage_direction=(1.0, 0.0, 0.0))
+    with TestClient(create_app(ScriptedEngine(hw), ServerOptions(output_dir=tmp_path))) as c:
+        assert c.post("/api/stage", json={"mm": 2.5}).json() == {"position_mm": 2.5}
+        assert c.post("/api/stage", json={"mm": -1}).json() == {"position_mm": 1.5}
+        assert c.get("/api/status").json()["hardware"]["position_mm"] == 1.5
+        _error(c.post("/api/stage", json={"mm": "far"}), 400, "'mm' must be a number")
 
 
 def test_no_hardware(tmp_path):

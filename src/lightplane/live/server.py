@@ -12,6 +12,7 @@ The server binds 127.0.0.1 unless told otherwise.  Endpoints (JSON unless said o
 - ``GET /api/settings``, ``POST /api/settings`` (``{"name": value, ...}``);
 - ``POST /api/laser`` (``{"index": 0, "on": true}``, ``"index": "all"`` for every laser);
 - ``POST /api/turntable`` (``{"degrees": 10}``, relative; returns when the table has settled);
+- ``POST /api/stage`` (``{"mm": 5}``, relative; returns when the linear stage has settled);
 - ``POST /api/record`` (``{"action": "start", "folder": NAME}`` / ``{"action": "stop"}``);
 - ``POST /api/scan`` (``{"kind": "turntable"|"linear", "steps": N, "step": deg or mm, "folder": NAME}``),
   ``GET /api/scan``, ``GET /api/scan/points?since=N`` (the cloud's points from row N on, mm);
@@ -32,6 +33,7 @@ import math
 import queue
 import re
 import socket
+import threading
 import time
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
@@ -172,8 +174,10 @@ class LiveApi:
         hw = self.engine.hardware
         if hw is None:
             return None
+        stage = bool(getattr(hw, "has_stage", False))
         return {"lasers": list(hw.laser_states()), "n_lasers": hw.n_lasers, "turntable": bool(hw.has_turntable),
-                "angle_deg": float(hw.angle_deg) if hw.has_turntable else None}
+                "angle_deg": float(hw.angle_deg) if hw.has_turntable else None, "stage": stage,
+                "position_mm": float(getattr(hw, "position_mm")) if stage else None}
 
     def profile(self) -> dict:
         p = self.engine.latest_profile()
@@ -241,6 +245,16 @@ class LiveApi:
             raise ApiError(400, f"degrees must be within +-3600 (one request), got {degrees}")
         hw.move_turntable(degrees)
         return {"angle_deg": float(hw.angle_deg)}
+
+    def stage(self, body: dict) -> dict:
+        hw = self._hardware()
+        if not getattr(hw, "has_stage", False):
+            raise ApiError(409, "this hardware has no linear stage")
+        mm = float(_body_field(body, "mm", (int, float)))
+        if abs(mm) > 10000:
+            raise ApiError(400, f"mm must be within +-10000 (one request), got {mm}")
+        hw.move_stage(mm)
+        return {"position_mm": float(hw.position_mm)}
 
     def record(self, body: dict) -> dict:
         action = _body_field(body, "action", str)
@@ -454,6 +468,7 @@ def _api_routes(api: LiveApi, Route, WebSocketRoute) -> list:
         Route("/settings", post(api.update_settings), methods=["POST"]),
         Route("/laser", post(api.laser), methods=["POST"]),
         Route("/turntable", post(api.turntable), methods=["POST"]),
+        Route("/stage", post(api.stage), methods=["POST"]),
         Route("/record", post(api.record), methods=["POST"]),
         Route("/scan", get(lambda r: api.scan_status())),
         Route("/scan", post(api.start_scan), methods=["POST"]),
@@ -488,12 +503,34 @@ def url_of(sock: socket.socket) -> str:
     return f"http://{shown}:{port}/"
 
 
-def serve(engine: "LiveEngine", sock: socket.socket, options: ServerOptions | None = None) -> None:
-    """Serve the page and the API on the bound ``sock`` until interrupted (Ctrl+C, SIGTERM); the caller starts
-    and stops the engine."""
+def _uvicorn_server(engine: "LiveEngine", options: ServerOptions | None):
     import uvicorn
 
     app = create_app(engine, options, manage_engine=False)
     config = uvicorn.Config(app, log_level="warning", access_log=False, timeout_graceful_shutdown=2,
                             ws="auto", lifespan="on")
-    uvicorn.Server(config).run(sockets=[sock])
+    return uvicorn.Server(config)
+
+
+def serve_in_thread(engine: "LiveEngine", sock: socket.socket,
+                    options: ServerOptions | None = None) -> Callable[[], None]:
+    """Serve on the bound ``sock`` from a background thread of this process (as ``lightplane live`` does,
+    beside the engine's threads); returns the function that stops it.  The caller starts and stops the
+    engine."""
+    server = _uvicorn_server(engine, options)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="lightplane-page", daemon=True)
+    thread.start()
+    while not server.started and thread.is_alive():
+        time.sleep(0.01)
+
+    def stop() -> None:
+        server.should_exit = True
+        thread.join(10.0)
+
+    return stop
+
+
+def serve(engine: "LiveEngine", sock: socket.socket, options: ServerOptions | None = None) -> None:
+    """Serve the page and the API on the bound ``sock`` until interrupted (Ctrl+C, SIGTERM); the caller starts
+    and stops the engine."""
+    _uvicorn_server(engine, options).run(sockets=[sock])

@@ -307,7 +307,10 @@ async function changeSetting(ev) {
 function showHardware(hw) {
   const box = $("lasers");
   $("tt-go").disabled = !(hw && hw.turntable);
-  if (!hw) { box.textContent = "no hardware (start with --hardware)"; $("tt-angle").textContent = ""; return; }
+  if (!hw) {
+    box.textContent = "no hardware (start with --hardware)"; $("tt-angle").textContent = "";
+    $("stage-row").hidden = true; return;
+  }
   if (box.childElementCount !== hw.n_lasers) {
     box.textContent = "";
     for (let i = 0; i < hw.n_lasers; i++) {
@@ -321,6 +324,18 @@ function showHardware(hw) {
   }
   hw.lasers.forEach((on, i) => { const cb = $("laser-" + i); if (cb && document.activeElement !== cb) cb.checked = on; });
   $("tt-angle").textContent = hw.turntable ? `turntable at ${fmt(hw.angle_deg, 2)} deg` : "no turntable";
+  $("stage-row").hidden = !hw.stage;
+  $("st-pos").textContent = hw.stage ? `stage at ${fmt(hw.position_mm, 3)} mm` : "";
+}
+
+async function moveStage() {
+  const mm = Number($("st-mm").value);
+  $("st-go").disabled = true;
+  try {
+    const r = await api("POST", "api/stage", {mm});
+    say("hw-msg", `moved by ${mm} mm, now at ${fmt(r.position_mm, 3)} mm`, true);
+  } catch (e) { say("hw-msg", e.message); }
+  $("st-go").disabled = false;
 }
 
 async function setLaser(i, on) {
@@ -531,6 +546,7 @@ async function main() {
   $("settings").addEventListener("change", changeSetting);
   $("settings").addEventListener("submit", (e) => e.preventDefault());
   $("tt-go").addEventListener("click", turn);
+  $("st-go").addEventListener("click", moveStage);
   $("rec-start").addEventListener("click", () => record("start"));
   $("rec-stop").addEventListener("click", () => record("stop"));
   $("scan-start").addEventListener("click", startScan);
