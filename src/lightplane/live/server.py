@@ -84,20 +84,21 @@ class ApiError(Exception):
 
 # ------------------------------------------------------------------ JSON
 def jsonable(obj: Any, digits: int = 4) -> Any:
-    """``obj`` as plain JSON values: arrays as (nested) lists rounded to ``digits`` decimals, NaN and
-    infinities as ``null``, paths as strings, dataclasses as dicts."""
+    """``obj`` as plain JSON values: arrays and lists of numbers as (nested) lists rounded to ``digits``
+    decimals, NaN and infinities as ``null``, paths as strings, dataclasses as dicts."""
     if isinstance(obj, np.ndarray):
-        if obj.dtype.kind == "f":
-            a = np.round(obj.astype(np.float64), digits)
-            if not np.isfinite(a).all():
-                b = a.astype(object)
-                b[~np.isfinite(a)] = None
-                return b.tolist()
-            return a.tolist()
-        return obj.tolist()
+        return _array_json(obj, digits)
     if isinstance(obj, dict):
         return {str(k): jsonable(v, digits) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
+        if obj and _is_number(obj[0]) or (obj and isinstance(obj[0], (list, tuple)) and obj[0]
+                                           and _is_number(obj[0][0])):
+            try:  # a list of numbers (or of rows of numbers): at numpy's speed
+                arr = np.asarray(obj)
+            except ValueError:  # ragged
+                arr = None
+            if arr is not None and arr.dtype.kind in "fiu":
+                return _array_json(arr, digits)
         return [jsonable(v, digits) for v in obj]
     if isinstance(obj, np.generic):
         obj = obj.item()
@@ -108,6 +109,21 @@ def jsonable(obj: Any, digits: int = 4) -> Any:
     if is_dataclass(obj) and not isinstance(obj, type):
         return jsonable(asdict(obj), digits)
     return obj
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
+
+
+def _array_json(obj: np.ndarray, digits: int) -> Any:
+    if obj.dtype.kind == "f":
+        a = np.round(obj.astype(np.float64), digits)
+        if not np.isfinite(a).all():
+            b = a.astype(object)
+            b[~np.isfinite(a)] = None
+            return b.tolist()
+        return a.tolist()
+    return obj.tolist()
 
 
 # ------------------------------------------------------------------ request checks
@@ -369,7 +385,13 @@ async def _ws_stream(websocket, api: LiveApi) -> None:
             if now - last_status >= 1.0 / rates["status_hz"]:
                 await websocket.send_json({"type": "status", **api.status()})
                 last_status = now
-            await asyncio.sleep(0.01)
+            # wake when the next message is due, not more often: the loop beside this one needs the CPU
+            now = time.monotonic()
+            due_profile = last_profile + 1.0 / rates["profile_hz"]
+            if pending is None:  # nothing to send yet: look again in 20 ms at the soonest
+                due_profile = max(due_profile, now + 0.02)
+            due = min(due_profile, last_status + 1.0 / rates["status_hz"])
+            await asyncio.sleep(min(max(due - now, 0.002), 0.1))
     except Exception:  # the client went away mid-send: nothing to report to anyone
         pass
     finally:

@@ -109,7 +109,9 @@ function drawPreview(p) {
   const s = p.scale || 1;
   ctx.fillStyle = "#00e04b";
   const uv = stripePairs(p.stripe_uv);
-  for (const [u, v] of uv) ctx.fillRect(u - 1, v - 1, 2.5, 2.5);  // already in preview px
+  ctx.beginPath();
+  for (const [u, v] of uv) ctx.rect(u - 1, v - 1, 2.5, 2.5);  // already in preview px
+  ctx.fill();
   drawTarget(ctx, p.target, s);
   lp.previews += 1;
   lp.stripePoints = uv.length;
@@ -128,7 +130,7 @@ async function previewLoop() {
       image.img.src = "data:image/jpeg;base64," + p.jpeg_base64;
     });
     drawPreview(p);
-    setTimeout(previewLoop, 80);
+    setTimeout(previewLoop, 120);
   } catch (e) {
     $("image-info").textContent = e.message;
     setTimeout(previewLoop, 500);
@@ -186,10 +188,12 @@ function drawProfile(p) {
   const Y = (v) => flipY ? T + (v - y0) / (y1 - y0) * (H - T - B) : H - B - (v - y0) / (y1 - y0) * (H - T - B);
   drawAxes(ctx, {W, H, L, R, T, B, x0, x1, y0, y1, X, Y}, `${xl} (${unit})`, `${yl} (${unit})`);
   ctx.fillStyle = "#1f5fbf";
+  ctx.beginPath();  // one path for all points: one fill
   for (let i = 0; i < n; i++) {
     if (xs[i] === null || ys[i] === null) continue;
-    ctx.fillRect(X(xs[i]) - 1, Y(ys[i]) - 1, 2.2, 2.2);
+    ctx.rect(X(xs[i]) - 1, Y(ys[i]) - 1, 2.2, 2.2);
   }
+  ctx.fill();
   const sig = p.sigma_mm;
   let sigText = "";
   if (Array.isArray(sig) && sig.length) {
@@ -528,7 +532,7 @@ function frameLoop() {
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   const ws = new WebSocket(`${proto}//${location.host}/api/ws`);
-  ws.onopen = () => { $("conn").textContent = "live"; $("conn").className = "badge ok"; };
+  ws.onopen = () => { ws.send(JSON.stringify({profile_hz: 15})); $("conn").textContent = "live"; $("conn").className = "badge ok"; };
   ws.onclose = () => {
     $("conn").textContent = "disconnected"; $("conn").className = "badge bad";
     setTimeout(connect, 1000);
