@@ -67,6 +67,7 @@ class Chromium:
     def open(self, url: str) -> None:
         self.call("Emulation.setDeviceMetricsOverride", width=self.size[0], height=self.size[1], deviceScaleFactor=1,
                   mobile=False)
+        self.call("Emulation.setScrollbarsHidden", hidden=True)
         self.call("Page.navigate", url=url)
 
     def js(self, expression: str) -> Any:
