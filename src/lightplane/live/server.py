@@ -7,8 +7,10 @@ The server binds 127.0.0.1 unless told otherwise.  Endpoints (JSON unless said o
 - ``GET /api/status``: source, frame rate, latency (median, p99), dropped frames, points per profile, units,
   recording and scan state, the hardware (lasers, turntable angle);
 - ``GET /api/profile``: the latest profile (frame, exposure time, x/z in mm or u/v in px, sigma);
-- ``GET /api/preview`` (JSON: the JPEG as base64 with the stripe centres and the target drawn over it by the
-  page) and ``GET /api/preview.jpg`` (the JPEG alone); ``?max_width=N`` px;
+- ``GET /api/preview`` (JSON: the JPEG as base64, ``scale`` (preview px per image px), ``stripe_uv`` and
+  ``target``, which the page draws over it, in preview px; a target is an ellipse ``{"center": [u, v],
+  "axes": [a, b], "angle_deg": t}``, a list of them, or ``{"points": [[u, v], ...]}``) and
+  ``GET /api/preview.jpg`` (the JPEG alone); ``?max_width=N`` px;
 - ``GET /api/settings``, ``POST /api/settings`` (``{"name": value, ...}``);
 - ``POST /api/laser`` (``{"index": 0, "on": true}``, ``"index": "all"`` for every laser);
 - ``POST /api/turntable`` (``{"degrees": 10}``, relative; returns when the table has settled);

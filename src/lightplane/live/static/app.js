@@ -112,7 +112,7 @@ function drawPreview(p) {
   ctx.beginPath();
   for (const [u, v] of uv) ctx.rect(u - 1, v - 1, 2.5, 2.5);  // already in preview px
   ctx.fill();
-  drawTarget(ctx, p.target, s);
+  drawTarget(ctx, p.target, 1);  // in preview px, as the stripe centres
   lp.previews += 1;
   lp.stripePoints = uv.length;
   lp.lastPreviewFrame = p.frame === undefined ? null : p.frame;
