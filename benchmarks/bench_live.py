@@ -113,7 +113,7 @@ def profile_alone(frames, sim: SimulatedSensor, repeat: int = 50) -> float:
     """One frame's profile on its own (ms, median): the loop's least possible cost per frame."""
     eng = LiveEngine(ArraySource(frames), sensor=sim.sensor)
     eng._process(eng.source.read())  # builds the measurer as the loop does (width estimated once)
-    m = eng._measurer
+    m = next(iter(eng._measurers.values()))
     assert isinstance(m, ProfileMeasurer)
     ts = []
     for k in range(repeat):
@@ -138,12 +138,13 @@ def main() -> None:
     print(f"rendered {len(frames)} frames {frames[0].shape[1]}x{frames[0].shape[0]} in {time.perf_counter() - t:.1f} s;"
           f" cpus {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
     rounds: dict[float, list[dict]] = {args.fps: [], args.capacity_fps: []}
-    alone = []
+    alone, loads = [], []
     for r in range(args.rounds):
         alone.append(profile_alone(frames, sim))
         for fps, got in rounds.items():
             res = one_round(frames, sim, fps, args.seconds, args.preview_hz)
             got.append(res)
+            loads.append(os.getloadavg()[0])
             print(f"round {r + 1}: {res['profiles_per_s']:.1f} profiles/s at {fps:g} frames/s offered, latency "
                   f"median {res['latency_median_ms']:.1f} ms, p99 {res['latency_p99_ms']:.1f} ms, dropped "
                   f"{res['dropped']} of {res['frames_offered']}, {res['previews']} previews, {res['events']} events, "
@@ -154,15 +155,17 @@ def main() -> None:
         print(f"median of rounds at {fps:g} frames/s: {m['profiles_per_s']:.1f} profiles/s, latency median "
               f"{m['latency_median_ms']:.1f} ms, p99 {m['latency_p99_ms']:.1f} ms, dropped {m['dropped']:.0f} per round")
     if not args.no_record:
-        record("bench_live", figures(med[args.fps], med[args.capacity_fps], args, float(np.median(alone))))
+        record("bench_live", figures(med[args.fps], med[args.capacity_fps], args, float(np.median(alone)),
+                                     float(np.median(loads))))
 
 
-def figures(cam: dict, cap: dict, args, alone_ms: float) -> list[dict]:
+def figures(cam: dict, cap: dict, args, alone_ms: float, load: float) -> list[dict]:
     ref = ("one profile alone (ProfileMeasurer, median of 50)", alone_ms, "ms")
 
     def stat(fps: float) -> str:
         return (f"median of {args.rounds} rounds of {args.seconds:g} s at {fps:g} frames/s offered, page open "
-                f"(previews at {args.preview_hz:g} Hz, one subscriber)")
+                f"(previews at {args.preview_hz:g} Hz, one subscriber); {os.cpu_count()} cores shared with other "
+                f"jobs: load average {load:.1f}")
 
     return [
         figure("live_profiles_per_s", f"live profiles/s, 1280x960, camera at {args.capacity_fps:g} frames/s",

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shlex
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +42,31 @@ def wait_for(cond, timeout: float = 30.0) -> None:
         time.sleep(0.02)
 
 
-@pytest.mark.parametrize("kind, steps, step", [("turntable", 3, 40.0), ("linear", 3, 4.0)])
-def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, step):
-    sim = SimulatedSensor(kind, fps=60.0, scale=0.5, lasers=2 if kind == "turntable" else 1)
+class TurnedCamera:
+    """The simulated sensor's camera mounted turned: its frames rotated 90° counter-clockwise, so that a
+    sensor file with ``rotate_deg`` 90 reads them upright again (as FabScan's)."""
+
+    def __init__(self, sim: SimulatedSensor) -> None:
+        self.sim, self.name, self.nominal_fps, self.hardware = sim, "turned " + sim.name, sim.nominal_fps, sim.hardware
+        self.sensor = replace(sim.sensor, rotate_deg=90)
+
+    dropped = property(lambda self: self.sim.dropped)
+
+    def read(self, timeout=None):
+        f = self.sim.read(timeout)
+        return replace(f, image=np.ascontiguousarray(np.rot90(f.image)))
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+
+@pytest.mark.parametrize("kind, steps, step, turned", [("turntable", 3, 40.0, False), ("linear", 3, 4.0, False),
+                                                       ("turntable", 2, 40.0, True)])
+def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, step, turned):
+    sim = SimulatedSensor(kind, fps=60.0, scale=0.5, lasers=2 if kind == "turntable" and not turned else 1)
     if kind == "linear":
         sim.hardware.move_stage(-step)  # start before the sheet
-    eng = LiveEngine(sim)
+    eng = LiveEngine(TurnedCamera(sim) if turned else sim)
     eng.start()
     try:
         eng.start_scan(kind, steps, step, tmp_path / "scan")
@@ -73,17 +93,20 @@ def test_live_scan_gives_the_measure_cloud_bit_for_bit(tmp_path, kind, steps, st
     assert live.dtype == again.dtype and live.size > 100 * steps
     assert live.tobytes() == again.tobytes()  # bit for bit
     assert np.array_equal(np.sort(live_points[:, 0]), np.sort(live["x"].astype(np.float64)))
-    # the laser-off frames show no stripe: far darker than the laser frames
+    # every step's laser-off frame shows no stripe and every laser frame shows one (none is a stale frame)
     import cv2
 
-    off = cv2.imread(str(folder / "pattern" / "0001.png"), cv2.IMREAD_UNCHANGED)
-    on = cv2.imread(str(folder / "laser0" / "0001.png"), cv2.IMREAD_UNCHANGED)
-    assert off.max() < 60 <= on.max()
+    for k in range(steps):
+        off = cv2.imread(str(folder / "pattern" / f"{k:04d}.png"), cv2.IMREAD_UNCHANGED)
+        on = cv2.imread(str(folder / "laser0" / f"{k:04d}.png"), cv2.IMREAD_UNCHANGED)
+        assert off.max() < 60 <= on.max(), k
+        assert np.count_nonzero(live["frame"][live["laser"] == 0] == k) > 100, k
+    assert on.shape == ((sim.camera.width, sim.camera.height) if turned else (sim.camera.height, sim.camera.width))
 
 
 def test_live_profile_agrees_with_the_truth_within_its_sigma():
     # a clean full-size render: the stripe centres' own noise (not in sigma) stays below the plane's share
-    sim = SimulatedSensor("turntable", fps=None, seed=1)
+    sim = SimulatedSensor("turntable", fps=30.0, seed=1)
     eng = LiveEngine(sim)
     eng.start()
     try:
@@ -129,7 +152,7 @@ def test_status_preview_subscribers_and_px_profiles():
         eng.stop()
     assert set(st) >= {"source", "fps", "latency_ms", "dropped", "frames", "points", "units", "recording", "scan"}
     assert st["units"] == "px" and st["points"] == 128 and st["fps"] > 0 and st["latency_ms"]["median"] >= 0
-    assert prof is not None and prof["units"] == "px" and len(prof["u"]) == 128
+    assert prof is not None and prof["units"] == "px" and len(prof["u"]) == 128 and prof["sigma_mm"] is None
     k = prof["frame"] % 4
     assert np.allclose(prof["v"], 40.3 + k, atol=0.05)
     assert slow.qsize() == SUBSCRIBER_QUEUE  # full, its oldest events dropped; the loop went on
@@ -240,3 +263,36 @@ def test_stopping_the_engine_stops_a_scan(tmp_path):
     st = eng.scan_status()
     assert st["state"] == "stopped" and 1 <= st["done"] < 200
     assert sim.hardware.laser_states() == (True,)  # the lasers as before the scan
+
+
+def test_the_profile_follows_the_laser_that_is_on():
+    sim = SimulatedSensor("turntable", fps=30.0, scale=0.5, lasers=2)
+    eng = LiveEngine(sim)
+    eng.start()
+    try:
+        for i, on in enumerate(((True, False), (False, True))):
+            for k, v in enumerate(on):
+                sim.hardware.set_laser(k, v)
+            t = time.monotonic()
+            wait_for(lambda: (lp := eng.latest_points()) is not None and lp[0].t_exposure > t)
+            frame, p, sig = eng.latest_points()
+            assert eng.latest_profile()["laser"] == f"laser{i}"
+            truth = frame.meta["truth"]
+            c, R = truth["sphere"]["center_mm"], truth["sphere"]["radius_mm"]
+            res = np.minimum(np.abs(np.linalg.norm(p - c, axis=1) - R),
+                             np.abs(p @ truth["table"]["normal"] + truth["table"]["d"]))
+            assert len(p) > 100 and np.median(res) < 0.02  # on the wrong plane: millimetres off
+    finally:
+        eng.stop()
+
+
+def test_frames_of_another_size_than_the_sensor_camera_are_reported():
+    sensor = SimulatedSensor("turntable", fps=None, scale=0.25).sensor
+    eng = LiveEngine(ArraySource(stripe_frames(2), fps=100.0), sensor=sensor)
+    eng.start()
+    try:
+        wait_for(lambda: eng.status()["error"] is not None)
+        st = eng.status()
+    finally:
+        eng.stop()
+    assert st["frames"] == 0 and st["units"] == "mm" and "128" in st["error"] and "320" in st["error"], st["error"]

@@ -89,6 +89,10 @@ def test_video_file(tmp_path):
         got.append(float(f.image.mean()))
     src.stop()
     assert len(got) == 6 and all(abs(g - 40 * i) < 8 for i, g in enumerate(got))  # MJPG is lossy
+    src.start()  # a stopped video starts again from its first frame
+    again = src.read()
+    src.stop()
+    assert again is not None and again.index == 0 and abs(float(again.image.mean()) - got[0]) < 1e-9
 
 
 def test_specs():
@@ -107,3 +111,58 @@ def test_specs():
         assert open_source("mine:abc").name.startswith("abc")
     finally:
         SCHEMES.pop("mine", None)
+
+
+class FakeCapture:
+    """Stands for ``cv2.VideoCapture`` of a V4L2 camera at 50 frames/s whose driver lost frames 3 and 4:
+    buffer time stamps (ms, monotonic clock) as OpenCV's V4L2 backend gives them."""
+
+    def __init__(self, *args) -> None:
+        self.stamps = [k * 20.0 for k in (0, 1, 2, 5, 6)]
+        self.i = -1
+        self.props: dict = {}
+        self.t0 = time.monotonic() * 1000.0
+
+    def isOpened(self) -> bool:
+        return True
+
+    def read(self):
+        self.i += 1
+        return True, np.full((4, 4), self.i, np.uint8)
+
+    def get(self, prop):
+        import cv2
+
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self.t0 - 200.0 + self.stamps[self.i]
+        if prop == cv2.CAP_PROP_FPS:
+            return 50.0
+        return self.props.get(prop, 0.0)
+
+    def set(self, prop, value) -> bool:
+        import cv2
+
+        if prop == cv2.CAP_PROP_GAIN and value < 0:
+            return False  # the driver refuses it
+        self.props[prop] = value
+        return True
+
+    def release(self) -> None:
+        pass
+
+
+def test_uvc_camera_counts_the_frames_its_driver_lost(monkeypatch):
+    import cv2
+
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCapture)
+    src = open_source("/dev/video7", exposure=100)
+    assert src.name == "uvc:/dev/video7" and src.nominal_fps == 50.0 and src.controls()["exposure"].value == 100
+    src.start()
+    frames = [src.read() for _ in range(5)]
+    assert [f.index for f in frames] == [0, 1, 2, 5, 6] and src.dropped == 2
+    assert np.allclose(np.diff([f.t_exposure for f in frames]), [0.02, 0.02, 0.06, 0.02])
+    assert all(f.t_received > f.t_exposure for f in frames)
+    with pytest.raises(LightplaneError, match="refuses gain"):
+        src.set_control("gain", -1)
+    with pytest.raises(LightplaneError, match="no control 'zoom'"):
+        src.set_control("zoom", 2)

@@ -7,7 +7,9 @@ is full the oldest frame waiting is dropped and counted (with the frames the sou
 the latency stays bounded when the processing falls behind for longer.
 With a sensor (:class:`lightplane.measure.sensor.Sensor`) a profile is in mm
 (:class:`lightplane.measure.profile.ProfileMeasurer`: the camera and one of the sensor's light planes),
-else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).
+else the stripe's centres in px (:func:`lightplane.stripe.extract.extract_profile`).  A sensor whose frames
+are rotated (``Sensor.rotate_deg``, e.g. FabScan's) has every frame rotated so before it is measured, as
+``lightplane measure`` rotates its image files; the preview shows the rotated frame.
 
 A profile in mm is given in the light plane's own coordinates: ``z`` the distance from the camera along
 the plane (the camera's optical axis projected into the plane), ``x`` across, along the laser line (see
@@ -27,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import CHANNELS
+from lightplane.core.io import CHANNELS, rotate_image
 from lightplane.ellipse.detect import EllipseDetectionOptions, detect_ellipses
 from lightplane.ellipse.target import select_target
 from lightplane.live.recording import Recorder
@@ -63,7 +65,8 @@ class LiveSettings:
     (red, green, blue, gray, sum or None: weighted grey), ``width_px`` (stripe FWHM; None: estimated on
     the first frame after each change), ``sigma_along_px``, ``axis`` (auto, columns, rows; auto without a
     sensor: columns), ``roi`` (x, y, width, height px), ``smooth_lines``, ``keep_outliers``.  Live only:
-    ``laser`` (the sensor plane the live profile uses; None: its first), ``settle_frames`` (a scan takes the
+    ``laser`` (the sensor plane the live profile uses; None: the plane of the one laser that is on, else the
+    sensor's first), ``settle_frames`` (a scan takes the
     n-th frame exposed after each switch of the lasers), ``jpeg_quality`` (preview, 10..100), ``target``
     (find the circle target for the preview, at most every :data:`TARGET_EVERY_S`)."""
 
@@ -127,12 +130,13 @@ def plane_axes(plane: LightPlane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class _Latest:
     """One profiled frame: the frame, its profile's valid points and where they came from."""
 
-    __slots__ = ("frame", "uv", "xyz", "sigma", "records", "t_done", "units")
+    __slots__ = ("frame", "image", "uv", "xyz", "sigma", "records", "t_done", "units", "plane")
 
-    def __init__(self, frame: Frame, uv: np.ndarray, xyz: np.ndarray | None, sigma: np.ndarray | None,
-                 records: np.ndarray | None, t_done: float, units: str) -> None:
-        self.frame, self.uv, self.xyz, self.sigma = frame, uv, xyz, sigma
-        self.records, self.t_done, self.units = records, t_done, units
+    def __init__(self, frame: Frame, image: np.ndarray, uv: np.ndarray, xyz: np.ndarray | None,
+                 sigma: np.ndarray | None, records: np.ndarray | None, t_done: float, units: str,
+                 plane: str | None) -> None:
+        self.frame, self.image, self.uv, self.xyz, self.sigma = frame, image, uv, xyz, sigma
+        self.records, self.t_done, self.units, self.plane = records, t_done, units, plane
 
 
 class LiveEngine:
@@ -152,10 +156,10 @@ class LiveEngine:
         if not isinstance(self._settings, LiveSettings):
             raise LightplaneError(f"settings must be LiveSettings, got {type(self._settings).__name__}")
         self.units: Literal["mm", "px"] = "mm" if self.sensor is not None else "px"
-        self._plane = self._check_laser(self._settings.laser)
-        self._axes = None if self._plane is None else plane_axes(self._plane)
+        self._check_laser(self._settings.laser)
+        self._axes = {} if self.sensor is None else {n: plane_axes(p) for n, p in self.sensor.planes.items()}
         self._proc_lock = threading.Lock()
-        self._measurer: ProfileMeasurer | None = None
+        self._measurers: dict[str, ProfileMeasurer] = {}  # per plane, for the current settings
         self._stripe: tuple[str, StripeOptions] | None = None  # px: axis and resolved options
         self._cond = threading.Condition()
         self._inbox: deque[Frame] = deque()
@@ -178,14 +182,25 @@ class LiveEngine:
         self._target: tuple[float, dict | None] = (-np.inf, None)  # when it was looked for, what was found
 
     # ------------------------------------------------------------------ set-up
-    def _check_laser(self, laser: str | None) -> LightPlane | None:
-        if self.sensor is None:
-            if laser is not None:
-                raise LightplaneError("settings.laser names a sensor plane, but there is no sensor")
-            return None
+    def _check_laser(self, laser: str | None) -> None:
         if laser is None:
-            return next(iter(self.sensor.planes.values()))
-        return self.sensor.plane(laser)
+            return
+        if self.sensor is None:
+            raise LightplaneError("settings.laser names a sensor plane, but there is no sensor")
+        self.sensor.plane(laser)  # raises for a name the sensor lacks
+
+    def _plane_name(self, frame: Frame) -> str:
+        """The sensor plane a frame is measured on: ``settings.laser``, else the plane of the one laser
+        that is on (the frame's ``meta["laser"]``, else the hardware's state), else the first."""
+        assert self.sensor is not None
+        names = list(self.sensor.planes)
+        if self._settings.laser is not None:
+            return self._settings.laser
+        states = frame.meta.get("laser")
+        if states is None and self.hardware is not None:
+            states = self.hardware.laser_states()
+        on = [i for i, v in enumerate(states or ()) if v and i < len(names)]
+        return names[on[0]] if len(on) == 1 else names[0]
 
     def settings(self) -> LiveSettings:
         return self._settings
@@ -197,12 +212,11 @@ class LiveEngine:
         if bad:
             raise LightplaneError(f"no stripe setting {bad[0]!r} (settings: {', '.join(sorted(names))})")
         new = replace(self._settings, **changes)
-        plane = self._check_laser(new.laser)
+        self._check_laser(new.laser)
         self._target = (-np.inf, None)
         with self._proc_lock:
-            self._settings, self._plane = new, plane
-            self._axes = None if plane is None else plane_axes(plane)
-            self._measurer, self._stripe = None, None  # rebuilt on the next frame
+            self._settings = new
+            self._measurers, self._stripe = {}, None  # rebuilt on the next frame
         return new
 
     # ------------------------------------------------------------------ threads
@@ -211,6 +225,8 @@ class LiveEngine:
         if self._running:
             return
         self._running, self._ended, self._error = True, False, None
+        self._inbox.clear()
+        self._grabbed = None
         self.source.start()
         self._threads = [threading.Thread(target=self._grab_loop, name="lightplane-grab", daemon=True),
                          threading.Thread(target=self._process_loop, name="lightplane-profile", daemon=True)]
@@ -265,6 +281,8 @@ class LiveEngine:
                 self._process(frame)
             except LightplaneError as e:  # e.g. a frame of another size than the sensor's camera
                 self._error = str(e)
+            except Exception as e:  # noqa: BLE001 - the loop goes on with the next frame; the status says why
+                self._error = f"frame {frame.index}: {type(e).__name__}: {e}"
             finally:
                 self._busy = False
 
@@ -288,18 +306,22 @@ class LiveEngine:
     def _profile(self, frame: Frame) -> _Latest:
         """The frame's profile with the current settings (the measurer built on the first frame after a change)."""
         img = frame.image
+        if self.sensor is not None and self.sensor.rotate_deg:
+            img = rotate_image(img, self.sensor.rotate_deg)  # as the sensor's frames are read from files
         s = self._settings
-        if self.sensor is not None and self._plane is not None:
-            if self._measurer is None:
-                opts = s.measure_options()
-                axis = profile_axis(self._plane) if opts.axis == "auto" else opts.axis
+        if self.sensor is not None:
+            name = self._plane_name(frame)
+            m = self._measurers.get(name)
+            if m is None:
+                plane, opts = self.sensor.planes[name], s.measure_options()
+                axis = profile_axis(plane) if opts.axis == "auto" else opts.axis
                 w = opts.stripe.width_px
                 if w is None:
                     we = estimate_width(img, channel=opts.stripe.channel, axis=axis)
                     w = float(we) if np.isfinite(we) else None
-                self._measurer = ProfileMeasurer(self.sensor.camera, self._plane, replace(
+                m = self._measurers[name] = ProfileMeasurer(self.sensor.camera, plane, replace(
                     opts, axis=axis, stripe=replace(opts.stripe, width_px=w)))
-            prof = self._measurer(img)
+            prof = m(img)
             ok = prof.valid
             rec = np.empty(int(ok.sum()), POINT_DTYPE)
             p = prof.points[ok]
@@ -307,7 +329,7 @@ class LiveEngine:
             rec["frame"] = frame.index
             rec["intensity"], rec["sigma_mm"] = prof.intensity[ok], prof.sigma_mm[ok]
             rec["u"], rec["v"] = prof.uv[ok, 0], prof.uv[ok, 1]
-            return _Latest(frame, prof.uv[ok], p, prof.sigma_mm[ok], rec, time.monotonic(), "mm")
+            return _Latest(frame, img, prof.uv[ok], p, prof.sigma_mm[ok], rec, time.monotonic(), "mm", name)
         if self._stripe is None:
             opts = s.measure_options()
             axis = "columns" if opts.axis == "auto" else opts.axis
@@ -318,7 +340,7 @@ class LiveEngine:
             self._stripe = (axis, replace(opts.stripe, width_px=w))
         axis, stripe = self._stripe
         sp = extract_profile(img, axis, stripe, roi=s.roi)
-        return _Latest(frame, sp.uv[sp.valid], None, None, None, time.monotonic(), "px")
+        return _Latest(frame, img, sp.uv[sp.valid], None, None, None, time.monotonic(), "px", None)
 
     # ------------------------------------------------------------------ what a page reads
     def status(self) -> dict:
@@ -342,14 +364,16 @@ class LiveEngine:
     def _event(self, latest: _Latest) -> dict:
         f = latest.frame
         ev: dict[str, Any] = {"frame": int(f.index), "t_exposure": float(f.t_exposure), "units": latest.units}
-        if latest.units == "mm" and latest.xyz is not None and self._axes is not None:
-            o, ex, ez = self._axes
+        if latest.units == "mm" and latest.xyz is not None and latest.plane is not None:
+            ev["laser"] = latest.plane
+            o, ex, ez = self._axes[latest.plane]
             q = latest.xyz - o
             ev["x"], ev["z"] = (q @ ex).tolist(), (q @ ez).tolist()
             sig = latest.sigma
             ev["sigma_mm"] = None if sig is None or not np.isfinite(sig).all() else sig.tolist()
         else:
             ev["u"], ev["v"] = latest.uv[:, 0].tolist(), latest.uv[:, 1].tolist()
+            ev["sigma_mm"] = None
         return ev
 
     def latest_profile(self) -> dict | None:
@@ -376,7 +400,7 @@ class LiveEngine:
         cached = self._preview_cache
         if cached is not None and cached[:2] == key:
             return cached[2]
-        img = latest.frame.image
+        img = latest.image
         h, w = img.shape[:2]
         scale = min(1.0, max(16, int(max_width)) / w)
         small = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA) \
@@ -405,7 +429,7 @@ class LiveEngine:
         now = time.monotonic()
         if now - t_last < TARGET_EVERY_S:
             return found
-        img = latest.frame.image
+        img = latest.image
         ellipses = detect_ellipses(img, EllipseDetectionOptions(min_axis_px=max(5.0, img.shape[1] / 100), max_count=8))
         hint = latest.uv if len(latest.uv) >= 10 else None
         e = select_target(img, ellipses, hint).ellipse if ellipses else None

@@ -80,6 +80,11 @@ class Recorder:
     memory until :meth:`finish` writes ``profiles.parquet`` and ``cloud.ply``."""
 
     def __init__(self, folder: str | Path, units: str, meta: dict[str, Any]) -> None:
+        import importlib.util
+
+        if importlib.util.find_spec("pyarrow") is None:  # checked before anything is written
+            raise LightplaneError("recording writes profiles as Parquet, which needs pyarrow (pip install "
+                                  "'lightplane[live]')")
         self.folder = prepare_folder(folder)
         self.frames_dir = self.folder / "frames"
         self.frames_dir.mkdir()
@@ -89,20 +94,25 @@ class Recorder:
         self.frames_written = 0
         self.frames_dropped = 0
         self.error: str | None = None
+        self._closed = False
+        self._lock = threading.Lock()
         self._q: queue.Queue = queue.Queue(QUEUE_FRAMES)
         self._thread = threading.Thread(target=self._write_loop, name="lightplane-recorder", daemon=True)
         self._thread.start()
 
     def add(self, frame, row: dict, records: np.ndarray | None) -> None:
         """One frame: its image queued for the disk (left out and counted when the queue is full), its
-        profile row and point records kept."""
-        self.rows.append(row)
-        if records is not None and records.size:
-            self.points.append(records)
-        try:
-            self._q.put_nowait((frame.index, frame.image))
-        except queue.Full:
-            self.frames_dropped += 1
+        profile row and point records kept.  Nothing is added once :meth:`finish` has begun."""
+        with self._lock:
+            if self._closed:
+                return
+            self.rows.append(row)
+            if records is not None and records.size:
+                self.points.append(records)
+            try:
+                self._q.put_nowait((frame.index, frame.image))
+            except queue.Full:
+                self.frames_dropped += 1
 
     def _write_loop(self) -> None:
         while True:
@@ -119,6 +129,8 @@ class Recorder:
 
     def finish(self) -> dict[str, Path]:
         """Wait for the frames, write the profiles and the cloud; the files written, by name."""
+        with self._lock:
+            self._closed = True
         self._q.put(None)
         self._thread.join()
         meta = {**self.meta, "frames_written": self.frames_written, "frames_dropped": self.frames_dropped,

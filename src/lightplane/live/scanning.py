@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
-from lightplane.core.io import provenance, write_json
+from lightplane.core.io import provenance, rotate_image, write_json
 from lightplane.live.recording import prepare_folder, write_png
 from lightplane.live.source import Frame, Hardware
 from lightplane.measure.options import MeasureOptions
@@ -182,6 +182,8 @@ class ScanJob:
         """Laser ``li``'s frame ``k`` measured (its processor made on its first frame, as a scan's)."""
         if self.sensor is None:
             return None
+        if self.sensor.rotate_deg:  # the files hold the frames as the camera gave them; measure rotates them
+            image = rotate_image(image, self.sensor.rotate_deg)
         if proc is None:
             plane = self.sensor.planes[self.names[li]]
             self.sensor.camera.check_image(image, "the first laser frame")

@@ -13,8 +13,8 @@ Scenes (``kind``):
 The renderer is not real time (a 1280x960 view takes ~0.25 s): every state's frame is rendered once and
 kept (``cache`` views, least recently used dropped), so a state's frames are one image, noise included.
 Frames come at ``fps``; a state first seen stalls the stream while it renders (the stall is the
-simulator's, not the reader's: no frame is counted as dropped, and the frame's exposure time is when
-the render ended).  ``frame.meta["truth"]``: the view's truth (camera frame, mm) and ``"planes"``, the true
+simulator's, not the reader's: no frame is counted as dropped; the frame's exposure time is when its
+state was read, before the render).  ``frame.meta["truth"]``: the view's truth (camera frame, mm) and ``"planes"``, the true
 light planes; ``meta["laser"]``, ``["angle_deg"]``, ``["position_mm"]``, ``["placement"]``: the state.
 
 :attr:`SimulatedSensor.sensor` is the sensor a user would have calibrated: the true camera and
@@ -220,12 +220,13 @@ class SimulatedSensor:
     def read(self, timeout: float | None = None) -> Frame | None:
         k, t, skipped = self._pacer.take(timeout)
         self.dropped += skipped
+        t_state = time.monotonic()
         state = self.state()
         with self._lock:
             cached = state in self._cache
         img, truth = self.view(state)
         if not cached:  # the simulator stalled to render: not the reader's fault
-            t = time.monotonic()
+            t = t_state  # the frame shows the state as it was then, not as it is after the render
             self._pacer.rebase()
         lasers, value = state
         meta: dict[str, Any] = {"laser": lasers, "truth": truth, "state": state}

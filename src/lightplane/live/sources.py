@@ -174,6 +174,15 @@ class VideoSource(ReplaySource):
             raise LightplaneError(f"{self.path}: frame {i} cannot be decoded")
         return img
 
+    def start(self) -> None:
+        import cv2
+
+        if not self._cap.isOpened():  # stopped before: open it again
+            self._cap = cv2.VideoCapture(str(self.path))
+        self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+        self._pos = 0
+        super().start()
+
     def stop(self) -> None:
         self._cap.release()
 
