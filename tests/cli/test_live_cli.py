@@ -47,3 +47,17 @@ def test_address_unusable():
         _refused("--source", "sim:turntable", "--port", port, needles=[f"127.0.0.1:{port}", "in use"])
     _refused("--source", "sim:turntable", "--host", "no-such-host.invalid",
              needles=["cannot listen on no-such-host.invalid"])
+
+
+def test_hardware_choice():
+    from lightplane.cli.live import live_hardware
+    from lightplane.live.source import SimulatedHardware
+    from lightplane.live.sources import open_source
+
+    sim = open_source("sim:turntable")
+    assert live_hardware(None, sim) is sim.hardware  # the simulated sensor renders its own lasers and table
+    assert live_hardware("sim", sim) is sim.hardware
+    camera = object()  # a source without hardware of its own
+    assert live_hardware(None, camera) is None
+    hw = live_hardware("sim:2", camera)
+    assert isinstance(hw, SimulatedHardware) and hw.n_lasers == 2

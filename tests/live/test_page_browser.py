@@ -75,6 +75,27 @@ def chromium_exe():
     return exe
 
 
+def test_target_drawn_on_the_live_image(chromium_exe, tmp_path):
+    """The circle target of the simulated target scene, found when the page asks for it, drawn on the image."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    live = LiveCommand(["--source", "sim:target,scale=0.5", "--port", "0", "--output-dir", str(tmp_path / "out")], env)
+    page = None
+    try:
+        url = live.url()
+        page = Chromium(chromium_exe, tmp_path / "profile", size=(1200, 900))
+        page.open(url)
+        page.wait_for("window.lpState && lpState.previews >= 2 && lpState.settings", 90, "the live image")
+        assert page.js("lpState.targets") == 0  # not looked for until asked
+        page.js("(() => { const el = document.getElementById('set-target'); el.click(); })()")
+        poll(lambda: _get(url + "api/settings")["target"] is True, 10, "the engine's target setting")
+        page.wait_for("lpState.targets >= 2", 30, "the target's ellipse on the image")
+        assert page.js("lpState.errors") == []
+    finally:
+        if page is not None:
+            page.close()
+        live.stop()
+
+
 def _change_setting(page: Chromium, name: str, value) -> None:
     """Type a value into the settings form and leave the field, as a user does."""
     page.js(f"(() => {{ const el = document.getElementById('set-{name}'); el.focus(); el.value = {json.dumps(str(value))};"

@@ -12,34 +12,30 @@ from lightplane.cli._common import app, handles_errors
 from lightplane.core.errors import LightplaneError
 from lightplane.live.engine import LiveEngine
 from lightplane.live.server import LOOPBACK_HOSTS, ServerOptions, listen, serve, url_of
-from lightplane.live.source import Hardware, SimulatedHardware
+from lightplane.live.hardware import open_hardware
+from lightplane.live.source import Hardware
 from lightplane.live.sources import open_source
 from lightplane.measure.sensor import Sensor
 
 SOURCE_HELP = ("Frame source: sim:turntable, sim:linear or sim:target (the simulated sensor; options after a comma, "
                "e.g. sim:turntable,scale=0.5,fps=60), uvc:N or /dev/videoN (a UVC camera), a video file or a folder "
                "of images (replayed at their frame rate).")
-HARDWARE_HELP = ("Lasers and turntable: sim[:N] (simulated, N lasers; with a simulated source, the lasers and table "
-                 "it renders). Default: the source's own (the simulated sensor has them), else none.")
+HARDWARE_HELP = ("Lasers and turntable: ciclop:PORT (Horus firmware), fabscan:PORT (FabScanPi HAT), sim[:N] "
+                 "(simulated; with the simulated sensor, the lasers and table it renders), simdevice[:ciclop|:fabscan] "
+                 "(a board simulated on a pseudo-terminal); options after '?' (see the live hardware page). "
+                 "Default: the source's own (the simulated sensor has them), else none.")
 
 
-def open_hardware(spec: str | None, source: object) -> Hardware | None:
-    """The hardware a ``--hardware`` spec names; ``None``: the source's own, if it has any."""
+def live_hardware(spec: str | None, source: object) -> Hardware | None:
+    """The hardware a ``--hardware`` spec names (:func:`lightplane.live.hardware.open_hardware`); ``None``,
+    or ``sim`` with a source that has its own simulated hardware: the source's own."""
     own = getattr(source, "hardware", None)
-    if spec is None:
-        return own
-    kind, _, count = spec.partition(":")
-    if kind != "sim":
-        raise LightplaneError(f"--hardware: unknown hardware {spec!r} (known: sim, sim:N)")
-    if own is not None:
+    if spec is None or (own is not None and spec.strip() in ("sim", "sim:")):
         return own
     try:
-        n = int(count) if count else 1
-    except ValueError:
-        raise LightplaneError(f"--hardware: 'sim:{count}' needs a number of lasers, e.g. sim:2") from None
-    if not 1 <= n <= 4:
-        raise LightplaneError(f"--hardware: sim needs 1 to 4 lasers, got {n}")
-    return SimulatedHardware(n_lasers=n)
+        return open_hardware(spec)
+    except LightplaneError as e:
+        raise LightplaneError(f"--hardware: {e}") from None
 
 
 def _is_loopback(host: str) -> bool:
@@ -75,8 +71,13 @@ def live_cmd(
     if output_dir.exists() and not output_dir.is_dir():
         raise LightplaneError(f"--output-dir: {output_dir} exists and is not a folder")
     src = open_source(source)
-    hw = open_hardware(hardware, src)
-    sock = listen(host, port)
+    hw = live_hardware(hardware, src)
+    try:
+        sock = listen(host, port)
+    except BaseException:
+        if hw is not None:
+            hw.close()
+        raise
     try:
         engine = LiveEngine(src, sensor=sens, hardware=hw)
         sensor_name = str(sensor) if sensor is not None else (
@@ -86,6 +87,8 @@ def live_cmd(
         engine.start()
     except BaseException:
         sock.close()
+        if hw is not None:
+            hw.close()
         raise
     try:
         units = "mm" if engine.units == "mm" else "px (no sensor file)"

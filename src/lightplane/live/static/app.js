@@ -2,7 +2,7 @@
 "use strict";
 
 // What the page has seen (read by the browser test and handy in the console).
-const lp = window.lpState = {previews: 0, profiles: 0, statuses: 0, lastProfileFrame: null, lastPreviewFrame: null, stripePoints: 0,
+const lp = window.lpState = {previews: 0, profiles: 0, statuses: 0, lastProfileFrame: null, lastPreviewFrame: null, stripePoints: 0, targets: 0,
   units: null, settings: null, cloudPoints: 0, scan: null, errors: []};
 
 const $ = (id) => document.getElementById(id);
@@ -78,6 +78,7 @@ function drawTarget(ctx, t, s) {
     ctx.beginPath();
     ctx.ellipse(c[0] * s, c[1] * s, Math.abs(axes[0]) * s, Math.abs(axes[1]) * s, ang, 0, 2 * Math.PI);
     ctx.stroke();
+    lp.targets += 1;
   }
   if (c) {
     ctx.beginPath();
