@@ -84,7 +84,7 @@ def test_target_drawn_on_the_live_image(chromium_exe, tmp_path):
         url = live.url()
         page = Chromium(chromium_exe, tmp_path / "profile", size=(1200, 900))
         page.open(url)
-        page.wait_for("window.lpState && lpState.previews >= 2 && lpState.settings", 90, "the live image")
+        page.wait_for("window.lpState && lpState.previews >= 2 && lpState.settings", 300, "the live image")
         assert page.js("lpState.targets") == 0  # not looked for until asked
         page.js("(() => { const el = document.getElementById('set-target'); el.click(); })()")
         poll(lambda: _get(url + "api/settings")["target"] is True, 10, "the engine's target setting")
@@ -114,7 +114,8 @@ def test_live_page_in_headless_chromium(chromium_exe, tmp_path):
         page = Chromium(chromium_exe, tmp_path / "profile", size=(1400, 1500))
         page.open(url)
         # the live image and the profile arrive, and keep coming
-        page.wait_for("window.lpState && lpState.previews >= 2 && lpState.profiles >= 2", 90, "image and profile")
+        page.wait_for("window.lpState && lpState.previews >= 2 && lpState.profiles >= 2", 300,
+                      "image and profile")  # the first run compiles the kernels
         f1 = page.js("lpState.lastProfileFrame")
         page.wait_for(f"lpState.lastProfileFrame > {f1} && lpState.previews >= 4", 20, "a newer profile")
         assert page.js("lpState.stripePoints") > 100  # stripe centres drawn on the image

@@ -41,6 +41,7 @@ class ScriptedEngine:
         self.subscribers: list[queue.Queue] = []
         self.calls: list[tuple] = []
         self.points = np.arange(30, dtype=float).reshape(10, 3)
+        self.scanning = False
 
     def start(self):
         self.calls.append(("start",))
@@ -83,9 +84,10 @@ class ScriptedEngine:
 
     def start_scan(self, kind, steps, step, folder):
         self.calls.append(("scan", kind, steps, step, folder))
+        self.scanning = True
 
     def scan_status(self):
-        return {"state": "running", "step": 0, "steps": 3}
+        return {"state": "running" if self.scanning else "idle", "done": 0, "total": 3}
 
     def scan_points(self, since=0):
         return self.points[since:]
@@ -195,7 +197,10 @@ def test_record_and_scan(client, engine, tmp_path):
     _error(client.post("/api/record", json={"action": "start", "folder": "full"}), 409, "not empty")
     _error(client.post("/api/record", json={"action": "pause"}), 400, "action must be")
     s = client.post("/api/scan", json={"kind": "turntable", "steps": 3, "step": 10, "folder": "scan1"}).json()
-    assert s["steps"] == 3 and engine.calls[-1] == ("scan", "turntable", 3, 10.0, tmp_path / "scan1")
+    assert s["state"] == "running" and engine.calls[-1] == ("scan", "turntable", 3, 10.0, tmp_path / "scan1")
+    # the scan drives the hardware: no one else does meanwhile
+    _error(client.post("/api/turntable", json={"degrees": 5}), 409, "a scan is running")
+    _error(client.post("/api/laser", json={"on": False}), 409, "a scan is running")
     _error(client.post("/api/scan", json={"kind": "spiral", "steps": 3, "step": 1}), 400, "kind must be")
     _error(client.post("/api/scan", json={"kind": "linear", "steps": 0, "step": 1}), 400, "steps must be 1 to")
     _error(client.post("/api/scan", json={"kind": "linear", "steps": 2.5, "step": 1}), 400, "'steps' must be a number")

@@ -238,6 +238,8 @@ class LiveApi:
         hw = self.engine.hardware
         if hw is None:
             raise ApiError(409, "this sensor has no lasers or turntable to control (start it with --hardware)")
+        if self.engine.scan_status().get("state") == "running":
+            raise ApiError(409, "a scan is running: it drives the lasers and the table until it ends")
         return hw
 
     def laser(self, body: dict) -> dict:
