@@ -311,7 +311,7 @@ async function changeSetting(ev) {
 // ------------------------------------------------------------------ hardware
 function showHardware(hw) {
   const box = $("lasers");
-  $("tt-go").disabled = !(hw && hw.turntable);
+  $("tt-go").disabled = !(hw && hw.turntable) || scan.busy;
   if (!hw) {
     box.textContent = "no hardware (start with --hardware)"; $("tt-angle").textContent = "";
     $("stage-row").hidden = true; return;
@@ -321,7 +321,7 @@ function showHardware(hw) {
     for (let i = 0; i < hw.n_lasers; i++) {
       const label = document.createElement("label");
       const cb = document.createElement("input");
-      cb.type = "checkbox"; cb.id = "laser-" + i;
+      cb.type = "checkbox"; cb.id = "laser-" + i; cb.disabled = scan.busy;
       cb.addEventListener("change", () => setLaser(i, cb.checked));
       label.append(cb, ` laser ${i} `);
       box.append(label);
@@ -386,7 +386,7 @@ async function record(action) {
 }
 
 // ------------------------------------------------------------------ scan
-const scan = {polling: false, next: 0, done: false};
+const scan = {polling: false, next: 0, done: false, busy: false};
 
 function scanRunning(s) {
   return !!s && (s.running === true || s.state === "running" || s.state === "scanning" || s.state === "starting");
@@ -405,6 +405,8 @@ function showScan(s) {
   if (s.error) say("scan-msg", s.error);
   if (s.files) listFiles("scan-files", s.files);
   $("scan-start").disabled = scanRunning(s);
+  scan.busy = scanRunning(s);  // the scan drives the lasers and the table: their controls wait
+  for (const el of document.querySelectorAll("#lasers input, #tt-go, #st-go")) el.disabled = scan.busy;
   if (scanRunning(s) && !scan.polling) pollScan();
 }
 
