@@ -101,7 +101,7 @@ def test_specs():
     assert sim.hardware.has_stage and not sim.hardware.has_turntable
     assert parse_options("a=1, b=2.5,c=true,d=x") == {"a": 1, "b": 2.5, "c": True, "d": "x"}
     for spec, words in (("nope:3", "unknown scheme"), ("/no/such/thing.avi", "no such"), ("", "no source"),
-                        ("sim:cube", "kind"), ("sim:turntable,fps", "key=value"), ("sim:turntable,fps=-1", "fps")):
+                        ("sim:cube", "kind"), ("sim:turntable,bogus=1", "no option .bogus."), ("sim:target,lasers=2", "one laser"), ("sim:turntable,fps", "key=value"), ("sim:turntable,fps=-1", "fps")):
         with pytest.raises(LightplaneError, match=words):
             open_source(spec)
     with pytest.raises(LightplaneError, match="cannot be opened|no camera"):

@@ -33,7 +33,7 @@ from lightplane.core.io import CHANNELS, rotate_image
 from lightplane.ellipse.detect import EllipseDetectionOptions, detect_ellipses
 from lightplane.ellipse.target import select_target
 from lightplane.live.recording import Recorder
-from lightplane.live.scanning import ScanJob
+from lightplane.live.scanning import ScanJob, ScanRequest
 from lightplane.live.source import Frame, Hardware, Source
 from lightplane.measure.options import MeasureOptions
 from lightplane.measure.pointcloud import POINT_DTYPE
@@ -504,9 +504,9 @@ class LiveEngine:
             raise LightplaneError("a scan is already running")
         if not self._running:
             raise LightplaneError("start the engine before scanning")
-        job = ScanJob(kind, steps, step, folder, hardware=self.hardware, sensor=self.sensor,
-                      options=self._settings.measure_options(), capture=self.capture,
-                      settle_frames=self._settings.settle_frames, source_name=self.source.name)
+        request = ScanRequest(kind, steps, step, Path(folder), self._settings.settle_frames)
+        job = ScanJob(request, hardware=self.hardware, sensor=self.sensor, options=self._settings.measure_options(),
+                      capture=self.capture, source_name=self.source.name)
         self._scan = job
         job.start()
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -40,7 +40,7 @@ from lightplane.motion.model import Motion
 from lightplane.plane.triangulate import profile_axis
 from lightplane.stripe.extract import estimate_width
 
-__all__ = ["ScanJob", "SCAN_KINDS", "measure_command"]
+__all__ = ["ScanJob", "ScanRequest", "SCAN_KINDS", "measure_command"]
 
 SCAN_KINDS = ("turntable", "linear")
 
@@ -72,26 +72,51 @@ def measure_command(laser_names: list[str], kind: str, step: float, direction, o
     return " ".join(parts + ["-o cloud.ply"])
 
 
-class ScanJob:
-    """One scan on its own thread (module docstring).  ``capture(after)`` returns the first frame exposed
-    after the monotonic time ``after``; ``sensor`` None: the frames are written, no cloud."""
+@dataclass(frozen=True)
+class ScanRequest:
+    """What to scan (checked on construction): ``kind`` turntable or linear, ``steps`` (>= 1) of ``step``
+    degrees or mm (finite, non-zero), into ``folder``; ``settle_frames``: each capture takes the n-th frame
+    exposed after the lasers were switched."""
 
-    def __init__(self, kind: str, steps: int, step: float, folder: str | Path, *, hardware: Hardware | None,
-                 sensor: Sensor | None, options: MeasureOptions, capture: Callable[[float], Frame],
-                 settle_frames: int = 1, source_name: str = "") -> None:
-        if kind not in SCAN_KINDS:
-            raise LightplaneError(f"scan kind must be turntable or linear, got {kind!r}")
-        if isinstance(steps, bool) or int(steps) != steps or steps < 1:
-            raise LightplaneError(f"steps must be an integer >= 1, got {steps!r}")
-        step = float(step)
+    kind: str
+    steps: int
+    step: float
+    folder: Path
+    settle_frames: int = 1
+
+    def __post_init__(self) -> None:
+        if self.kind not in SCAN_KINDS:
+            raise LightplaneError(f"scan kind must be turntable or linear, got {self.kind!r}")
+        try:
+            steps, step, settle = int(self.steps), float(self.step), int(self.settle_frames)
+        except (TypeError, ValueError):
+            raise LightplaneError(f"steps and step must be numbers, got {self.steps!r} and {self.step!r}") from None
+        if isinstance(self.steps, bool) or steps != self.steps or steps < 1:
+            raise LightplaneError(f"steps must be an integer >= 1, got {self.steps!r}")
         if not (np.isfinite(step) and step != 0):
-            raise LightplaneError(f"step must be a finite non-zero number ({'deg' if kind == 'turntable' else 'mm'}), "
-                                  f"got {step!r}")
+            raise LightplaneError(f"step must be a finite non-zero number "
+                                  f"({'deg' if self.kind == 'turntable' else 'mm'}), got {self.step!r}")
+        if settle < 1:
+            raise LightplaneError(f"settle_frames must be >= 1, got {self.settle_frames!r}")
+        object.__setattr__(self, "steps", steps)
+        object.__setattr__(self, "step", step)
+        object.__setattr__(self, "folder", Path(self.folder))
+        object.__setattr__(self, "settle_frames", settle)
+
+
+class ScanJob:
+    """One scan (``request``) on its own thread (module docstring).  ``capture(after)`` returns the first
+    frame exposed after the monotonic time ``after``; ``sensor`` None: the frames are written, no cloud;
+    ``options``: how the laser frames are measured; ``source_name``: recorded in ``scan.json``."""
+
+    def __init__(self, request: ScanRequest, *, hardware: Hardware | None, sensor: Sensor | None,
+                 options: MeasureOptions, capture: Callable[[float], Frame], source_name: str = "") -> None:
+        kind, step = request.kind, request.step
         self.direction = _check_hardware(kind, hardware, sensor)
         assert hardware is not None  # checked above
-        self.kind, self.steps, self.step, self.hardware = kind, int(steps), step, hardware
+        self.kind, self.steps, self.step, self.hardware = kind, request.steps, step, hardware
         self.sensor, self.options, self.capture = sensor, options, capture
-        self.settle_frames, self.source_name = max(1, int(settle_frames)), source_name
+        self.settle_frames, self.source_name = request.settle_frames, source_name
         n = hardware.n_lasers if sensor is None else min(hardware.n_lasers, len(sensor.planes))
         self.names = [f"laser{i}" for i in range(n)] if sensor is None else list(sensor.planes)[:n]
         if n == 0:
@@ -100,7 +125,7 @@ class ScanJob:
         if sensor is not None:
             self.motion = Motion.turntable(sensor.turntable, step) if sensor.turntable is not None and \
                 kind == "turntable" else Motion.linear(step, self.direction)
-        self.folder = prepare_folder(folder)
+        self.folder = prepare_folder(request.folder)
         self.state, self.done = "running", 0
         self.error: str | None = None
         self.files: dict[str, Path] = {}

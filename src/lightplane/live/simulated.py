@@ -27,7 +27,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -39,12 +39,12 @@ from lightplane.live.source import Control, Frame, SimulatedHardware
 from lightplane.live.pacing import Pacer
 from lightplane.measure.sensor import Sensor
 from lightplane.plane.model import LightPlane
-from lightplane.simulate.render import SCAN_KINDS
+from lightplane.simulate.render import SCAN_KINDS, RenderOptions
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements
 from lightplane.simulate.turntable import default_turntable, mirrored_plane
 from lightplane.simulate.views import render_stage_view, render_target_view, render_turntable_view
 
-__all__ = ["SimulatedSensor", "SIM_KINDS", "calibrated_plane", "scaled_camera"]
+__all__ = ["SimulatedSensor", "SimulatedOptions", "SIM_KINDS", "calibrated_plane", "scaled_camera"]
 
 SIM_KINDS = ("turntable", "linear", "target")
 
@@ -96,29 +96,71 @@ def calibrated_plane(plane: LightPlane, rng: np.random.Generator, *, sigma_mm: f
     return LightPlane(sign * normal, sign * d, cov, meta=meta)
 
 
+@dataclass(frozen=True)
+class SimulatedOptions:
+    """The simulated sensor's scene and image formation (checked on construction).
+
+    ``lasers`` 1 or 2 (the second the first's mirror image about the turntable's axis); ``object`` on the
+    linear stage: sphere, step or plane; ``difficulty``, ``noise``, ``samples``: the image formation
+    (:class:`lightplane.simulate.render.RenderOptions`); ``scale``: the image size relative to the
+    default camera's 1280x960; ``seed``: the scene's and the calibration's random draws; ``placements``,
+    ``hold_s``: the target scene's placements and how long each is held; ``cache``: views kept.
+    """
+
+    lasers: int = 1
+    object: str = "sphere"
+    difficulty: str = "clean"
+    noise: bool = True
+    samples: int = 4
+    scale: float = 1.0
+    seed: int = 0
+    placements: int = 6
+    hold_s: float = 2.0
+    cache: int = 256
+
+    def __post_init__(self) -> None:
+        if self.lasers not in (1, 2) or isinstance(self.lasers, bool):
+            raise LightplaneError(f"lasers must be 1 or 2, got {self.lasers!r}")
+        if self.object not in SCAN_KINDS:
+            raise LightplaneError(f"object must be one of {', '.join(SCAN_KINDS)}, got {self.object!r}")
+        RenderOptions(difficulty=self.difficulty, noise=bool(self.noise), samples=self.samples)  # checks them
+        if not (isinstance(self.scale, (int, float)) and 0.1 <= self.scale <= 4):
+            raise LightplaneError(f"scale must be between 0.1 and 4, got {self.scale!r}")
+        for name in ("seed", "placements", "cache"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "seed" else 1):
+                raise LightplaneError(f"{name} must be an integer >= {0 if name == 'seed' else 1}, got {v!r}")
+        if not (isinstance(self.hold_s, (int, float)) and self.hold_s > 0):
+            raise LightplaneError(f"hold_s must be a positive number of seconds, got {self.hold_s!r}")
+
+
 class SimulatedSensor:
     """A simulated camera with lasers and a turntable or linear stage (module docstring).
 
     ``hardware``: the :class:`SimulatedHardware` whose state the frames show (default: one made here with
-    ``lasers`` lasers, the first one on, a turntable for ``kind="turntable"``, a stage for ``"linear"``);
-    ``scale``: the image size relative to the default camera's 1280x960; ``difficulty``, ``noise``,
-    ``samples``: the image formation (:class:`lightplane.simulate.render.RenderOptions`); ``seed``: the
-    scene's and the calibration's random draws.
+    ``options.lasers`` lasers, the first one on, a turntable for ``kind="turntable"``, a stage for
+    ``"linear"``); ``fps``: the frame rate (None: a frame whenever one is asked for); ``options``:
+    :class:`SimulatedOptions`, which keyword arguments change (``SimulatedSensor("linear", scale=0.5)``, as a
+    spec's options ``sim:linear,scale=0.5`` do).
     """
 
     def __init__(self, kind: str = "turntable", *, hardware: SimulatedHardware | None = None, fps: float | None = 30.0,
-                 lasers: int = 1, object: str = "sphere", difficulty: str = "clean", noise: bool = True,
-                 samples: int = 4, scale: float = 1.0, seed: int = 0, placements: int = 6, hold_s: float = 2.0,
-                 cache: int = 256) -> None:
+                 options: SimulatedOptions | None = None, **changes: Any) -> None:
         if kind not in SIM_KINDS:
             raise LightplaneError(f"simulated sensor kind must be one of {', '.join(SIM_KINDS)}, got {kind!r}")
-        if object not in SCAN_KINDS:
-            raise LightplaneError(f"object must be one of {', '.join(SCAN_KINDS)}, got {object!r}")
-        if lasers not in (1, 2) or (kind == "target" and lasers != 1):
-            raise LightplaneError(f"lasers must be 1 or 2 (1 for the target scene), got {lasers!r}")
-        self.kind, self.object, self.difficulty, self.noise = kind, object, difficulty, bool(noise)
-        self.samples, self.seed, self.hold_s = int(samples), int(seed), float(hold_s)
-        self.camera = scaled_camera(default_camera(), float(scale))
+        o = SimulatedOptions() if options is None else options
+        if changes:
+            names = {f.name for f in fields(SimulatedOptions)}
+            bad = sorted(set(changes) - names)
+            if bad:
+                raise LightplaneError(f"simulated sensor: no option {bad[0]!r} (options: fps, {', '.join(sorted(names))})")
+            o = replace(o, **changes)
+        lasers = o.lasers
+        if kind == "target" and lasers != 1:
+            raise LightplaneError(f"the target scene has one laser, got lasers={lasers!r}")
+        self.kind, self.options, self.object, self.seed, self.hold_s = kind, o, o.object, o.seed, o.hold_s
+        self.render_options = RenderOptions(difficulty=o.difficulty, noise=o.noise, samples=o.samples)
+        self.camera = scaled_camera(default_camera(), o.scale)
         plane = default_plane()
         self.table = replace(default_turntable(plane), camera=self.camera.to_dict())
         self.true_planes = [plane, mirrored_plane(plane, self.table.point_mm)][:lasers]
@@ -133,15 +175,15 @@ class SimulatedSensor:
         rng = np.random.default_rng([self.seed, 99])
         planes = {f"laser{i}": calibrated_plane(p, rng, camera=self.camera) for i, p in enumerate(self.true_planes)}
         self.sensor = Sensor(self.camera, planes, self.table if kind == "turntable" else None)
-        self.placements = sample_placements(int(placements), np.random.default_rng([self.seed, 7]),
+        self.placements = sample_placements(o.placements, np.random.default_rng([self.seed, 7]),
                                             camera=self.camera, plane=plane) if kind == "target" else []
         self._placement: int | None = None
-        self.name = f"sim:{kind}" + (f" ({object})" if kind == "linear" else "")
+        self.name = f"sim:{kind}" + (f" ({o.object})" if kind == "linear" else "")
         self._pacer = Pacer(fps)
         self.nominal_fps = self._pacer.fps
         self.dropped = 0
         self._cache: OrderedDict = OrderedDict()
-        self._cache_size = max(1, int(cache))
+        self._cache_size = o.cache
         self._lock = threading.Lock()
         self._t_start = time.monotonic()
         self.renders = 0
@@ -187,13 +229,12 @@ class SimulatedSensor:
 
     def _render(self, state: tuple) -> tuple[np.ndarray, dict]:
         lasers, value = state
-        kw: dict[str, Any] = {"difficulty": self.difficulty, "noise": self.noise, "seed": self.seed}
+        kw: dict[str, Any] = {"options": self.render_options, "seed": self.seed}
         if self.kind == "turntable":
-            img, truth = render_turntable_view(self.camera, self.true_planes, self.table, value, lasers,
-                                               samples=self.samples, **kw)
+            img, truth = render_turntable_view(self.camera, self.true_planes, self.table, value, lasers, **kw)
         elif self.kind == "linear":
             img, truth = render_stage_view(self.camera, self.true_planes, self.object, self._offset(value), lasers,
-                                           samples=self.samples, **kw)
+                                           **kw)
         else:
             img, truth = render_target_view(self.camera, self.true_planes[0], self.placements[value], lasers[0],
                                             index=value, **kw)
