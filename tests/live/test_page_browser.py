@@ -19,7 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from _chromium import Chromium, find_chromium, poll
+pytest.importorskip("uvicorn", reason="the live extra (starlette, uvicorn, websockets) is not installed")
+pytest.importorskip("websockets", reason="the live extra (starlette, uvicorn, websockets) is not installed")
+
+from _chromium import Chromium, find_chromium, poll  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
