@@ -21,6 +21,7 @@ from lightplane.cli import (  # noqa: E402,F401
     calibrate_plane_board,
     demo,
     evaluate,
+    live,
     measure,
     measure_batch,
     plan,
