@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from lightplane.core.errors import LightplaneError
+from lightplane.live.guide import LiveGuide
 
 if TYPE_CHECKING:
     from lightplane.live.engine import LiveEngine
@@ -180,6 +181,25 @@ class LiveApi:
     def __init__(self, engine: "LiveEngine", options: ServerOptions) -> None:
         self.engine = engine
         self.options = options
+        self.guide = LiveGuide(engine)
+
+    # ------------------------------------------------------------ guided calibration (lightplane.live.guide)
+    def guide_state(self) -> dict:
+        return jsonable(self.guide.state(), 7)
+
+    def guide_start(self, body: dict) -> dict:
+        sigma = float(_body_field(body, "target_sigma_mm", (int, float)))
+        return jsonable(self.guide.start(
+            sigma, diameter_mm=float(_body_field(body, "diameter_mm", (int, float), 50.0)),
+            working_volume=_body_field(body, "working_volume", str, "distance:380,520"),
+            percentile=float(_body_field(body, "percentile", (int, float), 100.0))), 7)
+
+    def guide_accept(self, body: dict) -> dict:
+        return jsonable(self.guide.accept(), 7)
+
+    def guide_simulate(self, body: dict) -> dict:
+        return jsonable(self.guide.place_simulated(float(_body_field(body, "error_mm", (int, float), 3.0)),
+                                                   float(_body_field(body, "error_deg", (int, float), 3.0))), 7)
 
     def status(self) -> dict:
         s = dict(self.engine.status())
@@ -499,6 +519,10 @@ def _api_routes(api: LiveApi, Route, WebSocketRoute) -> list:
         Route("/scan", get(lambda r: api.scan_status())),
         Route("/scan", post(api.start_scan), methods=["POST"]),
         Route("/scan/points", get(lambda r: api.scan_points(_int_query(r, "since", 0) or 0))),
+        Route("/guide", get(lambda r: api.guide_state())),
+        Route("/guide", post(api.guide_start), methods=["POST"]),
+        Route("/guide/accept", post(api.guide_accept), methods=["POST"]),
+        Route("/guide/simulate", post(api.guide_simulate), methods=["POST"]),
         WebSocketRoute("/ws", ws),
     ]
 

@@ -3,7 +3,8 @@
 
 // What the page has seen (read by the browser test and handy in the console).
 const lp = window.lpState = {previews: 0, profiles: 0, statuses: 0, lastProfileFrame: null, lastPreviewFrame: null, stripePoints: 0, targets: 0,
-  units: null, settings: null, cloudPoints: 0, scan: null, errors: []};
+  units: null, settings: null, cloudPoints: 0, scan: null, errors: [], guide: null,
+  ghostsDrawn: 0, guideAccepted: 0};
 
 const $ = (id) => document.getElementById(id);
 
@@ -549,6 +550,66 @@ function connect() {
   };
 }
 
+// ------------------------------------------------------------------ guided calibration
+function drawGhost(ctx, s) {
+  const g = lp.guide;
+  if (!g || !g.active || !g.suggestion) return;
+  const pts = g.suggestion.outline_px;
+  ctx.save();
+  ctx.strokeStyle = "#ff4fd8";
+  ctx.lineWidth = 2;
+  ctx.setLineDash([8, 6]);
+  ctx.beginPath();
+  pts.forEach(([u, v], i) => (i ? ctx.lineTo(u * s, v * s) : ctx.moveTo(u * s, v * s)));
+  ctx.closePath();
+  ctx.stroke();
+  ctx.restore();
+  lp.ghostsDrawn += 1;
+}
+
+function showGuide(g) {
+  lp.guide = g;
+  $("guide-accept").disabled = !(g && g.active && g.verdict && g.verdict.status === "continue");
+  if (!g || !g.active) { $("guide-state").textContent = "not started"; return; }
+  $("guide-state").textContent = `${g.n_placements} placements · ${g.figure}: ${fmt(g.sigma_mm, 4)} mm ` +
+    `(target ${fmt(g.target_sigma_mm, 4)} mm) · RMS camera frame ${fmt(g.rms_camera_frame_mm, 4)} mm, ` +
+    `shape ${fmt(g.rms_shape_mm, 4)} mm`;
+  const s = g.suggestion;
+  $("guide-next").textContent = s ? `next: the ghost, ${fmt(s.distance_mm, 0)} mm away, tilted ${fmt(s.tilt_deg, 0)} deg; ` +
+    `σ after it ${fmt(s.sigma_after_mm, 4)} mm` : "";
+  const ol = $("guide-history");
+  ol.innerHTML = "";
+  for (const v of g.history_sigma_mm) {
+    const li = document.createElement("li");
+    li.textContent = `σ ${fmt(v, 4)} mm`;
+    ol.appendChild(li);
+  }
+  const st = g.verdict.status;
+  say("guide-verdict", st === "continue" ? "" : g.verdict.message, st === "reached");
+}
+
+async function guideStart() {
+  say("guide-msg", "");
+  try {
+    showGuide(await api("POST", "api/guide", {target_sigma_mm: Number($("guide-sigma").value),
+      diameter_mm: Number($("guide-diameter").value), working_volume: $("guide-volume").value}));
+  } catch (e) { say("guide-msg", e.message); }
+}
+
+async function guideAccept() {
+  say("guide-msg", "");
+  $("guide-accept").disabled = true;
+  try {
+    showGuide(await api("POST", "api/guide/accept", {}));
+    lp.guideAccepted += 1;
+  } catch (e) { say("guide-msg", e.message); showGuide(lp.guide); }
+}
+
+async function guideLoop() {
+  try { showGuide(await api("GET", "api/guide")); } catch (e) { /* shown on the next action */ }
+  setTimeout(guideLoop, 1000);
+}
+
 async function main() {
   $("settings").addEventListener("change", changeSetting);
   $("settings").addEventListener("submit", (e) => e.preventDefault());
@@ -560,6 +621,8 @@ async function main() {
   $("scan-kind").addEventListener("change", () => {
     $("scan-step-unit").textContent = $("scan-kind").value === "turntable" ? "deg" : "mm";
   });
+  $("guide-start").addEventListener("click", guideStart);
+  $("guide-accept").addEventListener("click", guideAccept);
   cloudMouse();
   requestAnimationFrame(frameLoop);
   try { showSettings(await api("GET", "api/settings")); } catch (e) { say("settings-msg", e.message); }
@@ -567,6 +630,7 @@ async function main() {
   try { showScan(await api("GET", "api/scan")); } catch (e) { /* no scan yet */ }
   connect();
   previewLoop();
+  guideLoop();
 }
 
 main();
