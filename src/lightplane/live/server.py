@@ -18,6 +18,9 @@ The server binds 127.0.0.1 unless told otherwise.  Endpoints (JSON unless said o
 - ``POST /api/record`` (``{"action": "start", "folder": NAME}`` / ``{"action": "stop"}``);
 - ``POST /api/scan`` (``{"kind": "turntable"|"linear", "steps": N, "step": deg or mm, "folder": NAME}``),
   ``GET /api/scan``, ``GET /api/scan/points?since=N`` (the cloud's points from row N on, mm);
+- ``GET /api/guide``, ``POST /api/guide`` (``{"target_sigma_mm": F, "diameter_mm": F, "working_volume": TEXT}``),
+  ``POST /api/guide/accept``, ``POST /api/guide/simulate`` (``{"error_mm": F, "error_deg": F}``; the simulated
+  target only): the guided calibration (:mod:`lightplane.live.guide`);
 - websocket ``/api/ws``: the engine's events as JSON messages, profiles at most ``profile_hz`` a second (the
   latest one; each carries its frame number) and the status ``status_hz`` a second; the client may send
   ``{"profile_hz": F, "status_hz": F}`` to change the rates.

@@ -115,6 +115,7 @@ function drawPreview(p) {
   for (const [u, v] of uv) ctx.rect(u - 1, v - 1, 2.5, 2.5);  // already in preview px
   ctx.fill();
   drawTarget(ctx, p.target, 1);  // in preview px, as the stripe centres
+  drawGhost(ctx, s);  // the guide's outline is in image px
   lp.previews += 1;
   lp.stripePoints = uv.length;
   lp.lastPreviewFrame = p.frame === undefined ? null : p.frame;
