@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Literal, Optional
 
+import numpy as np
 import typer
 from rich.table import Table
 
@@ -15,6 +16,7 @@ from lightplane.cli._common import (Channel, app, board_option, console, handles
 from lightplane.camera.model import Camera
 from lightplane.cli._common import target_from_options
 from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, uncertainty_summary
+from lightplane.plan.shares import LITTLE, information_shares
 from lightplane.plane.joint import JointCameraImages, calibrate_light_planes
 from lightplane.plane.uncertainty import (camera_param_names, camera_params, camera_uncertainty_summary,
     joint_dispersion_phrase)
@@ -206,6 +208,21 @@ def shared_pose_lines(cals: dict) -> list[str]:
     return out
 
 
+def _shares(cal, cam, unc: dict) -> dict[int, float]:
+    """Each used image's information share (:func:`lightplane.plan.shares.information_shares`), also put in
+    ``unc`` (the plane file's uncertainty record) by image name; empty where it does not apply."""
+    try:
+        shares = information_shares(cal, cam)
+    except (LightplaneError, np.linalg.LinAlgError):  # another method, one placement, a singular set
+        return {}
+    if unc:
+        unc["information_share"] = {o.name: shares[o.index] for o in cal.images if o.index in shares}
+        unc.setdefault("covers", {})["information_share"] = (
+            "each used placement's share of the plane's variance reduction over the working volume (Fisher "
+            "information of its rim and stripe points, their noise and correlation from the residuals); they sum to 1")
+    return shares
+
+
 def _print_calibration(cal, cam) -> dict:
     """The plane, its uncertainty and the per-image table on the console; returns the uncertainty summary."""
     unc = uncertainty_summary(cal, cam)
@@ -244,20 +261,29 @@ def _print_calibration(cal, cam) -> dict:
                           f"{'in' if nm.get('image_dispersion_applied') else 'not in'} the covariance)")
     console.print(f"  image noise σ {cal.sigma_px:.3f} px (pooled); {cal.n_used} of {len(cal.images)} images used; "
                   f"{cal.seconds:.2f} s")
+    shares = _shares(cal, cam, unc)
     t = Table(show_edge=False, title="Per image: RMS residuals of rim and stripe points (px), stripe centres, "
-                                     "chord's RMS distance to the plane (µm)", title_justify="left")
+                                     "chord's RMS distance to the plane (µm), share of the information over the "
+                                     "working volume (%)", title_justify="left")
     t.add_column("image", no_wrap=True)
     t.add_column("status", no_wrap=True)
     t.add_column("reason", overflow="fold")
-    for col in ("rim px", "stripe px", "points", "chord µm"):
+    for col in ("rim px", "stripe px", "points", "chord µm", "info %"):
         t.add_column(col, justify="right", no_wrap=True)
     for o in cal.images:
         p = o.placement
         t.add_row(o.name, o.status, o.reason or "",
                   "–" if p is None else f"{p.rim_rms_px:.3f}", "–" if p is None else f"{p.stripe_rms_px:.3f}",
                   str(len(o.stripe_raw_uv)),
-                  "–" if p is None or not p.used else f"{p.chord_rms_mm * 1e3:.1f}")
+                  "–" if p is None or not p.used else f"{p.chord_rms_mm * 1e3:.1f}",
+                  f"{100 * shares[o.index]:.1f}" if o.index in shares else "–")
     console.print(t)
+    if shares:
+        even = 1.0 / len(shares)
+        little = [f"{o.name} {100 * shares[o.index]:.1f} %" for o in cal.images
+                  if o.index in shares and shares[o.index] < LITTLE * even]
+        console.print(f"  placements that added little (under {100 * LITTLE * even:.1f} % of the information over "
+                      f"the working volume, half an even share): {', '.join(little) if little else 'none'}")
     for w in cal.warnings:
         console.print(f"  warning: {w}")
     return unc

@@ -201,6 +201,11 @@ class SimulatedSensor:
             raise LightplaneError(f"placement must be 0..{len(self.placements) - 1}, got {index!r}")
         self._placement = None if index is None else int(index)
 
+    def show_placement(self, placement) -> None:
+        """Show the target at ``placement`` (a :class:`lightplane.simulate.scene.TargetPlacement`) from now on."""
+        self.placements.append(placement)
+        self._placement = len(self.placements) - 1
+
     def state(self) -> tuple:
         """The state a frame taken now shows: ``(lasers on, angle_deg or position_mm or placement)``."""
         lasers = tuple(bool(v) for v in self.hardware.laser_states())
