@@ -27,6 +27,7 @@ from lightplane.core.io import check_output, quiet_opencv
 from lightplane.measure.sensor import Sensor
 from lightplane.motion.model import Turntable
 from lightplane.plane.model import LightPlane, check_camera
+from lightplane.report.calibrations import write_calibration_report
 
 class _OneLineErrors(TyperGroup):
     """The command group, with click's usage errors (a bad choice, a value out of range, a
@@ -67,7 +68,28 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-console = Console(highlight=False, soft_wrap=True)
+class _WideTables(Console):
+    """A console that prints a table whole when its output is not a terminal (a pipe, a file): as wide
+    as the table needs, so that no cell (a file name) is cut to fit 80 columns."""
+
+    def print(self, *objects: Any, **kwargs: Any) -> None:
+        from rich.measure import Measurement
+        from rich.table import Table
+
+        if self.is_terminal or not any(isinstance(o, Table) for o in objects):
+            super().print(*objects, **kwargs)
+            return
+        wide = self.options.update_width(100_000)
+        need = max(Measurement.get(self, wide, o).maximum for o in objects if isinstance(o, Table))
+        old = self.width
+        self.width = max(old, need)
+        try:
+            super().print(*objects, **kwargs)
+        finally:
+            self.width = old
+
+
+console = _WideTables(highlight=False, soft_wrap=True)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)  # one warning, one line
 
 F = TypeVar("F", bound=Callable)
@@ -210,6 +232,34 @@ LASER_HELP = ("One laser of several, NAME=SELECTOR (repeat per laser; one plane 
               "image files) or cycle:K (the K-th laser frame of each pose), parts joined by +. E.g. --laser left=red "
               "--laser right=green. Files: -o plane.json gives plane_NAME.json, or use {laser} in -o.")
 laser_option = typer.Option(None, "--laser", help=LASER_HELP)
+
+
+# ------------------------------------------------------------------ reports
+REPORT_HELP = ("Write an HTML report of the calibration into this folder (index.html, self-contained); "
+               "later also: lightplane report FILE --out DIR.")
+report_option = typer.Option(None, "--report", metavar="DIR", help=REPORT_HELP)
+
+
+def report_folder(report: Path | None, force: bool) -> None:
+    """Check a ``--report`` folder before any work: not a file, its ``index.html`` not there unless
+    ``force``, its parent existing."""
+    if report is None:
+        return
+    if report.exists() and not report.is_dir():
+        raise LightplaneError(f"--report {report}: exists and is not a folder")
+    if report.exists():
+        check_output(report / "index.html", force)
+    elif not report.parent.is_dir():
+        raise LightplaneError(f"--report {report}: its parent folder {report.parent} does not exist")
+
+
+def write_report_of(result_file: Path, report: Path | None, force: bool) -> None:
+    """Write the report of ``result_file`` into ``report`` (nothing when None) and say where."""
+    if report is None:
+        return
+    with progress_bar("writing the report"):
+        path = write_calibration_report(result_file, report, force=force)
+    console.print(f"wrote {path}")
 
 
 # ------------------------------------------------------------------ outputs
