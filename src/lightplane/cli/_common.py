@@ -253,6 +253,23 @@ def report_folder(report: Path | None, force: bool) -> None:
         raise LightplaneError(f"--report {report}: its parent folder {report.parent} does not exist")
 
 
+def report_folders(report: Path | None, names: list, force: bool) -> dict:
+    """Per result (``names``: a laser's name, or None for a command's one result) its report folder, checked
+    (:func:`report_folder`): ``report`` itself for one result, ``report/NAME`` for each of several."""
+    if report is None or names == [None]:
+        report_folder(report, force)
+        return {n: report for n in names}
+    if report.exists() and not report.is_dir():
+        raise LightplaneError(f"--report {report}: exists and is not a folder")
+    if not report.exists() and not report.parent.is_dir():
+        raise LightplaneError(f"--report {report}: its parent folder {report.parent} does not exist")
+    out = {n: report / str(n) for n in names}
+    for sub in out.values():
+        if sub.exists():
+            report_folder(sub, force)
+    return out
+
+
 def write_report_of(result_file: Path, report: Path | None, force: bool) -> None:
     """Write the report of ``result_file`` into ``report`` (nothing when None) and say where."""
     if report is None:

@@ -57,10 +57,10 @@ def calibrate_camera_cmd(
     options = _calibration_options(model, fix_k3, zero_tangent, tilt, rotate)
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
-    files = _checked_files(images, output, plot, force)
     if report is not None and output.suffix.lower() not in (".json", ""):
         raise LightplaneError(f"--report reads the calibration from a JSON camera file; -o {output} is not one")
     report_folder(report, force)
+    files = _checked_files(images, output, plot, force)
     with progress_bar("finding corners", len(files)) as update:
         def step(i: int, n: int) -> None:  # once every image is read, the solve runs (lens-frame refit, covariance)
             update(i, label="finding corners" if i < n else "solving (corners refitted in the lens frame, covariance)")

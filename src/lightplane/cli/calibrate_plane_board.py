@@ -14,7 +14,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, output_file,
-                                    progress_bar, report_folder, report_option, takes_target, write_report_of)
+                                    progress_bar, report_folders, report_option, takes_target, write_report_of)
 from lightplane.camera.model import Camera
 from lightplane.cli._common import err_console
 from lightplane.core.io import try_read_image
@@ -198,9 +198,7 @@ def calibrate_plane_board_cmd(
         raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
     for out in outputs.values():
         output_file(out, force, inputs=[camera, *images, *(pattern or []), *(background or [])])
-    reports = {n: (report if n is None or report is None else report / str(n)) for n in outputs}
-    for folder in reports.values():
-        report_folder(folder, force)
+    reports = report_folders(report, list(outputs), force)  # several lasers: one folder each inside --report
     cam = Camera.load(camera)
     files = expand_inputs(images)
     if not files:
@@ -250,7 +248,7 @@ def calibrate_plane_board_cmd(
         res.plane.save(outputs[lname], force=force, extra=extra)
         console.print(f"wrote {outputs[lname]}")
     if report is not None:
-        report.mkdir(exist_ok=True)  # with several lasers: one report folder per laser inside it
+        report.mkdir(exist_ok=True)
     for lname in results:
         write_report_of(outputs[lname], reports[lname], force)
 

@@ -145,7 +145,7 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
 
     ``progress(label, done, total)``: after each step (the start-angle search per scan, each round).
     """
-    def step(label: str, done: int, total: int) -> None:
+    def report(label: str, done: int, total: int) -> None:
         if progress is not None:
             progress(label, done, total)
 
@@ -168,7 +168,7 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
         found = [starts[0]]
         for i, s in enumerate(scans[1:]):
             found.append(_search_start(ref, s, p0, d0, rng))
-            step("searching the start angles", i + 1, len(scans) - 1)
+            report("searching the start angles", i + 1, len(scans) - 1)
         starts = found
     searched = agreement(clouds(p0, d0, starts))
 
@@ -213,7 +213,7 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
         step = np.abs(sol.x - x)
         x = sol.x
         log.append({"round": r + 1, "sigma_mm": sigma, "pairs": int(sum(int(kp.sum()) for kp in keep))})
-        step("refining the axis and start angles (rounds)", r + 1, rounds)
+        report("refining the axis and start angles (rounds)", r + 1, rounds)
         if r > 0 and np.all(step[:2] < 1e-5) and np.all(step[2:4] < 1e-3) and np.all(step[4:] < 1e-3):
             break
     point, direction, st = unpack(x)

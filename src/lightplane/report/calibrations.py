@@ -207,6 +207,47 @@ def _limits(good: str, limits: list[str], fine: str) -> str:
 
 
 # ----------------------------------------------------------------------------- camera
+def _length(mm: float) -> str:
+    """A length with the unit that reads best: µm below 1 mm, else mm."""
+    return f"{mm * 1e3:.1f} µm" if abs(mm) < 1.0 else f"{mm:.2f} mm"
+
+
+def _camera_verdict(cal: dict, names: list, rms: np.ndarray, figures: tuple, tilts: np.ndarray, cover: float) -> str:
+    """The camera report's verdict: what the calibration is good for, then what limits it."""
+    all_rms, dist, ray_deg, ray_mm = figures
+    where = f"at about {dist:.0f} mm from the camera (the boards' median distance)"
+    sigma = (f"; a ray's direction σ {ray_deg:.4f} deg RMS over the image, i.e. {_length(ray_mm)} across the ray at "
+             f"{dist:.0f} mm" if np.isfinite(ray_deg) else "")
+    head = "Good for measuring" if not ray_deg > 0.5 else "Not yet good for measuring"
+    good = f"{head} {where}: RMS reprojection {all_rms:.3f} px over {len(names)} views{sigma}."
+    limits = [str(w) for w in cal.get("warnings") or []]
+    if ray_deg > 0.05:
+        limits.append(f"a ray's direction is uncertain by {ray_deg:.3f} deg RMS: more views, tilted 20–40 deg and "
+                      "covering the whole image, narrow it")
+    max_tilt, _ = _tilt_phrase(tilts)
+    span_x, span_y = (float(np.ptp(tilts[:, 0])), float(np.ptp(tilts[:, 1]))) if len(tilts) else (0.0, 0.0)
+    if max_tilt < 10.0:
+        limits.append(f"the boards face the camera (largest tilt {max_tilt:.1f} deg), so the focal length is "
+                      "barely observable: tilt the board 20–40 deg in several directions")
+    elif min(span_x, span_y) < 10.0:
+        axis = "x" if span_x < span_y else "y"
+        limits.append(f"the board turned about one axis only (its tilts about the camera's {axis} axis span "
+                      f"{min(span_x, span_y):.0f} deg): tilt it about the other axis too")
+    if cover < 0.5:
+        limits.append(f"the boards cover {100 * cover:.0f} % of the image: the lens distortion near the edges and "
+                      "corners is extrapolated; place the board there too")
+    flag = _flagged(rms)
+    worst = int(np.argmax(rms)) if len(rms) else 0
+    if flag.any() and not any(Path(names[worst]).name in w for w in limits):
+        limits.append(f"{int(flag.sum())} view(s) with residuals over {OUTLIER_FACTOR:g}x the median "
+                      f"({Path(names[worst]).name}: {rms[worst]:.3f} px against {np.median(rms):.3f} px)")
+    fx = (cal.get("std") or {}).get("fx")
+    if cal.get("std") and fx is None:
+        limits.append("the focal length is not determined by these views")
+    return _limits(good, limits, f"Nothing obvious limits it: the boards cover {100 * cover:.0f} % of the image "
+                   f"and tilt up to {max_tilt:.0f} deg.")
+
+
 def _camera_page(d: dict, camera: Camera) -> tuple[str, str, list, list, list]:
     views = d["report_inputs"]["views"]
     cal = d.get("calibration") or {}
@@ -220,41 +261,18 @@ def _camera_page(d: dict, camera: Camera) -> tuple[str, str, list, list, list]:
     dist = float(cu.get("distance_mm") or np.median([np.linalg.norm(v["tvec_mm"]) for v in views]))
     cover = _coverage(size, outlines)
     flag = _flagged(rms)
-    max_tilt, spread = _tilt_phrase(tilts)
     all_rms = float(camera.rms_px) if camera.rms_px is not None else float(np.sqrt(np.mean(rms ** 2)))
     grid = image_grid(camera, max(camera.width, camera.height) / 48.0)
     ray = ray_sigma_rad(camera, grid) if camera.covariance is not None else None
-    good = (f"Good for measuring at about {dist:.0f} mm from the camera (the boards' median distance): "
-            f"RMS reprojection {all_rms:.3f} px over {len(views)} views")
-    if ray is not None and np.all(np.isfinite(ray)):
+    if cu.get("included"):
+        ray_deg, ray_mm = float(cu["ray_sigma_deg_rms"]), float(cu["ray_sigma_mm_rms"])
+    elif ray is not None and np.all(np.isfinite(ray)):
         r_rms = float(np.sqrt(np.mean(ray ** 2)))
-        good += (f"; a ray's direction σ {math.degrees(r_rms):.4f} deg RMS over the image, i.e. "
-                 f"{r_rms * dist * 1e3:.1f} µm across the ray at {dist:.0f} mm")
-    good += "."
-    limits = [str(w) for w in cal.get("warnings") or []]
-    if ray is not None and np.all(np.isfinite(ray)) and math.degrees(float(np.sqrt(np.mean(ray ** 2)))) > 0.05:
-        limits.append(f"a ray's direction is uncertain by {math.degrees(float(np.sqrt(np.mean(ray ** 2)))):.3f} deg "
-                      "RMS: more views, tilted 20–40 deg and covering the whole image, narrow it")
-    if max_tilt < 10.0:
-        limits.append(f"the boards face the camera (largest tilt {max_tilt:.1f} deg), so the focal length is "
-                      "barely observable: tilt the board 20–40 deg in several directions")
-    elif spread < 30.0:
-        limits.append(f"the boards' tilts vary little ({spread:.0f} deg in all): tilt the board 20–40 deg in "
-                      "several directions")
-    if cover < 0.5:
-        limits.append(f"the boards cover {100 * cover:.0f} % of the image: the lens distortion near the edges and "
-                      "corners is extrapolated; place the board there too")
-    if flag.any():
-        worst = int(np.argmax(rms))
-        limits.append(f"{int(flag.sum())} view(s) with residuals over {OUTLIER_FACTOR:g}x the median "
-                      f"({Path(names[worst]).name}: {rms[worst]:.3f} px against {np.median(rms):.3f} px)")
-    fx = (cal.get("std") or {}).get("fx")
-    if fx is None and cal:
-        limits.append("the focal length is not determined by these views")
-    elif fx is not None and fx > 0.01 * camera.fx:
-        limits.append(f"fx σ {fx:.1f} px ({100 * fx / camera.fx:.1f} %)")
-    verdict = _limits(good, limits, f"Nothing obvious limits it: the boards cover {100 * cover:.0f} % of the image "
-                      f"and tilt up to {max_tilt:.0f} deg.")
+        ray_deg, ray_mm = math.degrees(r_rms), r_rms * dist
+    else:
+        ray_deg = ray_mm = float("nan")
+    verdict = _camera_verdict(cal, names, rms, (all_rms, dist, ray_deg, ray_mm), tilts, cover)
+    max_tilt = _tilt_phrase(tilts)[0]
     rows = [("camera", f"{camera.width}x{camera.height} px, lens model {camera.model}, fx {camera.fx:.2f} px, "
                        f"fy {camera.fy:.2f} px, cx {camera.cx:.2f} px, cy {camera.cy:.2f} px"),
             ("RMS reprojection", f"{all_rms:.4f} px over {len(views)} views"),
@@ -285,7 +303,8 @@ def _camera_page(d: dict, camera: Camera) -> tuple[str, str, list, list, list]:
             "covariance from this calibration (corner noise estimated from its residuals); not the corner "
             "detector's biases, nor a lens model that does not fit.</p>"),
             figures=[(figure_image_map(size, grid, ray * dist * 1e3, step_px=max(camera.width, camera.height) / 48.0,
-                                       label=f"σ across the ray at {dist:.0f} mm (µm)",
+                                       label=f"σ across the ray at {dist:.0f} mm (µm; colours end at the 95th "
+                                             f"percentile)", vmax=float(np.nanpercentile(ray * dist * 1e3, 95)),
                                        title="σ of a ray's direction, as a distance at the boards' median distance"),
                       "Ray σ map (µm at the working distance) over the image (px)")]))
     sk = _skipped_table(cal.get("views_skipped") or {})

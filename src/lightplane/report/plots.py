@@ -161,7 +161,11 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
                    interpolation="nearest")
     finite = np.isfinite(dist)
     if np.any(finite):
-        levels = np.arange(np.ceil(np.nanmin(dist[finite]) / 50) * 50, np.nanmax(dist[finite]), 50)
+        # 50 mm apart (wider when many), only near the working volume: a plane seen edge-on spans metres
+        lo = max(float(np.nanmin(dist[finite])), distance_mm[0] - 150.0)
+        hi = min(float(np.nanmax(dist[finite])), distance_mm[1] + 150.0)
+        step = 50.0 * max(1, math.ceil((hi - lo) / 50.0 / 12))
+        levels = np.arange(np.ceil(lo / step) * step, hi, step)
         if len(levels):
             cs = ax.contour(U, V, np.where(finite, dist, np.nan), levels=levels, colors="white", linewidths=0.6)
             ax.clabel(cs, fmt="%d mm", fontsize=7)
@@ -554,9 +558,9 @@ def figure_residual_field(size: tuple[int, int], uv: np.ndarray, residual: np.nd
 
 
 def figure_image_map(size: tuple[int, int], uv: np.ndarray, values: np.ndarray, *, label: str,
-                     title: str, step_px: float) -> bytes:
+                     title: str, step_px: float, vmax: float | None = None) -> bytes:
     """PNG: ``values`` at the pixel centres ``uv`` of a regular grid of ``step_px`` (e.g. a σ over the
-    image), colour bar labelled ``label`` (with its unit)."""
+    image), colour bar labelled ``label`` (with its unit); colours end at ``vmax`` when given."""
     plt = _plt()
     w, h = int(size[0]), int(size[1])
     uv = np.asarray(uv, float).reshape(-1, 2)
@@ -567,7 +571,7 @@ def figure_image_map(size: tuple[int, int], uv: np.ndarray, values: np.ndarray, 
          np.clip((uv[:, 0] // step_px).astype(int), 0, nx - 1)] = values
     fig, ax = plt.subplots(figsize=(7.5, 5.6))
     im = ax.imshow(grid, extent=(-0.5, nx * step_px - 0.5, ny * step_px - 0.5, -0.5), cmap="viridis",
-                   interpolation="nearest")
+                   interpolation="nearest", vmax=vmax)
     cb = fig.colorbar(im, ax=ax, shrink=0.8)
     cb.set_label(label)
     _image_axes(ax, w, h)
