@@ -200,6 +200,10 @@ def _skipped_table(skipped: dict) -> Section | None:
                    html=_table(("image", "reason"), [(Path(str(n)).name, why) for n, why in skipped.items()]))
 
 
+def _f_or_dash(x, fmt: str) -> str:
+    return "–" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
 def _limits(good: str, limits: list[str], fine: str) -> str:
     if limits:
         return good + " What limits it: " + "; ".join(limits) + "."
@@ -348,10 +352,19 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
                       "errors (optimistic); use 4 or more")
     q = d.get("quality") or {}
     if isinstance(q, dict) and q.get("verdict") not in (None, "ok"):
-        limits.append(f"quality {q.get('verdict')}: {q.get('message', q.get('reason', ''))}".rstrip(": "))
+        bad = [im for im in q.get("images") or [] if im.get("verdict") not in (None, "ok")]
+        if bad:
+            ratios = [float(im["ratio"]) for im in bad]
+            limits.append(f"{len(bad)} board(s) lie {min(ratios):.0f}–{max(ratios):.0f}x further from the plane than "
+                          f"their stripe noise predicts ({', '.join(Path(str(im['image'])).name for im in bad)}): "
+                          "board-pose errors or stripes biased along the pattern")
+        else:
+            limits.append(f"quality {q.get('verdict')}")
     if hi - lo < 0.1 * max(hi, 1.0):
         limits.append(f"the stripe points span only {hi - lo:.0f} mm in depth: the plane is extrapolated beyond it; "
                       "place the board nearer and farther")
+    ratio = {str(im.get("image")): float(im["ratio"]) for im in (q.get("images") or []) if "ratio" in im} \
+        if isinstance(q, dict) else {}
     max_tilt, spread = _tilt_phrase(tilts)
     if spread < 10.0:
         limits.append(f"the boards' orientations differ by {spread:.0f} deg in all: tilt the board between poses")
@@ -378,10 +391,13 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
                     names, rms_um, unit="µm", ylabel="stripe points to the plane, RMS", flagged=flag,
                     reference=float(np.nanmedian(rms_um)) if len(rms_um) else None,
                     reference_label="median of the boards"), "Per board (µm)")],
-                    html=_table(("image", "stripe points", "RMS to the plane (µm)", "tilt x, y (deg)", "depth (mm)"),
+                    html=_table(("image", "stripe points", "RMS to the plane (µm)", "× its stripe noise's prediction",
+                                 "tilt x, y (deg)", "depth (mm)"),
                                 [(Path(v["name"]).name, v["n_points"], "–" if v["rms_mm"] is None else
-                                  f"{v['rms_mm'] * 1e3:.1f}", f"{t[0]:+.1f}, {t[1]:+.1f}", f"{z:.1f}")
-                                 for v, t, z in zip(views, tilts, depth)])),
+                                  f"{v['rms_mm'] * 1e3:.1f}", _f_or_dash(ratio.get(v["name"]), ".1f"),
+                                  f"{t[0]:+.1f}, {t[1]:+.1f}", f"{z:.1f}")
+                                 for v, t, z in zip(views, tilts, depth)],
+                                [ratio.get(v["name"], 0.0) > 5.0 for v in views])),
                 Section("Residuals over the image", figures=[(figure_residual_field(size, uv, res, unit="µm",
                                                                                    scale=1e3),
                                                              "Stripe points' distance to the plane, binned (µm)")])]
@@ -390,7 +406,8 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
             "<p class=small>σ of a point triangulated at each pixel from the plane's covariance ("
             + html.escape(str(d.get("covariance_method", ""))) + "); it does not include the camera's share, the "
             "stripe centre's own noise, or systematic errors of the board poses.</p>"),
-            figures=[(figure_point_sigma(camera, plane, (float(lo), float(hi))),
+            # the map greys out pixels beyond a distance range: the stripe points' depths, widened to distances
+            figures=[(figure_point_sigma(camera, plane, (math.floor(0.95 * lo), math.ceil(1.15 * hi))),
                       "Point σ map (µm) over the image (px)")]))
     sk = _skipped_table(skipped)
     if sk is not None:
