@@ -23,6 +23,7 @@ from lightplane.cli import (  # noqa: E402,F401
     evaluate,
     measure,
     measure_batch,
+    range_image,
     refine_turntable,
     render,
     report,

@@ -62,7 +62,7 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import atomic_write
 
-__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "FIELD_UNITS", "units_line", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format",
+__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "FIELD_UNITS", "units_line", "cloud_comments", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format",
            "remove_stale_spools", "SPOOL_PREFIX", "STALE_SPOOL_S"]
 
 POINT_DTYPE = np.dtype([
@@ -332,6 +332,31 @@ def write_cloud(path: str | os.PathLike, data, *, fmt: str | None = None, ascii:
                     f.write(np.ascontiguousarray(c).tobytes())
 
     return atomic_write(path, writer, force=force)
+
+
+def cloud_comments(path: str | os.PathLike) -> list[str]:
+    """The comment lines of a cloud file (PLY ``comment`` lines, CSV ``#`` lines; none for NPY):
+    the units, the coordinate frame, the provenance."""
+    p = Path(path)
+    fmt = cloud_format(p)
+    if fmt == "npy" or not p.is_file():
+        return []
+    out = []
+    if fmt == "ply":
+        with open(p, "rb") as fb:
+            for raw in fb:  # the header is ASCII lines up to end_header, in every PLY format
+                line = raw.decode("ascii", "replace").rstrip("\r\n")
+                if line == "end_header":
+                    break
+                if line.startswith("comment "):
+                    out.append(line[len("comment "):])
+        return out
+    with open(p, newline="") as f:
+        for line in f:
+            if not line.startswith("#"):
+                break
+            out.append(line[1:].strip())
+    return out
 
 
 def read_cloud(path: str | os.PathLike, fmt: str | None = None) -> np.ndarray:
