@@ -13,7 +13,7 @@ from lightplane.cli._common import (Channel, CameraFiles, allow_other_camera_opt
                                     handles_errors, load_sensor, output_file, progress_bar)
 from lightplane.camera.model import Camera
 from lightplane.core.io import summarize_reasons
-from lightplane.measure.options import CloudOutput, MeasureOptions
+from lightplane.measure.options import DEPTH_FACTOR, CloudOutput, MeasureOptions
 from lightplane.measure.profile import working_depth
 from lightplane.measure.scan import measure_scan, open_frames
 from lightplane.measure.sensor import Sensor, measure_lasers
@@ -239,7 +239,7 @@ def measure_cmd(
     out = Path(output)
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
                              axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth,
-                             keep_outliers=keep_outliers, **({"depth_factor": 1.0} if crop else {}))
+                             keep_outliers=keep_outliers, depth_factor=1.0 if crop else DEPTH_FACTOR)
     if sens is not None:
         scans = [(name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name])
                  for name, glob in lasers]

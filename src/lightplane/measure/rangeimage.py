@@ -279,7 +279,7 @@ def read_range_image(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     try:
         with Image.open(p) as im:
             values = np.array(im).astype(np.uint16)
-            text = im.info.get(META_KEY) if p.suffix.lower() == ".png" else str(im.tag_v2.get(270, ""))
+            text = im.info.get(META_KEY) if p.suffix.lower() == ".png" else str(im.getexif().get(270, ""))
     except (OSError, ValueError) as e:
         raise LightplaneError(f"{p}: not a readable image ({e})") from None
     if text and not text.startswith("{"):

@@ -185,7 +185,7 @@ def _page(title: str, verdict: str, rows, warnings: Sequence[str], sections: Seq
     return "\n".join(parts)
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence], flagged: Sequence[bool] = ()) -> str:
+def _table(head: Sequence[str], rows: Sequence[Sequence], flagged: "Sequence[bool] | np.ndarray" = ()) -> str:
     out = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
     for k, r in enumerate(rows):
         cls = " class=rejected" if k < len(flagged) and flagged[k] else ""

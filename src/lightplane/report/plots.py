@@ -538,9 +538,9 @@ def figure_residual_field(size: tuple[int, int], uv: np.ndarray, residual: np.nd
     cb = fig.colorbar(im, ax=ax, shrink=0.8)
     cb.set_label(f"RMS residual per cell ({unit})")
     if r2.shape[1] == 2 and len(uv):
-        mu = np.column_stack([np.bincount(cell, weights=r2[:, j], minlength=nx * ny) for j in (0, 1)])
+        sums = np.column_stack([np.bincount(cell, weights=r2[:, j], minlength=nx * ny) for j in (0, 1)])
         with np.errstate(invalid="ignore", divide="ignore"):
-            mu = mu / cnt[:, None]
+            mu = sums / cnt[:, None]
         gx, gy = np.meshgrid((np.arange(nx) + 0.5) * w / nx, (np.arange(ny) + 0.5) * h / ny)
         ok = cnt > 0
         big = float(np.nanmax(np.linalg.norm(mu[ok], axis=1))) if ok.any() else 0.0
