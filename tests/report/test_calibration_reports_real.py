@@ -28,3 +28,22 @@ def test_ciclop_camera_report(shared_data, tmp_path):
     assert all(f"frame{k}.jpg" in page for k in range(16))
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 4  # coverage, per view, over the image, σ map
     assert f"wrote {tmp_path / 'rep' / 'index.html'}" in " ".join(r.stdout.split())
+
+
+def test_fabscan_turntable_report(shared_data, tmp_path):
+    """FabScan's 17 lit board frames at the laser positions (README: frames 67, 70, ... 115), with the camera of
+    its own configuration: the table turned about 58 deg in all, which the verdict names as a limit."""
+    root = shared_data / "fabscan"
+    if not root.is_dir():
+        pytest.skip(f"real-data test: {root} is absent")
+    assert lightplane("import-fabscan", root / "fabscan-config.json", "-o", tmp_path / "s.json").returncode == 0
+    frames = [root / "calibration_8x10" / f"calibration_{k:03d}.jpg" for k in range(67, 118, 3)]
+    r = lightplane("calibrate-turntable", *frames, "--camera", tmp_path / "s.json", "--board", "10x8", "--square", "7",
+                   "-o", tmp_path / "tt.json", "--report", tmp_path / "rep")
+    assert r.returncode == 0, r.stderr
+    page = (tmp_path / "rep" / "index.html").read_text()
+    verdict = re.search(r"<p class=verdict>(.*?)</p>", page, re.S).group(1)
+    span = float(re.search(r"table turned ([0-9.]+) deg in all", r.stdout).group(1))
+    assert 50 < span < 65 and f"the table turned {span:.0f} deg in all" in verdict
+    assert "deg in direction and" in verdict and "µm" in verdict
+    assert all(f.name in page for f in frames)
