@@ -228,6 +228,11 @@ def test_turntable_report_axis_sigma_as_a_point_error(tmp_path):
     v = _verdict(page)
     assert "moves by σ 200 µm" in v and "within about 90 mm of the axis" in v  # 1.5 x the 60 mm radius
     assert "turn_5.png" in v  # its circle residual far above the others
+    assert v.startswith("Good for merging")
+    d["quality"] = {"verdict": "elevated", "direction_sigmas": 4.2, "position_sigmas": 1.0}  # 3-10 σ apart
+    path.write_text(json.dumps(d))
+    v = _verdict(calibration_report_html(path))
+    assert v.startswith("Usable, with care") and "4.2 and 1.0 times their σ" in v
     assert "dark.png" in page and "board not found" in page
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 2
 

@@ -200,6 +200,17 @@ def _skipped_table(skipped: dict) -> Section | None:
                    html=_table(("image", "reason"), [(Path(str(n)).name, why) for n, why in skipped.items()]))
 
 
+def _head(quality: dict | None, good: str) -> str:
+    """The verdict's opening words from a result file's ``quality`` record: ``good`` when it is ok, guarded
+    when its checks were above their noise, a warning when it was kept against them."""
+    v = (quality or {}).get("verdict") if isinstance(quality, dict) else None
+    if v == "elevated":
+        return "Usable, with care (its checks lie above their noise), " + good[0].lower() + good[1:]
+    if v == "suspect":
+        return "Not reliable (kept against its checks), though meant " + good[0].lower() + good[1:]
+    return good
+
+
 def _f_or_dash(x, fmt: str) -> str:
     return "–" if x is None or not np.isfinite(x) else format(x, fmt)
 
@@ -342,7 +353,8 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
     flag = _flagged(rms_um)
     n_pts = int(sum(v["n_points"] for v in used))
     fit_um = float(d.get("residual_rms_mm", np.sqrt(np.mean(res ** 2)) if len(res) else np.nan)) * 1e3
-    good = (f"Good for triangulating points {lo:.0f}–{hi:.0f} mm from the camera (where its stripe points lie)"
+    good = (_head(d.get("quality"), f"Good for triangulating points {lo:.0f}–{hi:.0f} mm from the camera (where its "
+                  "stripe points lie)")
             + (f": a point's σ there {np.sqrt(np.nanmean(sig ** 2)) * 1e3:.1f} µm RMS (the plane's covariance, "
                f"{d.get('covariance_method', '')}; the camera's share not included)" if len(sig) else "")
             + f"; the plane fits its {n_pts} stripe points on {len(used)} boards to {fit_um:.1f} µm RMS.")
@@ -463,8 +475,10 @@ def _turntable_page(d: dict, tt: Turntable) -> tuple[str, str, list, list, list]
     sp = float(j.get("sigma_point_mm_circles", np.nan))
     span = float(d.get("angle_span_deg", np.nan))
     r_ref = max(round(rmax / 10.0) * 10.0, 10.0)
-    good = (f"Good for merging turntable scans of objects within about {1.5 * rmax:.0f} mm of the axis: the axis σ "
-            f"{sd:.4f} deg in direction and {sp:.4f} mm across it ({j.get('covers', 'leave-one-image-out')})")
+    good = (_head(d.get("quality"), f"Good for merging turntable scans of objects within about {1.5 * rmax:.0f} mm "
+                  "of the axis")
+            + f": the axis σ {sd:.4f} deg in direction and {sp:.4f} mm across it "
+            f"({j.get('covers', 'leave-one-image-out')})")
     if sig is not None:
         k = int(np.argmin(np.abs(radii - r_ref)))
         h0 = int(np.argmin(np.abs(heights - float(np.median(local[:, 2])))))
