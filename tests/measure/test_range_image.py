@@ -114,6 +114,7 @@ def test_cli_writes_both_files_and_refuses_bad_input(scan, tmp_path):
     assert "mm" in r.stdout and (tmp_path / "r.npz").is_file()
     _, meta = read_range_image(tmp_path / "r.png")
     assert meta["coordinates"].startswith("camera frame, object at frame 0")
+    assert meta["provenance"]["inputs"] == [str(tmp_path / "c.ply")] and meta["provenance"]["versions"]["lightplane"]
     one_error_line(lightplane("range-image", tmp_path / "c.ply", "-o", tmp_path / "r.png"), "already exists")
     one_error_line(lightplane("range-image", tmp_path / "c.ply", "-o", tmp_path / "r.jpg"), ".png")
     np.save(tmp_path / "xyz.npy", np.zeros((3, 3)))

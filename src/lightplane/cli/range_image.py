@@ -8,6 +8,7 @@ from typing import Literal, Optional
 import typer
 
 from lightplane.cli._common import app, console, handles_errors, output_file
+from lightplane.core.io import provenance
 from lightplane.measure.pointcloud import cloud_comments, read_cloud
 from lightplane.measure.rangeimage import RangeImageOptions, range_image, write_range_image
 
@@ -40,7 +41,8 @@ def range_image_cmd(
     comments = cloud_comments(cloud)
     frame = next((c.split("(", 1)[-1].rstrip(")") for c in comments if c.startswith("lightplane point cloud:")),
                  "the cloud's frame")
-    ri = range_image(read_cloud(cloud), opts, frame_description=frame, meta={"source": str(cloud)})
+    prov = provenance([cloud], {"across": across, "height": height, "step_mm": step, "scale_mm": scale})
+    ri = range_image(read_cloud(cloud), opts, frame_description=frame, meta={"provenance": prov})
     paths = write_range_image(output, ri, force=force)
     rows, cols = ri.shape
     filled = float((ri.values() > 0).mean())
