@@ -232,7 +232,7 @@ def test_turntable_report_axis_sigma_as_a_point_error(tmp_path):
     d["quality"] = {"verdict": "elevated", "direction_sigmas": 4.2, "position_sigmas": 1.0}  # 3-10 σ apart
     path.write_text(json.dumps(d))
     v = _verdict(calibration_report_html(path))
-    assert v.startswith("Usable, with care") and "4.2 and 1.0 times their σ" in v
+    assert v.startswith("Usable with care (its checks lie above their noise) for merging") and "4.2 and 1.0 times" in v
     assert "dark.png" in page and "board not found" in page
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 2
 

@@ -204,10 +204,11 @@ def _head(quality: dict | None, good: str) -> str:
     """The verdict's opening words from a result file's ``quality`` record: ``good`` when it is ok, guarded
     when its checks were above their noise, a warning when it was kept against them."""
     v = (quality or {}).get("verdict") if isinstance(quality, dict) else None
+    rest = good.removeprefix("Good ")  # "for ..."
     if v == "elevated":
-        return "Usable, with care (its checks lie above their noise), " + good[0].lower() + good[1:]
+        return "Usable with care (its checks lie above their noise) " + rest
     if v == "suspect":
-        return "Not reliable (kept against its checks), though meant " + good[0].lower() + good[1:]
+        return "Not reliable (kept against its checks) " + rest
     return good
 
 
@@ -334,31 +335,14 @@ def _recorded_camera(rec: dict) -> Camera:
                   int(rec["height"]), model=rec.get("model"))
 
 
-def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list, list]:
-    views = d["report_inputs"]["views"]
-    camera = _recorded_camera(d["camera"])
-    size = (camera.width, camera.height)
-    used = [v for v in views if v["n_points"] > 0]
-    names = [v["name"] for v in used]
-    rms_um = np.array([(v["rms_mm"] or np.nan) * 1e3 for v in used], float)
-    uv = np.vstack([np.reshape(v["stripe_uv"], (-1, 2)) for v in used]) if used else np.zeros((0, 2))
-    res = np.concatenate([np.asarray(v["residual_mm"], float) for v in used]) if used else np.zeros(0)
-    outlines = [np.reshape(v["outline_uv"], (-1, 2)) for v in views]
-    R = [np.asarray(v["R_cam_board"], float) for v in views]
-    tilts = _tilts(np.array([r[:, 2] for r in R]))
-    depth = np.array([v["t_cam_board_mm"][2] for v in views], float)
-    wv = d.get("working_volume") or {}
-    lo, hi = (wv.get("depth_mm") or [float(depth.min()), float(depth.max())])
-    sig = point_sigma_mm(camera, plane, uv) if plane.covariance is not None and len(uv) else np.zeros(0)
-    flag = _flagged(rms_um)
-    n_pts = int(sum(v["n_points"] for v in used))
-    fit_um = float(d.get("residual_rms_mm", np.sqrt(np.mean(res ** 2)) if len(res) else np.nan)) * 1e3
-    good = (_head(d.get("quality"), f"Good for triangulating points {lo:.0f}–{hi:.0f} mm from the camera (where its "
-                  "stripe points lie)")
-            + (f": a point's σ there {np.sqrt(np.nanmean(sig ** 2)) * 1e3:.1f} µm RMS (the plane's covariance, "
-               f"{d.get('covariance_method', '')}; the camera's share not included)" if len(sig) else "")
-            + f"; the plane fits its {n_pts} stripe points on {len(used)} boards to {fit_um:.1f} µm RMS.")
+def _board_plane_limits(d: dict, views: list, tilts: np.ndarray, rms_um: np.ndarray, names: list,
+                        depth_mm: tuple) -> tuple[list[str], dict]:
+    """What limits a board plane (the verdict's second half), and each image's ratio of its distance to the
+    plane to what its stripe noise predicts (from the file's ``quality``)."""
     limits = []
+    lo, hi = depth_mm
+    used = [v for v in views if v["n_points"] > 0]
+    flag = _flagged(rms_um)
     if len(used) < 4:
         limits.append(f"only {len(used)} boards: the σ comes from the fit residuals and ignores the boards' pose "
                       "errors (optimistic); use 4 or more")
@@ -377,7 +361,7 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
                       "place the board nearer and farther")
     ratio = {str(im.get("image")): float(im["ratio"]) for im in (q.get("images") or []) if "ratio" in im} \
         if isinstance(q, dict) else {}
-    max_tilt, spread = _tilt_phrase(tilts)
+    spread = _tilt_phrase(tilts)[1]
     if spread < 10.0:
         limits.append(f"the boards' orientations differ by {spread:.0f} deg in all: tilt the board between poses")
     if flag.any():
@@ -387,6 +371,36 @@ def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list,
     skipped = d.get("skipped") or {}
     if skipped:
         limits.append(f"{len(skipped)} of {len(skipped) + len(views)} images not used (listed below)")
+    return limits, ratio
+
+
+def _board_plane_page(d: dict, plane: LightPlane) -> tuple[str, str, list, list, list]:
+    views = d["report_inputs"]["views"]
+    camera = _recorded_camera(d["camera"])
+    size = (camera.width, camera.height)
+    used = [v for v in views if v["n_points"] > 0]
+    names = [v["name"] for v in used]
+    rms_um = np.array([(v["rms_mm"] or np.nan) * 1e3 for v in used], float)
+    uv = np.vstack([np.reshape(v["stripe_uv"], (-1, 2)) for v in used]) if used else np.zeros((0, 2))
+    res = np.concatenate([np.asarray(v["residual_mm"], float) for v in used]) if used else np.zeros(0)
+    outlines = [np.reshape(v["outline_uv"], (-1, 2)) for v in views]
+    R = [np.asarray(v["R_cam_board"], float) for v in views]
+    tilts = _tilts(np.array([r[:, 2] for r in R]))
+    depth = np.array([v["t_cam_board_mm"][2] for v in views], float)
+    wv = d.get("working_volume") or {}
+    lo, hi = (wv.get("depth_mm") or [float(depth.min()), float(depth.max())])
+    sig = point_sigma_mm(camera, plane, uv) if plane.covariance is not None and len(uv) else np.zeros(0)
+    flag = _flagged(rms_um)  # as _board_plane_limits flags them
+    n_pts = int(sum(v["n_points"] for v in used))
+    fit_um = float(d.get("residual_rms_mm", np.sqrt(np.mean(res ** 2)) if len(res) else np.nan)) * 1e3
+    good = (_head(d.get("quality"), f"Good for triangulating points {lo:.0f}–{hi:.0f} mm from the camera (where its "
+                  "stripe points lie)")
+            + (f": a point's σ there {np.sqrt(np.nanmean(sig ** 2)) * 1e3:.1f} µm RMS (the plane's covariance, "
+               f"{d.get('covariance_method', '')}; the camera's share not included)" if len(sig) else "")
+            + f"; the plane fits its {n_pts} stripe points on {len(used)} boards to {fit_um:.1f} µm RMS.")
+    limits, ratio = _board_plane_limits(d, views, tilts, rms_um, names, (lo, hi))
+    max_tilt = _tilt_phrase(tilts)[0]
+    skipped = d.get("skipped") or {}
     verdict = _limits(good, limits, f"Nothing obvious limits it: {len(used)} boards over {hi - lo:.0f} mm of "
                       f"depth, tilted up to {max_tilt:.0f} deg.")
     a, b, c = plane.normal
