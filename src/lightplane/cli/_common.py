@@ -269,9 +269,11 @@ def report_folder(report: Path | None, force: bool) -> None:
 def report_folders(report: Path | None, names: list, force: bool) -> dict:
     """Per result (``names``: a laser's name, or None for a command's one result) its report folder, checked
     (:func:`report_folder`): ``report`` itself for one result, ``report/NAME`` for each of several."""
-    if report is None or names == [None]:
+    if report is None:
+        return {n: None for n in names}
+    if names == [None]:
         report_folder(report, force)
-        return {n: report for n in names}
+        return {None: report}
     if report.exists() and not report.is_dir():
         raise LightplaneError(f"--report {report}: exists and is not a folder")
     if not report.exists() and not report.parent.is_dir():
