@@ -153,7 +153,8 @@ def test_format_follows_the_suffix(scan, tmp_path):
     txt = tmp_path / "cloud.txt"  # a suffix that names no format: --format says which
     r = measure(scan, "camera.json", "plane_a.json", txt, "--format", "csv")
     assert r.exit_code == 0, r.stderr
-    assert txt.read_text().startswith("x,y,z")
+    lines = txt.read_text().splitlines()  # the units, frame and provenance as '#' lines, then the header
+    assert lines[0].startswith("# units: x mm") and [ln for ln in lines if not ln.startswith("#")][0].startswith("x,y,z")
     r = measure(scan, "camera.json", "plane_a.json", tmp_path / "c.csv", "--format", "CSV")
     assert r.exit_code == 0, r.stderr
     assert np.array_equal(read_cloud(tmp_path / "c.csv")["x"], read_cloud(txt, "csv")["x"])

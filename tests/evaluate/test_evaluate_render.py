@@ -141,9 +141,11 @@ def test_cli_zhou_then_evaluate_side_by_side(dataset, circle_plane, tmp_path):
     LightPlane.from_dict(ds.truth["plane"]).save(truth_file)
     zhou = tmp_path / "zhou.json"
     r = run("calibrate-plane-board", *on, "--background", off, "--camera", cam, "--board", "9x6", "--square", sq,
-            "-o", zhou)
+            "-o", zhou, "--report", tmp_path / "zhou_report")
     assert r.returncode == 0, r.stderr
     assert "mm" in r.stdout and "deg" in r.stdout
+    page = (tmp_path / "zhou_report" / "index.html").read_text()  # the report, from the plane file
+    assert "for triangulating points" in page and " on 5 boards to " in page
     zp = LightPlane.load(zhou)
     assert np.degrees(zp.angle_to(LightPlane.load(truth_file))) < 0.01
     zd = json.loads(zhou.read_text())

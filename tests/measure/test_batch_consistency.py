@@ -342,6 +342,11 @@ def test_ids_1_and_01_stay_distinct(frames, client, reference, tmp_path):
                                     f"01,{frames / 'f'},{frames / 'camera.json'},plane.json\n")
     out = tmp_path / "out"
     assert measure_batch(tmp_path / "m.csv", out, client=client).status == "ok"
+    import pyarrow.parquet as pq
+
+    schema = pq.read_schema(next((out / "points").rglob("*.parquet")))  # units and frame travel with the points
+    assert json.loads(schema.metadata[b"units"])["x"] == "mm" and schema.field("u").metadata[b"unit"] == b"px"
+    assert schema.metadata[b"frame"] == b"x y z in mm (camera frame)"
     n1, n01 = read_points(out, "1").size, read_points(out, "01").size
     assert n01 == reference["A"].size and 0 < n1 < n01
     for t in (documented_read(out), open_dataset(out).to_table()):

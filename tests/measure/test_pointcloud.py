@@ -58,16 +58,21 @@ def test_ply_layout_is_standard(tmp_path):
     write_cloud(tmp_path / "b.ply", rec, comments=["hello"])
     raw = (tmp_path / "b.ply").read_bytes()
     header, body = raw.split(b"end_header\n", 1)
-    assert header.startswith(b"ply\nformat binary_little_endian 1.0\ncomment hello\nelement vertex 10\n")
+    units = b"comment units: x mm, y mm, z mm, frame index (0-based), intensity grey level, sigma_mm mm, u px, v px\n"
+    assert header.startswith(b"ply\nformat binary_little_endian 1.0\n" + units + b"comment hello\nelement vertex 10\n")
     assert body == rec.astype(POINT_DTYPE).tobytes()  # little-endian records, nothing else
     ply = PlyData.read(str(tmp_path / "b.ply"))
     assert [p.name for p in ply["vertex"].properties] == list(POINT_DTYPE.names)
-    assert ply.comments == ["hello"]
+    assert ply.comments == [units[8:-1].decode(), "hello"]
     write_cloud(tmp_path / "a.ply", rec, ascii=True)
     assert PlyData.read(str(tmp_path / "a.ply")).text
     assert (tmp_path / "c.csv").exists() is False
-    write_cloud(tmp_path / "c.csv", rec)
-    assert (tmp_path / "c.csv").read_text().splitlines()[0] == "x,y,z,frame,intensity,sigma_mm,u,v"
+    write_cloud(tmp_path / "c.csv", rec, comments=["lightplane point cloud: x y z in mm (camera frame)"])
+    lines = (tmp_path / "c.csv").read_text().splitlines()
+    assert lines[:3] == ["# " + units[8:-1].decode(), "# lightplane point cloud: x y z in mm (camera frame)",
+                         "x,y,z,frame,intensity,sigma_mm,u,v"]
+    back = read_cloud(tmp_path / "c.csv")  # the '#' lines skipped
+    assert all(np.array_equal(back[n], rec[n], equal_nan=n not in ("frame",)) for n in POINT_DTYPE.names)
 
 
 def test_empty_cloud(tmp_path):

@@ -70,3 +70,23 @@ def test_fit_sphere():
     fit = fit_sphere(p).to_dict()
     assert abs(fit["radius_mm"] - 25.4) < 0.01 and np.linalg.norm(np.array(fit["center_mm"]) - [1, -2, 470]) < 0.02
     assert abs(fit["rms_mm"] - 0.01) < 0.003 and fit["n_inliers"] >= len(v) - 3
+
+
+def test_demo_scan_cloud_as_ply_with_units(tmp_path):
+    """The demo's scan stage writes its cloud as PLY (x y z, frame, intensity, σ, pixel; units and frame in the
+    comments) beside the NPY of x y z; the two hold the same points, on the true sphere."""
+    from lightplane.measure.pointcloud import cloud_comments, read_cloud
+    from lightplane.report.demo import _measure_scan
+    from lightplane.simulate.render import render_scan_dataset
+    from lightplane.simulate.scene import default_camera, default_plane
+
+    render_scan_dataset("sphere", n_frames=2, seed=1, difficulty="clean").save(tmp_path / "scan")
+    res = _measure_scan(tmp_path / "scan", default_camera(), default_plane(), tmp_path)
+    c = read_cloud(tmp_path / "scan_points.ply")
+    xyz = np.load(tmp_path / "scan_points.npy")
+    assert c.size == res["n_points"] == len(xyz) and set(c["frame"].tolist()) == {0, 1}
+    assert np.allclose(np.column_stack([c["x"], c["y"], c["z"]]), xyz, atol=1e-4)  # float32 in the PLY
+    assert np.all(np.isfinite(c["u"])) and np.all(np.isnan(c["sigma_mm"]))  # the true plane has no covariance
+    com = cloud_comments(tmp_path / "scan_points.ply")
+    assert com[0].startswith("units: x mm") and "object at frame 0" in com[1]
+    assert abs(res["radius_error_mm"]) < 0.05  # the true camera and plane, clean frames

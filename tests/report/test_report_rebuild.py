@@ -106,7 +106,7 @@ def test_old_plane_file_exits_2_with_one_line(calibrated, tmp_path):
     assert LightPlane.load(old).d < 0  # still a plane file
     _bad(run("report", old, "--out", tmp_path / "rep"), "no stored calibration inputs", "calibrate-plane")
     assert not (tmp_path / "rep").exists()
-    _bad(run("report", tmp_path / "missing.json", "--out", tmp_path / "rep"), "no such plane file")
+    _bad(run("report", tmp_path / "missing.json", "--out", tmp_path / "rep"), "no such result file")
     d["report_inputs"] = {"version": 1, "images": [{"index": 0}]}
     old.write_text(json.dumps(d))
     _bad(run("report", old, "--out", tmp_path / "rep"), "report_inputs", "malformed")

@@ -25,6 +25,7 @@ from lightplane.cli import (  # noqa: E402,F401
     measure,
     measure_batch,
     plan,
+    range_image,
     refine_turntable,
     render,
     report,

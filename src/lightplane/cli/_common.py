@@ -27,6 +27,7 @@ from lightplane.core.io import DEFAULT_MAX_PIXELS, MAX_PIXELS_ENV, check_output,
 from lightplane.measure.sensor import Sensor
 from lightplane.motion.model import Turntable
 from lightplane.plane.model import LightPlane, check_camera
+from lightplane.report.calibrations import write_calibration_report
 
 class _OneLineErrors(TyperGroup):
     """The command group, with click's usage errors (a bad choice, a value out of range, a
@@ -68,7 +69,6 @@ app = typer.Typer(
 )
 
 
-
 @app.callback()
 def _global_options(
     max_pixels: Optional[int] = typer.Option(
@@ -81,7 +81,28 @@ def _global_options(
         os.environ[MAX_PIXELS_ENV] = str(max_pixels)
 
 
-console = Console(highlight=False, soft_wrap=True)
+class _WideTables(Console):
+    """A console that prints a table whole when its output is not a terminal (a pipe, a file): as wide
+    as the table needs, so that no cell (a file name) is cut to fit 80 columns."""
+
+    def print(self, *objects: Any, **kwargs: Any) -> None:
+        from rich.measure import Measurement
+        from rich.table import Table
+
+        if self.is_terminal or not any(isinstance(o, Table) for o in objects):
+            super().print(*objects, **kwargs)
+            return
+        wide = self.options.update_width(100_000)
+        need = max(Measurement.get(self, wide, o).maximum for o in objects if isinstance(o, Table))
+        old = self.width
+        self.width = max(old, need)
+        try:
+            super().print(*objects, **kwargs)
+        finally:
+            self.width = old
+
+
+console = _WideTables(highlight=False, soft_wrap=True)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)  # one warning, one line
 
 F = TypeVar("F", bound=Callable)
@@ -224,6 +245,53 @@ LASER_HELP = ("One laser of several, NAME=SELECTOR (repeat per laser; one plane 
               "image files) or cycle:K (the K-th laser frame of each pose), parts joined by +. E.g. --laser left=red "
               "--laser right=green. Files: -o plane.json gives plane_NAME.json, or use {laser} in -o.")
 laser_option = typer.Option(None, "--laser", help=LASER_HELP)
+
+
+# ------------------------------------------------------------------ reports
+REPORT_HELP = ("Write an HTML report of the calibration into this folder (index.html, self-contained); "
+               "later also: lightplane report FILE --out DIR.")
+report_option = typer.Option(None, "--report", metavar="DIR", help=REPORT_HELP)
+
+
+def report_folder(report: Path | None, force: bool) -> None:
+    """Check a ``--report`` folder before any work: not a file, its ``index.html`` not there unless
+    ``force``, its parent existing."""
+    if report is None:
+        return
+    if report.exists() and not report.is_dir():
+        raise LightplaneError(f"--report {report}: exists and is not a folder")
+    if report.exists():
+        check_output(report / "index.html", force)
+    elif not report.parent.is_dir():
+        raise LightplaneError(f"--report {report}: its parent folder {report.parent} does not exist")
+
+
+def report_folders(report: Path | None, names: list, force: bool) -> dict:
+    """Per result (``names``: a laser's name, or None for a command's one result) its report folder, checked
+    (:func:`report_folder`): ``report`` itself for one result, ``report/NAME`` for each of several."""
+    if report is None:
+        return {n: None for n in names}
+    if names == [None]:
+        report_folder(report, force)
+        return {None: report}
+    if report.exists() and not report.is_dir():
+        raise LightplaneError(f"--report {report}: exists and is not a folder")
+    if not report.exists() and not report.parent.is_dir():
+        raise LightplaneError(f"--report {report}: its parent folder {report.parent} does not exist")
+    out = {n: report / str(n) for n in names}
+    for sub in out.values():
+        if sub.exists():
+            report_folder(sub, force)
+    return out
+
+
+def write_report_of(result_file: Path, report: Path | None, force: bool) -> None:
+    """Write the report of ``result_file`` into ``report`` (nothing when None) and say where."""
+    if report is None:
+        return
+    with progress_bar("writing the report"):
+        path = write_calibration_report(result_file, report, force=force)
+    console.print(f"wrote {path}")
 
 
 # ------------------------------------------------------------------ outputs

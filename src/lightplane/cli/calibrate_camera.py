@@ -13,11 +13,13 @@ from rich.table import Table
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
-from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, output_file, progress_bar, takes_target)
+from lightplane.cli._common import (app, BOARD_OPTIONS, console, handles_errors, output_file, progress_bar,
+                                    report_folder, report_option, takes_target, write_report_of)
 from lightplane.camera.intrinsics import (CameraCalibrationOptions, IntrinsicsCalibration, calibrate_camera,
                                           opencv_std_ratio)
 from lightplane.camera.lens import MODELS, coeff_names
 from lightplane.plane.uncertainty import camera_uncertainty_summary
+from lightplane.report.calibrations import camera_report_inputs
 from lightplane.report.plots import intrinsics_residuals
 
 
@@ -48,18 +50,26 @@ def calibrate_camera_cmd(
                                        "principal point is determined relative to it."),
     distance: Optional[float] = typer.Option(None, "--distance", help="Working distance (mm) at which to state "
                                              "the camera's uncertainty (default: the boards' median distance)."),
+    report: Optional[Path] = report_option,
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
     options = _calibration_options(model, fix_k3, zero_tangent, tilt, rotate)
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
+    if report is not None and output.suffix.lower() not in (".json", ""):
+        raise LightplaneError(f"--report reads the calibration from a JSON camera file; -o {output} is not one")
+    report_folder(report, force)
     files = _checked_files(images, output, plot, force)
     with progress_bar("finding corners", len(files)) as update:
-        result = calibrate_camera([str(f) for f in files], target, options=options, progress=lambda i, n: update(i))
+        def step(i: int, n: int) -> None:  # once every image is read, the solve runs (lens-frame refit, covariance)
+            update(i, label="finding corners" if i < n else "solving (corners refitted in the lens frame, covariance)")
+
+        result = calibrate_camera([str(f) for f in files], target, options=options, progress=step)
     detector = _print_intrinsics(result, target)
     cu = _print_uncertainty(result, distance)
     _write(result, output, plot, force, _extra(result, cu, files, target, options, detector))
+    write_report_of(output, report, force)
 
 
 def _calibration_options(model: str, fix_k3: bool, zero_tangent: bool, tilt: str | None,
@@ -201,6 +211,7 @@ def _extra(result: IntrinsicsCalibration, cu: dict, files: list[Path], target: T
     return {
         "calibration": result.to_dict(),
         "camera_uncertainty": cu,
+        "report_inputs": camera_report_inputs(result),  # lightplane report camera.json
         "provenance": provenance(files, {"board": target.spec, "square_mm": target.square_mm,
                                          "target": target.to_dict(), "rotate_deg": options.rotate_deg,
                                          "flags": result.flags, "fix_k3": bool(options.flags & cv2.CALIB_FIX_K3),

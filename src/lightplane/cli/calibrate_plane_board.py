@@ -14,11 +14,12 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, output_file,
-                                    progress_bar, takes_target)
+                                    progress_bar, report_folders, report_option, takes_target, write_report_of)
 from lightplane.camera.model import Camera
 from lightplane.cli._common import err_console
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
+from lightplane.report.calibrations import board_plane_report_inputs
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
 
@@ -180,6 +181,7 @@ def calibrate_plane_board_cmd(
                                                  "(stripe points are taken there too, only where the lit board "
                                                  "shows it; default: as far as the image shows the board; 0: the "
                                                  "pattern only)."),
+    report: Optional[Path] = report_option,
 ) -> None:
     """Calibrate the light plane with a planar board in two or more poses (Zhou's method, the paper's baseline).
 
@@ -196,6 +198,7 @@ def calibrate_plane_board_cmd(
         raise LightplaneError(f"-o {output}: the lasers' plane files would have the same name")
     for out in outputs.values():
         output_file(out, force, inputs=[camera, *images, *(pattern or []), *(background or [])])
+    reports = report_folders(report, list(outputs), force)  # several lasers: one folder each inside --report
     cam = Camera.load(camera)
     files = expand_inputs(images)
     if not files:
@@ -238,11 +241,16 @@ def calibrate_plane_board_cmd(
         idx = chosen[lname]
         inputs = list(dict.fromkeys([*(lasers[k] for k in idx), *(patterns[k] for k in idx if patterns
                                                                     and patterns[k] is not None)]))
-        extra: dict = {"provenance": provenance(inputs, opts)}
+        extra: dict = {"provenance": provenance(inputs, opts),
+                       "report_inputs": board_plane_report_inputs(res, cam)}  # lightplane report plane.json
         if lname is not None:
             extra = {"laser": lname, **extra}
         res.plane.save(outputs[lname], force=force, extra=extra)
         console.print(f"wrote {outputs[lname]}")
+    if report is not None:
+        report.mkdir(exist_ok=True)
+    for lname in results:
+        write_report_of(outputs[lname], reports[lname], force)
 
 
 def _print_board_result(res, target) -> None:

@@ -13,7 +13,8 @@ from lightplane.cli._common import (Channel, CameraFiles, allow_other_camera_opt
                                     handles_errors, load_sensor, output_file, progress_bar)
 from lightplane.camera.model import Camera
 from lightplane.core.io import summarize_reasons
-from lightplane.measure.options import CloudOutput, MeasureOptions
+from lightplane.measure.options import DEPTH_FACTOR, CloudOutput, MeasureOptions
+from lightplane.measure.profile import working_depth
 from lightplane.measure.scan import measure_scan, open_frames
 from lightplane.measure.sensor import Sensor, measure_lasers
 from lightplane.motion.model import Motion, load_rigid
@@ -204,10 +205,16 @@ def measure_cmd(
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     keep_outliers: bool = typer.Option(False, "--keep-outliers", help="Keep points outside the calibrated working "
                                        "volume or with a sigma beyond 100x the calibration's (dropped and counted by default)."),
+    crop: bool = typer.Option(False, "--crop", help="Keep only the points inside the calibrated working volume: "
+                              "the depth range of the plane's calibration points exactly (by default twice as wide "
+                              "each way), the others dropped and counted."),
     allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     inputs = list(inputs or [])
+    if crop and keep_outliers:
+        raise LightplaneError("--crop drops the points outside the working volume, --keep-outliers keeps them: "
+                              "give one")
     output_file(output, force, inputs=[camera, plane, sensor, positions, turntable, turntable_angles, poses, flange,
                                        *inputs, *(parse_laser(t)[1] for t in laser or [])])
     CloudOutput(fmt=fmt, ascii=ascii_ply, force=force).target(output)  # the format, before any work
@@ -222,6 +229,8 @@ def measure_cmd(
     else:
         cams, pl = _single_camera(camera, plane, laser, inputs, allow_other_camera)
     cam = cams.camera
+    if crop:
+        _check_crop({n: sens.planes[n] for n, _ in lasers} if sens is not None else {str(plane): pl})
     motion = motion_from_options(MotionArgs(step=step, direction=direction, positions=positions, turntable=turntable,
                                             turntable_step=turntable_step, turntable_angles=turntable_angles,
                                             turntable_start=turntable_start, counts_per_rev=counts_per_rev,
@@ -230,7 +239,7 @@ def measure_cmd(
     out = Path(output)
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
                              axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth,
-                             keep_outliers=keep_outliers)
+                             keep_outliers=keep_outliers, depth_factor=1.0 if crop else DEPTH_FACTOR)
     if sens is not None:
         scans = [(name, open_frames([glob] if glob is not None else inputs, rot), sens.planes[name])
                  for name, glob in lasers]
@@ -251,6 +260,14 @@ def measure_cmd(
     console.print(sigma_line(cam, pl))
     cams.warn()
     console.print(f"wrote {s.path} ({s.format}{' ascii' if ascii_ply else ''})")
+
+
+def _check_crop(planes: dict) -> None:
+    """--crop needs each plane's calibrated working volume (recorded by lightplane's calibrations)."""
+    for name, pl in planes.items():
+        if working_depth(pl)[0] is None:
+            raise LightplaneError(f"--crop: plane {name} records no working volume (not calibrated by lightplane?): "
+                                  "nothing to crop to")
 
 
 def _sensor_lasers(sensor: Path, laser: list[str] | None, inputs: list[str],

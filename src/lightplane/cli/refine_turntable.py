@@ -9,7 +9,7 @@ import typer
 
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import (Channel, allow_other_camera_option, app, console, handles_errors, load_sensor,
-                                    output_file, progress_bar)
+                                    output_file, progress_bar, report_folder, report_option, write_report_of)
 from lightplane.cli.measure import parse_laser
 from lightplane.core.io import provenance
 from lightplane.measure.options import MeasureOptions
@@ -17,6 +17,7 @@ from lightplane.measure.scan import open_frames, scan_points
 from lightplane.measure.sensor import Sensor
 from lightplane.motion.model import Motion
 from lightplane.motion.turntable_refine import TurntableScan, refine_turntable
+from lightplane.report.calibrations import refine_report_inputs
 from lightplane.stripe.options import StripeOptions
 
 
@@ -34,6 +35,7 @@ def refine_turntable_cmd(
                                          "(default: the sensor file's)."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Worker threads (default: all CPUs)."),
     allow_other_camera: bool = allow_other_camera_option,
+    report: Optional[Path] = report_option,
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     """Refine the turntable's axis and each scan's start angle so that the scans' clouds agree (planes fixed).
@@ -48,6 +50,7 @@ def refine_turntable_cmd(
 
 
     output_file(output, force, inputs=[sensor])
+    report_folder(report, force)
     sens, cams = load_sensor(sensor, allow_other_camera)
     if sens.turntable is None:
         raise LightplaneError(f"{sensor}: has no turntable to refine (add one with lightplane sensor --turntable)")
@@ -63,14 +66,16 @@ def refine_turntable_cmd(
     for name, glob in items:
         assert glob is not None  # checked above
         src = open_frames([glob], rot)
-        with progress_bar(f"measuring {name}", src.n_frames):
+        with progress_bar(f"measuring {name}", src.n_frames) as update:
             recs, summ = scan_points(src, sens.camera, sens.planes[name], MeasureOptions(StripeOptions(channel=channel)),
-                                     motion=Motion.none(), workers=workers)
+                                     motion=Motion.none(), workers=workers,
+                                     progress=lambda done, tot: update(done, total=tot))
         pts = np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
         console.print(f"scan {name}: {summ.n_frames} frames, {len(pts)} points"
                       + (f", {summ.n_skipped} frames skipped" if summ.skipped else ""))
         scans.append(TurntableScan(name, pts, recs["frame"].astype(np.float64), turntable_step))
-    r = refine_turntable(sens.turntable, scans)
+    with progress_bar("searching the start angles", len(scans) - 1) as update:
+        r = refine_turntable(sens.turntable, scans, progress=lambda label, i, n: update(i, total=n, label=label))
 
     def agree(a: dict) -> str:
         return f"median {a['median_mm']:.3f} mm, 90th percentile {a['p90_mm']:.3f} mm"
@@ -88,7 +93,8 @@ def refine_turntable_cmd(
         "step_deg": turntable_step, "agreement_before_mm": r.before, "agreement_searched_mm": r.searched,
         "agreement_after_mm": r.after, "axis_moved_deg": r.axis_moved_deg, "axis_moved_mm": r.axis_moved_mm,
         "note": "planes held fixed; measure each scan with --turntable-start at its start_deg",
-        "previous_turntable": sens.turntable.to_dict()}
+        "previous_turntable": sens.turntable.to_dict(),
+        "report_inputs": refine_report_inputs(scans, sens.turntable, r)}  # lightplane report sensor.json
     for pl in sens.planes.values():
         pl.meta.update(cams.allowed())
     out = Sensor(sens.camera, sens.planes, tt, sens.flange, sens.rotate_deg, sens.records)
@@ -97,3 +103,4 @@ def refine_turntable_cmd(
                                                          "rotate_deg": rot, **cams.record()}))
     cams.warn()
     console.print(f"wrote {output}")
+    write_report_of(output, report, force)

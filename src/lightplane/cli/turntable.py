@@ -14,7 +14,8 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, CameraFiles, allow_other_camera_option, console, err_console,
-                                    handles_errors, output_file, progress_bar, takes_target)
+                                    handles_errors, output_file, progress_bar, report_folder, report_option,
+                                    takes_target, write_report_of)
 from lightplane.camera.model import Camera
 from lightplane.core.io import read_json, rotation_code, try_read_image
 from lightplane.measure.sensor import Sensor, check_name, import_fabscan, plane_name
@@ -39,6 +40,7 @@ def calibrate_turntable_cmd(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the axis even when its two estimates "
                                       "are more than 10 σ apart (marked in the file's quality)."),
+    report: Optional[Path] = report_option,
 ) -> None:
     """The turntable's axis (camera frame) from a board on the table at several angles.
 
@@ -49,6 +51,7 @@ def calibrate_turntable_cmd(
     """
 
     output_file(output, force, inputs=[camera, *images])
+    report_folder(report, force)
     cam = Camera.load(camera)
     if rotate is None:
         rotate = _sensor_rotation(camera)
@@ -107,6 +110,7 @@ def calibrate_turntable_cmd(
             "board_height_mm": board_height, "keep_suspect": keep_suspect}
     tt.save(output, force=force, extra={"provenance": provenance(files, opts)})
     console.print(f"wrote {output}")
+    write_report_of(output, report, force)
 
 
 def _sensor_rotation(path: Path) -> int:

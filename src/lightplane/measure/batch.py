@@ -75,7 +75,7 @@ import numpy as np
 
 from lightplane.core.errors import LightplaneError
 from lightplane.measure.options import MeasureOptions
-from lightplane.measure.pointcloud import POINT_DTYPE, POINT_FIELDS
+from lightplane.measure.pointcloud import FIELD_UNITS, POINT_DTYPE, POINT_FIELDS
 from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
 from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, versions, write_json
@@ -476,15 +476,22 @@ def _processor(key: str, camera, plane, motion, axis: str, width_px, options: Me
     return proc
 
 
-def _table(records: np.ndarray, meta: dict):
-    """The partition's table: the points' columns and ``scan`` (the id, a string: a reader that
-    infers the partition key as an integer fails on it instead of merging ``1`` and ``01``)."""
+def _table(records: np.ndarray, meta: dict, frame: str = ""):
+    """The partition's table: the points' columns (each field's metadata ``unit``:
+    :data:`~lightplane.measure.pointcloud.FIELD_UNITS`) and ``scan`` (the id, a string: a reader that
+    infers the partition key as an integer fails on it instead of merging ``1`` and ``01``); the
+    schema's metadata: the chunk's record, ``units`` (field -> unit) and ``frame`` (the coordinate frame)."""
     import pyarrow as pa
 
-    cols = {name: pa.array(np.ascontiguousarray(records[name])) for name in POINT_FIELDS}
-    cols["scan"] = pa.repeat(pa.scalar(str(meta["scan"]), pa.string()), records.size)
-    t = pa.table(cols)
-    return t.replace_schema_metadata({_META_KEY: json.dumps(meta).encode()})
+    arrays = [pa.array(np.ascontiguousarray(records[name])) for name in POINT_FIELDS]
+    fields = [pa.field(name, a.type, metadata={b"unit": FIELD_UNITS[name].encode()})
+              for name, a in zip(POINT_FIELDS, arrays)]
+    arrays.append(pa.repeat(pa.scalar(str(meta["scan"]), pa.string()), records.size))
+    fields.append(pa.field("scan", pa.string()))
+    units = {name: FIELD_UNITS[name] for name in POINT_FIELDS}
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata={
+        _META_KEY: json.dumps(meta).encode(), b"units": json.dumps(units).encode(),
+        b"frame": (frame or "x y z in mm").encode()}))
 
 
 def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureOptions) -> dict:
@@ -535,7 +542,8 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
     meta = {"token": spec["token"], "scan": spec["scan"], "fingerprint": spec["fingerprint"], **summary}
     if _lock_token(Path(spec["lock"][0])) != spec["lock"][1]:  # the run that asked for it has ended
         return {"chunk": k, "error": "the run that submitted this chunk no longer holds the output folder's lock"}
-    atomic_write(spec["path"], lambda tmp: pq.write_table(_table(recs, meta), tmp), force=True)
+    table = _table(recs, meta, f"x y z in mm ({motion.frame_description if motion is not None else 'camera frame'})")
+    atomic_write(spec["path"], lambda tmp: pq.write_table(table, tmp), force=True)
     return {**summary, "written": True}
 
 

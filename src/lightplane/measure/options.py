@@ -68,7 +68,8 @@ class MeasureOptions:
         ``max_sigma_ratio`` (dropped and counted by default; see
         :class:`lightplane.measure.profile.ProfileMeasurer`).
     depth_factor : the working volume's depth range: the plane's calibrated depth range divided
-        and multiplied by this (``inf``: no depth limit).
+        and multiplied by this (1: the calibrated range exactly, ``measure --crop``; ``inf``: no depth
+        limit).
     max_sigma_ratio : a point's σ over the plane's σ where it was calibrated beyond which the point
         is dropped (``inf``: no limit).
     """
@@ -98,10 +99,11 @@ class MeasureOptions:
         if not (0.0 <= lo < 1.0 < hi) or np.isnan(hi):
             raise LightplaneError(f"need 0 <= min_width_ratio < 1 < max_width_ratio, got {self.min_width_ratio!r}, "
                                   f"{self.max_width_ratio!r}")
-        for name in ("depth_factor", "max_sigma_ratio"):
-            v = float(getattr(self, name))
-            if not v > 1.0:
-                raise LightplaneError(f"{name} must be > 1 (inf: off), got {getattr(self, name)!r}")
+        if not float(self.depth_factor) >= 1.0:
+            raise LightplaneError(f"depth_factor must be >= 1 (1: the calibrated depth range exactly, inf: off), got "
+                                  f"{self.depth_factor!r}")
+        if not float(self.max_sigma_ratio) > 1.0:
+            raise LightplaneError(f"max_sigma_ratio must be > 1 (inf: off), got {self.max_sigma_ratio!r}")
 
     def changed(self) -> dict:
         """``smooth_lines`` and every other option not at its default, stripe options included

@@ -22,10 +22,12 @@ Formats (by :func:`write_cloud`'s ``fmt`` or the file suffix):
 
 - PLY (``.ply``), binary little-endian by default, ASCII with ``ascii=True``: one
   ``vertex`` element with the fields above as properties (``float``/``uint``), the
-  provenance as ``comment`` lines.  The header comes from ``plyfile``; files are read
+  provenance as ``comment`` lines, the first naming each field's unit (:data:`FIELD_UNITS`).  The header comes from ``plyfile``; files are read
   with ``plyfile``.
-- CSV (``.csv``): a header row naming the columns (``x,y,z,frame,intensity,sigma_mm,u,v``),
-  then one row per point; floats with 9 significant digits (float32 round-trips exactly).
+- CSV (``.csv``): ``#`` comment lines (the fields' units, the coordinate frame, the provenance: the
+  PLY's comments), a header row naming the columns (``x,y,z,frame,intensity,sigma_mm,u,v``), then one
+  row per point; floats with 9 significant digits (float32 round-trips exactly).  Readers: numpy's
+  ``loadtxt`` skips ``#`` lines by default, pandas with ``comment="#"``.
 - NPY (``.npy``): the structured array itself (``numpy.load``).
 
 Writing streams: :class:`PointSpool` collects records in an append-only temporary file
@@ -60,7 +62,7 @@ import numpy as np
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import atomic_write
 
-__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format",
+__all__ = ["POINT_DTYPE", "POINT_FIELDS", "FORMATS", "FIELD_UNITS", "units_line", "cloud_comments", "make_records", "PointSpool", "write_cloud", "read_cloud", "cloud_format",
            "remove_stale_spools", "SPOOL_PREFIX", "STALE_SPOOL_S"]
 
 POINT_DTYPE = np.dtype([
@@ -82,6 +84,16 @@ def record_fields(dtype: np.dtype) -> tuple[str, ...]:
 POINT_FIELDS = record_fields(POINT_DTYPE)
 
 FORMATS = ("ply", "csv", "npy")
+
+#: the unit of each field of the point records, stated by every written cloud (PLY comment, CSV ``#`` line,
+#: Parquet field metadata)
+FIELD_UNITS = {"x": "mm", "y": "mm", "z": "mm", "frame": "index (0-based)", "intensity": "grey level",
+               "sigma_mm": "mm", "u": "px", "v": "px", "laser": "index (names in the comments)"}
+
+
+def units_line(dtype: np.dtype) -> str:
+    """The comment line naming each field's unit, e.g. ``units: x mm, y mm, ...``."""
+    return "units: " + ", ".join(f"{n} {FIELD_UNITS.get(n, '-')}" for n in record_fields(dtype))
 
 #: records per chunk when streaming (8 MB of binary records)
 CHUNK_RECORDS = 262_144
@@ -277,14 +289,17 @@ def write_cloud(path: str | os.PathLike, data, *, fmt: str | None = None, ascii:
 
     ``data``: a structured array (e.g. :data:`POINT_DTYPE` records) or a
     :class:`PointSpool` (streamed in chunks).  ``fmt`` defaults to the suffix;
-    ``comments`` (PLY only) e.g. provenance lines.  Refuses to overwrite without
+    ``comments`` (PLY comments, CSV ``#`` lines; NPY has none) e.g. provenance lines, after the units line
+    (:func:`units_line`).  Refuses to overwrite without
     ``force``.  Returns the path.
     """
     fmt = cloud_format(path, fmt)
     if ascii and fmt != "ply":
         raise LightplaneError("ascii applies to PLY only (CSV is text, NPY is binary)")
     count, dtype, chunks = _chunks_of(data)
-    comments = list(comments)
+    comments = [c.replace("\n", " ") for c in comments]
+    if not any(c.startswith("units:") for c in comments):
+        comments.insert(0, units_line(dtype))
 
     def writer(tmp: str) -> None:
         if fmt == "ply":
@@ -305,6 +320,7 @@ def write_cloud(path: str | os.PathLike, data, *, fmt: str | None = None, ascii:
         elif fmt == "csv":
             text = _text_format(dtype, ",")
             with open(tmp, "w", newline="") as f:
+                f.write("".join(f"# {c}\n" for c in comments))  # units, frame, provenance: '#' lines first
                 f.write(",".join(record_fields(dtype)) + "\n")
                 for c in chunks:
                     _write_text_rows(f, c, text)
@@ -316,6 +332,31 @@ def write_cloud(path: str | os.PathLike, data, *, fmt: str | None = None, ascii:
                     f.write(np.ascontiguousarray(c).tobytes())
 
     return atomic_write(path, writer, force=force)
+
+
+def cloud_comments(path: str | os.PathLike) -> list[str]:
+    """The comment lines of a cloud file (PLY ``comment`` lines, CSV ``#`` lines; none for NPY):
+    the units, the coordinate frame, the provenance."""
+    p = Path(path)
+    fmt = cloud_format(p)
+    if fmt == "npy" or not p.is_file():
+        return []
+    out = []
+    if fmt == "ply":
+        with open(p, "rb") as fb:
+            for raw in fb:  # the header is ASCII lines up to end_header, in every PLY format
+                line = raw.decode("ascii", "replace").rstrip("\r\n")
+                if line == "end_header":
+                    break
+                if line.startswith("comment "):
+                    out.append(line[len("comment "):])
+        return out
+    with open(p, newline="") as f:
+        for line in f:
+            if not line.startswith("#"):
+                break
+            out.append(line[1:].strip())
+    return out
 
 
 def read_cloud(path: str | os.PathLike, fmt: str | None = None) -> np.ndarray:
@@ -351,7 +392,10 @@ def read_cloud(path: str | os.PathLike, fmt: str | None = None) -> np.ndarray:
             raise LightplaneError(f"{p}: expected a 1-D structured array, got dtype {a.dtype} shape {a.shape}")
         return a
     with open(p, newline="") as f:
-        header = f.readline().strip()
+        header = f.readline()
+        while header.startswith("#"):  # comment lines (units, frame, provenance) before the header row
+            header = f.readline()
+        header = header.strip()
         names = [h.strip() for h in header.split(",")]
         if not header or any(not n or n[0].isdigit() or n[0] in "+-." for n in names):
             raise LightplaneError(f"{p}: first row must name the columns (x,y,z,...), got {header!r}")

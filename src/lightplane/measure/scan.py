@@ -623,13 +623,14 @@ def _prepare(source, camera, plane, motion, options: MeasureOptions):
 @with_blas_limited
 def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, options: MeasureOptions = MeasureOptions(),
                 *, motion: Motion | None = None, workers: int | None = 1,
-                executor: str = "auto") -> tuple[np.ndarray, ScanSummary]:
+                executor: str = "auto",
+                progress: Callable[[int, int | None], None] | None = None) -> tuple[np.ndarray, ScanSummary]:
     """In-memory scan: all points as one :data:`POINT_DTYPE` array, and the summary.
 
     For long scans use :func:`measure_scan` (streams to a file).  ``options``:
     :class:`~lightplane.measure.options.MeasureOptions` (a stripe ``width_px`` of None is
     estimated once on the first frame and used for all frames); ``workers``, ``executor``:
-    :func:`iter_scan`.
+    :func:`iter_scan`; ``progress(done, total)`` after each frame (``total`` None when unknown).
     """
     t0 = time.perf_counter()
     source, motion, opts = _prepare(source, camera, plane, motion, options)
@@ -637,6 +638,8 @@ def scan_points(source: FrameSource, camera: Camera, plane: LightPlane, options:
     parts, skipped, n, empty, dropped = [], [], 0, 0, Dropped()
     for r in iter_scan(source, proc, workers=workers, executor=executor):
         n += 1
+        if progress is not None:
+            progress(n, source.n_frames)
         if r.error is not None:
             skipped.append((r.index, r.name, r.error))
             continue

@@ -21,6 +21,7 @@ local planes of the other), its median and 90th percentile, in mm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -138,8 +139,16 @@ def _perp_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K_NEIGHBOURS,
                      n_sample: int = N_SAMPLE, rounds: int = ROUNDS, search: bool = True,
-                     start_deg: list[float] | None = None, seed: int = 0) -> RefineResult:
-    """Refine ``table``'s axis and the start angles of ``scans[1:]`` (``scans[0]`` starts at 0 deg)."""
+                     start_deg: list[float] | None = None, seed: int = 0,
+                     progress: Callable[[str, int, int], None] | None = None) -> RefineResult:
+    """Refine ``table``'s axis and the start angles of ``scans[1:]`` (``scans[0]`` starts at 0 deg).
+
+    ``progress(label, done, total)``: after each step (the start-angle search per scan, each round).
+    """
+    def report(label: str, done: int, total: int) -> None:
+        if progress is not None:
+            progress(label, done, total)
+
     if len(scans) < 2:
         raise LightplaneError("refining the turntable needs two scans of the same object (or more)")
     for s in scans:
@@ -156,7 +165,11 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
     before = agreement(clouds(p0, d0, starts))
     if search:
         ref = table_points(scans[0], p0, d0, starts[0])
-        starts = [starts[0]] + [_search_start(ref, s, p0, d0, rng) for s in scans[1:]]
+        found = [starts[0]]
+        for i, s in enumerate(scans[1:]):
+            found.append(_search_start(ref, s, p0, d0, rng))
+            report("searching the start angles", i + 1, len(scans) - 1)
+        starts = found
     searched = agreement(clouds(p0, d0, starts))
 
     def unpack(x):
@@ -200,6 +213,7 @@ def refine_turntable(table: Turntable, scans: list[TurntableScan], *, k: int = K
         step = np.abs(sol.x - x)
         x = sol.x
         log.append({"round": r + 1, "sigma_mm": sigma, "pairs": int(sum(int(kp.sum()) for kp in keep))})
+        report("refining the axis and start angles (rounds)", r + 1, rounds)
         if r > 0 and np.all(step[:2] < 1e-5) and np.all(step[2:4] < 1e-3) and np.all(step[4:] < 1e-3):
             break
     point, direction, st = unpack(x)

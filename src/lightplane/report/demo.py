@@ -17,7 +17,8 @@ Stages (each runs if its part of lightplane exists, else it is reported as skipp
 8. write the report (:mod:`lightplane.report.html`) and ``summary.json``.
 
 Everything lands in ``out``: ``data/`` (the renders, with ``truth.json``),
-``camera.json``, ``plane.json``, ``plane_zhou.json``, ``report/index.html``, ``summary.json``.
+``camera.json``, ``plane.json``, ``plane_zhou.json``, the scan's cloud ``scan_points.ply`` (and
+``scan_points.npy``), ``report/index.html``, ``summary.json``.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from lightplane.evaluate.shapes import fit_sphere, plane_accuracy
 from lightplane.camera.intrinsics import CameraCalibrationOptions, calibrate_camera
 from lightplane.core.io import provenance, provenance as _prov, read_image, write_json
 from lightplane.evaluate.crossratio import evaluate_images
+from lightplane.measure.pointcloud import make_records, write_cloud
 from lightplane.measure.profile import ProfileMeasurer
 from lightplane.plane.model import LightPlane
 from lightplane.plane.calibrate import PlaneCalibrationOptions, observe_images, solve_observations, uncertainty_summary
@@ -405,15 +407,21 @@ def _stage_scan(run: _Run, plane_for_scan: LightPlane | None) -> None:
 
 
 def _measure_scan(folder: Path, camera: Camera, plane: LightPlane, out: Path) -> dict:
-    """The scan's cloud (motion removed, saved as ``scan_points.npy``) and the sphere fitted to it."""
+    """The scan's cloud (motion removed, saved as ``scan_points.ply`` with every point's frame, σ and pixel,
+    and as ``scan_points.npy``, x y z only) and the sphere fitted to it."""
     truth, files, imgs = _load_set(folder)
     meas = ProfileMeasurer(camera, plane)
-    pts = []
-    for img, fr in zip(imgs, truth["frames"]):
+    pts, recs = [], []
+    for k, (img, fr) in enumerate(zip(imgs, truth["frames"])):
         prof = meas(img)
         p = prof.points[prof.valid] - np.asarray(fr["offset_mm"], dtype=np.float64)
         pts.append(p)
+        recs.append(make_records(p, frame=k, intensity=prof.intensity[prof.valid], sigma_mm=prof.sigma_mm[prof.valid],
+                                 uv=prof.uv[prof.valid]))
     cloud = np.vstack(pts) if pts else np.zeros((0, 3))
+    write_cloud(out / "scan_points.ply", np.concatenate(recs) if recs else make_records(cloud, frame=0), force=True,
+                comments=["lightplane point cloud: x y z in mm (camera frame, object at frame 0: the motion removed)",
+                          f"demo scan: {folder}"])
     # the static table behind (z = 600 mm) smears out once motion is removed: keep the object
     sph = truth["frames"][0]["surfaces"].get("sphere")
     res: dict = {"n_points": int(len(cloud))}

@@ -9,7 +9,10 @@ elsewhere.
 - :func:`study_factor` — the paper's §3 study, one factor (``lightplane simulate``);
 - :func:`point_sigma_map` — the triangulated points' sigma over the image;
 - :func:`figure_overlays` / :func:`overlays`, :func:`figure_poses_3d`, :func:`figure_residuals`,
-  :func:`figure_uncertainty` — the calibrate-plane report's figures, as PNG bytes.
+  :func:`figure_uncertainty` — the calibrate-plane report's figures, as PNG bytes;
+- :func:`figure_view_coverage`, :func:`figure_view_residuals`, :func:`figure_residual_field`,
+  :func:`figure_image_map`, :func:`figure_turntable`, :func:`figure_scans_overlay` — the figures of the
+  other calibrations' reports (:mod:`lightplane.report.calibrations`), as PNG bytes.
 
 Files are written atomically (:func:`save_figure`); the ``figure_*`` functions return PNG bytes.
 """
@@ -31,7 +34,9 @@ from lightplane.plane.triangulate import triangulate
 from lightplane.plane.uncertainty import camera_share_status, point_sigma_mm
 
 __all__ = ["save_figure", "intrinsics_residuals", "study_factor", "point_sigma_map", "overlays", "figure_overlays",
-           "figure_poses_3d", "figure_residuals", "figure_uncertainty", "point_cloud"]
+           "figure_poses_3d", "figure_residuals", "figure_uncertainty", "point_cloud", "figure_view_coverage",
+           "figure_view_residuals", "figure_residual_field", "figure_image_map", "figure_turntable",
+           "figure_scans_overlay", "figure_point_sigma"]
 
 
 def _plt():
@@ -156,7 +161,11 @@ def point_sigma_map(camera, plane, path: str | os.PathLike, *, force: bool = Fal
                    interpolation="nearest")
     finite = np.isfinite(dist)
     if np.any(finite):
-        levels = np.arange(np.ceil(np.nanmin(dist[finite]) / 50) * 50, np.nanmax(dist[finite]), 50)
+        # 50 mm apart (wider when many), only near the working volume: a plane seen edge-on spans metres
+        lo = max(float(np.nanmin(dist[finite])), distance_mm[0] - 150.0)
+        hi = min(float(np.nanmax(dist[finite])), distance_mm[1] + 150.0)
+        step = 50.0 * max(1, math.ceil((hi - lo) / 50.0 / 12))
+        levels = np.arange(np.ceil(lo / step) * step, hi, step)
         if len(levels):
             cs = ax.contour(U, V, np.where(finite, dist, np.nan), levels=levels, colors="white", linewidths=0.6)
             ax.clabel(cs, fmt="%d mm", fontsize=7)
@@ -394,6 +403,14 @@ def figure_uncertainty(cal, distance_mm: tuple[float, float] | None = None) -> b
         return path.read_bytes()
 
 
+def figure_point_sigma(camera, plane, distance_mm: tuple[float, float]) -> bytes:
+    """PNG of :func:`point_sigma_map` (µm) for ``camera`` and ``plane`` over ``distance_mm`` from the camera."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "sigma.png"
+        point_sigma_map(camera, plane, path, distance_mm=distance_mm, force=True)
+        return path.read_bytes()
+
+
 def point_cloud(points: np.ndarray, path: str | os.PathLike, *, labels: np.ndarray | None = None,
                 names: Sequence[str] | None = None, title: str = "", force: bool = True, max_points: int = 60000,
                 frame: str = "object frame") -> Path:
@@ -423,3 +440,201 @@ def point_cloud(points: np.ndarray, path: str | os.PathLike, *, labels: np.ndarr
     fig.suptitle(title or f"point cloud ({len(points)} points, {frame})")
     fig.tight_layout()
     return save_figure(fig, path, force=force, dpi=110)
+
+
+# ----------------------------------------------------------------------------- calibration reports
+def _image_axes(ax, width: int, height: int) -> None:
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+
+
+def figure_view_coverage(size: tuple[int, int], outlines: Sequence[np.ndarray], tilts_deg: np.ndarray, *,
+                         points: Sequence[np.ndarray] = (), title: str = "") -> bytes:
+    """PNG: where the board was in the image (one outline per view, px; ``points``: e.g. the stripe
+    points, px) and the views' tilts (deg: about the camera's x and y axes, one dot per view)."""
+    plt = _plt()
+    w, h = int(size[0]), int(size[1])
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11.5, 4.6), gridspec_kw={"width_ratios": [1.5, 1]})
+    cmap = plt.get_cmap("viridis")
+    n = max(len(outlines), 1)
+    for k, o in enumerate(outlines):
+        o = np.asarray(o, float).reshape(-1, 2)
+        if len(o):
+            a1.fill(o[:, 0], o[:, 1], color=cmap(k / n), alpha=0.12)
+            a1.plot(np.r_[o[:, 0], o[:1, 0]], np.r_[o[:, 1], o[:1, 1]], "-", color=cmap(k / n), lw=0.8)
+    for p in points:
+        p = np.asarray(p, float).reshape(-1, 2)
+        if len(p):
+            a1.plot(p[:, 0], p[:, 1], ".", color="#d02020", ms=1.0)
+    _image_axes(a1, w, h)
+    a1.set_title(f"Board in the image, {len(outlines)} views (colour: view order)", fontsize=9)
+    t = np.asarray(tilts_deg, float).reshape(-1, 2)
+    a2.scatter(t[:, 0], t[:, 1], c=np.arange(len(t)), cmap="viridis", s=18)
+    lim = max(45.0, float(np.nanmax(np.abs(t))) * 1.1) if len(t) else 45.0
+    a2.axhline(0, color="#999", lw=0.6)
+    a2.axvline(0, color="#999", lw=0.6)
+    for r in (20, 40):
+        c = plt.Circle((0, 0), r, fill=False, ls="--", color="#bbb", lw=0.7)
+        a2.add_patch(c)
+    a2.set_xlim(-lim, lim)
+    a2.set_ylim(-lim, lim)
+    a2.set_aspect("equal")
+    a2.set_xlabel("board tilt about the camera's x axis (deg)")
+    a2.set_ylabel("board tilt about the camera's y axis (deg)")
+    a2.set_title("Board tilts (dashed: 20 and 40 deg)", fontsize=9)
+    a2.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figure_view_residuals(names: Sequence[str], rms: np.ndarray, *, unit: str, ylabel: str, flagged=None,
+                          reference: float | None = None, reference_label: str = "") -> bytes:
+    """PNG: one bar per view (its RMS residual in ``unit``); ``flagged`` views in red; ``reference``: a
+    dashed line (e.g. the median)."""
+    plt = _plt()
+    x = np.arange(len(names))
+    flag = np.zeros(len(names), bool) if flagged is None else np.asarray(flagged, bool)
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.18 * len(names) + 3), 3.8))
+    ax.bar(x, np.asarray(rms, float), color=np.where(flag, "#d02020", "#1f5fbf"))
+    if reference is not None and np.isfinite(reference):
+        ax.axhline(reference, color="k", ls="--", lw=0.8, label=reference_label)
+        ax.legend(fontsize=7)
+    ax.set_xticks(x)
+    ax.set_xticklabels([Path(n).name for n in names], rotation=70, ha="right", fontsize=6)
+    ax.set_ylabel(f"{ylabel} ({unit})")
+    ax.set_title(f"Per view: {ylabel} ({unit}); red: far above the others", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figure_residual_field(size: tuple[int, int], uv: np.ndarray, residual: np.ndarray, *, unit: str,
+                          cells: int = 16, scale: float = 1.0) -> bytes:
+    """PNG: residuals over the image, binned in about ``cells`` x ``cells * h / w`` cells: each cell's
+    RMS (colour, ``unit``) and, for 2D residuals (N, 2), the cell's mean residual as an arrow
+    (magnified so that the largest spans a cell: a pattern here is what the model misses)."""
+    plt = _plt()
+    w, h = int(size[0]), int(size[1])
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    r = np.asarray(residual, float)
+    r2 = r.reshape(len(uv), -1)
+    nx = max(2, int(cells))
+    ny = max(2, int(round(cells * h / w)))
+    ix = np.clip((uv[:, 0] / w * nx).astype(int), 0, nx - 1)
+    iy = np.clip((uv[:, 1] / h * ny).astype(int), 0, ny - 1)
+    cell = iy * nx + ix
+    cnt = np.bincount(cell, minlength=nx * ny)
+    ss = np.bincount(cell, weights=np.sum(r2 ** 2, axis=1), minlength=nx * ny)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(ss / cnt) * scale
+    rms[cnt == 0] = np.nan
+    fig, ax = plt.subplots(figsize=(7.5, 5.6))
+    im = ax.imshow(rms.reshape(ny, nx), extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="magma", interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label(f"RMS residual per cell ({unit})")
+    if r2.shape[1] == 2 and len(uv):
+        sums = np.column_stack([np.bincount(cell, weights=r2[:, j], minlength=nx * ny) for j in (0, 1)])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mu = sums / cnt[:, None]
+        gx, gy = np.meshgrid((np.arange(nx) + 0.5) * w / nx, (np.arange(ny) + 0.5) * h / ny)
+        ok = cnt > 0
+        big = float(np.nanmax(np.linalg.norm(mu[ok], axis=1))) if ok.any() else 0.0
+        if big > 0:
+            k = (w / nx) / big
+            ax.quiver(gx.ravel()[ok], gy.ravel()[ok], mu[ok, 0] * k, mu[ok, 1] * k, angles="xy", scale_units="xy",
+                      scale=1, color="#30d0ff", width=0.003)
+            ax.set_title(f"Residuals over the image: cell RMS (colour) and mean (arrows; the longest is "
+                         f"{big * scale:.3g} {unit})", fontsize=9)
+    else:
+        ax.set_title("Residuals over the image: cell RMS", fontsize=9)
+    _image_axes(ax, w, h)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figure_image_map(size: tuple[int, int], uv: np.ndarray, values: np.ndarray, *, label: str,
+                     title: str, step_px: float, vmax: float | None = None) -> bytes:
+    """PNG: ``values`` at the pixel centres ``uv`` of a regular grid of ``step_px`` (e.g. a σ over the
+    image), colour bar labelled ``label`` (with its unit); colours end at ``vmax`` when given."""
+    plt = _plt()
+    w, h = int(size[0]), int(size[1])
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    nx = int(np.ceil(w / step_px))
+    ny = int(np.ceil(h / step_px))
+    grid = np.full((ny, nx), np.nan)
+    grid[np.clip((uv[:, 1] // step_px).astype(int), 0, ny - 1),
+         np.clip((uv[:, 0] // step_px).astype(int), 0, nx - 1)] = values
+    fig, ax = plt.subplots(figsize=(7.5, 5.6))
+    im = ax.imshow(grid, extent=(-0.5, nx * step_px - 0.5, ny * step_px - 0.5, -0.5), cmap="viridis",
+                   interpolation="nearest", vmax=vmax)
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label(label)
+    _image_axes(ax, w, h)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figure_turntable(origins_tt: np.ndarray, used_names: Sequence[str], radius_height_sigma: tuple, *,
+                     circle_rms_mm: np.ndarray, pnp_rms_px: np.ndarray) -> bytes:
+    """PNG, three panels: the board origins seen from above in the turntable frame (mm, the axis at 0);
+    per image the board points' RMS distance from their circles (mm) and the pose's reprojection RMS
+    (px); and ``radius_height_sigma`` = ``(radii mm, heights mm, σ (len(heights), len(radii)) mm)``: the
+    σ of a point turned half a turn about the calibrated axis."""
+    plt = _plt()
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4.4))
+    o = np.asarray(origins_tt, float).reshape(-1, 3)
+    a1.scatter(o[:, 0], o[:, 1], c=np.arange(len(o)), cmap="viridis", s=20)
+    a1.plot([0], [0], "k+", ms=12)
+    a1.set_aspect("equal")
+    a1.set_xlabel("x (mm, turntable frame)")
+    a1.set_ylabel("y (mm, turntable frame)")
+    a1.set_title("Board origins seen from above (+: the axis)", fontsize=9)
+    a1.grid(alpha=0.3)
+    x = np.arange(len(used_names))
+    a2.bar(x - 0.2, np.asarray(circle_rms_mm, float) * 1e3, 0.4, label="board points to their circles (µm)",
+           color="#1f5fbf")
+    a2b = a2.twinx()
+    a2b.bar(x + 0.2, np.asarray(pnp_rms_px, float), 0.4, label="pose reprojection (px)", color="#d08020")
+    a2.set_ylabel("circle RMS (µm)")
+    a2b.set_ylabel("PnP RMS (px)")
+    a2.set_xticks(x)
+    a2.set_xticklabels([Path(n).name for n in used_names], rotation=70, ha="right", fontsize=6)
+    a2.set_title("Per image: circle RMS (µm, blue), pose RMS (px, orange)", fontsize=9)
+    radii, heights, sig = radius_height_sigma
+    im = a3.imshow(np.asarray(sig, float) * 1e3, origin="lower", aspect="auto", cmap="viridis",
+                   extent=(radii[0], radii[-1], heights[0], heights[-1]))
+    cb = fig.colorbar(im, ax=a3)
+    cb.set_label("σ of a point turned 180 deg (µm)")
+    a3.set_xlabel("distance from the axis (mm)")
+    a3.set_ylabel("height above the turntable frame's origin (mm)")
+    a3.set_title("Axis uncertainty as a point error", fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figure_scans_overlay(before: Sequence[np.ndarray], after: Sequence[np.ndarray], names: Sequence[str]) -> bytes:
+    """PNG: the scans' clouds (turntable frame, mm) from above and from the side, before (given axis,
+    start angles 0) and after the refinement, one colour per scan."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 2, figsize=(11, 9))
+    colours = ["tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple"]
+    for row, clouds, label in ((0, before, "given axis, start angles 0"), (1, after, "refined")):
+        for col, (i, j), view in ((0, (0, 1), "from above (x, y)"), (1, (0, 2), "side (x, z)")):
+            ax = axes[row, col]
+            for k, (p, n) in enumerate(zip(clouds, names)):
+                p = np.asarray(p, float).reshape(-1, 3)
+                ax.scatter(p[:, i], p[:, j], s=0.4, c=colours[k % len(colours)], label=n, alpha=0.5, linewidths=0)
+            ax.set_aspect("equal")
+            ax.set_xlabel(f"{'xyz'[i]} (mm)")
+            ax.set_ylabel(f"{'xyz'[j]} (mm)")
+            ax.set_title(f"{label}: {view}", fontsize=9)
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(markerscale=15, fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
