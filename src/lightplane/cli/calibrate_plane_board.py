@@ -16,7 +16,7 @@ from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, output_file,
                                     progress_bar, takes_target)
 from lightplane.camera.model import Camera
-from lightplane.cli._common import err_console
+from lightplane.cli._common import err_console, frame_rotation
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
@@ -170,7 +170,8 @@ def calibrate_plane_board_cmd(
                                         "(FabScan's laser 0) or P,-,L (its laser 1)."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
-    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first "
+                                         "(default: the rotation the camera file records, else 0)."),
     laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
@@ -197,6 +198,7 @@ def calibrate_plane_board_cmd(
     for out in outputs.values():
         output_file(out, force, inputs=[camera, *images, *(pattern or []), *(background or [])])
     cam = Camera.load(camera)
+    rotate = frame_rotation(rotate, camera)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
