@@ -47,7 +47,7 @@ OUTLIER_FLOOR_PX = 0.3
 #: a calibration whose reprojection RMS is over this many times what its corner noise predicts, and
 #: over the floor, contradicts its noise model
 NOISE_RATIO = 3.0
-NOISE_FLOOR_PX = 0.1
+NOISE_FLOOR_PX = 0.05
 
 
 def perspective_px(object_points: np.ndarray, image_points: np.ndarray) -> float:
@@ -132,16 +132,22 @@ def focal_length_problem(fx: float, fy: float, std: dict, tilts_deg: Sequence[fl
     return None
 
 
-def outlier_views(names: Sequence[str], per_view_rms_px: Sequence[float]) -> dict[str, str]:
-    """The views whose reprojection RMS is over :data:`OUTLIER_RATIO` times the views' median and over
-    :data:`OUTLIER_FLOOR_PX`, each with its reason (name -> reason); none among fewer than 3 views."""
+def outlier_views(names: Sequence[str], per_view_rms_px: Sequence[float],
+                  predicted_px: Sequence[float] | None = None) -> dict[str, str]:
+    """The views whose reprojection RMS is over :data:`OUTLIER_RATIO` times the views' median and over a
+    floor, each with its reason (name -> reason); none among fewer than 3 views.  The floor: where the
+    view's corner noise predicts its RMS (``predicted_px``, NaN where unknown), :data:`NOISE_RATIO`
+    times that and at least :data:`NOISE_FLOOR_PX`; else :data:`OUTLIER_FLOOR_PX`."""
     rms = np.asarray(per_view_rms_px, np.float64).ravel()
     if len(rms) < 3:
         return {}
+    pred = np.full(len(rms), np.nan) if predicted_px is None else np.asarray(predicted_px, np.float64).ravel()
+    floor = np.where(np.isfinite(pred), np.maximum(NOISE_RATIO * pred, NOISE_FLOOR_PX), OUTLIER_FLOOR_PX)
     med = float(np.median(rms))
-    return {str(n): (f"reprojection RMS {r:.2f} px, {r / med:.1f}x the views' median {med:.2f} px: its corners do "
-                     "not follow the others' (a misdetected, blurred or moved board?)")
-            for n, r in zip(names, rms) if r > OUTLIER_RATIO * med and r > OUTLIER_FLOOR_PX}
+    return {str(n): (f"reprojection RMS {r:.2g} px, {r / med:.1f}x the views' median {med:.2g} px"
+                     + (f" and {r / p:.0f}x what its corners' noise predicts" if np.isfinite(p) else "")
+                     + ": its corners do not follow the others' (a misdetected, blurred or moved board?)")
+            for n, r, p, f in zip(names, rms, pred, floor) if r > OUTLIER_RATIO * med and r > f}
 
 
 @dataclass(frozen=True)
@@ -164,8 +170,14 @@ class CornerNoiseCheck:
         return self.rms_px / self.predicted_px if self.predicted_px > 0 else float("inf")
 
     @property
+    def suspect_views(self) -> tuple[tuple[str, float, float], ...]:
+        """The views whose own RMS is over :data:`NOISE_RATIO` x their prediction and over the floor."""
+        return tuple(v for v in self.views if v[1] > NOISE_RATIO * v[2] and v[1] > NOISE_FLOOR_PX)
+
+    @property
     def suspect(self) -> bool:
-        return self.ratio > NOISE_RATIO and self.rms_px > NOISE_FLOOR_PX
+        """The whole calibration, or some view of it, far above its corners' noise."""
+        return (self.ratio > NOISE_RATIO and self.rms_px > NOISE_FLOOR_PX) or bool(self.suspect_views)
 
     def worst_views(self, n: int = 3) -> list[tuple[str, float, float]]:
         return sorted(self.views, key=lambda v: -(v[1] / v[2] if v[2] > 0 else np.inf))[:n]
@@ -173,19 +185,20 @@ class CornerNoiseCheck:
     def diagnosis(self) -> str:
         """One sentence: how far the calibration is above its corner noise, the worst views, the likely causes."""
         worst = "; ".join(f"{Path(n).name} {r:.3g} px ({r / p:.0f}x its {p:.2g} px)" for n, r, p in self.worst_views())
-        spread = [r / p for _, r, p in self.views if p > 0]
-        even = len(spread) >= 3 and np.median(spread) > NOISE_RATIO
+        even = 2 * len(self.suspect_views) > len(self.views)
         cause = ("in every view alike: a lens model that does not fit this lens (try --model rational), a board that is "
                  "not flat, or board dimensions that do not match the board" if even
                  else "in some views: a board that moved during the exposure or was bent, or a misdetected board there")
         return (f"reprojection RMS {self.rms_px:.3g} px is {self.ratio:.1f}x the {self.predicted_px:.2g} px that the "
                 f"corners' own noise predicts ({self.n_corners} corners; each corner's precision from its fit to the "
-                f"image); worst views: {worst}; the excess is {cause}")
+                f"image), {len(self.suspect_views)} of {len(self.views)} views over {NOISE_RATIO:g}x their own; "
+                f"worst views: {worst}; the excess is {cause}")
 
     def to_dict(self) -> dict:
         return {"rms_px": self.rms_px, "predicted_rms_px": self.predicted_px, "ratio": self.ratio,
                 "suspect_ratio": NOISE_RATIO, "floor_px": NOISE_FLOOR_PX,
                 "verdict": "suspect" if self.suspect else "ok", "kept_by_request": bool(self.kept and self.suspect),
+                "suspect_views": [n for n, _, _ in self.suspect_views],
                 "predicted_from": "each saddle-fit corner's covariance from its own image (fit residual through "
                                   "the fit's Jacobian), independent of the calibration",
                 "views": [{"image": n, "rms_px": r, "predicted_rms_px": p} for n, r, p in self.views],

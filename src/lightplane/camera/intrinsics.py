@@ -520,7 +520,9 @@ def calibrate_camera(images: Sequence, board: "tuple[int, int] | Target", square
         found_uv = fixed
     record = {"rotate_deg": opts.rotate_deg, "refine": method or False, "median_blur_px": median_blur,
               "lens_frame_refit_corners": n_refit, "dot_mm": dot_mm, "circle_centre_correction_px": shift}
-    dropped = outlier_views([v.name for v in found], out[7]) if opts.drop_outlier_views else {}
+    predicted = [np.sqrt(np.nanmean(np.trace(C, axis1=1, axis2=2))) if C is not None and np.isfinite(C[:, 0, 0]).any()
+                 else np.nan for C in noise]
+    dropped = outlier_views([v.name for v in found], out[7], predicted) if opts.drop_outlier_views else {}
     if dropped and len(found) - len(dropped) >= opts.min_views:
         keep = [i for i, v in enumerate(found) if v.name not in dropped]
         found, found_uv, objs, imgpoints, noise, perspective = (
