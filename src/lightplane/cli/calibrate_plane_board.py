@@ -277,6 +277,12 @@ def _print_board_result(res, target) -> None:
     for name, why in pl.meta["skipped"].items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
     print_quality(pl.meta.get("quality"), res.quality)
+    g = pl.meta.get("geometry") or {}
+    if g:
+        console.print(f"Placements: stripes {g['length_mm']:.3g} mm long, spread {g['width_mm']:.3g} mm across; camera "
+                      f"sees the plane at {g['triangulation_deg']:.1f} deg")
+    for w in g.get("warnings", []):
+        err_console.print(f"warning: {w}")
 
 
 def print_quality(rec: dict | None, quality) -> None:
