@@ -991,8 +991,8 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
         meta["working_volume"] = working_volume(np.vstack(pts))
         meta["geometry"] = plane_geometry(np.vstack(pts), np.repeat(np.arange(len(pts)), [len(x) for x in pts]),
                                           cal.plane.normal, cal.plane.d, cov)
-        if meta["geometry"]["refusal"]:
-            raise LightplaneError(meta["geometry"]["refusal"])
+        if meta["geometry"]["refusal"] and not keep_suspect:
+            raise LightplaneError(meta["geometry"]["refusal"] + "; or keep the plane as it is with --keep-suspect")
         warnings.extend(meta["geometry"]["warnings"])
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)
     return ImagePlaneCalibration(plane=plane, covariance=plane.covariance, sigma_px=cal.sigma_px,

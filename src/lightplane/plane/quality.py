@@ -271,7 +271,9 @@ def plane_geometry(points_mm: np.ndarray, image_index: np.ndarray, normal, d: fl
     images' stripes (``stripe_angle_spread_deg``); the angle at which the camera looks at the plane at
     the points' centre (``triangulation_deg``); the normal's σ (deg) from ``covariance``.  ``warnings``
     say in words what is weakly determined and what to do; ``refusal`` (one sentence, or None) what
-    cannot be determined at all (:data:`MAX_NORMAL_SIGMA_DEG`).
+    the placements cannot determine at all: a normal σ over :data:`MAX_NORMAL_SIGMA_DEG` from stripes
+    spread across their direction by less than :data:`MIN_SPREAD_RATIO` of their length (a σ that
+    large from well-spread stripes is the images' fault, which :func:`plane_quality` judges).
     """
     p = np.asarray(points_mm, np.float64).reshape(-1, 3)
     idx = np.asarray(image_index).ravel()
@@ -307,7 +309,7 @@ def plane_geometry(points_mm: np.ndarray, image_index: np.ndarray, normal, d: fl
             f"the camera sees the light plane at {tri:.1f} deg (its line of sight to the calibration points against "
             f"the plane): depth errors grow as 1 / sin of it ({1 / max(np.sin(np.radians(tri)), 1e-9):.0f}x the "
             "image error's size); mount the camera 20-40 deg off the laser plane")
-    if sig is not None and not sig <= MAX_NORMAL_SIGMA_DEG:
+    if sig is not None and not sig <= MAX_NORMAL_SIGMA_DEG and width < MIN_SPREAD_RATIO * length:
         out["refusal"] = (f"the light plane is not determined by these {out['n_images']} images (normal σ {sig:.3g} deg): "
                           f"their stripes spread {width:.3g} mm across their direction against {length:.3g} mm along it; "
                           "move or turn the target between images so that the stripes cover the working area")

@@ -703,8 +703,8 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     per_image_bg = fr.background_images is not None and len(fr.background_images) > 1
     rec = check_plane_quality(q, keep=opts.keep_suspect, background_per_image=per_image_bg)
     geometry = plane_geometry(z.points_cam_mm, z.view_index, z.plane.normal, z.plane.d, z.plane.covariance)
-    if geometry["refusal"]:
-        raise LightplaneError(geometry["refusal"])
+    if geometry["refusal"] and not opts.keep_suspect:
+        raise LightplaneError(geometry["refusal"] + "; or keep the plane as it is with --keep-suspect")
     plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
                        meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm),
                              "geometry": geometry})
