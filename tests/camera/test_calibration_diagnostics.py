@@ -6,6 +6,8 @@ small renders with the renderer's realistic imaging test the corner noise measur
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import to_gray_float
 from lightplane.simulate.render import BoardCapture, BoardOptions, render_chessboard_dataset
+from _cli import lightplane, one_error_line
 
 K = np.array([[900.0, 0, 322.0], [0, 900.0, 236.0], [0, 0, 1]])
 DIST = np.array([-0.12, 0.08, 3e-4, -2e-4, 0.0])
@@ -208,3 +211,24 @@ def test_face_on_renders_are_refused_in_words():
     ds = render_chessboard_dataset(6, 1, BoardOptions(difficulty="realistic", capture=cap), camera=SMALL)
     with pytest.raises(LightplaneError, match=r"focal length (is not determined|cannot be determined).*tilt the board"):
         calibrate_camera(list(ds.images), (5, 5), 6.0)
+
+
+def test_cli_refuses_a_suspect_camera_then_keeps_it(small_renders, tmp_path):
+    """calibrate-camera: a view moved half-way, kept (--keep-outlier-views), makes the camera suspect:
+    exit 2, one line naming the view, nothing written; with --keep-suspect the file says so."""
+    imgs = list(small_renders.images)
+    h = int(np.median(np.asarray(small_renders.truth["views"][2]["corners_px"])[:, 1]))
+    imgs[2] = imgs[2].copy()
+    imgs[2][h:] = np.roll(imgs[2][h:], 1, axis=1)
+    for i, im in enumerate(imgs):
+        cv2.imwrite(str(tmp_path / f"v{i}.png"), im if im.ndim == 2 else cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+    out = tmp_path / "cam.json"
+    args = ("calibrate-camera", tmp_path / "v*.png", "--board", "7x5", "--square", "6", "-o", out,
+            "--keep-outlier-views")
+    line = one_error_line(lightplane(*args), "suspect camera calibration", "v2.png", "--keep-suspect")
+    assert "corners' own noise predicts" in line and not out.exists()
+    r = lightplane(*args, "--keep-suspect")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(out.read_text())["calibration"]
+    assert d["corner_noise_check"]["kept_by_request"] and d["corner_noise_check"]["suspect_views"] == [str(tmp_path / "v2.png")]
+    assert "Corner noise check" in r.stdout and "suspect, kept by request" in r.stdout

@@ -107,8 +107,8 @@ def degenerate_views_message(perspective: Sequence[float], noise_px: float | Non
             f"a near large board from a far small one; {TILT_ADVICE}")
 
 
-def focal_length_problem(fx: float, fy: float, std: dict, tilts_deg: Sequence[float],
-                         perspective: Sequence[float]) -> str | None:
+def focal_length_problem(fx: float, fy: float, std: dict, tilts_deg: Sequence[float] | np.ndarray,
+                         perspective: Sequence[float] | np.ndarray) -> str | None:
     """Why a solved calibration's focal length is not a result (one sentence), or None: a focal length
     that is not finite and positive, or whose std exceeds :data:`MAX_FOCAL_REL_STD` of it; the
     sentence gives the views' perspective (:func:`perspective_px`), the boards' tilts as solved and

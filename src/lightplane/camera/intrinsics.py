@@ -525,8 +525,9 @@ def calibrate_camera(images: Sequence, board: "tuple[int, int] | Target", square
     dropped = outlier_views([v.name for v in found], out[7], predicted) if opts.drop_outlier_views else {}
     if dropped and len(found) - len(dropped) >= opts.min_views:
         keep = [i for i, v in enumerate(found) if v.name not in dropped]
-        found, found_uv, objs, imgpoints, noise, perspective = (
-            [x[i] for i in keep] for x in (found, found_uv, objs, imgpoints, noise, perspective))
+        found, found_uv = [found[i] for i in keep], [found_uv[i] for i in keep]
+        objs, imgpoints = [objs[i] for i in keep], [imgpoints[i] for i in keep]
+        noise, perspective = [noise[i] for i in keep], [perspective[i] for i in keep]
         out = solve(imgpoints)
         cap.skipped.update({n: f"dropped: {why}" for n, why in dropped.items()})
     else:

@@ -280,37 +280,38 @@ def plane_geometry(points_mm: np.ndarray, image_index: np.ndarray, normal, d: fl
     n = np.asarray(normal, np.float64).ravel()
     c = p.mean(axis=0)
     q = (p - c) - np.outer((p - c) @ n, n)  # in the plane
-    lam, V = np.linalg.eigh(q.T @ q / max(len(q), 1))
-    along, across = V[:, 2], V[:, 1]
+    lam = np.linalg.eigvalsh(q.T @ q / max(len(q), 1))
     length, width = 4.0 * np.sqrt(max(lam[2], 0.0)), 4.0 * np.sqrt(max(lam[1], 0.0))
     dirs = []
     for k in np.unique(idx):
         pk = q[idx == k]
         if len(pk) >= 3:
-            w, U = np.linalg.eigh((pk - pk.mean(0)).T @ (pk - pk.mean(0)))
+            U = np.linalg.eigh((pk - pk.mean(0)).T @ (pk - pk.mean(0)))[1]
             dirs.append(U[:, 2])
     ang = [np.degrees(np.arccos(min(1.0, abs(float(a @ b))))) for i, a in enumerate(dirs) for b in dirs[i + 1:]]
-    tri = float(np.degrees(np.arcsin(min(1.0, abs(float(n @ c)) / max(np.linalg.norm(c), 1e-300)))))
+    tri = float(np.degrees(np.arcsin(min(1.0, abs(float(n @ c)) / max(float(np.linalg.norm(c)), 1e-300)))))
     sig = None
     if covariance is not None:
         sig = float(np.degrees(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0))))
-    out = {"length_mm": float(length), "width_mm": float(width), "stripe_angle_spread_deg": float(max(ang, default=0.0)),
-           "triangulation_deg": tri, "normal_sigma_deg": sig, "n_images": int(len(np.unique(idx))),
-           "warnings": [], "refusal": None}
-    across_dir = "across them"
+    n_images = int(len(np.unique(idx)))
+    spread_deg = float(max(ang, default=0.0))
+    warnings: list[str] = []
+    out: dict = {"length_mm": float(length), "width_mm": float(width), "stripe_angle_spread_deg": spread_deg,
+                 "triangulation_deg": tri, "normal_sigma_deg": sig, "n_images": n_images, "warnings": warnings,
+                 "refusal": None}
     if width < MIN_SPREAD_RATIO * length:
-        out["warnings"].append(
-            f"the stripes of the {out['n_images']} images spread {width:.3g} mm {across_dir} against {length:.3g} mm "
-            f"along (at most {out['stripe_angle_spread_deg']:.1f} deg between them): the plane's tilt about their "
+        warnings.append(
+            f"the stripes of the {n_images} images spread {width:.3g} mm across them against {length:.3g} mm "
+            f"along (at most {spread_deg:.1f} deg between them): the plane's tilt about their "
             "direction rests on that spread; move or turn the target between images (nearer and farther, tilted "
             "both ways) so that the stripes cover the working area")
     if tri < MIN_TRIANGULATION_DEG:
-        out["warnings"].append(
+        warnings.append(
             f"the camera sees the light plane at {tri:.1f} deg (its line of sight to the calibration points against "
             f"the plane): depth errors grow as 1 / sin of it ({1 / max(np.sin(np.radians(tri)), 1e-9):.0f}x the "
             "image error's size); mount the camera 20-40 deg off the laser plane")
     if sig is not None and not sig <= MAX_NORMAL_SIGMA_DEG and width < MIN_SPREAD_RATIO * length:
-        out["refusal"] = (f"the light plane is not determined by these {out['n_images']} images (normal σ {sig:.3g} deg): "
+        out["refusal"] = (f"the light plane is not determined by these {n_images} images (normal σ {sig:.3g} deg): "
                           f"their stripes spread {width:.3g} mm across their direction against {length:.3g} mm along it; "
                           "move or turn the target between images so that the stripes cover the working area")
     return out
