@@ -146,7 +146,7 @@ def test_bad_input(render, tmp_path):
     with pytest.raises(LightplaneError, match="no such file"):
         calibrate_plane([tmp_path / "missing.png"], cam, 50.0)
     small = np.zeros((480, 640), np.uint8)
-    with pytest.raises(LightplaneError, match=r"image\[0\]: image is 640x480 px but the camera"):
+    with pytest.raises(LightplaneError, match=r"image\[0\]: image: 640x480 px but the camera"):
         calibrate_plane([small], cam, 50.0)
     blank = np.full((cam.height, cam.width), 30, np.uint8)
     with pytest.raises(LightplaneError, match=r"only 2 of 3 images usable, need at least 3: image\[2\]: no target"):

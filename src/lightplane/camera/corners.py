@@ -14,7 +14,8 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import to_gray_float
 
-__all__ = ["MIN_BOARD_BLUR_PX", "CornerFitOptions", "find_board", "fit_corners", "lens_bend", "refine_corners"]
+__all__ = ["MIN_BOARD_BLUR_PX", "CornerFitOptions", "corner_noise", "find_board", "fit_corners", "lens_bend",
+           "refine_corners"]
 
 #: Boards (in :func:`calibrate_camera`: captures) whose edges are sharper than this (median
 #: fitted blur, px) keep Förstner's corners: the saddle model needs an image smooth on the
@@ -328,6 +329,80 @@ def _fit_corners(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int
     blur[~sel] = np.nan
     P[bad] = np.nan
     return q, blur, ~bad, P
+
+
+def corner_noise(gray: np.ndarray, corners_uv: np.ndarray, board: tuple[int, int], params: np.ndarray,
+                 options: CornerFitOptions | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """How precisely the saddle fit placed each corner, from the image alone: the covariance (N, 2, 2)
+    px² of each fitted corner and the image noise (N,) (grey levels) its fit residual shows.
+
+    ``params``: the fitted parameters (N, 13) of :func:`_fit_corners` about the start corners
+    ``corners_uv`` (NaN rows: not fitted, NaN out).  Per corner, the image noise is the fit's weighted
+    residual RMS over its window (``σ_I² = Σ w r² / (Σ w − 11)``) and the covariance the least-squares
+    one of the 11 fitted parameters, ``σ_I² A⁻¹ B A⁻¹`` with ``A = Σ w J Jᵀ``, ``B = Σ w² J Jᵀ`` (the
+    model's Jacobian ``J`` at the fit, the window's weights ``w``), its corner block.  For white image
+    noise this is the corner's Cramér–Rao bound; nothing in it comes from a calibration, so a
+    calibration's residuals can be judged against it.  Model misfit (a sharpened or aliased image)
+    raises ``σ_I`` with it: the estimate errs towards larger noise.
+    """
+    opts = CornerFitOptions() if options is None else options
+    g, q0, cols, rows = _checked_corner_input(gray, corners_uv, board)
+    P = np.asarray(params, np.float64).reshape(-1, 13)
+    gap, _, _ = _grid_geometry(q0, (cols, rows))
+    h, w = g.shape
+    border = np.min(np.column_stack([q0, w - 1 - q0[:, 0], h - 1 - q0[:, 1]]), axis=1) - 0.5
+    radius = np.clip(np.minimum(opts.radius_frac * gap, border), 2.0, opts.max_radius_px)
+    cov = np.full((len(P), 2, 2), np.nan)
+    noise = np.full(len(P), np.nan)
+    ok = np.flatnonzero(np.all(np.isfinite(P[:, :11]), axis=1))
+    ok = ok[np.argsort(radius[ok])]  # chunks of similar windows: few padded pixels
+    for chunk in np.array_split(ok, max(1, int(np.ceil(ok.size / opts.chunk_size)))):
+        if chunk.size:
+            cov[chunk], noise[chunk] = _chunk_noise(g, P[chunk], radius[chunk], opts.taper_px)
+    return cov, noise
+
+
+def _chunk_noise(g: np.ndarray, P: np.ndarray, radius: np.ndarray, taper: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`corner_noise` of the corners with fitted parameters ``P`` (n, 13) and window radii ``radius``."""
+    r = int(np.ceil(radius.max())) + 1
+    oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
+    keep = ox**2 + oy**2 <= r**2
+    ox, oy = ox[keep].astype(np.float64), oy[keep].astype(np.float64)
+    n, k = len(P), ox.size
+    px, py, img, w0 = np.empty((n, k)), np.empty((n, k)), np.empty((n, k)), np.empty((n, k))
+    window_pixels(g, np.round(P[:, :2]), ox, oy, px, py, img, w0)
+    x, y = px - P[:, :1], py - P[:, 1:2]
+    t = np.clip((radius[:, None] - np.hypot(x, y)) / max(taper, 1e-12), 0.0, 1.0)
+    wt = w0 * np.sin(0.5 * np.pi * t) ** 2
+    c1, s1, c2, s2 = np.cos(P[:, 2:3]), np.sin(P[:, 2:3]), np.cos(P[:, 3:4]), np.sin(P[:, 3:4])
+    s, k1, k2 = P[:, 4:5], P[:, 11:12], P[:, 12:13]
+    n1, n2 = c1 * x + s1 * y, c2 * x + s2 * y
+    t1, t2 = c1 * y - s1 * x, c2 * y - s2 * x
+    d1, d2 = n1 + k1 * t1**2, n2 + k2 * t2**2
+    from scipy.special import erf
+
+    e1, e2 = erf(d1 / (np.sqrt(2.0) * s)), erf(d2 / (np.sqrt(2.0) * s))
+    ee = e1 * e2
+    amp = P[:, 6:7] + P[:, 9:10] * x + P[:, 10:11] * y
+    res = img - (P[:, 5:6] + P[:, 7:8] * x + P[:, 8:9] * y + amp * ee)
+    kk = np.sqrt(2.0 / np.pi) / s
+    b1 = amp * kk * np.exp(-0.5 * (d1 / s) ** 2) * e2
+    b2 = amp * e1 * kk * np.exp(-0.5 * (d2 / s) ** 2)
+    a1, a2 = 2.0 * k1 * t1, 2.0 * k2 * t2
+    J = np.stack([-P[:, 7:8] - P[:, 9:10] * ee - b1 * (c1 - a1 * s1) - b2 * (c2 - a2 * s2),
+                  -P[:, 8:9] - P[:, 10:11] * ee - b1 * (s1 + a1 * c1) - b2 * (s2 + a2 * c2),
+                  b1 * t1 * (1.0 - 2.0 * k1 * n1), b2 * t2 * (1.0 - 2.0 * k2 * n2), -(b1 * d1 + b2 * d2) / s,
+                  np.ones_like(x), ee, x, y, x * ee, y * ee], axis=1)  # (n, 11, K)
+    Jw = J * np.sqrt(wt)[:, None, :]
+    Jww = J * wt[:, None, :]
+    A = Jw @ Jw.transpose(0, 2, 1)
+    B = Jww @ Jww.transpose(0, 2, 1)
+    sw = wt.sum(axis=1)
+    var = np.einsum("nk,nk->n", wt, res**2) / np.maximum(sw - 11.0, 1.0)
+    with np.errstate(all="ignore"):
+        Ai = np.linalg.pinv(A)
+    C = var[:, None, None] * (Ai @ B @ Ai)[:, :2, :2]
+    return C, np.sqrt(var)
 
 
 def _rebent(g: np.ndarray, P: np.ndarray, cost: np.ndarray, sens: np.ndarray, bad: np.ndarray,

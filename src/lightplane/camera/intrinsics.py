@@ -14,7 +14,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from lightplane.camera.corners import MIN_BOARD_BLUR_PX, _detect_board, _fit_corners, _refine_method
+from lightplane.camera.corners import MIN_BOARD_BLUR_PX, _detect_board, _fit_corners, _refine_method, corner_noise
+from lightplane.camera.diagnostics import (CornerNoiseCheck, board_tilts, check_corner_noise, corner_noise_check,
+                                           degenerate_views_message, focal_length_problem, outlier_views,
+                                           perspective_px)
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.camera.lens import COEFF_NAMES, MODELS, coeff_names
@@ -268,6 +271,29 @@ class IntrinsicsCalibration:
     skipped: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
     std_opencv: dict = field(default_factory=dict)
+    dropped: dict = field(default_factory=dict)
+    noise_check: CornerNoiseCheck | None = None
+    geometry: dict = field(default_factory=dict)
+
+    def diagnostics_lines(self) -> list[str]:
+        """What the views determine, in words: the boards' tilts, the check against the corners' noise and
+        (one line each; the views dropped are among ``skipped``)."""
+        out = []
+        g = self.geometry
+        if g:
+            lo, hi = g["tilt_deg_range"]
+            out.append(f"Views: boards tilted {lo:.1f}-{hi:.1f} deg against the line of sight; perspective "
+                       f"{min(g['perspective_px'].values()):.2g}-{max(g['perspective_px'].values()):.2g} px "
+                       "(what determines the focal length)")
+        nc = self.noise_check
+        if nc is None:
+            out.append("Corner noise check: not available (needs the saddle fit's corners: chessboards whose "
+                       "images are not sharpened)")
+        else:
+            out.append(f"Corner noise check: reprojection RMS {nc.rms_px:.3g} px, {nc.ratio:.1f}x the "
+                       f"{nc.predicted_px:.2g} px the corners' own noise predicts: "
+                       + ("suspect, kept by request" if nc.suspect else "consistent"))
+        return out
 
     def ranked_views(self) -> list[tuple[str, float]]:
         """(view name, RMS px), worst first."""
@@ -297,6 +323,9 @@ class IntrinsicsCalibration:
             "views_used": list(self.used),
             "views_board_not_found": list(self.not_found),
             "views_skipped": dict(self.skipped),
+            "views_dropped": dict(self.dropped),
+            "corner_noise_check": None if self.noise_check is None else self.noise_check.to_dict(),
+            "view_geometry": self.geometry,
             "points_per_view": dict(zip(self.used, (len(c) for c in self.corners_uv))),
             "board": {"cols": self.board[0], "rows": self.board[1], "square_mm": self.square_mm},
             "target": target.to_dict(),
@@ -350,6 +379,11 @@ class CameraCalibrationOptions:
     covariance_noise : the corner noise of the intrinsics' covariance (:func:`intrinsics_covariance`):
         ``"views"`` (default) the residuals' σ² times the views' dispersion (:func:`view_dispersion`,
         ``options["covariance_dispersion"]``), ``"white"`` the residuals' σ² alone
+    drop_outlier_views : views whose reprojection RMS is far above the others'
+        (:func:`lightplane.camera.diagnostics.outlier_views`) are left out and the calibration solved
+        again (``dropped``: each with its reason); False: kept, named in a warning
+    keep_suspect : keep a calibration whose RMS is far above what its corners' own noise predicts
+        (:func:`lightplane.camera.diagnostics.corner_noise_check`; refused by default), marked in its result
     """
 
     flags: int = 0
@@ -359,6 +393,8 @@ class CameraCalibrationOptions:
     min_views: int = 3
     refine: bool | str = True
     covariance_noise: str = "views"
+    drop_outlier_views: bool = True
+    keep_suspect: bool = False
 
     def __post_init__(self) -> None:
         model = calibration_flags(self.model, self.flags)[0]  # an unknown model raises
@@ -389,6 +425,7 @@ class _Capture:
     dots: list = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
     size: tuple[int, int] | None = None
+    noise: list = field(default_factory=list)
 
 
 @dataclass
@@ -452,12 +489,15 @@ def calibrate_camera(images: Sequence, board: "tuple[int, int] | Target", square
     assert size is not None  # set by the first readable image, and some were found
     objs = [target.object_points(v.ids).astype(np.float32) for v in found]
     imgpoints = [uv.astype(np.float32).reshape(-1, 1, 2) for uv in found_uv]
+    noise = [n for v, n in zip(views, cap.noise) if v.corners_uv is not None] if method == "saddle" \
+        else [None] * len(found)
+    perspective = _checked_perspective(objs, found_uv, noise)
     model, flags = calibration_flags(opts.model, opts.flags)
     if guess_dist is not None:
         flags |= cv2.CALIB_FIX_TAUX_TAUY | cv2.CALIB_USE_INTRINSIC_GUESS
 
     def solve(imgpoints):
-        return _solve_views(objs, imgpoints, size, model, flags, guess_dist)
+        return _solved_camera(objs, imgpoints, size, model, flags, guess_dist)
 
     out = solve(imgpoints)
     n_refit = 0
@@ -480,8 +520,90 @@ def calibrate_camera(images: Sequence, board: "tuple[int, int] | Target", square
         found_uv = fixed
     record = {"rotate_deg": opts.rotate_deg, "refine": method or False, "median_blur_px": median_blur,
               "lens_frame_refit_corners": n_refit, "dot_mm": dot_mm, "circle_centre_correction_px": shift}
-    return _calibration_result(target, _Used(found, found_uv, objs, imgpoints), out, (model, flags),
-                               opts.covariance_noise, record, (not_found, cap.skipped))
+    predicted = [np.sqrt(np.nanmean(np.trace(C, axis1=1, axis2=2))) if C is not None and np.isfinite(C[:, 0, 0]).any()
+                 else np.nan for C in noise]
+    dropped = outlier_views([v.name for v in found], out[7], predicted) if opts.drop_outlier_views else {}
+    if dropped and len(found) - len(dropped) >= opts.min_views:
+        keep = [i for i, v in enumerate(found) if v.name not in dropped]
+        found, found_uv = [found[i] for i in keep], [found_uv[i] for i in keep]
+        objs, imgpoints = [objs[i] for i in keep], [imgpoints[i] for i in keep]
+        noise, perspective = [noise[i] for i in keep], [perspective[i] for i in keep]
+        out = solve(imgpoints)
+        cap.skipped.update({n: f"dropped: {why}" for n, why in dropped.items()})
+    else:
+        dropped = {}
+    result = _calibration_result(target, _Used(found, found_uv, objs, imgpoints), out, (model, flags),
+                                 opts.covariance_noise, record, (not_found, cap.skipped))
+    return _diagnosed(result, objs, noise, perspective, dropped, opts.keep_suspect)
+
+
+def _checked_perspective(objs: list, uv: list, noise: list) -> list[float]:
+    """Each view's perspective (px, :func:`lightplane.camera.diagnostics.perspective_px`); LightplaneError
+    when no view shows enough of it to determine the focal length (the corners' noise: the median of
+    their saddle fits' own, where known)."""
+    persp = [perspective_px(o, u) for o, u in zip(objs, uv)]
+    sig = [np.sqrt(np.trace(C, axis1=1, axis2=2) / 2) for C in noise if C is not None]
+    sig_all = np.concatenate(sig) if sig else np.zeros(0)
+    sig_all = sig_all[np.isfinite(sig_all)]
+    msg = degenerate_views_message(persp, float(np.median(sig_all)) if sig_all.size else None, len(objs))
+    if msg:
+        raise LightplaneError(msg)
+    return persp
+
+
+def _solved_camera(objs: list, imgpoints: list, size: tuple[int, int], model: str, flags: int,
+                   guess_dist: np.ndarray | None) -> tuple:
+    """:func:`_solve_views`, refused in words where the solve fails or ends at no camera (a focal
+    length that is not positive and finite)."""
+    import cv2
+
+    try:
+        out = _solve_views(objs, imgpoints, size, model, flags, guess_dist)
+    except cv2.error as e:
+        raise LightplaneError(f"the calibration's solve failed ({str(e).strip().splitlines()[-1]}); are the "
+                              "views varied enough?") from None
+    K = np.asarray(out[1], np.float64)
+    tilts = board_tilts(objs, out[3], out[4])[0]
+    why = focal_length_problem(float(K[0, 0]), float(K[1, 1]), {}, tilts, [perspective_px(o, u) for o, u in
+                                                                          zip(objs, imgpoints)])
+    if why:
+        raise LightplaneError(why)
+    return out
+
+
+def _diagnosed(result: "IntrinsicsCalibration", objs: list, noise: list, perspective: list, dropped: dict,
+               keep_suspect: bool) -> "IntrinsicsCalibration":
+    """``result`` with its views' geometry, the views dropped and its corner-noise check; LightplaneError
+    when the focal length is not determined or the calibration is far above its corners' noise (unless
+    ``keep_suspect``)."""
+    from dataclasses import replace
+
+    cam = result.camera
+    tilts, axes = board_tilts(objs, result.rvecs, result.tvecs)
+    # the larger of the reported std and the full covariance's: OpenCV's pseudo-inverse drops the
+    # direction in which a focal length trades against the board distances (face-on boards: 0.007 px
+    # against the covariance's 353 px on a render whose fx came out 70 px off)
+    std = dict(result.std)
+    if cam.covariance is not None and cam.covariance_params is not None:
+        sd = np.sqrt(np.clip(np.diag(cam.covariance), 0, None))
+        for n, v in zip(cam.covariance_params, sd):
+            std[n] = max(float(std.get(n, 0.0)), float(v))
+    why = focal_length_problem(cam.fx, cam.fy, std, tilts, perspective)
+    if why:
+        raise LightplaneError(why)
+    n_params = 4 + len(cam.dist) + 6 * len(objs)
+    check = check_corner_noise(corner_noise_check(result.used, result.residuals_px, noise, n_params), keep_suspect)
+    geometry = {"tilt_deg": dict(zip(result.used, map(float, tilts))),
+                "tilt_axis_deg": dict(zip(result.used, map(float, axes))),
+                "perspective_px": dict(zip(result.used, map(float, perspective))),
+                "tilt_deg_range": [float(tilts.min()), float(tilts.max())],
+                "note": "tilt: the board's normal against the line of sight to its centre; axis: the image "
+                        "direction it is tilted about; perspective: how far the board's image departs from "
+                        "an affine copy (what determines the focal length)"}
+    warnings = result.warnings
+    if check is not None and check.suspect:
+        warnings += (f"kept by request although suspect: {check.diagnosis()}",)
+    return replace(result, dropped=dict(dropped), noise_check=check, geometry=geometry, warnings=warnings)
 
 
 def _held_tilt_guess(tilt_deg) -> np.ndarray | None:
@@ -553,12 +675,15 @@ def _detect_view(img: np.ndarray, source, name: str, target: Target, method: str
         cap.saddles.append(saddle)
         cap.fits.append(fit)
         cap.blurs.append(blur)
+        cap.noise.append(None if fit is None or c is None else
+                         corner_noise(img if img.ndim == 2 else to_gray_float(img), c, (target.cols, target.rows), fit)[0])
         return
     det = target.detect(img)
     cap.views.append(BoardView(name, None if det is None else det.uv, (w, h), None if det is None else det.ids))
     cap.sources.append(source)
     cap.saddles.append(None)
     cap.fits.append(None)
+    cap.noise.append(None)
     if det is not None and target.kind in ("circles", "acircles"):
         cap.dots.append(dot_diameter_mm(img, det, target))
 

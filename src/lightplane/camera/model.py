@@ -392,9 +392,16 @@ class Camera:
         """Raise if an image's size differs from the camera's (a wrong camera file)."""
         h, w = img.shape[:2]
         if (w, h) != (self.width, self.height):
-            raise LightplaneError(
-                f"{name} is {w}x{h} px but the camera is calibrated for {self.width}x{self.height} px (wrong camera file?)"
-            )
+            raise LightplaneError(f"{name}: {self.size_mismatch(w, h)}")
+
+    def size_mismatch(self, w: int, h: int) -> str:
+        """Why an image of ``w`` x ``h`` px does not fit this camera, in words (with a hint when the
+        size is the camera's transposed: the frames are read turned by 90 degrees against the calibration)."""
+        msg = f"{w}x{h} px but the camera is calibrated for {self.width}x{self.height} px"
+        if (h, w) == (self.width, self.height):
+            return msg + (", its frame turned by 90 deg: read the images rotated as the camera was calibrated, "
+                          "--rotate 90 or --rotate 270")
+        return msg + " (wrong camera file?)"
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict:

@@ -24,7 +24,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.camera.model import ALLOWED_CAMERA_KEY, Camera, camera_record
 from lightplane.camera.targets import parse_target
 from lightplane.core.io import DEFAULT_MAX_PIXELS, MAX_PIXELS_ENV, check_output, quiet_opencv
-from lightplane.measure.sensor import Sensor
+from lightplane.measure.sensor import Sensor, recorded_rotation
 from lightplane.motion.model import Turntable
 from lightplane.plane.model import LightPlane, check_camera
 from lightplane.report.calibrations import write_calibration_report
@@ -396,3 +396,16 @@ def load_sensor(path: str | os.PathLike, allow_other: bool = False) -> tuple[Sen
     if sens.turntable is not None:
         cf.check_turntable(sens.turntable, f"{path}: turntable")
     return sens, cf
+
+
+def frame_rotation(rotate: int | None, calibration: str | os.PathLike | None) -> int:
+    """The rotation images are read with: ``--rotate`` when given, else what the camera or sensor file
+    ``calibration`` records (:func:`lightplane.measure.sensor.recorded_rotation`), else 0.  A given
+    ``--rotate`` that differs from the recorded one is used, with one warning line."""
+    recorded = recorded_rotation(calibration)
+    if rotate is None:
+        return recorded or 0
+    if recorded is not None and rotate != recorded:
+        err_console.print(f"warning: {calibration} was calibrated on frames rotated {recorded} deg; --rotate "
+                          f"{rotate} reads them rotated {rotate} deg")
+    return rotate

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import List, Optional
 
@@ -52,9 +53,16 @@ def calibrate_camera_cmd(
                                              "the camera's uncertainty (default: the boards' median distance)."),
     report: Optional[Path] = report_option,
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
+    keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the camera even when its reprojection "
+                                      "RMS is far above what its corners' own noise predicts (marked in its "
+                                      "'corner_noise_check')."),
+    keep_outlier_views: bool = typer.Option(False, "--keep-outlier-views", help="Keep views whose reprojection RMS "
+                                            "is far above the others' (by default they are dropped, each with "
+                                            "its reason, and the camera solved again)."),
 ) -> None:
     """Calibrate the camera's intrinsics and lens distortion (Zhang; OpenCV)."""
-    options = _calibration_options(model, fix_k3, zero_tangent, tilt, rotate)
+    options = replace(_calibration_options(model, fix_k3, zero_tangent, tilt, rotate), keep_suspect=keep_suspect,
+                      drop_outlier_views=not keep_outlier_views)
     if distance is not None and not distance > 0:
         raise LightplaneError(f"--distance must be positive, got {distance} mm")
     if report is not None and output.suffix.lower() not in (".json", ""):
@@ -144,6 +152,8 @@ def _print_intrinsics(result: IntrinsicsCalibration, target: Target) -> str:
                   f"({cam.width}x{cam.height} px); board: {target.describe()}")
     detector = _print_corners(result, target)
     _print_views(result)
+    for line in result.diagnostics_lines():
+        console.print(line)
     return detector
 
 

@@ -16,7 +16,7 @@ from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, Channel, console, handles_errors, laser_option, output_file,
                                     progress_bar, report_folders, report_option, takes_target, write_report_of)
 from lightplane.camera.model import Camera
-from lightplane.cli._common import err_console
+from lightplane.cli._common import err_console, frame_rotation
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
 from lightplane.report.calibrations import board_plane_report_inputs
@@ -171,7 +171,8 @@ def calibrate_plane_board_cmd(
                                         "(FabScan's laser 0) or P,-,L (its laser 1)."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
-    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first "
+                                         "(default: the rotation the camera file records, else 0)."),
     laser: Optional[List[str]] = laser_option,
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     keep_suspect: bool = typer.Option(False, "--keep-suspect", help="Write the plane even when images' stripe "
@@ -200,6 +201,7 @@ def calibrate_plane_board_cmd(
         output_file(out, force, inputs=[camera, *images, *(pattern or []), *(background or [])])
     reports = report_folders(report, list(outputs), force)  # several lasers: one folder each inside --report
     cam = Camera.load(camera)
+    rotate = frame_rotation(rotate, camera)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
@@ -285,6 +287,12 @@ def _print_board_result(res, target) -> None:
     if pl.meta.get("stripe_channels"):
         console.print(f"note: {pl.meta['stripe_channels']}")
     print_quality(pl.meta.get("quality"), res.quality)
+    g = pl.meta.get("geometry") or {}
+    if g:
+        console.print(f"Placements: stripes {g['length_mm']:.3g} mm long, spread {g['width_mm']:.3g} mm across; camera "
+                      f"sees the plane at {g['triangulation_deg']:.1f} deg")
+    for w in g.get("warnings", []):
+        err_console.print(f"warning: {w}")
 
 
 def print_quality(rec: dict | None, quality) -> None:

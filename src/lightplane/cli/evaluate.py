@@ -14,7 +14,7 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import atomic_write, dumps_json, expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, CameraFiles, Channel, allow_other_camera_option, console,
-                                    handles_errors, output_file, progress_bar, takes_target)
+                                    frame_rotation, handles_errors, output_file, progress_bar, takes_target)
 from lightplane.cli.calibrate_plane_board import read_laser_frames
 from lightplane.evaluate.crossratio import EvaluateOptions, Evaluation, evaluate_images
 
@@ -39,7 +39,8 @@ def evaluate_cmd(
     corners_used: Literal["three", "all"] = typer.Option("all", "--corners", help="'three' (the paper's A, B, C) or 'all' corners per line."),
     stripe_width: Optional[float] = typer.Option(None, "--stripe-width", help="Stripe width in px (default: estimated)."),
     channel: Optional[Channel] = typer.Option(None, "--channel", help="Colour channel of the laser: red, green, blue, gray."),
-    rotate: int = typer.Option(0, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first."),
+    rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image clockwise by 0/90/180/270 degrees first "
+                                         "(default: the rotation the camera file records, else 0)."),
     allow_other_camera: bool = allow_other_camera_option,
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
 ) -> None:
@@ -52,6 +53,7 @@ def evaluate_cmd(
         raise LightplaneError("--json and --csv must be different files")
     cams = CameraFiles.load(camera, allow_other_camera)
     cam = cams.camera
+    rotate = frame_rotation(rotate, camera)
     planes = [cams.plane(p) for p in plane]
     labels = _labels(plane)
     files = expand_inputs(images)

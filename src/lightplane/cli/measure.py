@@ -10,7 +10,7 @@ import typer
 
 from lightplane.core.errors import LightplaneError
 from lightplane.cli._common import (Channel, CameraFiles, allow_other_camera_option, app, console, err_console,
-                                    handles_errors, load_sensor, output_file, progress_bar)
+                                    frame_rotation, handles_errors, load_sensor, output_file, progress_bar)
 from lightplane.camera.model import Camera
 from lightplane.core.io import summarize_reasons
 from lightplane.measure.options import DEPTH_FACTOR, CloudOutput, MeasureOptions
@@ -189,7 +189,7 @@ def measure_cmd(
     flange: Optional[Path] = typer.Option(None, "--flange", help="With --poses: JSON with T_flange_cam (the camera in "
                                           "the robot flange's frame); the poses are then the flange's."),
     rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image file clockwise by 0/90/180/270 "
-                                         "degrees first (default 0, or the sensor file's)."),
+                                         "degrees first (default: the rotation the sensor or camera file records, else 0)."),
     fmt: Optional[str] = typer.Option(None, "--format", help="ply, csv or npy (default: from the output suffix; "
                                      "given, it must agree with a .ply/.csv/.npy suffix)."),
     ascii_ply: bool = typer.Option(False, "--ascii", help="ASCII PLY instead of binary."),
@@ -228,6 +228,7 @@ def measure_cmd(
         rot = sens.rotate_deg if rotate is None else rotate
     else:
         cams, pl = _single_camera(camera, plane, laser, inputs, allow_other_camera)
+        rot = frame_rotation(rotate, camera)
     cam = cams.camera
     if crop:
         _check_crop({n: sens.planes[n] for n, _ in lasers} if sens is not None else {str(plane): pl})

@@ -14,8 +14,8 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.io import expand_inputs, provenance
 from lightplane.camera.targets import Target
 from lightplane.cli._common import (app, BOARD_OPTIONS, CameraFiles, allow_other_camera_option, console, err_console,
-                                    handles_errors, output_file, progress_bar, report_folder, report_option,
-                                    takes_target, write_report_of)
+                                    frame_rotation, handles_errors, output_file, progress_bar, report_folder,
+                                    report_option, takes_target, write_report_of)
 from lightplane.camera.model import Camera
 from lightplane.core.io import read_json, rotation_code, try_read_image
 from lightplane.measure.sensor import Sensor, check_name, import_fabscan, plane_name
@@ -33,7 +33,7 @@ def calibrate_turntable_cmd(
     target: Target = BOARD_OPTIONS,  # --board/--square/... or --target (takes_target)
     output: Path = typer.Option(..., "-o", "--output", help="Turntable JSON file to write."),
     rotate: Optional[int] = typer.Option(None, "--rotate", help="Rotate every image clockwise by 0/90/180/270 "
-                                         "degrees first (default 0, or the sensor file's when --camera is one)."),
+                                         "degrees first (default: the rotation the camera or sensor file records, else 0)."),
     board_height: Optional[float] = typer.Option(None, "--board-height", help="Height of the board's lowest row "
                                                  "of points above the table's top, mm: puts the turntable frame's "
                                                  "origin on the table (default: at the board's level)."),
@@ -53,8 +53,7 @@ def calibrate_turntable_cmd(
     output_file(output, force, inputs=[camera, *images])
     report_folder(report, force)
     cam = Camera.load(camera)
-    if rotate is None:
-        rotate = _sensor_rotation(camera)
+    rotate = frame_rotation(rotate, camera)
     files = expand_inputs(images)
     if not files:
         raise LightplaneError("no images given (no files matched)")
@@ -111,15 +110,6 @@ def calibrate_turntable_cmd(
     tt.save(output, force=force, extra={"provenance": provenance(files, opts)})
     console.print(f"wrote {output}")
     write_report_of(output, report, force)
-
-
-def _sensor_rotation(path: Path) -> int:
-    """The frame rotation of a sensor file given as the camera (0 for a camera file)."""
-    if path.suffix.lower() != ".json":
-        return 0
-
-    d = read_json(path, "camera file")
-    return Sensor.from_dict(d, str(path)).rotate_deg if d.get("kind") == "lightplane sensor" else 0
 
 
 def _camera_record(path: Path, allow_other: bool) -> tuple[CameraFiles, dict]:

@@ -43,7 +43,7 @@ from lightplane.measure.pointcloud import PointSpool, write_cloud
 from lightplane.measure.scan import Dropped, FrameProcessor, _prepare, iter_scan, no_points_message
 from lightplane.core.threads import with_blas_limited
 
-__all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name"]
+__all__ = ["Sensor", "LASER_POINT_DTYPE", "measure_lasers", "import_fabscan", "plane_name", "recorded_rotation"]
 
 SENSOR_KIND = "lightplane sensor"
 
@@ -53,6 +53,31 @@ if TYPE_CHECKING:
 #: a merged cloud's records: :data:`lightplane.measure.pointcloud.POINT_DTYPE` and the laser's index
 #: (the names are listed in the file's comments, ``laser 0: NAME``)
 LASER_POINT_DTYPE = np.dtype(POINT_DTYPE.descr + [("laser", "<u1")])
+
+
+def recorded_rotation(path: str | os.PathLike | None) -> int | None:
+    """The clockwise frame rotation (0/90/180/270 deg) a camera or sensor file records for the images it
+    was calibrated on, or None where it records none.
+
+    A sensor file's ``frames.rotate_deg`` (``lightplane sensor``, ``import-fabscan``); a camera, plane or
+    turntable JSON file's ``provenance.options.rotate_deg`` (``calibrate-camera --rotate``).  ROS and
+    OpenCV camera files record none.  Every command that reads images with such a file applies it
+    by default, so a camera calibrated on rotated frames is used on frames rotated the same way.
+    """
+    if path is None or Path(path).suffix.lower() != ".json" or not Path(path).is_file():
+        return None
+    d = read_json(path, "camera file")
+    if d.get("kind") == SENSOR_KIND:
+        return Sensor.from_dict(d, str(path)).rotate_deg
+    prov = d.get("provenance")
+    opts = prov.get("options") if isinstance(prov, dict) else None
+    rot = opts.get("rotate_deg") if isinstance(opts, dict) else None
+    if rot is None:
+        return None
+    if isinstance(rot, bool) or rot not in (0, 90, 180, 270):
+        raise LightplaneError(f"{path}: field 'provenance.options.rotate_deg' must be 0, 90, 180 or 270, "
+                              f"got {rot!r:.40}")
+    return int(rot)
 
 
 def plane_name(plane: LightPlane, fallback: str) -> str:

@@ -36,6 +36,7 @@ from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.motion.model import Turntable
 from lightplane.camera.board_pose import find_board_pose
+from lightplane.camera.diagnostics import outlier_views
 from lightplane.core.io import too_few_images_message
 
 __all__ = ["AxisEstimate", "TurntableCalibration", "calibrate_turntable", "axis_from_circles",
@@ -254,7 +255,9 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
     with its reason; fewer than ``min_images`` (at least 4: the jackknife) usable ones
     raise :class:`LightplaneError` saying why the others were not usable.  The images
     must turn the board by more than a few degrees in all (else the axis is not
-    determined: an error too).
+    determined: an error too).  An image whose board pose fits its corners far worse than the
+    others' (:func:`lightplane.camera.diagnostics.outlier_views` of the PnP RMS) is dropped with
+    its reason (among ``skipped``, ``dropped: ...``) while enough images remain.
 
     The turntable file's point (the turntable frame's origin) is on the axis at the level
     of the board points' centroid, or, with ``board_height_mm`` (how far the board's lowest
@@ -271,6 +274,10 @@ def calibrate_turntable(images, camera: Camera, target, *, names=None, channel: 
         raise LightplaneError(f"{len(images)} images but {len(names)} names")
     min_images = max(4, int(min_images))
     poses, skipped = _board_poses(images, names, camera, target, channel, reasons, progress)
+    dropped = outlier_views([p.name for p in poses], [p.reprojection_rms_px for p in poses])
+    if dropped and len(poses) - len(dropped) >= min_images:  # a board's corners far off the others': left out
+        poses = [p for p in poses if p.name not in dropped]
+        skipped.update({n: f"dropped: {why}" for n, why in dropped.items()})
     if len(poses) < min_images:
         raise LightplaneError(too_few_images_message("images", len(poses), min_images, list(skipped.items())))
     if any(p.ids is not None for p in poses):

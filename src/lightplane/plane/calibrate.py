@@ -49,7 +49,8 @@ from lightplane.core.threads import enter_serial, frames_across_threads
 from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, RefinedEllipse, detect_ellipses, expected_axis_range_px,
     refine_ellipse, select_target, stripe_crossing)
 from lightplane.plane.circle_pose import CirclePose
-from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
+from lightplane.plane.quality import (PlaneQuality, check_plane_quality, plane_geometry, plane_quality, stripe_image,
+                                      working_volume)
 from lightplane.plane.solvers import Ambiguity
 from lightplane.plane.uncertainty import (WHICH_SIGMA, camera_param_names, camera_params, camera_share_status,
     camera_steps, camera_with_params, plane_noise_covers, point_sigma_mm, volume_sigma, working_volume_grid)
@@ -988,6 +989,11 @@ def solve_observations(observations: Sequence[ImageObservation], camera: Camera,
     pts = [im.points_mm for im in _stripe_images(camera, final)]
     if pts:
         meta["working_volume"] = working_volume(np.vstack(pts))
+        meta["geometry"] = plane_geometry(np.vstack(pts), np.repeat(np.arange(len(pts)), [len(x) for x in pts]),
+                                          cal.plane.normal, cal.plane.d, cov)
+        if meta["geometry"]["refusal"] and not keep_suspect:
+            raise LightplaneError(meta["geometry"]["refusal"] + "; or keep the plane as it is with --keep-suspect")
+        warnings.extend(meta["geometry"]["warnings"])
     plane = type(cal.plane)(cal.plane.normal, cal.plane.d, cov, meta=meta)
     return ImagePlaneCalibration(plane=plane, covariance=plane.covariance, sigma_px=cal.sigma_px,
                                  placements=tuple(placements), method=cal.method, ambiguity=cal.ambiguity,

@@ -38,7 +38,8 @@ from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import fit_plane_tls, ray_plane, tls_line
 
 __all__ = ["SUSPECT_RATIO", "SUSPECT_FLOOR", "StripeImage", "ImageResidual", "PlaneQuality", "stripe_image",
-           "plane_quality", "check_plane_quality", "working_volume"]
+           "plane_quality", "check_plane_quality", "working_volume", "MIN_TRIANGULATION_DEG", "MIN_SPREAD_RATIO",
+           "MAX_NORMAL_SIGMA_DEG", "plane_geometry"]
 
 #: an image's residual RMS over its predicted (stripe-noise) residual beyond which it is elevated or suspect
 SUSPECT_RATIO = 5.0
@@ -248,3 +249,69 @@ def working_volume(points_mm: np.ndarray) -> dict:
     p = p[np.all(np.isfinite(p), axis=1)]
     return {"depth_mm": [float(p[:, 2].min()), float(p[:, 2].max())], "centre_mm": p.mean(axis=0).tolist(),
             "n_points": int(len(p)), "from": "the calibration's stripe points"}
+
+
+#: a camera that sees the light plane at less than this angle (its line of sight to the calibration
+#: points against the plane) measures depth poorly: the depth error grows as 1 / sin(angle)
+MIN_TRIANGULATION_DEG = 10.0
+#: stripes that spread across their own direction by less than this fraction of their length leave the
+#: plane's tilt about that direction weakly determined
+MIN_SPREAD_RATIO = 0.2
+#: a plane whose normal's σ exceeds this (deg) is not a result
+MAX_NORMAL_SIGMA_DEG = 5.0
+
+
+def plane_geometry(points_mm: np.ndarray, image_index: np.ndarray, normal, d: float,
+                   covariance: np.ndarray | None = None) -> dict:
+    """What the calibration images' placements can determine of a light plane: the plane file's ``geometry``.
+
+    ``points_mm`` (N, 3) the stripe points of all images (camera frame) and ``image_index`` (N,) the image
+    of each.  In the plane, the points' extent along their main direction (``length_mm``, 4 x the RMS
+    spread: the full length of a uniform spread) and across it (``width_mm``); the angle between the
+    images' stripes (``stripe_angle_spread_deg``); the angle at which the camera looks at the plane at
+    the points' centre (``triangulation_deg``); the normal's σ (deg) from ``covariance``.  ``warnings``
+    say in words what is weakly determined and what to do; ``refusal`` (one sentence, or None) what
+    the placements cannot determine at all: a normal σ over :data:`MAX_NORMAL_SIGMA_DEG` from stripes
+    spread across their direction by less than :data:`MIN_SPREAD_RATIO` of their length (a σ that
+    large from well-spread stripes is the images' fault, which :func:`plane_quality` judges).
+    """
+    p = np.asarray(points_mm, np.float64).reshape(-1, 3)
+    idx = np.asarray(image_index).ravel()
+    n = np.asarray(normal, np.float64).ravel()
+    c = p.mean(axis=0)
+    q = (p - c) - np.outer((p - c) @ n, n)  # in the plane
+    lam = np.linalg.eigvalsh(q.T @ q / max(len(q), 1))
+    length, width = 4.0 * np.sqrt(max(lam[2], 0.0)), 4.0 * np.sqrt(max(lam[1], 0.0))
+    dirs = []
+    for k in np.unique(idx):
+        pk = q[idx == k]
+        if len(pk) >= 3:
+            U = np.linalg.eigh((pk - pk.mean(0)).T @ (pk - pk.mean(0)))[1]
+            dirs.append(U[:, 2])
+    ang = [np.degrees(np.arccos(min(1.0, abs(float(a @ b))))) for i, a in enumerate(dirs) for b in dirs[i + 1:]]
+    tri = float(np.degrees(np.arcsin(min(1.0, abs(float(n @ c)) / max(float(np.linalg.norm(c)), 1e-300)))))
+    sig = None
+    if covariance is not None:
+        sig = float(np.degrees(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0))))
+    n_images = int(len(np.unique(idx)))
+    spread_deg = float(max(ang, default=0.0))
+    warnings: list[str] = []
+    out: dict = {"length_mm": float(length), "width_mm": float(width), "stripe_angle_spread_deg": spread_deg,
+                 "triangulation_deg": tri, "normal_sigma_deg": sig, "n_images": n_images, "warnings": warnings,
+                 "refusal": None}
+    if width < MIN_SPREAD_RATIO * length:
+        warnings.append(
+            f"the stripes of the {n_images} images spread {width:.3g} mm across them against {length:.3g} mm "
+            f"along (at most {spread_deg:.1f} deg between them): the plane's tilt about their "
+            "direction rests on that spread; move or turn the target between images (nearer and farther, tilted "
+            "both ways) so that the stripes cover the working area")
+    if tri < MIN_TRIANGULATION_DEG:
+        warnings.append(
+            f"the camera sees the light plane at {tri:.1f} deg (its line of sight to the calibration points against "
+            f"the plane): depth errors grow as 1 / sin of it ({1 / max(np.sin(np.radians(tri)), 1e-9):.0f}x the "
+            "image error's size); mount the camera 20-40 deg off the laser plane")
+    if sig is not None and not sig <= MAX_NORMAL_SIGMA_DEG and width < MIN_SPREAD_RATIO * length:
+        out["refusal"] = (f"the light plane is not determined by these {n_images} images (normal σ {sig:.3g} deg): "
+                          f"their stripes spread {width:.3g} mm across their direction against {length:.3g} mm along it; "
+                          "move or turn the target between images so that the stripes cover the working area")
+    return out

@@ -26,7 +26,8 @@ from lightplane.camera.model import Camera, as_points, camera_record
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
 from lightplane.plane.model import LightPlane
-from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
+from lightplane.plane.quality import (PlaneQuality, check_plane_quality, plane_geometry, plane_quality, stripe_image,
+                                      working_volume)
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
 from lightplane.stripe.difference import laser_difference
@@ -711,8 +712,12 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     q = z.assess(camera, float(target.square_mm))
     per_image_bg = fr.background_images is not None and len(fr.background_images) > 1
     rec = check_plane_quality(q, keep=opts.keep_suspect, background_per_image=per_image_bg)
+    geometry = plane_geometry(z.points_cam_mm, z.view_index, z.plane.normal, z.plane.d, z.plane.covariance)
+    if geometry["refusal"] and not opts.keep_suspect:
+        raise LightplaneError(geometry["refusal"] + "; or keep the plane as it is with --keep-suspect")
     plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
-                       meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm)})
+                       meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm),
+                             "geometry": geometry})
     return replace(z, plane=plane, quality=q)
 
 
