@@ -25,7 +25,8 @@ from lightplane.camera.board_pose import BoardPose, find_board_pose, pose_from_c
 from lightplane.camera.model import Camera, as_points, camera_record
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
-from lightplane.plane.model import LightPlane
+from lightplane.plane.calibrate import propagate_camera
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
@@ -701,9 +702,25 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     q = z.assess(camera, float(target.square_mm))
     per_image_bg = fr.background_images is not None and len(fr.background_images) > 1
     rec = check_plane_quality(q, keep=opts.keep_suspect, background_per_image=per_image_bg)
-    plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
-                       meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm)})
+    meta = {**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm)}
+    if camera.covariance is not None:
+        meta[CameraDependence.KEY] = _camera_dependence(camera, target, v, z.plane, opts).to_dict()
+    plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance, meta=meta)
     return replace(z, plane=plane, quality=q)
+
+
+def _camera_dependence(camera: Camera, target, views: BoardViews, plane: LightPlane,
+                       opts: BoardPlaneOptions) -> CameraDependence:
+    """The plane's dependence on the intrinsics (:func:`lightplane.plane.calibrate.propagate_camera`): the
+    board poses solved again from the same corners and the same stripe centres put on them, with
+    other intrinsics."""
+    def solve(cam: Camera) -> LightPlane:
+        poses = [pose_from_corners(cam, p.corners_uv, target, name=p.name, corner_ok=p.corner_ok, ids=p.ids)
+                 for p in views.poses]
+        return plane_from_board_stripes(cam, poses, views.stripes, min_points_per_view=opts.min_points_per_view,
+                                        jackknife_min_views=len(poses) + 1).plane
+
+    return propagate_camera(solve, camera, plane)
 
 
 def calibrate_plane_boards(frames: BoardFrames, camera: Camera, board, lasers: dict,
