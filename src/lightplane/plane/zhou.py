@@ -387,18 +387,83 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
     return inl
 
 
+#: The lit frame's level, as a fraction of the board's white, below which the stripe is not divided
+#: by it (:func:`reflectance_normalised`): the ink's ~7 % would multiply the stripe's noise ~14 times.
+REFLECTANCE_FLOOR = 0.2
+
+
+def reflectance_normalised(image: np.ndarray, lit: np.ndarray, mask: np.ndarray, channel: str | None = None,
+                           *, floor: float = REFLECTANCE_FLOOR) -> tuple[np.ndarray, np.ndarray]:
+    """The laser light alone, with the board's reflectance divided out: ``(stripe, level)``, float images.
+
+    ``lit``: the same board pose lit, laser off (a pattern frame or a laser-off frame).  A stripe
+    on printed paper is the laser's irradiance times the paper's reflectance; where a reflectance
+    edge (a square's or a marker's border) runs within the stripe's width, the product's peak
+    moves towards the lighter side, by a good part of a pixel when the edge runs along the
+    stripe.  ``lit`` shows the same reflectance under smooth light, so the laser image's ambient
+    part (``lit`` times the frames' exposure ratio, the median of ``image / lit`` over ``mask``:
+    1 for a laser-off frame of the same exposure, ~0 for a dark laser frame) is subtracted and
+    the rest divided by ``lit``, which leaves the irradiance (times the smooth ambient light's
+    inverse).  ``level``: ``lit`` over the board's white (its 90th percentile in ``mask``); where it is
+    below ``floor`` the division uses ``floor`` (ink: the stripe is weak there and its noise
+    would be amplified).
+    """
+    g = to_gray_float(image, channel)
+    p = to_gray_float(lit, channel)
+    m = (mask > 0) & (p > 0)
+    if not np.any(m):
+        return np.clip(g - p, 0, None), np.ones_like(p)
+    white = float(np.percentile(p[m], 90))
+    if not white > 0:
+        return np.clip(g - p, 0, None), np.ones_like(p)
+    bright = m & (p > 0.5 * white)
+    k = float(np.median(g[bright] / p[bright])) if np.any(bright) else 1.0
+    level = p / white
+    stripe = np.clip(g - k * p, 0, None) / np.maximum(level, floor)
+    return stripe, level
+
+
+#: Centres are kept where the board's level (lit frame over its white) is at least ``EVEN_LEVEL_MIN`` and
+#: varies by less than ``EVEN_SPREAD_MAX`` (max over min) within the stripe's reach (:func:`_even_reflectance`).
+EVEN_LEVEL_MIN = 0.5
+EVEN_SPREAD_MAX = 1.25
+EVEN_REACH = 1.0
+
+
+def _even_reflectance(level: np.ndarray, ij: np.ndarray, width_px: float | None) -> np.ndarray:
+    """(N,) bool: the centres at pixels ``ij`` (N, 2; column, row) on light, even reflectance: the
+    board's ``level`` at least :data:`EVEN_LEVEL_MIN` and its max over min within the stripe's
+    half-width plus a pixel (blur) under :data:`EVEN_SPREAD_MAX`: there the division by the lit
+    frame leaves no edge's pull on the centre (the blur makes the division inexact at an edge)."""
+    import cv2
+
+    w = 3.0 if width_px is None else float(width_px)
+    r = max(1, int(np.ceil(EVEN_REACH * w / 2 + 1)))
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    lv = np.ascontiguousarray(level, dtype=np.float32)
+    hi = cv2.dilate(lv, k)[ij[:, 1], ij[:, 0]]
+    lo = cv2.erode(lv, k)[ij[:, 1], ij[:, 0]]
+    return (lo >= EVEN_LEVEL_MIN) & (hi < EVEN_SPREAD_MAX * np.maximum(lo, 1e-6))
+
+
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
                     width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None,
-                    pattern_mask: np.ndarray | None = None) -> np.ndarray:
+                    pattern_mask: np.ndarray | None = None, lit: np.ndarray | None = None) -> np.ndarray:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
     subtracting the laser-off frame (``pattern_mask``: the printed pattern, whose white level a
-    stripe must exceed without one; default ``mask``)."""
+    stripe must exceed without one; default ``mask``).  ``lit``: the lit board of the same pose
+    (laser off): the board's reflectance is divided out first (:func:`reflectance_normalised`)."""
 
     import cv2
 
     grid = None if corners_uv is None else corners_uv.reshape(-1, 2)
     spacing = None if grid is None else _corner_spacing_px(grid)
-    if background is not None:
+    if lit is not None:
+        if lit.shape[:2] != image.shape[:2]:
+            raise LightplaneError(f"lit board frame shape {lit.shape} differs from image shape {image.shape}")
+        img, level = reflectance_normalised(image, lit, mask if pattern_mask is None else pattern_mask, channel)
+        background = lit  # what follows treats the frame as background-subtracted
+    elif background is not None:
         if background.shape != image.shape:
             raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
         img = np.clip(to_gray_float(image, channel) - to_gray_float(background, channel), 0, None)
@@ -427,6 +492,10 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             pm = mask if pattern_mask is None else pattern_mask
             white = float(np.percentile(raw[pm > 0], 90))
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
+        if lit is not None:
+            fwhm = np.asarray(sp.width, float).ravel()
+            w = width_px if width_px is not None else (float(np.nanmedian(fwhm)) if np.any(np.isfinite(fwhm)) else None)
+            keep &= _even_reflectance(level, ij, w)
         uv = uv[keep]
     if len(uv) and grid is not None and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
@@ -495,6 +564,10 @@ class BoardPlaneOptions:
       as far as the image shows it (up to the pattern's larger side); a value: at most that far
       beyond the printed pattern (mm, every side), still only where the image shows board; 0: the
       pattern only.
+    - ``reflectance``: True (default): where a lit frame of the pose is given (a pattern frame, or a
+      laser-off frame per image), the board's reflectance is divided out of the laser image before
+      the stripe centres are found (:func:`reflectance_normalised`: the printed edges under the
+      stripe do not move its centres); False: the laser-off frame only subtracted.
     """
 
     stripe_width_px: float | None = None
@@ -504,6 +577,7 @@ class BoardPlaneOptions:
     min_views: int = 2
     keep_suspect: bool = False
     board_margin_mm: float | None = None
+    reflectance: bool = True
 
     def __post_init__(self):
         if self.board_margin_mm is not None and not (np.isfinite(self.board_margin_mm) and self.board_margin_mm >= 0):
@@ -602,8 +676,9 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
         mask = np.where(inside, mask, 0).astype(mask.dtype)
     if pat is not None and bg is None and _same_exposure(img, pat, pattern_mask, opts.channel):
         bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
+    lit_frame = pat if pat is not None else (bg if per_image else None)
     stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
-                             pattern_mask)
+                             pattern_mask, lit=lit_frame if opts.reflectance else None)
     if pats is None and not per_image and len(stripe) >= 2:
         # corners found in the laser-on image: leave out those the stripe runs over
         clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
