@@ -49,6 +49,8 @@ __all__ = [
     "find_board_views",
     "calibrate_plane_boards",
     "straight_stripe_inliers",
+    "laser_light",
+    "even_reflectance",
     "calibrate_plane_board",
 ]
 
@@ -387,60 +389,52 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
     return inl
 
 
-#: The lit frame's level, as a fraction of the board's white, below which the stripe is not divided
-#: by it (:func:`reflectance_normalised`): the ink's ~7 % would multiply the stripe's noise ~14 times.
-REFLECTANCE_FLOOR = 0.2
+#: Stripe centres are kept where the board's level (the lit frame over its white) is at least
+#: ``EVEN_LEVEL_MIN`` and its max over min within the stripe's reach stays under ``EVEN_SPREAD_MAX``
+#: (:func:`even_reflectance`).
+EVEN_LEVEL_MIN = 0.5
+EVEN_SPREAD_MAX = 1.5
 
 
-def reflectance_normalised(image: np.ndarray, lit: np.ndarray, mask: np.ndarray, channel: str | None = None,
-                           *, floor: float = REFLECTANCE_FLOOR) -> tuple[np.ndarray, np.ndarray]:
-    """The laser light alone, with the board's reflectance divided out: ``(stripe, level)``, float images.
+def laser_light(image: np.ndarray, lit: np.ndarray, mask: np.ndarray,
+                channel: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The laser's light alone and the board's reflectance: ``(stripe, level)``, float images.
 
-    ``lit``: the same board pose lit, laser off (a pattern frame or a laser-off frame).  A stripe
-    on printed paper is the laser's irradiance times the paper's reflectance; where a reflectance
-    edge (a square's or a marker's border) runs within the stripe's width, the product's peak
-    moves towards the lighter side, by a good part of a pixel when the edge runs along the
-    stripe.  ``lit`` shows the same reflectance under smooth light, so the laser image's ambient
-    part (``lit`` times the frames' exposure ratio, the median of ``image / lit`` over ``mask``:
-    1 for a laser-off frame of the same exposure, ~0 for a dark laser frame) is subtracted and
-    the rest divided by ``lit``, which leaves the irradiance (times the smooth ambient light's
-    inverse).  ``level``: ``lit`` over the board's white (its 90th percentile in ``mask``); where it is
-    below ``floor`` the division uses ``floor`` (ink: the stripe is weak there and its noise
-    would be amplified).
+    ``lit``: the same board pose lit, laser off (a pattern frame or a laser-off frame).  The laser
+    image's ambient part is ``lit`` times the frames' exposure ratio (the median of ``image / lit``
+    over the light board pixels of ``mask``: 1 for a laser-off frame of the same exposure, ~0.03
+    for a dark laser frame), which is subtracted.  ``level``: ``lit`` over the board's white (its
+    90th percentile in ``mask``), the printed reflectance under the stripe (:func:`even_reflectance`).
     """
     g = to_gray_float(image, channel)
     p = to_gray_float(lit, channel)
     m = (mask > 0) & (p > 0)
-    if not np.any(m):
-        return np.clip(g - p, 0, None), np.ones_like(p)
-    white = float(np.percentile(p[m], 90))
+    white = float(np.percentile(p[m], 90)) if np.any(m) else 0.0
     if not white > 0:
         return np.clip(g - p, 0, None), np.ones_like(p)
     bright = m & (p > 0.5 * white)
     k = float(np.median(g[bright] / p[bright])) if np.any(bright) else 1.0
-    level = p / white
-    stripe = np.clip(g - k * p, 0, None) / np.maximum(level, floor)
-    return stripe, level
+    return np.clip(g - k * p, 0, None), p / white
 
 
-#: Centres are kept where the board's level (lit frame over its white) is at least ``EVEN_LEVEL_MIN`` and
-#: varies by less than ``EVEN_SPREAD_MAX`` (max over min) within the stripe's reach (:func:`_even_reflectance`).
-EVEN_LEVEL_MIN = 0.5
-EVEN_SPREAD_MAX = 1.25
-EVEN_REACH = 1.0
+def even_reflectance(level: np.ndarray, uv: np.ndarray, width_px: float) -> np.ndarray:
+    """(N,) bool: the stripe centres ``uv`` (N, 2, px) that lie on light, even print.
 
-
-def _even_reflectance(level: np.ndarray, ij: np.ndarray, width_px: float | None) -> np.ndarray:
-    """(N,) bool: the centres at pixels ``ij`` (N, 2; column, row) on light, even reflectance: the
-    board's ``level`` at least :data:`EVEN_LEVEL_MIN` and its max over min within the stripe's
-    half-width plus a pixel (blur) under :data:`EVEN_SPREAD_MAX`: there the division by the lit
-    frame leaves no edge's pull on the centre (the blur makes the division inexact at an edge)."""
+    A stripe on paper is the laser's irradiance times the paper's reflectance; where a printed
+    edge (a square's or a marker's border) runs within the stripe's reach, the product's peak
+    moves towards the lighter side, by a good part of a pixel when the edge runs along the stripe,
+    and every centre along it moves alike (no number of centres averages it out).  Dividing by
+    the lit frame does not undo it: the blur spreads the edge over both frames differently.  Kept:
+    the centres whose ``level`` (:func:`laser_light`) is at least :data:`EVEN_LEVEL_MIN` (not on
+    ink: the stripe there is dim and next to the edges) and varies by less than
+    :data:`EVEN_SPREAD_MAX` (max over min) within the stripe's half-width plus a pixel (the blur).
+    """
     import cv2
 
-    w = 3.0 if width_px is None else float(width_px)
-    r = max(1, int(np.ceil(EVEN_REACH * w / 2 + 1)))
+    r = max(1, int(np.ceil(float(width_px) / 2 + 1)))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     lv = np.ascontiguousarray(level, dtype=np.float32)
+    ij = np.clip(np.round(as_points(uv, 2, "uv")).astype(int), 0, [lv.shape[1] - 1, lv.shape[0] - 1])
     hi = cv2.dilate(lv, k)[ij[:, 1], ij[:, 0]]
     lo = cv2.erode(lv, k)[ij[:, 1], ij[:, 0]]
     return (lo >= EVEN_LEVEL_MIN) & (hi < EVEN_SPREAD_MAX * np.maximum(lo, 1e-6))
@@ -452,7 +446,8 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
     subtracting the laser-off frame (``pattern_mask``: the printed pattern, whose white level a
     stripe must exceed without one; default ``mask``).  ``lit``: the lit board of the same pose
-    (laser off): the board's reflectance is divided out first (:func:`reflectance_normalised`)."""
+    (laser off): its ambient part is subtracted (:func:`laser_light`) and only centres on light,
+    even print are kept (:func:`even_reflectance`)."""
 
     import cv2
 
@@ -461,7 +456,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     if lit is not None:
         if lit.shape[:2] != image.shape[:2]:
             raise LightplaneError(f"lit board frame shape {lit.shape} differs from image shape {image.shape}")
-        img, level = reflectance_normalised(image, lit, mask if pattern_mask is None else pattern_mask, channel)
+        img, level = laser_light(image, lit, mask if pattern_mask is None else pattern_mask, channel)
         background = lit  # what follows treats the frame as background-subtracted
     elif background is not None:
         if background.shape != image.shape:
@@ -494,8 +489,8 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
         if lit is not None:
             fwhm = np.asarray(sp.width, float).ravel()
-            w = width_px if width_px is not None else (float(np.nanmedian(fwhm)) if np.any(np.isfinite(fwhm)) else None)
-            keep &= _even_reflectance(level, ij, w)
+            w = width_px if width_px is not None else (float(np.nanmedian(fwhm)) if np.any(np.isfinite(fwhm)) else 3.0)
+            keep &= even_reflectance(level, uv, w)
         uv = uv[keep]
     if len(uv) and grid is not None and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
@@ -564,10 +559,14 @@ class BoardPlaneOptions:
       as far as the image shows it (up to the pattern's larger side); a value: at most that far
       beyond the printed pattern (mm, every side), still only where the image shows board; 0: the
       pattern only.
-    - ``reflectance``: True (default): where a lit frame of the pose is given (a pattern frame, or a
-      laser-off frame per image), the board's reflectance is divided out of the laser image before
-      the stripe centres are found (:func:`reflectance_normalised`: the printed edges under the
-      stripe do not move its centres); False: the laser-off frame only subtracted.
+    - ``reflectance``: where a lit frame of the pose is given (a pattern frame, or a laser-off frame
+      per image), keep the stripe centres only on light, even print (:func:`even_reflectance`: the
+      printed edges under the stripe do not move the centres kept).  None (default): for ChArUco
+      boards, whose markers put edges under every stripe (on renders the per-pose offset of the
+      centres drops from 0.072 to ~0.02 px RMS, benchmarks/bench_board_stripe.py); True: for every
+      board; False: never (the laser-off frame only subtracted, every centre kept).  Chessboards
+      and circle grids gain nothing measurable on renders, and on real dark laser frames whose
+      stripe saturates on the white squares (FabScan) the filter drops the centres that remain.
     """
 
     stripe_width_px: float | None = None
@@ -577,7 +576,7 @@ class BoardPlaneOptions:
     min_views: int = 2
     keep_suspect: bool = False
     board_margin_mm: float | None = None
-    reflectance: bool = True
+    reflectance: bool | None = None
 
     def __post_init__(self):
         if self.board_margin_mm is not None and not (np.isfinite(self.board_margin_mm) and self.board_margin_mm >= 0):
@@ -678,13 +677,18 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
         bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
     lit_frame = pat if pat is not None else (bg if per_image else None)
     stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
-                             pattern_mask, lit=lit_frame if opts.reflectance else None)
+                             pattern_mask, lit=lit_frame if _even_print(opts, target) else None)
     if pats is None and not per_image and len(stripe) >= 2:
         # corners found in the laser-on image: leave out those the stripe runs over
         clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
         if not clear.all() and np.count_nonzero(clear) >= 6:
             pose = pose_from_corners(camera, pose.corners_uv, target, name=name, corner_ok=clear, ids=pose.ids)
     return pose, stripe
+
+
+def _even_print(opts: BoardPlaneOptions, target) -> bool:
+    """Whether the stripe centres are kept only on even print (``opts.reflectance``; None: ChArUco boards)."""
+    return target.kind == "charuco" if opts.reflectance is None else bool(opts.reflectance)
 
 
 def _pattern_pose(camera: Camera, target, pat, name: str, channel: str | None, pattern_poses: dict) -> BoardPose:
