@@ -74,9 +74,10 @@ def test_plane_board_from_pattern_and_dark_laser_frames(striped, tmp_path):
     used = sum(im["used"] for im in res["images"])
     assert used >= 4
     # circle grids: stripe centres on even reflectance are unbiased (measured 0.002-0.003 deg);
-    # ChArUco: the markers' edges bias the centres (measured 0.04 deg on these 6 poses)
-    bar = 0.02 if t.kind == "circles" else 0.3
-    assert angle < max(3 * sigma, bar), (angle, sigma)
+    # ChArUco: its centres are kept on even print only, away from the markers' edges (measured
+    # 0.005 deg with every centre kept on these 6 poses, 0.3 px offsets where the stripe runs along
+    # a marker column; benchmarks/bench_board_stripe.py)
+    assert angle < max(3 * sigma, 0.02), (angle, sigma)
     # the dark laser frames alone do not show the board: without the pattern frames nothing is usable
     r = run("calibrate-plane-board", *lasers, "--camera", d / "camera.json", *board_args(t),
             "-o", tmp_path / "none.json")

@@ -125,7 +125,9 @@ def test_images_dispersion_part_due_to_the_camera(one):
     out, f = _dispersion_beside_camera(nm, plane.camera_dependence)
     assert out["image_dispersion"] == pytest.approx(T0 / (nm["image_dispersion_expected"] + EK))
     assert out["image_dispersion_noise_only"] == nm["image_dispersion"]
-    assert f == pytest.approx(out["image_dispersion"] / nm["image_dispersion"])
+    # the covariance's factor is the dispersion never below 1 (the positive part of a variance component)
+    assert out["image_dispersion_factor"] == pytest.approx(max(out["image_dispersion"], 1.0))
+    assert f == pytest.approx(max(out["image_dispersion"], 1.0) / max(nm["image_dispersion"], 1.0))
 
 
 def test_outputs_with_and_without_the_camera_share(one):

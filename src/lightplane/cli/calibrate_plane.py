@@ -18,6 +18,7 @@ from lightplane.cli._common import target_from_options
 from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, uncertainty_summary
 from lightplane.plan.shares import LITTLE, information_shares
 from lightplane.plane.joint import JointCameraImages, calibrate_light_planes
+from lightplane.plane.ml import dispersion_factor
 from lightplane.plane.uncertainty import (camera_param_names, camera_params, camera_uncertainty_summary,
     joint_dispersion_phrase)
 from lightplane.report.html import write_report
@@ -256,9 +257,11 @@ def _print_calibration(cal, cam) -> dict:
                       f"(correlation along the curves ×{nm.get('tau_rim', 1):.1f} / ×{nm.get('tau_stripe', 1):.1f}, "
                       f"counted in σ above)")
         if nm.get("image_dispersion") is not None:
+            f = dispersion_factor(nm)
+            applied = (f"×{f:.2f} in the covariance" + (", never below 1" if f != nm["image_dispersion"] else "")
+                       if nm.get("image_dispersion_applied") else "not in the covariance")
             console.print(f"  images' dispersion ×{nm['image_dispersion']:.2f} in variance (errors shared within an "
-                          f"image, from the residuals; "
-                          f"{'in' if nm.get('image_dispersion_applied') else 'not in'} the covariance)")
+                          f"image, from the residuals; {applied})")
     console.print(f"  image noise σ {cal.sigma_px:.3f} px (pooled); {cal.n_used} of {len(cal.images)} images used; "
                   f"{cal.seconds:.2f} s")
     shares = _shares(cal, cam, unc)

@@ -49,6 +49,7 @@ from lightplane.core.threads import enter_serial, frames_across_threads
 from lightplane.ellipse import (Ellipse, EllipseDetectionOptions, RefinedEllipse, detect_ellipses, expected_axis_range_px,
     refine_ellipse, select_target, stripe_crossing)
 from lightplane.plane.circle_pose import CirclePose
+from lightplane.plane.ml import dispersion_factor
 from lightplane.plane.quality import (PlaneQuality, check_plane_quality, plane_geometry, plane_quality, stripe_image,
                                       working_volume)
 from lightplane.plane.solvers import Ambiguity
@@ -1034,7 +1035,8 @@ def _dispersion_beside_camera(nm: dict, dep: CameraDependence) -> tuple[dict, fl
     The dispersion becomes ``T / (E + E_K)`` (``E``: the noise model's part): 1 when both the noise
     model and the intrinsics' covariance hold; an excess of the image noise shows diluted by
     ``E / (E + E_K)`` rather than counted twice.  ``factor``: the plane covariance's rescaling
-    (new over old dispersion where the covariance applies it, else 1).
+    (new over old :func:`lightplane.plane.ml.dispersion_factor`, never below 1, where the
+    covariance applies it, else 1).
     """
     T0, E, EK = dep.extra.get("image_dispersion_statistic"), nm.get("image_dispersion_expected"), dep.extra.get(
         "image_dispersion_camera_expected")
@@ -1042,9 +1044,13 @@ def _dispersion_beside_camera(nm: dict, dep: CameraDependence) -> tuple[dict, fl
         return nm, 1.0
     old = float(nm.get("image_dispersion") or 1.0)
     new = float(T0) / (float(E) + max(float(EK), 0.0))
+    f_old = dispersion_factor(nm)
     out = dict(nm, image_dispersion=new, image_dispersion_noise_only=old,
                image_dispersion_camera_expected=max(float(EK), 0.0))
-    return out, (new / old if nm.get("image_dispersion_applied") and old > 0 else 1.0)
+    if not nm.get("image_dispersion_applied"):
+        return out, 1.0
+    out["image_dispersion_factor"] = max(new, 1.0)
+    return out, (out["image_dispersion_factor"] / f_old if f_old > 0 else 1.0)
 
 
 def propagate_camera(solve: Callable[[Camera], LightPlane], camera: Camera, plane: LightPlane) -> CameraDependence:

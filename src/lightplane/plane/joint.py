@@ -51,7 +51,7 @@ from lightplane.camera.targets import Target
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.calibrate import ImagePlaneCalibration, PlaneCalibrationOptions, calibrate_plane, calibrate_planes
 from lightplane.plane.model import CameraDependence, LightPlane
-from lightplane.plane.ml import _huber_weights, _make_pose, _Problem, plane_param_jacobian
+from lightplane.plane.ml import _huber_weights, _make_pose, _Problem, dispersion_factor, plane_param_jacobian
 from lightplane.camera.intrinsics import IntrinsicsCalibration, calibrate_camera, free_parameters, view_dispersion
 from lightplane.plane.uncertainty import camera_param_names, camera_params, camera_with_params
 
@@ -425,7 +425,7 @@ def refine_joint(intrinsics, plane_cal: ImagePlaneCalibration, options: JointOpt
     free = free_parameters(len(cam.dist), intrinsics.flags)
     # the rim and stripe points weighted by their long-run noise, times the images' dispersion where the
     # plane's covariance applies it (as the corners by the views' dispersion)
-    phi = float(nm.get("image_dispersion") or 1.0) if nm.get("image_dispersion_applied") else 1.0
+    phi = dispersion_factor(nm)
     views = JointBoardViews(objs, list(intrinsics.corners_uv), list(intrinsics.rvecs), list(intrinsics.tvecs),
                             float(sigma_c))
     targets = JointTargetPlacements(plane_cal.diameter_mm / 2, [o.rim_uv for o in used], stripes, plane_cal.plane,

@@ -1141,6 +1141,8 @@ def _noise_model(res) -> dict:
         noise_model["n_outliers"] = int(res.n_outliers)
     if hasattr(res, "dispersion_applied"):
         noise_model["image_dispersion_applied"] = bool(res.dispersion_applied)
+        d = noise_model.get("image_dispersion")
+        noise_model["image_dispersion_factor"] = max(float(d), 1.0) if res.dispersion_applied and d else 1.0
     return noise_model
 
 

@@ -41,13 +41,14 @@ from lightplane.camera.model import Camera, as_points
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.triangulate import GRAZING_COS, points_sigma_mm, triangulate_normalized
 from lightplane.plane.model import LightPlane
+from lightplane.plane.ml import dispersion_factor
 from lightplane.camera.lens import coeff_names
 
 __all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
            "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
            "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian",
-           "plane_noise_covers", "joint_dispersion_covers", "joint_dispersion_phrase"]
+           "plane_noise_covers", "zhou_covers", "joint_dispersion_covers", "joint_dispersion_phrase"]
 
 
 def _plane_cov(plane: LightPlane, covariance: np.ndarray | None) -> np.ndarray:
@@ -228,13 +229,27 @@ CAMERA_SHARE_COVERS = ("the intrinsics' and distortion's covariance from the cam
 
 def plane_noise_covers(plane: LightPlane) -> str:
     """What the plane's own covariance covers (one phrase, from its noise model in ``plane.meta``)."""
+    if plane.meta.get("method") == "zhou":
+        return zhou_covers(plane)
     nm = plane.meta.get("noise_model") or {}
     if nm.get("image_dispersion_applied"):
+        f, d = dispersion_factor(nm), float(nm.get("image_dispersion") or 1.0)
+        est = "" if abs(f - d) < 5e-3 else f", estimated x{d:.2f}, never taken below 1"
         return ("the plane calibration's image noise (rim and stripe points: their sigmas, their correlation "
                 f"along the curves, and errors shared within an image: the images' dispersion "
-                f"x{float(nm.get('image_dispersion') or 1.0):.2f} in variance)")
+                f"x{f:.2f} in variance{est})")
     return ("the plane calibration's image noise (rim and stripe points: their sigmas and their correlation "
             "along the curves; errors shared within an image not included)")
+
+
+def zhou_covers(plane: LightPlane) -> str:
+    """What a Zhou plane's own covariance covers (one phrase, from ``plane.meta["covariance_method"]``)."""
+    how = str(plane.meta.get("covariance_method") or "")
+    if how.startswith("jackknife"):
+        return ("the plane calibration's image noise (each board pose's error, shared by all its stripe points, "
+                f"and the stripe points' scatter: the {how})")
+    return ("the plane calibration's stripe points' scatter only (too few board poses for the jackknife: "
+            "each pose's error shared by its points not included)")
 
 
 def joint_dispersion_phrase(dispersion: float) -> str:

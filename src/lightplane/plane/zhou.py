@@ -25,7 +25,8 @@ from lightplane.camera.board_pose import BoardPose, find_board_pose, pose_from_c
 from lightplane.camera.model import Camera, as_points, camera_record
 from lightplane.core.errors import LightplaneError
 from lightplane.core.geometry import plane_scatter, ray_plane, robust_sigma, tls_line
-from lightplane.plane.model import LightPlane
+from lightplane.plane.calibrate import propagate_camera
+from lightplane.plane.model import CameraDependence, LightPlane
 from lightplane.plane.quality import (PlaneQuality, check_plane_quality, plane_geometry, plane_quality, stripe_image,
                                       working_volume)
 from lightplane.camera.targets import as_target
@@ -50,6 +51,8 @@ __all__ = [
     "find_board_views",
     "calibrate_plane_boards",
     "straight_stripe_inliers",
+    "laser_light",
+    "even_reflectance",
     "calibrate_plane_board",
 ]
 
@@ -388,19 +391,78 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
     return inl
 
 
+#: Stripe centres are kept where the board's level (the lit frame over its white) is at least
+#: ``EVEN_LEVEL_MIN`` and its max over min within the stripe's reach stays under ``EVEN_SPREAD_MAX``
+#: (:func:`even_reflectance`).
+EVEN_LEVEL_MIN = 0.5
+EVEN_SPREAD_MAX = 1.5
+
+
+def laser_light(image: np.ndarray, lit: np.ndarray, mask: np.ndarray,
+                channel: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The laser's light alone and the board's reflectance: ``(stripe, level)``, float images.
+
+    ``lit``: the same board pose lit, laser off (a pattern frame or a laser-off frame).  The laser
+    image's ambient part is ``lit`` times the frames' exposure ratio (the median of ``image / lit``
+    over the light board pixels of ``mask``: 1 for a laser-off frame of the same exposure, ~0.03
+    for a dark laser frame), which is subtracted.  ``level``: ``lit`` over the board's white (its
+    90th percentile in ``mask``), the printed reflectance under the stripe (:func:`even_reflectance`).
+    """
+    g = to_gray_float(image, channel)
+    p = to_gray_float(lit, channel)
+    m = (mask > 0) & (p > 0)
+    white = float(np.percentile(p[m], 90)) if np.any(m) else 0.0
+    if not white > 0:
+        return np.clip(g - p, 0, None), np.ones_like(p)
+    bright = m & (p > 0.5 * white)
+    k = float(np.median(g[bright] / p[bright])) if np.any(bright) else 1.0
+    return np.clip(g - k * p, 0, None), p / white
+
+
+def even_reflectance(level: np.ndarray, uv: np.ndarray, width_px: float) -> np.ndarray:
+    """(N,) bool: the stripe centres ``uv`` (N, 2, px) that lie on light, even print.
+
+    A stripe on paper is the laser's irradiance times the paper's reflectance; where a printed
+    edge (a square's or a marker's border) runs within the stripe's reach, the product's peak
+    moves towards the lighter side, by a good part of a pixel when the edge runs along the stripe,
+    and every centre along it moves alike (no number of centres averages it out).  Dividing by
+    the lit frame does not undo it: the blur spreads the edge over both frames differently.  Kept:
+    the centres whose ``level`` (:func:`laser_light`) is at least :data:`EVEN_LEVEL_MIN` (not on
+    ink: the stripe there is dim and next to the edges) and varies by less than
+    :data:`EVEN_SPREAD_MAX` (max over min) within the stripe's half-width plus a pixel (the blur).
+    """
+    import cv2
+
+    r = max(1, int(np.ceil(float(width_px) / 2 + 1)))
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    lv = np.ascontiguousarray(level, dtype=np.float32)
+    ij = np.clip(np.round(as_points(uv, 2, "uv")).astype(int), 0, [lv.shape[1] - 1, lv.shape[0] - 1])
+    hi = cv2.dilate(lv, k)[ij[:, 1], ij[:, 0]]
+    lo = cv2.erode(lv, k)[ij[:, 1], ij[:, 0]]
+    return (lo >= EVEN_LEVEL_MIN) & (hi < EVEN_SPREAD_MAX * np.maximum(lo, 1e-6))
+
+
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
                     width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None,
-                    pattern_mask: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+                    pattern_mask: np.ndarray | None = None, lit: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
     subtracting the laser-off frame in the channels that carry the stripe
     (:func:`lightplane.stripe.difference.laser_difference`; ``pattern_mask``: the printed pattern, whose white
-    level a stripe must exceed without one; default ``mask``), and a note on the channels ("" if none)."""
+    level a stripe must exceed without one; default ``mask``), and a note on the channels ("" if none).
+    ``lit``: the lit board of the same pose (laser off): its ambient part is subtracted
+    (:func:`laser_light`) and only centres on light, even print are kept (:func:`even_reflectance`)."""
 
     import cv2
 
     grid = None if corners_uv is None else corners_uv.reshape(-1, 2)
     spacing = None if grid is None else _corner_spacing_px(grid)
-    if background is not None:
+    if lit is not None:
+        if lit.shape[:2] != image.shape[:2]:
+            raise LightplaneError(f"lit board frame shape {lit.shape} differs from image shape {image.shape}")
+        img, level = laser_light(image, lit, mask if pattern_mask is None else pattern_mask, channel)
+        note = ""
+        background = lit  # what follows treats the frame as background-subtracted
+    elif background is not None:
         if background.shape != image.shape:
             raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
         diff = laser_difference(image, background, channel, region=mask)
@@ -430,6 +492,10 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
             pm = mask if pattern_mask is None else pattern_mask
             white = float(np.percentile(raw[pm > 0], 90))
             keep &= raw[ij[:, 1], ij[:, 0]] > white * 1.05 + 2.0
+        if lit is not None:
+            fwhm = np.asarray(sp.width, float).ravel()
+            w = width_px if width_px is not None else (float(np.nanmedian(fwhm)) if np.any(np.isfinite(fwhm)) else 3.0)
+            keep &= even_reflectance(level, uv, w)
         uv = uv[keep]
     if len(uv) and grid is not None and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them
@@ -501,6 +567,14 @@ class BoardPlaneOptions:
       as far as the image shows it (up to the pattern's larger side); a value: at most that far
       beyond the printed pattern (mm, every side), still only where the image shows board; 0: the
       pattern only.
+    - ``reflectance``: where a lit frame of the pose is given (a pattern frame, or a laser-off frame
+      per image), keep the stripe centres only on light, even print (:func:`even_reflectance`: the
+      printed edges under the stripe do not move the centres kept).  None (default): for ChArUco
+      boards, whose markers put edges under every stripe (on renders the per-pose offset of the
+      centres drops from 0.072 to ~0.02 px RMS, benchmarks/bench_board_stripe.py); True: for every
+      board; False: never (the laser-off frame only subtracted, every centre kept).  Chessboards
+      and circle grids gain nothing measurable on renders, and on real dark laser frames whose
+      stripe saturates on the white squares (FabScan) the filter drops the centres that remain.
     """
 
     stripe_width_px: float | None = None
@@ -510,6 +584,7 @@ class BoardPlaneOptions:
     min_views: int = 2
     keep_suspect: bool = False
     board_margin_mm: float | None = None
+    reflectance: bool | None = None
 
     def __post_init__(self):
         if self.board_margin_mm is not None and not (np.isfinite(self.board_margin_mm) and self.board_margin_mm >= 0):
@@ -609,8 +684,9 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
         mask = np.where(inside, mask, 0).astype(mask.dtype)
     if pat is not None and bg is None and _same_exposure(img, pat, pattern_mask, opts.channel):
         bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
+    lit_frame = pat if pat is not None else (bg if per_image else None)
     stripe, note = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
-                                   pattern_mask)
+                                   pattern_mask, lit=lit_frame if _even_print(opts, target) else None)
     if note and notes is not None:
         notes[name] = note
     if pats is None and not per_image and len(stripe) >= 2:
@@ -619,6 +695,11 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
         if not clear.all() and np.count_nonzero(clear) >= 6:
             pose = pose_from_corners(camera, pose.corners_uv, target, name=name, corner_ok=clear, ids=pose.ids)
     return pose, stripe
+
+
+def _even_print(opts: BoardPlaneOptions, target) -> bool:
+    """Whether the stripe centres are kept only on even print (``opts.reflectance``; None: ChArUco boards)."""
+    return target.kind == "charuco" if opts.reflectance is None else bool(opts.reflectance)
 
 
 def _pattern_pose(camera: Camera, target, pat, name: str, channel: str | None, pattern_poses: dict) -> BoardPose:
@@ -715,10 +796,25 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     geometry = plane_geometry(z.points_cam_mm, z.view_index, z.plane.normal, z.plane.d, z.plane.covariance)
     if geometry["refusal"] and not opts.keep_suspect:
         raise LightplaneError(geometry["refusal"] + "; or keep the plane as it is with --keep-suspect")
-    plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
-                       meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm),
-                             "geometry": geometry})
+    meta = {**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm), "geometry": geometry}
+    if camera.covariance is not None:
+        meta[CameraDependence.KEY] = _camera_dependence(camera, target, v, z.plane, opts).to_dict()
+    plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance, meta=meta)
     return replace(z, plane=plane, quality=q)
+
+
+def _camera_dependence(camera: Camera, target, views: BoardViews, plane: LightPlane,
+                       opts: BoardPlaneOptions) -> CameraDependence:
+    """The plane's dependence on the intrinsics (:func:`lightplane.plane.calibrate.propagate_camera`): the
+    board poses solved again from the same corners and the same stripe centres put on them, with
+    other intrinsics."""
+    def solve(cam: Camera) -> LightPlane:
+        poses = [pose_from_corners(cam, p.corners_uv, target, name=p.name, corner_ok=p.corner_ok, ids=p.ids)
+                 for p in views.poses]
+        return plane_from_board_stripes(cam, poses, views.stripes, min_points_per_view=opts.min_points_per_view,
+                                        jackknife_min_views=len(poses) + 1).plane
+
+    return propagate_camera(solve, camera, plane)
 
 
 def _channel_summary(notes: dict) -> str | None:

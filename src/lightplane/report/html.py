@@ -37,6 +37,7 @@ from lightplane.report.plots import overlays as _overlays
 from lightplane.core.io import atomic_write, check_output, read_json
 from lightplane.plane.calibrate import ImagePlaneCalibration, uncertainty_summary
 from lightplane.plane.model import LightPlane
+from lightplane.plane.ml import dispersion_factor
 
 __all__ = ["Section", "write_report", "render_report_html", "figure_overlays", "figure_poses_3d",
            "figure_residuals", "figure_uncertainty", "load_report_inputs", "rebuild_report"]  # figure_*: from lightplane.report.plots
@@ -134,7 +135,8 @@ def _result_rows(cal, plane_true) -> list[tuple[str, str]]:
         rows.append(("noise model (ML)", f"rim {nm['sigma_rim_px']:.3f} px, stripe {nm['sigma_stripe_px']:.3f} px; "
                                          f"correlation factors {nm.get('tau_rim', 1):.1f} / {nm.get('tau_stripe', 1):.1f}"
                                          + (f"; images' dispersion {nm['image_dispersion']:.2f}"
-                                            + ("" if nm.get("image_dispersion_applied") else " (not applied)")
+                                            + (f" (x{dispersion_factor(nm):.2f} applied)"
+                                               if nm.get("image_dispersion_applied") else " (not applied)")
                                             if nm.get("image_dispersion") is not None else "")))
     if unc:
         rows += _uncertainty_rows(unc)
