@@ -285,20 +285,41 @@ def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
     """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
     L = p1.shape[0]
     out = p1.copy()
-    buf = np.empty(2 * half_window + 1, dtype=np.float64)
+    buf = np.empty(2 * half_window + 1, dtype=np.int64)
     for l in range(L):
         if p2[l] < 0 or v2[l] < min_peak:
             continue
         n = 0
+        lo = np.iinfo(np.int64).max
+        hi = np.iinfo(np.int64).min
         for k in range(max(0, l - half_window), min(L, l + half_window + 1)):
             if k != l and v1[k] >= min_peak:
-                buf[n] = p1[k]
+                x = p1[k]
+                buf[n] = x
                 n += 1
+                lo = min(lo, x)
+                hi = max(hi, x)
         if n < 2:
             continue
-        ref = np.median(buf[:n])
-        if abs(p1[l] - ref) > tol and abs(p2[l] - ref) <= tol:
-            out[l] = p2[l]
+        # the median lies within [min, max] of the neighbours: where p1 is within tol of all of
+        # that range, or p2 outside it by more than tol, the choice is p1 whatever the median (on a
+        # continuous stripe nearly every line; the sort below is then skipped)
+        a = p1[l]
+        b = p2[l]
+        if (hi - a <= tol and a - lo <= tol) or b < lo - tol or b > hi + tol:
+            continue
+        # the median of the n neighbours (np.median's value): insertion sort of <= 2 half_window ints
+        for i in range(1, n):
+            x = buf[i]
+            j = i - 1
+            while j >= 0 and buf[j] > x:
+                buf[j + 1] = buf[j]
+                j -= 1
+            buf[j + 1] = x
+        h = n // 2
+        ref = np.float64(buf[h]) if n % 2 == 1 else 0.5 * (np.float64(buf[h - 1]) + np.float64(buf[h]))
+        if abs(a - ref) > tol and abs(b - ref) <= tol:
+            out[l] = b
     return out
 
 
