@@ -34,6 +34,7 @@ Run: ``.venv/bin/python benchmarks/bench_busy.py [--rounds 7] [--cpus 0,1] [--no
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -189,18 +190,22 @@ def roi_frame(rng: np.random.Generator, k: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- timing
+#: the clock of :func:`interleaved`: wall time, or with ``--cpu-time`` this thread's CPU time
+CLOCK = time.perf_counter
+
+
 def interleaved(fns: dict, rounds: int) -> dict[str, float]:
-    """Median seconds of each callable over ``rounds`` rounds, each round calling all of them in
-    turn (order reversed every other round)."""
+    """Median seconds (:data:`CLOCK`) of each callable over ``rounds`` rounds, each round calling
+    all of them in turn (order reversed every other round)."""
     keys = list(fns)
     for k in keys:
         fns[k]()
     t: dict[str, list[float]] = {k: [] for k in keys}
     for r in range(rounds):
         for k in (keys if r % 2 == 0 else keys[::-1]):
-            t0 = time.perf_counter()
+            t0 = CLOCK()
             fns[k]()
-            t[k].append(time.perf_counter() - t0)
+            t[k].append(CLOCK() - t0)
     return {k: float(np.median(v)) for k, v in t.items()}
 
 
@@ -250,27 +255,35 @@ def roi_stack(n: int = 1000, distinct: int = 50) -> np.ndarray:
     return np.stack([rois[i % distinct] for i in range(n)])
 
 
-def roi_rates(roi: np.ndarray, runs: int, levels=(0, 2), cpus=None) -> dict[int, float]:
-    """Median profiles/s of ``extract_profiles`` on ``roi`` with ``k`` busy processes."""
+def clean_roi_stack(n: int = 1000, distinct: int = 50) -> np.ndarray:
+    """``bench_stripe.py``'s clean regions of interest (``bench_stripe.roi_frame``), as many."""
+    from bench_stripe import roi_frame as clean_roi
+
+    rng = np.random.default_rng(0)
+    rois = [clean_roi(rng) for _ in range(distinct)]
+    return np.stack([rois[i % distinct] for i in range(n)])
+
+
+def roi_rates(stacks: dict[str, np.ndarray], runs: int, levels=(0, 2), cpus=None) -> dict[tuple[str, int], float]:
+    """Median profiles/s of ``extract_profiles`` on each stack with ``k`` busy processes (the stacks
+    interleaved within each level); ``CLOCK`` is :func:`time.thread_time`: one thread, profiles per
+    CPU second."""
     from bench_load import start_busy, stop_busy
 
     from lightplane.stripe.extract import estimate_width, extract_profiles
     from lightplane.stripe.options import StripeOptions
 
-    opts = StripeOptions(width_px=estimate_width(roi[0], axis="columns"))
-    extract_profiles(roi[:8], options=opts)
+    opts = {name: StripeOptions(width_px=estimate_width(roi[0], axis="columns")) for name, roi in stacks.items()}
     out = {}
     for k in levels:
         procs = start_busy(k, cpus, 120.0)
         try:
-            r = []
-            for _ in range(runs):
-                t0 = time.perf_counter()
-                extract_profiles(roi, options=opts)
-                r.append(roi.shape[0] / (time.perf_counter() - t0))
+            t = interleaved({name: (lambda roi=roi, o=opts[name]: extract_profiles(roi, options=o))
+                             for name, roi in stacks.items()}, runs)
         finally:
             stop_busy(procs)
-        out[k] = float(np.median(r))
+        for name, roi in stacks.items():
+            out[(name, k)] = roi.shape[0] / t[name]
     return out
 
 
@@ -280,6 +293,9 @@ def main() -> None:
     ap.add_argument("--cpus", default=None, help="comma-separated CPU ids to run on (e.g. 0,1)")
     ap.add_argument("--no-load", action="store_true", help="skip the ROI batch with busy processes")
     ap.add_argument("--no-stages", action="store_true", help="skip the stage breakdown")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time the frames by this thread's CPU time, everything on one thread (extractor, "
+                         "measure, blur): ratios that hold on a machine shared with other processes")
     args = ap.parse_args()
     cpus = {int(c) for c in args.cpus.split(",")} if args.cpus else None
     if cpus:
@@ -287,13 +303,19 @@ def main() -> None:
 
     import cv2
 
-    from lightplane.core.threads import describe
+    from lightplane.core.threads import describe, serial_kernels
     from lightplane.measure.profile import measure_profile
     from lightplane.stripe.extract import extract_profile
     from results import at_least, at_most, figure, record
 
+    global CLOCK
     frames = busy_frames()
     extract_profile(frames[0][1], frames[0][2])
+    serial = contextlib.nullcontext()
+    if args.cpu_time:
+        CLOCK = time.thread_time
+        cv2.setNumThreads(1)
+        serial = serial_kernels()
     print(f"cpus {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}; {describe()}")
     print(f"{len(frames)} frames; per frame medians of {args.rounds} interleaved rounds, ratios to cv2.GaussianBlur "
           f"(σ {BLUR_SIGMA_PX} px) of the same frame")
@@ -301,6 +323,7 @@ def main() -> None:
           f"{'valid':>6s} {'width px':>8s}")
     r_prof, r_meas, t_blur, t_prof, t_meas = [], [], [], [], []
     breakdown: dict[str, list[float]] = {}
+    serial.__enter__()
     for name, img, axis, cam, plane in frames:
         fns = {"blur": lambda: cv2.GaussianBlur(img, (0, 0), BLUR_SIGMA_PX),
                "profile": lambda: extract_profile(img, axis)}
@@ -323,7 +346,9 @@ def main() -> None:
         if not args.no_stages:
             for k, v in stages(img, axis, args.rounds).items():
                 breakdown.setdefault(k, []).append(v)
-    print(f"\nmedian over {len(frames)} frames: extract_profile / blur {np.median(r_prof):.2f}x (target <= 1.0x), "
+    serial.__exit__(None, None, None)
+    clock = "thread CPU time, one thread" if args.cpu_time else "wall time, default threads"
+    print(f"\n{clock}; median over {len(frames)} frames: extract_profile / blur {np.median(r_prof):.2f}x (target <= 1.0x), "
           f"measure_profile / blur {np.median(r_meas):.2f}x over {len(r_meas)} rendered frames (target <= 1.2x)")
     if breakdown:
         whole = np.array(breakdown["whole (1 thread)"])
@@ -331,25 +356,34 @@ def main() -> None:
         for k, v in breakdown.items():
             print(f"  {k:22s} {np.median(v) * 1e3:8.3f} ms  {np.median(np.array(v) / whole) * 100:5.1f} %")
     figs = [figure("busy_extract_profile_ratio", f"extract_profile, busy 1280x960 frames (median of {len(frames)})",
-                   float(np.median(r_prof)), "x", statistic="median over the set of per-frame medians",
+                   float(np.median(r_prof)), "x", statistic=f"median over the set of per-frame medians ({clock})",
                    reference=("cv2.GaussianBlur of the same frame (σ 1.44 px)", float(np.median(t_blur)) * 1e3, "ms"),
                    target=at_most(1.0, "x")),
             figure("busy_extract_profile_ms", "extract_profile, busy frames, time", float(np.median(t_prof)) * 1e3,
-                   "ms", statistic="median over the set", reference=("cv2.GaussianBlur", float(np.median(t_blur)) * 1e3,
+                   "ms", statistic=f"median over the set ({clock})", reference=("cv2.GaussianBlur", float(np.median(t_blur)) * 1e3,
                                                                       "ms")),
             figure("busy_measure_profile_ratio", f"measure_profile, busy rendered frames (median of {len(r_meas)})",
-                   float(np.median(r_meas)), "x", statistic="median over the set of per-frame medians",
+                   float(np.median(r_meas)), "x", statistic=f"median over the set of per-frame medians ({clock})",
                    reference=("cv2.GaussianBlur of the same frame (σ 1.44 px)", float(np.median(t_blur)) * 1e3, "ms"),
                    target=at_most(1.2, "x"))]
-    roi = roi_stack()
-    levels = (0,) if args.no_load else (0, 2)
-    rates = roi_rates(roi, 5, levels, cpus)
-    for k, v in rates.items():
+    stacks = {"busy": roi_stack(), "clean": clean_roi_stack()}
+    levels = (0,) if (args.no_load or args.cpu_time) else (0, 2)
+    if args.cpu_time:
+        serial.__enter__()
+    rates = roi_rates(stacks, 5, levels, cpus)
+    if args.cpu_time:
+        serial.__exit__(None, None, None)
+    unit = "profiles per CPU second, one thread" if args.cpu_time else "profiles/s"
+    for k in levels:
+        v, ref = rates[("busy", k)], rates[("clean", k)]
         tgt = 10000.0 if k == 0 else 5000.0
-        print(f"busy 1280x64 ROIs (extract_profiles, 1000 a call), {k} busy processes: {v:8.0f} profiles/s "
-              f"({v / tgt:.2f}x target)")
-        figs.append(figure(f"busy_roi_profiles_k{k}", f"extract_profiles busy 1280x64 ROIs, {k} busy processes", v,
-                           "profiles/s", statistic="median of 5 calls of 1000 ROIs", target=at_least(tgt, "profiles/s")))
+        print(f"1280x64 ROIs (extract_profiles, 1000 a call), {k} busy processes: busy {v:8.0f}, clean {ref:8.0f} {unit} "
+              f"(busy {v / tgt:.2f}x target, {v / ref:.2f}x the clean ROIs)")
+        figs.append(figure(f"busy_roi_profiles_k{k}", f"extract_profiles busy 1280x64 ROIs, {k} busy processes"
+                           + (" (one thread, CPU time)" if args.cpu_time else ""), v, "profiles/s",
+                           statistic=f"median of 5 calls of 1000 ROIs ({clock})",
+                           reference=("bench_stripe's clean ROIs, same run", ref, "profiles/s"),
+                           target=at_least(tgt, "profiles/s")))
     record("bench_busy", figs)
 
 

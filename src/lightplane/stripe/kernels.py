@@ -782,10 +782,12 @@ def _nan_outputs(l, centre, normal, strength, intensity, width):
 
 
 @njit_cached(error_model="numpy")
-def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
+def _line_start(A, l, p, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status):
     """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
 
-    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set).
+    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set): no
+    candidate, too close to the ends (``EDGE``), or a line that no later step could make valid
+    (:func:`_line_hopeless`), before its derivatives are computed.
     """
     S = A.shape[0]
     _nan_outputs(l, centre, normal, strength, intensity, width)
@@ -803,11 +805,29 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
     if c - 1 - R < 0 or c + 1 + R > S - 1:
         status[l] = EDGE
         return -1, fw, best, bg, False
+    st = _line_hopeless(fw, best, bg, min_peak)
+    if st != OK:
+        status[l] = st
+        return -1, fw, best, bg, False
     return c, fw, best, bg, _is_flat(A, l, p, fw, best, bg, half)
 
 
 @njit_cached(inline="always")
-def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+def _line_hopeless(fw, best, bg, min_peak):
+    """``NO_PEAK`` where the line's contrast is below ``min_peak``, ``TOO_WIDE`` where its profile has
+    no half-level crossing on a side (``fw`` NaN), else ``OK``: such a line can end only invalid
+    (the contrast is checked after the derivatives, the width after the crossing, and a flat top
+    needs both crossings), so its derivatives are not computed.  On busy frames these are many
+    of the lines whose highest sample is texture or clutter, not the stripe."""
+    if best - bg < min_peak:
+        return NO_PEAK
+    if not (fw == fw):
+        return TOO_WIDE
+    return OK
+
+
+@njit_cached(inline="always")
+def _band_start(A, pos, l0, n, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status,
                 cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec):
     """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``: the same numbers, bit for bit,
     with the window scans of :func:`_fwhm_line` vectorised over the lines.
@@ -852,8 +872,8 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
         if not vec[j]:
             P[j] = -S - 2 * half - 8   # no row of the sweeps falls in its window
             K0[j] = P[j]
-            c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength, intensity,
-                                                width, status)
+            c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, min_peak, centre, normal, strength,
+                                                intensity, width, status)
             cs[j] = c
             fws[j] = fw
             bests[j] = best
@@ -966,8 +986,9 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
             cm = np.int64(math.floor(0.5 * (left + right) + 0.5))
             if abs(cm - p) <= qpeak:
                 c = cm
-        if c - 1 - R < 0 or c + 1 + R > S - 1:
-            status[q] = EDGE
+        st = EDGE if (c - 1 - R < 0 or c + 1 + R > S - 1) else _line_hopeless(fw, best, bg, min_peak)
+        if st != OK:
+            status[q] = st
             _nan_outputs(q, centre, normal, strength, intensity, width)
             cs[j] = -1
             flats[j] = False
@@ -1310,7 +1331,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                 l1 = l0 + BAND_LINES // 2
         if l == l0 and l1 - l0 >= 8:
             n = l1 - l0
-            _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+            _band_start(A, pos, l0, n, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status,
                         cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec)
             k = 0
             lo = S
@@ -1348,7 +1369,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                                 status)
             l = l1
         else:   # an edge line (or a short remainder): alone
-            c, fw, best, bg, flat = _line_start(A, l, pos[l], half, qpeak, R, centre, normal, strength,
+            c, fw, best, bg, flat = _line_start(A, l, pos[l], half, qpeak, R, min_peak, centre, normal, strength,
                                                 intensity, width, status)
             if c >= 0:
                 _line_alone(A, l, pos[l], c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width,
