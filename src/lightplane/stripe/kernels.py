@@ -588,7 +588,8 @@ def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
 
 
 # Lines per band (the along-line sums and the line ends vectorised over them): BAND_LINES where
-# their highest samples span at most BAND_SPAN samples, else half as many.  Each vectorised loop
+# their highest samples span at most BAND_SPAN samples or scatter rather than drift (see
+# _centres_range), else half as many.  Each vectorised loop
 # over a band costs a fixed overhead, so a wide band is cheaper per line; but the sums run over
 # the rows of every middle in the band, and a steep stripe's middles spread over more rows in a
 # wider band (64 / 32 lines: the serial 1280x64 ROI batch 160 -> 147 ns/line, the 1280x960 frame
@@ -1393,13 +1394,23 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
         l0 = max(l, RX)
         l1 = min(l0 + BAND_LINES, lb, L - RX)
         if l1 - l0 > BAND_LINES // 2:
-            pmin = S
-            pmax = -1
-            for q in range(l0, l1):
-                pmin = min(pmin, pos[q])
-                pmax = max(pmax, pos[q])
-            if pmax - pmin > BAND_SPAN:
-                l1 = l0 + BAND_LINES // 2
+            h = l0 + BAND_LINES // 2
+            amin = S
+            amax = -1
+            for q in range(l0, h):
+                amin = min(amin, pos[q])
+                amax = max(amax, pos[q])
+            bmin = S
+            bmax = -1
+            for q in range(h, l1):
+                bmin = min(bmin, pos[q])
+                bmax = max(bmax, pos[q])
+            span = max(amax, bmax) - min(amin, bmin)
+            # halved where the peaks drift across the band (a steep stripe: each half spans fewer
+            # rows), not where they only scatter (speckle, texture on the stripe: each half spans
+            # as many rows, and a narrower band pays its fixed costs twice)
+            if span > BAND_SPAN and 4 * max(amax - amin, bmax - bmin) <= 3 * span:
+                l1 = h
         if l == l0 and l1 - l0 >= 8:
             n = l1 - l0
             _band_start(A, pos, l0, n, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status,
