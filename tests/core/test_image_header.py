@@ -96,3 +96,33 @@ def test_limit_from_the_environment(tmp_path, monkeypatch):
         monkeypatch.setenv(MAX_PIXELS_ENV, bad)
         with pytest.raises(LightplaneError, match=MAX_PIXELS_ENV):
             try_read_image(f)
+
+
+def test_the_command_lines_limit_and_video_headers(tmp_path, monkeypatch):
+    """``lightplane --max-pixels N`` sets the limit for every command; a video's frame size is checked in its
+    container's header before any frame is decoded."""
+    from tests._cli import lightplane, one_error_line
+
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"v{i}.png"), np.zeros((H, W), np.uint8))
+    r = lightplane("--max-pixels", W * H - 1, "calibrate-camera", *sorted(tmp_path.glob("v*.png")),
+                   "--board", "9x6", "--square", "10", "-o", tmp_path / "cam.json")
+    one_error_line(r, f"3 too large: {W}x{H} px", "--max-pixels")
+    assert not (tmp_path / "cam.json").exists()
+    VW, VH = 64, 48  # a size every MJPG writer keeps
+    video = tmp_path / "v.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (VW, VH), False)
+    if not w.isOpened():
+        pytest.skip("this OpenCV build writes no MJPG video")
+    for _ in range(3):
+        w.write(np.zeros((VH, VW), np.uint8))
+    w.release()
+    from lightplane.measure.scan import VideoFrames
+
+    monkeypatch.setenv(MAX_PIXELS_ENV, str(VW * VH - 1))
+    with pytest.raises(LightplaneError, match=rf"frames of {VW}x{VH} px .* in its header, above the limit"):
+        VideoFrames(video)
+    monkeypatch.setenv(MAX_PIXELS_ENV, str(VW * VH))
+    v = VideoFrames(video)
+    assert sum(1 for _ in v.items()) == 3
+    v.close()

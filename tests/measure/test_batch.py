@@ -221,3 +221,38 @@ def test_worker_killed_mid_run_loses_and_duplicates_nothing(data, client, refere
         got = read_points(tmp_path / "out", sid)
         assert same(got, reference[sid])
         assert np.array_equal(np.unique(got["frame"]), np.arange(N_FRAMES))
+
+
+def test_dropped_points_counted_per_scan_and_frame(data, client, tmp_path):
+    """A frame without a stripe gives no points, and the manifest counts it as measure does (per reason, per
+    frame); the command line prints the totals."""
+    import json
+
+    import cv2
+
+    from tests._cli import lightplane
+
+    src = tmp_path / "s"
+    shutil.copytree(data / "s1", src)
+    frames = sorted(src.glob("*.png"))
+    img = cv2.imread(str(frames[2]), cv2.IMREAD_UNCHANGED)
+    short = np.full_like(img, int(np.median(img)))
+    short[:, :, None][100:110, :] = img[:, :, None][100:110, :]  # a stripe 10 lines long is no stripe
+    short[:, :, None][:, 100:110] = img[:, :, None][:, 100:110]
+    cv2.imwrite(str(frames[2]), short)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("id,input,camera,plane,step,direction,positions\n"
+                        f"d,{src},{src / 'camera.json'},{data / 'plane.json'},{STEP},-1;0;0,\n")
+    cam, pl = Camera.load(src / "camera.json"), LightPlane.load(data / "plane.json")
+    ref = measure_scan(open_frames([src]), cam, pl, tmp_path / "ref.npy", motion=Motion.linear(STEP, (-1, 0, 0)),
+                       workers=1, executor="thread")
+    assert ref.dropped.frames_without_stripe == 1
+    r = measure_batch(manifest, tmp_path / "out", batch=BatchOptions(chunk_frames=2), client=client)
+    assert not r.failed, r.failed
+    e = json.loads((tmp_path / "out" / "manifest.json").read_text())["scans"][0]
+    assert e["dropped"] == ref.dropped.totals and e["frames_without_stripe"] == 1
+    assert [f[0] for f in e["frames_dropped"]] == [i for i, _, _ in ref.dropped.frames]
+    assert same(read_points(tmp_path / "out", "d"), np.load(tmp_path / "ref.npy"))
+    cli = lightplane("measure-batch", manifest, "-o", tmp_path / "out2", "--local-workers", "1")
+    assert cli.returncode == 0, cli.stderr
+    assert "scan d: dropped: 1 frames without a stripe" in cli.stdout

@@ -23,7 +23,7 @@ except ImportError:  # pragma: no cover
 from lightplane.core.errors import LightplaneError
 from lightplane.camera.model import ALLOWED_CAMERA_KEY, Camera, camera_record
 from lightplane.camera.targets import parse_target
-from lightplane.core.io import check_output, quiet_opencv
+from lightplane.core.io import DEFAULT_MAX_PIXELS, MAX_PIXELS_ENV, check_output, quiet_opencv
 from lightplane.measure.sensor import Sensor
 from lightplane.motion.model import Turntable
 from lightplane.plane.model import LightPlane, check_camera
@@ -66,6 +66,20 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+
+@app.callback()
+def _global_options(
+    max_pixels: Optional[int] = typer.Option(
+        None, "--max-pixels", min=1, metavar="PIXELS",
+        help=f"Largest image or video frame read (width x height, pixels), checked in the file's header before "
+             f"decoding; default {DEFAULT_MAX_PIXELS:,} (or the {MAX_PIXELS_ENV} environment variable)."),
+) -> None:
+    """Line-structured-light calibration (single circular target, Wang & Li 2022) and 3D measurement."""
+    if max_pixels is not None:  # the environment carries it to worker processes too
+        os.environ[MAX_PIXELS_ENV] = str(max_pixels)
+
 
 console = Console(highlight=False, soft_wrap=True)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)  # one warning, one line

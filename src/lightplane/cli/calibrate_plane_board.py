@@ -274,6 +274,8 @@ def _print_board_result(res, target) -> None:
     console.print(v)
     for name, why in pl.meta["skipped"].items():  # one line each: reasons are long, tables cut them
         console.print(f"skipped {Path(name).name}: {why}")
+    if pl.meta.get("stripe_channels"):
+        console.print(f"note: {pl.meta['stripe_channels']}")
     print_quality(pl.meta.get("quality"), res.quality)
 
 

@@ -16,6 +16,7 @@ from lightplane.cli.measure import parse_roi
 from lightplane.core.io import summarize_reasons
 from lightplane.measure.batch import BatchOptions, measure_batch, read_manifest, require_extra
 from lightplane.measure.options import MeasureOptions
+from lightplane.measure.scan import Dropped
 from lightplane.stripe.options import StripeOptions
 
 #: per-scan progress bars up to this many scans (then the overall bar only)
@@ -143,6 +144,9 @@ def _print_batch(r, scans) -> None:
         if s["skipped"]:
             err_console.print(f"warning: scan {s['id']}: {len(s['skipped'])} unreadable frame(s) skipped: "
                               + summarize_reasons([(name, why) for _, name, why in s["skipped"]]))
+        summary = Dropped(totals=s.get("dropped", {}), n_frames_without_stripe=s.get("frames_without_stripe", 0)).summary()
+        if summary:
+            console.print(f"scan {s['id']}: {summary} (per frame: manifest.json)")
     for s in r.failed:
         err_console.print(f"failed: scan {s['id']} (manifest row {_row(scans, s['id'])}): {s['error']}")
 

@@ -64,8 +64,8 @@ def try_read_image(path: str | os.PathLike, *, rotate_deg: int = 0) -> tuple[np.
     try:
         size = image_header_size(p)
         if size is not None and size[0] * size[1] > limit:
-            return None, (f"too large: {size[0]}x{size[1]} px ({size[0] * size[1] / 1e6:.0f} megapixels) in its header, "
-                          f"above the limit of {limit / 1e6:g} megapixels (set {MAX_PIXELS_ENV} to raise it)")
+            return None, (f"too large: {size[0]}x{size[1]} px ({size[0] * size[1] / 1e6:.3g} megapixels) in its header, "
+                          f"above the limit of {limit / 1e6:g} megapixels (--max-pixels or {MAX_PIXELS_ENV} raises it)")
         data = np.fromfile(str(p), dtype=np.uint8)
     except PermissionError:
         return None, "cannot be read (permission denied)"

@@ -80,7 +80,7 @@ from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
 from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, versions, write_json
 from lightplane.measure.pointcloud import PointSpool, write_cloud
-from lightplane.measure.scan import FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
+from lightplane.measure.scan import Dropped, FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
 from lightplane.motion.model import Motion
 from lightplane.plane.model import LightPlane, check_camera
 from lightplane.core.threads import frames_across_threads, with_blas_limited
@@ -98,6 +98,8 @@ _META_KEY = b"lightplane"
 _LAYOUT = 2
 #: the lock file a run holds in its output folder
 LOCK_NAME = ".lightplane-batch.lock"
+#: frames listed with their dropped points in a scan's manifest entry (the totals count every frame)
+MAX_DROPPED_FRAMES = 1000
 #: the folder (in the output folder, beside points/) that receives the partitions of failed or dropped scans
 SET_ASIDE = "set-aside"
 
@@ -505,7 +507,7 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
 
     # remote frames that could not be fetched (filled while the frames are read)
     fetch_errors: dict = src.errors if isinstance(src, _RemoteFrames) else {}
-    parts, skipped, n, empty = [], [], 0, 0
+    parts, skipped, n, empty, dropped = [], [], 0, 0, Dropped()
     try:
         with frames_across_threads():  # the parallelism is across Dask's workers: serial kernels, one OpenCV thread
             scan = list(iter_scan(src, proc, workers=1))  # in this process, serial: measure's own path
@@ -519,6 +521,7 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
                 assert r.records is not None  # a frame without an error has its records
                 empty += r.records.size == 0
                 parts.append(r.records)
+                dropped.add(r)
     except LightplaneError as e:  # a frame of the wrong size, positions too short: the scan's fault
         return {"chunk": k, "error": str(e)}
     finally:
@@ -526,7 +529,9 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
     recs = np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE)
     summary = {"chunk": k, "frames": [start, start + n], "n_frames": n, "n_points": int(recs.size),
                "skipped": skipped, "frames_without_points": int(empty), "axis": prep["axis"],
-               "width_px": prep["width_px"]}
+               "width_px": prep["width_px"], "dropped": dict(dropped.totals),
+               "frames_dropped": [[i, name, d] for i, name, d in dropped.frames[:MAX_DROPPED_FRAMES]],
+               "n_frames_dropped": len(dropped.frames), "frames_without_stripe": dropped.frames_without_stripe}
     meta = {"token": spec["token"], "scan": spec["scan"], "fingerprint": spec["fingerprint"], **summary}
     if _lock_token(Path(spec["lock"][0])) != spec["lock"][1]:  # the run that asked for it has ended
         return {"chunk": k, "error": "the run that submitted this chunk no longer holds the output folder's lock"}
@@ -938,7 +943,8 @@ def _entry(pl: _Plan) -> dict:
     s = pl.scan
     e: dict = {"id": s.id, "input": s.input, "camera": s.camera, "plane": s.plane, "status": "ok", "error": None,
                "motion": None if pl.motion is None else pl.motion.to_dict(), "partitions": [], "n_frames": 0,
-               "n_points": 0, "skipped": [], "frames_without_points": 0, "partitions_written": 0,
+               "n_points": 0, "skipped": [], "frames_without_points": 0, "dropped": {}, "frames_dropped": [],
+               "n_frames_dropped": 0, "frames_without_stripe": 0, "partitions_written": 0,
                "partitions_reused": 0}
     if pl.error is not None:
         e["status"], e["error"] = "failed", pl.error
@@ -1032,6 +1038,12 @@ def _summarize(e: dict, pl: _Plan, metas_by_chunk: dict, out: Path, errors: list
         e["n_points"] += m["n_points"]
         e["skipped"].extend(m["skipped"])
         e["frames_without_points"] += m["frames_without_points"]
+        for why, count in m.get("dropped", {}).items():
+            e["dropped"][why] = e["dropped"].get(why, 0) + count
+        room = MAX_DROPPED_FRAMES - len(e["frames_dropped"])
+        e["frames_dropped"].extend(m.get("frames_dropped", [])[:max(room, 0)])
+        e["n_frames_dropped"] += m.get("n_frames_dropped", 0)
+        e["frames_without_stripe"] += m.get("frames_without_stripe", 0)
         e["axis"], e["width_px"] = m["axis"], m["width_px"]
     e["n_frames_used"] = e["n_frames"] - len(e["skipped"])
     if errors:

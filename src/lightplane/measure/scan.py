@@ -41,7 +41,8 @@ from lightplane.plane.triangulate import profile_axis
 from lightplane.motion.model import Motion, unit_direction  # noqa: F401  (re-exported: lightplane.measure.scan.Motion)
 from lightplane.plane.model import LightPlane
 from lightplane.measure.pointcloud import POINT_DTYPE, PointSpool, write_cloud
-from lightplane.core.io import expand_inputs, provenance, rotation_code, too_few_images_message, try_read_image
+from lightplane.core.io import (MAX_PIXELS_ENV, expand_inputs, max_pixels, provenance, rotation_code,
+                                 too_few_images_message, try_read_image)
 from lightplane.core.threads import enter_serial, frames_across_threads, serial_kernels
 from lightplane.stripe import kernels as K
 from lightplane.stripe.extract import estimate_width
@@ -195,6 +196,13 @@ class VideoFrames(FrameSource):
         if not cap.isOpened():
             cap.release()
             raise LightplaneError(f"{self.path}: cannot be opened as a video")
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        limit = max_pixels()
+        if w * h > limit:  # the container's frame size, checked before any frame is decoded
+            cap.release()
+            raise LightplaneError(f"{self.path}: frames of {w}x{h} px ({w * h / 1e6:.3g} megapixels) in its header, "
+                                  f"above the limit of {limit / 1e6:g} megapixels (--max-pixels or "
+                                  f"{MAX_PIXELS_ENV} raises it)")
         self.cap = cap
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.n_frames = n if n > 0 else None
@@ -526,6 +534,8 @@ class Dropped:
 
     totals: dict = field(default_factory=dict)
     frames: list = field(default_factory=list)
+    #: frames without a stripe when ``frames`` is not the whole list (a batch's summary keeps only the first ones)
+    n_frames_without_stripe: int | None = None
 
     def add(self, r: FrameResult) -> None:
         if r.dropped:
@@ -535,6 +545,8 @@ class Dropped:
 
     @property
     def frames_without_stripe(self) -> int:
+        if self.n_frames_without_stripe is not None:
+            return self.n_frames_without_stripe
         return sum("no stripe" in d for _, _, d in self.frames)
 
     def summary(self) -> str:

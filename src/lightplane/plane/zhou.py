@@ -29,6 +29,7 @@ from lightplane.plane.model import LightPlane
 from lightplane.plane.quality import PlaneQuality, check_plane_quality, plane_quality, stripe_image, working_volume
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
+from lightplane.stripe.difference import laser_difference
 from lightplane.stripe.extract import extract_stripe
 from lightplane.stripe.options import StripePointsOptions
 from lightplane.core.threads import with_blas_limited
@@ -388,10 +389,11 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
 
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
                     width_px: float | None, channel: str | None, corners_uv: np.ndarray | None = None,
-                    pattern_mask: np.ndarray | None = None) -> np.ndarray:
+                    pattern_mask: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """Stripe centres (distorted px) inside ``mask`` and on one straight line (undistorted), after
-    subtracting the laser-off frame (``pattern_mask``: the printed pattern, whose white level a
-    stripe must exceed without one; default ``mask``)."""
+    subtracting the laser-off frame in the channels that carry the stripe
+    (:func:`lightplane.stripe.difference.laser_difference`; ``pattern_mask``: the printed pattern, whose white
+    level a stripe must exceed without one; default ``mask``), and a note on the channels ("" if none)."""
 
     import cv2
 
@@ -400,12 +402,13 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     if background is not None:
         if background.shape != image.shape:
             raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
-        img = np.clip(to_gray_float(image, channel) - to_gray_float(background, channel), 0, None)
+        diff = laser_difference(image, background, channel, region=mask)
+        img, note = diff.image, diff.note
     else:
         # No laser-off frame: the white squares, touching corner to corner, are bright
         # ridges too.  A white top-hat narrower than a square removes them and keeps
         # the (much narrower) stripe.
-        img = to_gray_float(image, channel)
+        img, note = to_gray_float(image, channel), ""
         raw = img
         if spacing is not None:
             k = int(max(5, round(0.35 * spacing))) | 1
@@ -437,20 +440,23 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
     # fewer than one square's worth of points on a line is clutter, not the laser
     if spacing is not None and len(uv) < spacing:
         uv = uv[:0]
-    return uv
+    return uv, note
 
 
 @dataclass(frozen=True)
 class BoardViews:
     """Per image: the board pose and the stripe centres on it, or why the image was skipped.
 
-    poses, stripes, names : the usable images (same order as given); skipped : image name → reason.
+    poses, stripes, names : the usable images (same order as given); skipped : image name → reason;
+    notes : image name → how its stripe was taken, where that differs from the request (colour channels
+    clipped in the laser-off frame, :func:`lightplane.stripe.difference.laser_difference`).
     """
 
     poses: list
     stripes: list
     names: list
     skipped: dict
+    notes: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -556,7 +562,7 @@ def find_board_views(frames: "BoardFrames | Sequence", camera: Camera, board, sq
         try:
             if img is None:
                 raise LightplaneError(f"{names[k]}: not a readable image")
-            pose, stripe = _board_view(camera, target, fr, k, names[k], opts, pattern_poses)
+            pose, stripe = _board_view(camera, target, fr, k, names[k], opts, pattern_poses, out.notes)
             if len(stripe) < min_stripe_points:
                 raise LightplaneError(f"{names[k]}: " + (f"only {len(stripe)} stripe points on the board"
                                                          if len(stripe) else "no stripe on the board"))
@@ -574,8 +580,9 @@ def find_board_views(frames: "BoardFrames | Sequence", camera: Camera, board, sq
 
 
 def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts: BoardPlaneOptions,
-                pattern_poses: dict) -> tuple[BoardPose, np.ndarray]:
-    """Image ``k``'s board pose and the stripe centres on the board (:func:`find_board_views`)."""
+                pattern_poses: dict, notes: dict | None = None) -> tuple[BoardPose, np.ndarray]:
+    """Image ``k``'s board pose and the stripe centres on the board (:func:`find_board_views`); ``notes``
+    receives the image's note on the colour channels the stripe was taken from, if any."""
     img = fr.images[k]
     bgs, pats = fr.background_images, fr.pattern_images
     bg = None
@@ -601,8 +608,10 @@ def _board_view(camera: Camera, target, fr: BoardFrames, k: int, name: str, opts
         mask = np.where(inside, mask, 0).astype(mask.dtype)
     if pat is not None and bg is None and _same_exposure(img, pat, pattern_mask, opts.channel):
         bg = pat  # a lit laser frame and its pattern frame: subtract it as the laser-off frame
-    stripe = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
-                             pattern_mask)
+    stripe, note = _stripe_in_mask(camera, img, mask, bg, opts.stripe_width_px, opts.channel, pose.corners_uv,
+                                   pattern_mask)
+    if note and notes is not None:
+        notes[name] = note
     if pats is None and not per_image and len(stripe) >= 2:
         # corners found in the laser-on image: leave out those the stripe runs over
         clear = corners_clear_of_stripe(camera, pose, stripe, clearance_px=0.35 * _corner_spacing_px(pose.corners_uv))
@@ -695,6 +704,7 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
                                  meta={"board": [target.cols, target.rows], "square_mm": float(target.square_mm),
                                        "target": target.to_dict(), "skipped": why,
                                        "board_margin_mm": opts.board_margin_mm,
+                                       "stripe_channels": _channel_summary(v.notes),
                                        "laser_frames": "pattern frames" if fr.pattern_images is not None else
                                        ("background-subtracted" if fr.background_images is not None
                                         else "laser-on only")})
@@ -704,6 +714,14 @@ def calibrate_plane_board(frames: "BoardFrames | Sequence", camera: Camera, boar
     plane = LightPlane(z.plane.normal, z.plane.d, z.plane.covariance,
                        meta={**z.plane.meta, "quality": rec, "working_volume": working_volume(z.points_cam_mm)})
     return replace(z, plane=plane, quality=q)
+
+
+def _channel_summary(notes: dict) -> str | None:
+    """One line for the plane file: how many images had their stripe from other channels, and the first note."""
+    if not notes:
+        return None
+    first = next(iter(notes.values()))
+    return first if len(notes) == 1 else f"{len(notes)} images: {first} (and alike)"
 
 
 def calibrate_plane_boards(frames: BoardFrames, camera: Camera, board, lasers: dict,
