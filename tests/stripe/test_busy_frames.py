@@ -51,10 +51,10 @@ def _stripe_column(H: int, v0: float, amp: float) -> np.ndarray:
     return amp * np.exp(-0.5 * ((np.arange(H) - v0) / SIGMA) ** 2)
 
 
-def test_lines_without_contrast_or_crossing_stop_early():
+def test_lines_without_contrast_stop_early():
     """Columns 0-39 hold the stripe; 40-59 a 10-level bump (below min_peak); 60-79 a ramp that never
-    falls to its half level on one side.  The stripe's columns are valid, the others not, with the
-    documented status and no derivative outputs; the numpy twin agrees."""
+    falls to its half level on one side.  The stripe's columns are valid, the others not; the bump's
+    lines end as "no peak" with no derivative outputs; the numpy twin agrees."""
     H, W = 80, 80
     v = np.arange(H, dtype=float)[:, None]
     img = np.full((H, W), 20.0)

@@ -858,7 +858,7 @@ def _line_start(A, l, p, half, qpeak, R, min_peak, centre, normal, strength, int
     """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
 
     Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set): no
-    candidate, too close to the ends (``EDGE``), or a line that no later step could make valid
+    candidate, too close to the ends (``EDGE``), or a contrast below ``min_peak``
     (:func:`_line_hopeless`), before its derivatives are computed.
     """
     S = A.shape[0]
@@ -886,15 +886,14 @@ def _line_start(A, l, p, half, qpeak, R, min_peak, centre, normal, strength, int
 
 @njit_cached(inline="always")
 def _line_hopeless(fw, best, bg, min_peak):
-    """``NO_PEAK`` where the line's contrast is below ``min_peak``, ``TOO_WIDE`` where its profile has
-    no half-level crossing on a side (``fw`` NaN), else ``OK``: such a line can end only invalid
-    (the contrast is checked after the derivatives, the width after the crossing, and a flat top
-    needs both crossings), so its derivatives are not computed.  On busy frames these are many
-    of the lines whose highest sample is texture or clutter, not the stripe."""
+    """``NO_PEAK`` where the line's contrast is below ``min_peak``, else ``OK``: such a line can only
+    end with that status (the contrast is checked after the derivatives), so its derivatives are
+    not computed.  On busy frames these are many of the lines whose highest sample is dark
+    texture or clutter, not the stripe.  (A line without a half-level crossing is left to the
+    later steps: its status, whatever the Hessian says, decides whether a second pass measures
+    it at a wider scale.)"""
     if best - bg < min_peak:
         return NO_PEAK
-    if not (fw == fw):
-        return TOO_WIDE
     return OK
 
 

@@ -172,12 +172,12 @@ def centres_numpy(A, pos, w0, w1, w2, params):
     width = np.where(flat, fw * ns, width)
     too_wide = ~np.isfinite(fw) | (width > max_width)
     cc = np.where(flat, cc_flat, cc)
-    # lines that can only end invalid (the kernels' _line_hopeless): no contrast, or no half-level crossing
-    hopeless = has & ~edge & ((best - bg < min_peak) | ~np.isfinite(fw))
+    # lines whose contrast is below min_peak stop before their derivatives (the kernels' _line_hopeless)
+    hopeless = has & ~edge & (best - bg < min_peak)
     status = np.select(
-        [~has, edge, best - bg < min_peak, ~np.isfinite(fw), flat & ~np.isfinite(cc_flat), flat & too_wide, flat,
+        [~has, edge, best - bg < min_peak, flat & ~np.isfinite(cc_flat), flat & too_wide, flat,
          lam >= 0.0, np.abs(ns) < min_cos, ~crossing, too_wide],
-        [K.NO_PEAK, K.EDGE, K.NO_PEAK, K.TOO_WIDE, K.TOO_WIDE, K.TOO_WIDE, K.OK,
+        [K.NO_PEAK, K.EDGE, K.NO_PEAK, K.TOO_WIDE, K.TOO_WIDE, K.OK,
          K.NOT_RIDGE, K.ALONG_LINE, K.NO_CROSSING, K.TOO_WIDE],
         K.OK,
     ).astype(np.uint8)
