@@ -585,6 +585,12 @@ def _profile_finish(image, axis, raw, setup, options: StripeOptions, scale: np.n
         if options.saturated_centre:
             centre, status = _whitish_centres(image, axis, centre, status, line0, sample0, setup["S"],
                                               float(options.min_chroma), w, setup["params"]["max_width"])
+            # a line the kernels left before its derivatives has no normal: a recovered core's is
+            # across the line (as a flat top's where the Hessian gives none)
+            lost = (status == K.OK) & ~np.isfinite(normal[:, 0])
+            if lost.any():
+                normal = normal.copy()
+                normal[lost] = (0.0, 1.0)
     valid = status == K.OK
     lines = np.arange(L, dtype=np.int64) + line0
     uv = np.full((L, 2), np.nan)

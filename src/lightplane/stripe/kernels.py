@@ -285,20 +285,41 @@ def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
     """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
     L = p1.shape[0]
     out = p1.copy()
-    buf = np.empty(2 * half_window + 1, dtype=np.float64)
+    buf = np.empty(2 * half_window + 1, dtype=np.int64)
     for l in range(L):
         if p2[l] < 0 or v2[l] < min_peak:
             continue
         n = 0
+        lo = np.iinfo(np.int64).max
+        hi = np.iinfo(np.int64).min
         for k in range(max(0, l - half_window), min(L, l + half_window + 1)):
             if k != l and v1[k] >= min_peak:
-                buf[n] = p1[k]
+                x = p1[k]
+                buf[n] = x
                 n += 1
+                lo = min(lo, x)
+                hi = max(hi, x)
         if n < 2:
             continue
-        ref = np.median(buf[:n])
-        if abs(p1[l] - ref) > tol and abs(p2[l] - ref) <= tol:
-            out[l] = p2[l]
+        # the median lies within [min, max] of the neighbours: where p1 is within tol of all of
+        # that range, or p2 outside it by more than tol, the choice is p1 whatever the median (on a
+        # continuous stripe nearly every line; the sort below is then skipped)
+        a = p1[l]
+        b = p2[l]
+        if (hi - a <= tol and a - lo <= tol) or b < lo - tol or b > hi + tol:
+            continue
+        # the median of the n neighbours (np.median's value): insertion sort of <= 2 half_window ints
+        for i in range(1, n):
+            x = buf[i]
+            j = i - 1
+            while j >= 0 and buf[j] > x:
+                buf[j + 1] = buf[j]
+                j -= 1
+            buf[j + 1] = x
+        h = n // 2
+        ref = np.float64(buf[h]) if n % 2 == 1 else 0.5 * (np.float64(buf[h - 1]) + np.float64(buf[h]))
+        if abs(a - ref) > tol and abs(b - ref) <= tol:
+            out[l] = b
     return out
 
 
@@ -352,6 +373,77 @@ def _fwhm_line(A, l, c, half, min_peak):
             break
         prev = x
     return right - left, left, right, best, bg
+
+
+#: the width estimate takes a line's width with the background of the higher side of its peak where
+#: that is below this share of the width with the background of the whole window (see _fwhm_sided)
+SIDED_WIDTH = 0.7
+
+
+@njit_cached(error_model="numpy")
+def _half_crossings(A, l, k0, best, level, half):
+    """Sub-sample positions (right, left) where line ``l`` first falls below ``level`` on either side
+    of its peak ``k0`` (value ``best``), within ``half`` samples (NaN where it does not); borders
+    clamped."""
+    S = A.shape[0]
+    right = np.nan
+    prev = best
+    for k in range(k0 + 1, k0 + half + 1):
+        x = np.float64(A[_clamp(k, S), l])
+        if x < level:
+            right = (k - 1) + (prev - level) / (prev - x)
+            break
+        prev = x
+    left = np.nan
+    prev = best
+    for k in range(k0 - 1, k0 - half - 1, -1):
+        x = np.float64(A[_clamp(k, S), l])
+        if x < level:
+            left = (k + 1) - (prev - level) / (prev - x)
+            break
+        prev = x
+    return right, left
+
+
+@njit_cached(error_model="numpy")
+def _fwhm_sided(A, l, c, half, min_peak):
+    """The raw FWHM (samples) of line ``l`` around sample ``c`` for the width estimate:
+    :func:`_fwhm_line`'s, unless the half level taken above the higher of the two sides' lowest
+    samples (within ``half``) gives a width below :data:`SIDED_WIDTH` of it, which is then taken.
+
+    :func:`_fwhm_line`'s background is the lowest sample of the whole window.  A stripe on texture
+    or clutter sits on a local pedestal, and a dark speck or edge within ``half`` on one side puts
+    that minimum, and the half level with it, far below the pedestal: the crossings then lie out
+    on the pedestal and the width comes out 1.5-2.5x the stripe's (busy frames,
+    benchmarks/bench_busy.py), or there is no crossing at all.  On an even background both
+    sides' minima are alike and so are both widths: the number is :func:`_fwhm_line`'s."""
+    S = A.shape[0]
+    k0 = c
+    best = np.float64(A[_clamp(c, S), l])
+    for k in (c - 1, c + 1):
+        x = np.float64(A[_clamp(k, S), l])
+        if x > best:
+            best = x
+            k0 = k
+    bl = best
+    br = best
+    for k in range(c - half, c + half + 1):
+        x = np.float64(A[_clamp(k, S), l])
+        if k < k0:
+            bl = min(bl, x)
+        elif k > k0:
+            br = min(br, x)
+    bg = min(bl, br)
+    if best - bg < min_peak:
+        return np.nan
+    right, left = _half_crossings(A, l, k0, best, bg + 0.5 * (best - bg), half)
+    fw = right - left
+    hi = max(bl, br)
+    if not (fw == fw) or hi <= bg or best - hi < min_peak:
+        return fw
+    right, left = _half_crossings(A, l, k0, best, hi + 0.5 * (best - hi), half)
+    fs = right - left
+    return fs if fs < SIDED_WIDTH * fw else fw
 
 
 @njit_cached(nogil=True)
@@ -431,7 +523,7 @@ def _peaks_along(A, every, n, p):
 def fwhm_median(A, every, half, min_peak):
     """Median raw FWHM (samples) at the highest sample (first ``argmax``, the peak the
     candidates kernel finds) of every ``every``-th line of ``A[s, l]``, and the number of
-    lines with one (:func:`_fwhm_line`); NaN, 0 when none.  One call, serial: ~160 lines
+    lines with one (:func:`_fwhm_sided`); NaN, 0 when none.  One call, serial: ~160 lines
     are too little work to split over threads.  ``A`` row-major or the transposed view of
     a row-major image (the lines are then its rows: no transpose needed)."""
     L = A.shape[1]
@@ -444,7 +536,7 @@ def fwhm_median(A, every, half, min_peak):
     out = np.empty(n, np.float64)
     m = 0
     for j in range(n):
-        fw = _fwhm_line(A, j * every, p[j], half, min_peak)[0]
+        fw = _fwhm_sided(A, j * every, p[j], half, min_peak)
         if np.isfinite(fw):
             out[m] = fw
             m += 1
@@ -496,7 +588,8 @@ def _flat_centre(A, l, p, c, xw, re, qpeak, half, Y):
 
 
 # Lines per band (the along-line sums and the line ends vectorised over them): BAND_LINES where
-# their highest samples span at most BAND_SPAN samples, else half as many.  Each vectorised loop
+# their highest samples span at most BAND_SPAN samples or scatter rather than drift (see
+# _centres_range), else half as many.  Each vectorised loop
 # over a band costs a fixed overhead, so a wide band is cheaper per line; but the sums run over
 # the rows of every middle in the band, and a steep stripe's middles spread over more rows in a
 # wider band (64 / 32 lines: the serial 1280x64 ROI batch 160 -> 147 ns/line, the 1280x960 frame
@@ -761,10 +854,12 @@ def _nan_outputs(l, centre, normal, strength, intensity, width):
 
 
 @njit_cached(error_model="numpy")
-def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, width, status):
+def _line_start(A, l, p, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status):
     """The first steps of a profile line: its outputs set to NaN, the stripe's middle ``c``.
 
-    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set).
+    Returns ``(c, fw, best, bg, flat)``; ``c = -1`` where the line ends here (status set): no
+    candidate, too close to the ends (``EDGE``), or a contrast below ``min_peak``
+    (:func:`_line_hopeless`), before its derivatives are computed.
     """
     S = A.shape[0]
     _nan_outputs(l, centre, normal, strength, intensity, width)
@@ -782,11 +877,28 @@ def _line_start(A, l, p, half, qpeak, R, centre, normal, strength, intensity, wi
     if c - 1 - R < 0 or c + 1 + R > S - 1:
         status[l] = EDGE
         return -1, fw, best, bg, False
+    st = _line_hopeless(fw, best, bg, min_peak)
+    if st != OK:
+        status[l] = st
+        return -1, fw, best, bg, False
     return c, fw, best, bg, _is_flat(A, l, p, fw, best, bg, half)
 
 
 @njit_cached(inline="always")
-def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+def _line_hopeless(fw, best, bg, min_peak):
+    """``NO_PEAK`` where the line's contrast is below ``min_peak``, else ``OK``: such a line can only
+    end with that status (the contrast is checked after the derivatives), so its derivatives are
+    not computed.  On busy frames these are many of the lines whose highest sample is dark
+    texture or clutter, not the stripe.  (A line without a half-level crossing is left to the
+    later steps: its status, whatever the Hessian says, decides whether a second pass measures
+    it at a wider scale.)"""
+    if best - bg < min_peak:
+        return NO_PEAK
+    return OK
+
+
+@njit_cached(inline="always")
+def _band_start(A, pos, l0, n, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status,
                 cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec):
     """:func:`_line_start` of the band's lines ``l0 .. l0 + n - 1``: the same numbers, bit for bit,
     with the window scans of :func:`_fwhm_line` vectorised over the lines.
@@ -831,8 +943,8 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
         if not vec[j]:
             P[j] = -S - 2 * half - 8   # no row of the sweeps falls in its window
             K0[j] = P[j]
-            c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, centre, normal, strength, intensity,
-                                                width, status)
+            c, fw, best, bg, flat = _line_start(A, q, pos[q], half, qpeak, R, min_peak, centre, normal, strength,
+                                                intensity, width, status)
             cs[j] = c
             fws[j] = fw
             bests[j] = best
@@ -945,8 +1057,9 @@ def _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensi
             cm = np.int64(math.floor(0.5 * (left + right) + 0.5))
             if abs(cm - p) <= qpeak:
                 c = cm
-        if c - 1 - R < 0 or c + 1 + R > S - 1:
-            status[q] = EDGE
+        st = EDGE if (c - 1 - R < 0 or c + 1 + R > S - 1) else _line_hopeless(fw, best, bg, min_peak)
+        if st != OK:
+            status[q] = st
             _nan_outputs(q, centre, normal, strength, intensity, width)
             cs[j] = -1
             flats[j] = False
@@ -1280,16 +1393,26 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
         l0 = max(l, RX)
         l1 = min(l0 + BAND_LINES, lb, L - RX)
         if l1 - l0 > BAND_LINES // 2:
-            pmin = S
-            pmax = -1
-            for q in range(l0, l1):
-                pmin = min(pmin, pos[q])
-                pmax = max(pmax, pos[q])
-            if pmax - pmin > BAND_SPAN:
-                l1 = l0 + BAND_LINES // 2
+            h = l0 + BAND_LINES // 2
+            amin = S
+            amax = -1
+            for q in range(l0, h):
+                amin = min(amin, pos[q])
+                amax = max(amax, pos[q])
+            bmin = S
+            bmax = -1
+            for q in range(h, l1):
+                bmin = min(bmin, pos[q])
+                bmax = max(bmax, pos[q])
+            span = max(amax, bmax) - min(amin, bmin)
+            # halved where the peaks drift across the band (a steep stripe: each half spans fewer
+            # rows), not where they only scatter (speckle, texture on the stripe: each half spans
+            # as many rows, and a narrower band pays its fixed costs twice)
+            if span > BAND_SPAN and 4 * max(amax - amin, bmax - bmin) <= 3 * span:
+                l1 = h
         if l == l0 and l1 - l0 >= 8:
             n = l1 - l0
-            _band_start(A, pos, l0, n, half, qpeak, R, centre, normal, strength, intensity, width, status,
+            _band_start(A, pos, l0, n, half, qpeak, R, min_peak, centre, normal, strength, intensity, width, status,
                         cs, fws, bests, bgs, flats, srt, P, K0, BG, LV, KR, KL, M, vec)
             k = 0
             lo = S
@@ -1327,7 +1450,7 @@ def _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min
                                 status)
             l = l1
         else:   # an edge line (or a short remainder): alone
-            c, fw, best, bg, flat = _line_start(A, l, pos[l], half, qpeak, R, centre, normal, strength,
+            c, fw, best, bg, flat = _line_start(A, l, pos[l], half, qpeak, R, min_peak, centre, normal, strength,
                                                 intensity, width, status)
             if c >= 0:
                 _line_alone(A, l, pos[l], c, fw, best, bg, flat, w0, w1, w2, xw, qpeak, half, min_peak, max_width,

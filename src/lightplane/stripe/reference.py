@@ -172,6 +172,8 @@ def centres_numpy(A, pos, w0, w1, w2, params):
     width = np.where(flat, fw * ns, width)
     too_wide = ~np.isfinite(fw) | (width > max_width)
     cc = np.where(flat, cc_flat, cc)
+    # lines whose contrast is below min_peak stop before their derivatives (the kernels' _line_hopeless)
+    hopeless = has & ~edge & (best - bg < min_peak)
     status = np.select(
         [~has, edge, best - bg < min_peak, flat & ~np.isfinite(cc_flat), flat & too_wide, flat,
          lam >= 0.0, np.abs(ns) < min_cos, ~crossing, too_wide],
@@ -184,11 +186,11 @@ def centres_numpy(A, pos, w0, w1, w2, params):
     normal = np.column_stack([nl, ns])
     strength = -lam
     # mirror what the numba kernel leaves in lines it gives up on
-    nopeak = ~has
-    width = np.where(ok | (status == K.TOO_WIDE), width, np.nan)
+    gone = ~has | edge | hopeless
+    width = np.where((ok | (status == K.TOO_WIDE)) & ~gone, width, np.nan)
     for arr in (intensity, strength):
-        arr[nopeak | edge] = np.nan
-    normal[nopeak | edge] = np.nan
+        arr[gone] = np.nan
+    normal[gone] = np.nan
     return centre, normal, strength, intensity, width, status
 
 
