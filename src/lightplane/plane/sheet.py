@@ -11,11 +11,22 @@ calibrated plane
     Q(u, v) = q_uu u² + q_uv u v + q_vv v²,
 
 ``(u, v)`` in-plane coordinates (mm, divided by :attr:`LightSheet.scale_mm`) about the
-calibration points' centroid, ``v`` along the stripe lines.  ``Q`` carries the curvature
+calibration points' centroid, ``v`` along ``n x z``: the stripe on a target facing the camera, the
+direction across the fan when the laser, beside the camera, aims its fan's centre ray at the
+field (:attr:`SheetOptions.frame`).  ``Q`` carries the curvature
 (the cone's ``tau y² / (2 x0)``); the denominator is the quadric's in-plane x normal cross
 term (the cone's ``1 / x``).  On a flat sheet ``Q = 0`` and ``r`` multiplies nothing: it
 is unidentifiable and harmless, so it carries a weak prior (σ :data:`R_PRIOR_SD` in scaled
-units, about 1 / (100 mm)); on a curved sheet the data pin it down.  ``p`` is fixed by the
+units); on a curved sheet the data pin it down.
+
+Which terms are fitted (:attr:`SheetOptions.terms`): by default ``q_vv`` and ``r_u``, the cone's
+own two (its curvature across the fan and how it falls off with the distance from the laser).
+``q_uv`` (the fan turned in the plane against ``v``) and ``q_uu`` are estimable only from the
+small spread of the lines' directions and from the lines' offsets, which the targets' pose errors
+blur: on the default sensor's simulated calibrations (12 placements, 0.01 deg and 0.01 mm pose
+errors) fitting ``q_uv`` too doubles the triangulation error (0.015 against 0.008 mm RMS over the
+field), while leaving it out costs 0.0014 mm RMS without noise.  A fan turned by an angle ``phi``
+in its plane leaves ``2 phi`` times the curvature unmodelled: add ``q_uv`` for such a laser.  ``p`` is fixed by the
 calibrated plane: the curved part is taken off its own least-squares plane over the
 calibration points, so the sheet keeps the plane calibration's position and tilt and
 their covariance, and adds the curvature's.
@@ -37,13 +48,14 @@ import numpy as np
 
 from lightplane.camera.model import as_points
 from lightplane.core.errors import LightplaneError
+from lightplane.core.geometry import ray_plane
 from lightplane.plane.model import LightPlane
 
 __all__ = ["LightSheet", "SheetOptions", "FlatnessTest", "SheetFit", "fit_sheet", "triangulate_sheet",
-           "sheet_points_sigma_mm", "R_PRIOR_SD", "PARAM_NAMES"]
+           "sheet_points_sigma_mm", "R_PRIOR_SD", "PARAM_NAMES", "circle_stripe_points", "board_stripe_points"]
 
-#: the prior σ of the cross terms ``r_u, r_v`` (scaled units: 1 / (scale_mm / R_PRIOR_SD) mm), weak:
-#: a cone's ``r`` is the scale over the apex's distance, about 0.1 at 500 mm
+#: the prior σ of the cross terms ``r_u, r_v`` (scaled units), weak: a cone's ``r`` is the scale
+#: over the apex's distance, 0.1 for 50 mm at 500 mm
 R_PRIOR_SD = 0.2
 #: the parameters of :attr:`LightSheet.params`, in order
 PARAM_NAMES = ("p0", "p1", "p2", "q_uu", "q_uv", "q_vv", "r_u", "r_v")
@@ -57,15 +69,21 @@ class SheetOptions:
     sheet (3: a flat sheet is called curved about 0.3 % of the time); ``r_prior_sd``: the
     cross terms' prior σ (scaled units); ``scale_mm``: the in-plane unit (conditioning only);
     ``correlation_lags``: how many neighbours along a stripe enter the residuals' correlation
-    (stripe centres are correlated over a few pixels; the curvature's σ is widened by it).
+    (stripe centres are correlated over a few pixels; the curvature's σ is widened by it);
+    ``terms``: the curved terms fitted (always ``q_vv``; see the module's docstring);
+    ``estimate``: ``per_image`` (the curvature from each line's shape, every image's offset and
+    slope free) or ``joint`` (every term from every point at once: the lines' offsets count too,
+    pose errors included); ``frame``: ``v`` along ``n x z`` (``camera``) or the lines' mean
+    direction (``lines``).
     """
 
     z_curved: float = 3.0
     r_prior_sd: float = R_PRIOR_SD
     scale_mm: float = 50.0
     correlation_lags: int = 8
-    terms: tuple[str, ...] = ("q_uv", "q_vv", "r_u")
+    terms: tuple[str, ...] = ("q_vv", "r_u")
     estimate: str = "per_image"
+    frame: str = "camera"
 
     def __post_init__(self) -> None:
         if not set(self.terms) <= set(PARAM_NAMES[3:]) or "q_vv" not in self.terms:
@@ -75,6 +93,10 @@ class SheetOptions:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise LightplaneError(f"SheetOptions.{name} must be a positive number, got {v!r}")
+        if self.estimate not in ("per_image", "joint"):
+            raise LightplaneError(f"SheetOptions.estimate must be 'per_image' or 'joint', got {self.estimate!r}")
+        if self.frame not in ("camera", "lines"):
+            raise LightplaneError(f"SheetOptions.frame must be 'camera' or 'lines', got {self.frame!r}")
         if not 0 <= int(self.correlation_lags) <= 100:
             raise LightplaneError(f"SheetOptions.correlation_lags must be within 0..100, got {self.correlation_lags!r}")
 
@@ -207,12 +229,17 @@ class SheetFit:
     test: FlatnessTest
 
 
-def _frame(plane: LightPlane, groups: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Origin (the points' centroid on the plane) and axes (``v`` the lines' mean direction)."""
+def _frame(plane: LightPlane, groups: list[np.ndarray], how: str) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (the points' centroid on the plane) and axes: ``v`` along ``n x z`` (``camera``: the stripe on a
+    target facing the camera) or the lines' mean direction (``lines``)."""
     allp = np.vstack(groups)
     n = plane.normal
     c = allp.mean(axis=0)
     c = c - (c @ n + plane.d) * n
+    ev = np.cross(n, [0.0, 0.0, 1.0])
+    if how == "camera" and np.linalg.norm(ev) > 1e-6:
+        ev /= np.linalg.norm(ev)
+        return c, np.array([np.cross(ev, n), ev])
     M = np.zeros((3, 3))
     for g in groups:
         q = g - g.mean(axis=0)
@@ -267,7 +294,7 @@ def fit_sheet(plane: LightPlane, points_mm: Sequence[np.ndarray], options: Sheet
     if len(groups) < 3:
         raise LightplaneError(f"a curved sheet needs the stripe points of at least 3 images (6+ points each), "
                               f"got {len(groups)}")
-    c, axes = _frame(plane, groups)
+    c, axes = _frame(plane, groups, options.frame)
     sheet0 = LightSheet(plane, c, axes, options.scale_mm, np.zeros(8))
     uvw = sheet0.local(np.vstack(groups))
     u, v, w = uvw[:, 0], uvw[:, 1], uvw[:, 2]
@@ -408,3 +435,26 @@ def sheet_points_sigma_mm(sheet: LightSheet, xy: np.ndarray) -> np.ndarray:
     out = np.sqrt(np.einsum("ij,ij->i", r, r) * np.maximum(q, 0.0))
     out[~np.isfinite(X[:, 0])] = np.nan
     return out
+
+
+def circle_stripe_points(calibration) -> list[np.ndarray]:
+    """Each used placement's stripe points (camera frame, mm) of a circle-target calibration
+    (:class:`lightplane.plane.calibrate.ImagePlaneCalibration`): the solver's inlier stripe centres on
+    their refined discs' planes."""
+    out = []
+    for o in calibration.images:
+        p = o.placement
+        if not o.used or p is None or p.pose is None or len(o.stripe_uv) < 3:
+            continue
+        uv = o.stripe_uv
+        if p.stripe_inliers is not None and len(p.stripe_inliers) == len(uv):
+            uv = uv[p.stripe_inliers]
+        out.append(ray_plane(calibration.camera.undistort_points(uv, normalized=True), p.pose.normal, p.pose.center))
+    return out
+
+
+def board_stripe_points(calibration) -> list[np.ndarray]:
+    """Each board pose's stripe points (camera frame, mm) of Zhou's calibration
+    (:class:`lightplane.plane.zhou.ZhouCalibration`)."""
+    idx = np.asarray(calibration.view_index)
+    return [calibration.points_cam_mm[idx == k] for k in np.unique(idx)]
