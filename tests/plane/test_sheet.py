@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from lightplane.core.errors import LightplaneError
+from lightplane.plane.model import LightPlane
 from lightplane.plane.sheet import LightSheet, SheetOptions, fit_sheet, sheet_points_sigma_mm, triangulate_sheet
 from lightplane.plane.triangulate import triangulate_normalized
 from lightplane.plane.zhou import fit_plane
@@ -13,6 +16,9 @@ from lightplane.simulate import render_core as rc
 from lightplane.simulate.render import _laser_row, _IMAGING, curved_sheet, sheet_tilt_for_sag
 from lightplane.simulate.scene import default_plane
 from lightplane.simulate.sheet import SheetObservation, onto_sheet, sheet_distance, sheet_field_points, sheet_stripe_points
+
+from _cli import lightplane
+from _renders import cached_circle_render
 
 PLANE = default_plane()
 TILT = sheet_tilt_for_sag(0.05)
@@ -89,3 +95,15 @@ def test_bad_options_and_too_few_images():
     pts = sheet_stripe_points(2, np.random.default_rng(0), 0.0)
     with pytest.raises(LightplaneError, match="at least 3 images"):
         fit_sheet(fit_plane(np.vstack(pts)), pts)
+
+
+def test_calibrate_plane_records_the_flatness_test(tmp_path):
+    render = cached_circle_render()
+    out = tmp_path / "plane.json"
+    r = lightplane("calibrate-plane", render, "--camera", render / "camera.json", "--diameter", "50", "-o", out)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(out.read_text())
+    # a flat sheet: the test is recorded, the plane is enough, no curved sheet is written
+    assert d["sheet_test"]["images"] == 5 and not d["sheet_test"]["curved"] and "sheet" not in d
+    assert abs(d["sheet_test"]["z"]) < 3.0 and "the plane is enough" in r.stdout
+    assert LightPlane.load(out).d == pytest.approx(d["d"])

@@ -19,6 +19,7 @@ from lightplane.camera.model import Camera
 from lightplane.cli._common import err_console
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
+from lightplane.plane.sheet import board_stripe_points, sheet_record
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
 
@@ -238,7 +239,9 @@ def calibrate_plane_board_cmd(
         idx = chosen[lname]
         inputs = list(dict.fromkeys([*(lasers[k] for k in idx), *(patterns[k] for k in idx if patterns
                                                                     and patterns[k] is not None)]))
-        extra: dict = {"provenance": provenance(inputs, opts)}
+        sheet, line = sheet_record(res.plane, board_stripe_points(res))
+        console.print(f"  {line}")
+        extra: dict = {"provenance": provenance(inputs, opts), **sheet}
         if lname is not None:
             extra = {"laser": lname, **extra}
         res.plane.save(outputs[lname], force=force, extra=extra)

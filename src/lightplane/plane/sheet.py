@@ -52,7 +52,8 @@ from lightplane.core.geometry import ray_plane
 from lightplane.plane.model import LightPlane
 
 __all__ = ["LightSheet", "SheetOptions", "FlatnessTest", "SheetFit", "fit_sheet", "triangulate_sheet",
-           "sheet_points_sigma_mm", "R_PRIOR_SD", "PARAM_NAMES", "circle_stripe_points", "board_stripe_points"]
+           "sheet_points_sigma_mm", "R_PRIOR_SD", "PARAM_NAMES", "circle_stripe_points", "board_stripe_points",
+           "sheet_record"]
 
 #: the prior σ of the cross terms ``r_u, r_v`` (scaled units), weak: a cone's ``r`` is the scale
 #: over the apex's distance, 0.1 for 50 mm at 500 mm
@@ -458,3 +459,27 @@ def board_stripe_points(calibration) -> list[np.ndarray]:
     (:class:`lightplane.plane.zhou.ZhouCalibration`)."""
     idx = np.asarray(calibration.view_index)
     return [calibration.points_cam_mm[idx == k] for k in np.unique(idx)]
+
+
+def sheet_record(plane: LightPlane, points_mm: Sequence[np.ndarray],
+                 options: SheetOptions = SheetOptions()) -> tuple[dict, str]:
+    """What a plane file records of the sheet's shape, and one line for the user.
+
+    The flatness test always (``sheet_test``); the curved sheet (``sheet``, :meth:`LightSheet.to_dict`)
+    only when the test asks for it: on a flat sheet its extra terms only add variance.  Too few
+    images for the test: ``sheet_test`` says why, and nothing else is recorded.
+    """
+    try:
+        fit = fit_sheet(plane, points_mm, options)
+    except LightplaneError as e:
+        return {"sheet_test": {"skipped": str(e)}}, f"flatness of the sheet not tested: {e}"
+    t = fit.test
+    verdict = ("the sheet is curved: the curved sheet is written with the plane" if t.curved
+               else "the plane is enough")
+    line = (f"flatness of the sheet: sag along the stripes {t.sag_mm * 1e3:+.1f} ± {t.sag_sigma_mm * 1e3:.1f} µm "
+            f"over ±{t.half_length_mm:.0f} mm (z = {t.z:+.1f}; σ from the stripe noise with every image's line "
+            f"free): {verdict}")
+    rec: dict = {"sheet_test": t.to_dict()}
+    if t.curved:
+        rec["sheet"] = fit.sheet.to_dict()
+    return rec, line
