@@ -25,7 +25,7 @@ LAYERS = {
     "__init__": 9, "__main__": 10,
 }
 #: optional heavy dependencies: imported inside functions, each in one named module
-OPTIONAL = {"dask": {"measure.batch"}, "distributed": {"measure.batch"}, "pyarrow": {"measure.batch"},
+OPTIONAL = {"dask": {"measure.batch"}, "distributed": {"measure.batch"}, "pyarrow": {"measure.batch", "live.recording"},
             "matplotlib": {"report.plots"},
             "starlette": {"live.server"}, "uvicorn": {"live.server"}, "serial": {"live.hardware"},
             "harvesters": {"live.genicam"}, "gi": {"live.aravis"}}

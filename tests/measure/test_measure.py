@@ -277,7 +277,7 @@ def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
     # lines 2 rows away from a width change: the smoothing scale blurs the boundary
     core = lambda m: m & ~np.convolve(~m & on, np.ones(7), "same").astype(bool)  # noqa: E731
     assert off.valid[core(narrow) | core(wide)].all()  # the extractor itself keeps them
-    prof = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))(img)
+    prof = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5, local_width=False)))(img)
     assert prof.width_rejected[core(narrow)].all() and prof.width_rejected[core(wide)].all()
     assert not prof.valid[prof.width_rejected].any() and np.isnan(prof.points[prof.width_rejected]).all()
     # elsewhere (uniform width) nothing is dropped and the points are untouched
@@ -286,7 +286,14 @@ def test_width_filter_drops_lines_whose_stripe_is_too_narrow_or_too_wide():
     assert np.array_equal(prof.points[rest], off.points[rest], equal_nan=True)
     assert prof.n_valid == off.n_valid - int(prof.width_rejected.sum())
     # measure_profile filters the same way
-    assert np.array_equal(measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5))).width_rejected, prof.width_rejected)
+    assert np.array_equal(measure_profile(img, CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5, local_width=False))
+                                          ).width_rejected, prof.width_rejected)
+    # by default a run of 20 lines three times as wide is measured at its own width and kept (a scattering
+    # surface, defocus); the narrow run is still dropped
+    local = ProfileMeasurer(CAM, PLANE, MeasureOptions(StripeOptions(width_px=3.5)))(img)
+    assert local.valid[core(wide)].all() and not local.width_rejected[core(wide)].any()
+    assert local.width_rejected[core(narrow)].all()
+    assert np.allclose(local.line_width_px[core(wide)], 3 * np.median(local.width_px[rest]), rtol=0.15)
 
 
 def test_width_filter_needs_enough_lines_and_valid_ratios():

@@ -83,15 +83,36 @@ class Hardware(Protocol):
     def close(self) -> None: ...
 
 
-class SimulatedHardware:
-    """Lasers and a turntable that exist only as state: the simulated sensor renders what this state says."""
+@runtime_checkable
+class Stage(Protocol):
+    """A linear stage (optional, besides :class:`Hardware`): ``move_stage`` moves the object by ``mm``
+    (relative) along ``stage_direction`` (unit, camera frame, or None when not calibrated) and returns when
+    it has settled; ``position_mm`` is the accumulated travel since the controller was opened."""
 
-    def __init__(self, n_lasers: int = 1, has_turntable: bool = True, settle_s: float = 0.0) -> None:
+    has_stage: bool
+    stage_direction: tuple[float, float, float] | None
+
+    def move_stage(self, mm: float) -> None: ...
+
+    @property
+    def position_mm(self) -> float: ...
+
+
+class SimulatedHardware:
+    """Lasers, a turntable and a linear stage that exist only as state: the simulated sensor renders what
+    this state says.  ``stage_direction``: the stage's direction of travel in the camera frame (a linear
+    stage exists when it is given)."""
+
+    def __init__(self, n_lasers: int = 1, has_turntable: bool = True, settle_s: float = 0.0,
+                 stage_direction: tuple[float, float, float] | None = None) -> None:
         self.n_lasers = int(n_lasers)
         self.has_turntable = bool(has_turntable)
         self.settle_s = float(settle_s)
+        self.has_stage = stage_direction is not None
+        self.stage_direction = None if stage_direction is None else tuple(float(v) for v in stage_direction)
         self._lasers = [False] * self.n_lasers
         self._angle = 0.0
+        self._position = 0.0
 
     def set_laser(self, index: int, on: bool) -> None:
         self._lasers[index] = bool(on)
@@ -109,6 +130,17 @@ class SimulatedHardware:
     @property
     def angle_deg(self) -> float:
         return self._angle
+
+    def move_stage(self, mm: float) -> None:
+        if not self.has_stage:
+            raise RuntimeError("this hardware has no linear stage")
+        self._position += float(mm)
+        if self.settle_s:
+            time.sleep(self.settle_s)
+
+    @property
+    def position_mm(self) -> float:
+        return self._position
 
     def close(self) -> None:
         self._lasers = [False] * self.n_lasers

@@ -62,6 +62,9 @@ class Profile:
     - ``width_rejected`` (N,) bool: a stripe centre was found and triangulated but
       dropped by the width filter (``min_width_ratio`` / ``max_width_ratio`` of
       :class:`~lightplane.measure.options.MeasureOptions`); None when the profile did not go through it;
+    - ``line_width_px`` (N,) the stripe width each line was measured at where some lines were measured
+      at their own (wider) width (``StripeOptions.local_width``), else None: the width filter compares a
+      width with the widths measured at the same scale;
     - ``dropped``: reason (:data:`DROP_REASONS`) → how many triangulated points the screen dropped
       (a frame without a stripe, points outside the working volume or with a σ beyond the bound:
       :class:`ProfileMeasurer`).
@@ -76,6 +79,7 @@ class Profile:
     axis: str
     width_rejected: np.ndarray | None = None
     dropped: dict = field(default_factory=dict)
+    line_width_px: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -368,7 +372,7 @@ class ProfileMeasurer:
         roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
         sp = extract_profile(image, self.axis, self.stripe, roi=roi, parallel=self.options.parallel)
         uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
-        prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width)
+        prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width, sp.line_width_px)
         return self.screen(width_filter(prof, self.min_width_ratio, self.max_width_ratio))
 
     #: regions of interest with at most this many samples per line (rows for ``axis="columns"``) are
@@ -400,12 +404,13 @@ class ProfileMeasurer:
         out = []
         for sp in extract_profiles(images, self.axis, self.stripe, roi=roi):
             uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
-            out.append(self.screen(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width),
+            out.append(self.screen(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width,
+                                                                 sp.line_width_px),
                                                 self.min_width_ratio, self.max_width_ratio)))
         return out
 
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,
-                    width_px: np.ndarray | None = None) -> Profile:
+                    width_px: np.ndarray | None = None, line_width_px: np.ndarray | None = None) -> Profile:
         """Triangulate given stripe centres ``uv`` (N, 2) (NaN / ``valid`` False where none)."""
         uv = as_points(uv, 2, "uv")
         valid = np.asarray(valid, bool) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
@@ -424,7 +429,8 @@ class ProfileMeasurer:
         n = len(uv)
         inten = np.full(n, np.nan) if intensity is None else np.asarray(intensity, float)
         width = np.full(n, np.nan) if width_px is None else np.asarray(width_px, float)
-        return Profile(points=pts, sigma_mm=sigma, uv=uv, valid=ok, intensity=inten, width_px=width, axis=self.axis)
+        return Profile(points=pts, sigma_mm=sigma, uv=uv, valid=ok, intensity=inten, width_px=width, axis=self.axis,
+                       line_width_px=line_width_px)
 
 
 def has_stripe(valid: np.ndarray, width_px: np.ndarray) -> bool:
@@ -486,17 +492,26 @@ def width_filter(prof: Profile, min_ratio: float = MIN_WIDTH_RATIO, max_ratio: f
     """Drop points whose stripe width is outside ``[min_ratio, max_ratio]`` × the frame's median width.
 
     The median is over the valid points with a finite width; with fewer than
-    :data:`WIDTH_FILTER_MIN_LINES` of them nothing is dropped.  Returns a new
+    :data:`WIDTH_FILTER_MIN_LINES` of them nothing is dropped.  Lines measured at their own width
+    (``prof.line_width_px``) are compared with the median of the lines measured at the same width
+    (or, with fewer than :data:`WIDTH_FILTER_MIN_LINES` of those, with that width).  Returns a new
     :class:`Profile` (``valid`` False, ``points``/``sigma_mm`` NaN and
     ``width_rejected`` True for the dropped points).  See :class:`ProfileMeasurer`.
     """
     w = np.asarray(prof.width_px, float)
     valid = np.asarray(prof.valid, bool)
     rej = np.zeros(len(prof), bool)
-    if min_ratio > 0 or np.isfinite(max_ratio):
+    if (min_ratio > 0 or np.isfinite(max_ratio)) and prof.line_width_px is None:
         med, n = median_where(w, valid)   # np.median over the valid finite widths, one pass
         if n >= WIDTH_FILTER_MIN_LINES:   # (NaN widths compare False: never rejected)
             rej = valid & ((w < min_ratio * med) | (w > max_ratio * med))
+    elif min_ratio > 0 or np.isfinite(max_ratio):
+        scale = np.asarray(prof.line_width_px, float)
+        for s in np.unique(scale[valid]):
+            group = valid & (scale == s)
+            med, n = median_where(w, group)
+            ref = med if n >= WIDTH_FILTER_MIN_LINES else s
+            rej |= group & ((w < min_ratio * ref) | (w > max_ratio * ref))
     if not rej.any():
         return replace(prof, width_rejected=rej)
     pts, sig = prof.points.copy(), prof.sigma_mm.copy()

@@ -192,7 +192,10 @@ class StripeProfile:
     ``intensity`` (N,) Gaussian-smoothed image value at the peak; ``strength`` (N,)
     ridge strength ``-lambda``; ``width`` (N,) FWHM across the stripe, px;
     ``normals`` (N, 2) (n_u, n_v); ``status`` (N,) uint8, see
-    :data:`PROFILE_STATUS`; ``lines`` (N,) the column (row) indices.
+    :data:`PROFILE_STATUS`; ``lines`` (N,) the column (row) indices; ``width_px`` the
+    stripe width the frame was measured at (px), and ``line_width_px`` (N,) the width each
+    line was measured at where runs of lines were measured again at their own, wider,
+    width (``StripeOptions.local_width``), else None.
     """
 
     uv: np.ndarray
@@ -206,6 +209,7 @@ class StripeProfile:
     axis: str
     sigma_px: float
     width_px: float
+    line_width_px: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -414,7 +418,130 @@ def extract_profile(image: np.ndarray, axis: str = "columns", options: StripeOpt
         raw = _profile_numba(A, w0, w1, w2, params, parallel=setup["parallel"])
     else:
         raw = profile_numpy(A, w0, w1, w2, params)
-    return _profile_finish(image, axis, raw, setup, options)
+    scale = _local_widths(A, raw, setup, options) if options.local_width else None
+    return _profile_finish(image, axis, raw, setup, options, scale)
+
+
+#: a line whose stripe is at least this many times the frame's width is measured again at its own width ...
+LOCAL_WIDTH_RATIO = 1.6
+#: ... in runs of at least this many such lines (a run of fewer is glare or clutter, not a stripe) ...
+LOCAL_MIN_LINES = 8
+#: ... cut into blocks of at most this many lines, each with its own width (widths change along a stripe)
+LOCAL_BLOCK_LINES = 48
+#: how far from its peak a wide line's half level is looked for (samples): stripes up to ~2x this wide
+LOCAL_HALF = 60
+
+
+def _scale_params(w: float, options: StripeOptions, min_peak: float, sigma_al: float | None = None) -> dict:
+    """The kernels' scales and thresholds for a stripe of width ``w`` (px) (:func:`_profile_setup`)."""
+    sigma = sigma_for_width(w) if options.sigma_px is None else float(options.sigma_px)
+    sigma_al = (sigma if options.sigma_along_px is None else float(options.sigma_along_px)) \
+        if sigma_al is None else sigma_al
+    w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
+    R = (w0.size - 1) // 2
+    maxw = 2.5 * w + 2.0 if options.max_width_px is None else float(options.max_width_px)
+    params = dict(
+        sep=int(math.ceil(2.0 * w + 2 * R)),
+        min_peak=min_peak,
+        tol=max(3.0, w),
+        continuity=bool(options.continuity),
+        qpeak=int(math.ceil(0.5 * w)) + 1,
+        half=int(math.ceil(1.5 * w)) + 3,
+        max_width=maxw,
+        min_cos=float(options.min_cos),
+        xw=K.edge_kernels_cached(sigma_al),
+    )
+    return dict(w0=w0, w1=w1, w2=w2, params=params, sigma=sigma, sigma_al=sigma_al, w=w)
+
+
+def _bridge(flag: np.ndarray, gap: int) -> np.ndarray:
+    """``flag`` with every run of at most ``gap`` unflagged lines between flagged ones filled in."""
+    idx = np.flatnonzero(flag)
+    out = flag.copy()
+    if len(idx) > 1:
+        d = np.diff(idx)
+        for i in np.flatnonzero((d > 1) & (d <= gap + 1)):
+            out[idx[i] + 1:idx[i + 1]] = True
+    return out
+
+
+def _wide_runs(flag: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """Blocks ``(a, b, run_a, run_b)`` of the runs ``[run_a, run_b)`` of flagged lines (gaps of up to
+    three lines bridged) that are at least :data:`LOCAL_MIN_LINES` long, each run cut into near-equal blocks
+    ``[a, b)`` of at most :data:`LOCAL_BLOCK_LINES`."""
+    f = _bridge(flag, 3)  # gaps of up to three lines (lines that found no crossing, say)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], f.view(np.int8), [0]])))
+    out: list[tuple[int, int, int, int]] = []
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < LOCAL_MIN_LINES:
+            continue
+        n = -(-(b - a) // LOCAL_BLOCK_LINES)
+        cuts = np.linspace(a, b, n + 1).round().astype(int).tolist()
+        out.extend((c0, c1, int(a), int(b)) for c0, c1 in zip(cuts[:-1], cuts[1:]))
+    return out
+
+
+def _local_widths(A: np.ndarray, raw: tuple, setup: dict, options: StripeOptions) -> np.ndarray | None:
+    """Measure again, at their own width, the runs of lines where the stripe is much wider than the frame's
+    (:data:`LOCAL_WIDTH_RATIO`): lines that were too wide for the frame's scale or found a stripe far wider
+    than it.  ``raw`` (the kernel's outputs) is updated in place
+    where the second pass finds a centre; returns the width (px) each line was measured at, or None when
+    no line needed it (then every line was measured at the frame's width)."""
+    centre, normal, strength, intensity, width, status = raw
+    w = float(setup["w"])
+    flag = (status == K.TOO_WIDE) | ((status == K.OK) & (width > LOCAL_WIDTH_RATIO * w))
+    if np.count_nonzero(flag) < LOCAL_MIN_LINES:
+        return None
+    blocks = _wide_runs(flag)
+    if not blocks:
+        return None
+    mp = float(setup["params"]["min_peak"])
+    L = len(status)
+    scale = np.full(L, w)
+    S = A.shape[0]
+    # the lines a wide block measures again: its wide lines and the lines between them that found nothing
+    redo = flag | (_bridge(flag, 3) & (status != K.OK))
+    for a, b, ra, rb in blocks:
+        block = A[:, a:b]
+        peaks = np.argmax(block, axis=0)
+        mid = float(np.median(peaks))
+        off = np.abs(peaks - mid)
+        spread = float(np.percentile(off, 75))
+        wl, n = K.fwhm_median(np.ascontiguousarray(block), 1, LOCAL_HALF, mp)
+        # a stripe: wide enough to need it, its peaks line up (texture's do not)
+        if not (np.isfinite(wl) and n >= LOCAL_MIN_LINES // 2 and wl >= LOCAL_WIDTH_RATIO * w and spread <= 2.0 * wl):
+            continue
+        st = _scale_params(float(wl), options, mp)
+        # the block with the lines its smoothing along the stripe reaches on either side, within its run (the
+        # lines beyond a run are another stripe width, often another surface: a step's edge), and the samples
+        # around its peaks that the kernels read
+        pad = int(math.ceil(3.0 * st["sigma_al"])) + 1
+        a0, b0 = max(ra, a - pad), min(rb, b + pad)
+        reach = int(np.max(off[off <= 2.0 * wl + 1.0])) + st["params"]["sep"] + st["params"]["half"] + st["w0"].size
+        s0, s1 = max(0, int(mid) - reach), min(S, int(mid) + reach + 1)
+        sub = np.ascontiguousarray(A[s0:s1, a0:b0])
+        if options.backend == "numba":
+            r2 = _profile_numba(sub, st["w0"], st["w1"], st["w2"], st["params"], parallel=False)
+        else:
+            r2 = profile_numpy(sub, st["w0"], st["w1"], st["w2"], st["params"])
+        r2[0][:] += s0  # centres in the frame's samples
+        # the block's wide lines (and those between them that found nothing) take the second pass's result,
+        # found or not (the frame's scale was wrong for them); lines that were fine at the frame's scale keep it
+        take = redo[a:b]
+        if not np.any(r2[5][a - a0:b - a0][take] == K.OK):
+            continue
+        idx = np.flatnonzero(take) + a
+        found = r2[5][idx - a0] == K.OK
+        for dst, src in zip(raw, r2):  # a centre found: all of it
+            dst[idx[found]] = src[idx[found] - a0]
+        scale[idx[found]] = wl
+        # none found: a line that had a centre at the frame's scale keeps it; one that had none says why not
+        # at its own scale (the kernel wrote nothing more for it)
+        lost = idx[~found]
+        lost = lost[status[lost] != K.OK]
+        status[lost] = r2[5][lost - a0]
+        scale[lost] = wl
+    return scale
 
 
 def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prepared=None):
@@ -441,29 +568,14 @@ def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prep
         if not np.isfinite(w):
             w = _DEFAULT_WIDTH_PX
     # given scales are checked by StripeOptions; the derived ones lie within its bounds
-    sigma = sigma_for_width(w) if options.sigma_px is None else float(options.sigma_px)
-    sigma_al = sigma if options.sigma_along_px is None else float(options.sigma_along_px)
-    w0, w1, w2 = K.gaussian_derivative_kernels(sigma)
-    R = (w0.size - 1) // 2
-    maxw = 2.5 * w + 2.0 if options.max_width_px is None else float(options.max_width_px)
-    params = dict(
-        sep=int(math.ceil(2.0 * w + 2 * R)),
-        min_peak=mp,
-        tol=max(3.0, w),
-        continuity=bool(options.continuity),
-        qpeak=int(math.ceil(0.5 * w)) + 1,
-        half=int(math.ceil(1.5 * w)) + 3,
-        max_width=maxw,
-        min_cos=float(options.min_cos),
-        xw=K.edge_kernels_cached(sigma_al),
-    )
-    setup = dict(w0=w0, w1=w1, w2=w2, params=params, line0=line0, sample0=sample0, L=L, S=S, sigma=sigma,
-                 sigma_al=sigma_al, w=w, parallel=parallel, full_scale=fs)
+    setup = dict(_scale_params(w, options, mp), line0=line0, sample0=sample0, L=L, S=S, parallel=parallel,
+                 full_scale=fs)
     return A, setup
 
 
-def _profile_finish(image, axis, raw, setup, options: StripeOptions) -> StripeProfile:
-    """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature)."""
+def _profile_finish(image, axis, raw, setup, options: StripeOptions, scale: np.ndarray | None = None) -> StripeProfile:
+    """Kernel outputs of one frame -> :class:`StripeProfile` (image coordinates, checks, curvature);
+    ``scale``: the width each line was measured at, where :func:`_local_widths` changed it."""
     centre, normal, strength, intensity, width, status = raw
     line0, sample0, L = setup["line0"], setup["sample0"], setup["L"]
     sigma, sigma_al, w = setup["sigma"], setup["sigma_al"], setup["w"]
@@ -496,7 +608,7 @@ def _profile_finish(image, axis, raw, setup, options: StripeOptions) -> StripePr
             uv = _profile_curvature(uv, nrm, valid, sigma_al, m, k)
     return StripeProfile(uv=uv, valid=valid, intensity=intensity, strength=strength, width=width,
                          normals=nrm, status=status, lines=lines, axis=axis, sigma_px=float(sigma),
-                         width_px=float(w))
+                         width_px=float(w), line_width_px=scale)
 
 
 def _stack_lines(frames, axis: str, channel, roi):
@@ -650,7 +762,7 @@ def extract_profiles(frames, axis: str = "columns", options: StripeOptions = Str
     A3, fs, line0, sample0 = _stack_lines(frames, axis, options.channel, roi)
     N, S, L = A3.shape
     _, setup = _profile_setup(None, axis, options, roi, parallel=False, prepared=(A3[0], float(fs[0]), line0, sample0))
-    w0, w1, w2, params = setup["w0"], setup["w1"], setup["w2"], setup["params"]
+    w0, w1, w2, params, w_ = setup["w0"], setup["w1"], setup["w2"], setup["params"], setup["w"]
     mp = np.array([_default_min_peak(f) for f in fs]) if options.min_peak is None \
         else np.full(N, float(options.min_peak))
     block, (centre, normal, strength, intensity, width, uv, status, valid) = _BATCH.take(N, L)
@@ -658,10 +770,15 @@ def extract_profiles(frames, axis: str = "columns", options: StripeOptions = Str
     (K.profiles_batch if par else K.profiles_batch_serial)(
         A3, params["sep"], mp, params["continuity"], params["tol"], w0, w1, w2, params["xw"], params["qpeak"],
         params["half"], params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
+    scales: dict[int, np.ndarray | None] = {}
+    if options.local_width:  # frames with runs of much wider lines: those runs again at their own width
+        for f in _frames_to_widen(status, width, float(w_)):
+            scales[f] = _local_widths(A3[f], (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
+                                      setup, options)
     if options.min_chroma is not None:   # colour checks need each frame's image: frame by frame (their own arrays)
         seq = [frames[i] for i in range(N)]
         return [_profile_finish(seq[f], axis, (centre[f], normal[f], strength[f], intensity[f], width[f], status[f]),
-                                setup, options) for f in range(N)]
+                                setup, options, scales.get(f)) for f in range(N)]
     # _profile_finish for the whole stack at once, frames across threads as the profiles were
     lines = np.arange(L, dtype=np.int64) + line0
     lines.setflags(write=False)   # shared by the frames' profiles
@@ -674,7 +791,14 @@ def extract_profiles(frames, axis: str = "columns", options: StripeOptions = Str
     _BATCH.keep(block)
     return [StripeProfile(uv=uv[f], valid=valid[f], intensity=intensity[f], strength=strength[f], width=width[f],
                           normals=nrm[f], status=status[f], lines=lines, axis=axis, sigma_px=float(sigma),
-                          width_px=float(w)) for f in range(N)]
+                          width_px=float(w), line_width_px=scales.get(f)) for f in range(N)]
+
+
+def _frames_to_widen(status: np.ndarray, width: np.ndarray, w: float) -> list[int]:
+    """Frames of a batch (``status``, ``width``: (N, L)) with at least :data:`LOCAL_MIN_LINES` lines that
+    :func:`_local_widths` would look at again (a cheap screen: most frames have none)."""
+    flag = (status == K.TOO_WIDE) | ((status == K.OK) & (width > LOCAL_WIDTH_RATIO * w))
+    return np.flatnonzero(np.count_nonzero(flag, axis=1) >= LOCAL_MIN_LINES).tolist()
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

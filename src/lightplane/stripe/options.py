@@ -80,6 +80,10 @@ class StripeOptions:
         from the valid lines around; status ``OK`` then.  Recovers a specular
         hot spot in the laser's own channel (tests/test_stripe_real.py).
     backend : ``"numba"`` (fast) or ``"numpy"`` (same algorithm, same numbers).
+    local_width : runs of lines where the stripe is much wider than ``width_px`` (a
+        scattering material, defocus, a grazing angle) are measured again at their own
+        width (:func:`~lightplane.stripe.extract.extract_profile`); False: one width for
+        the whole frame.
     """
 
     width_px: float | None = None
@@ -94,6 +98,7 @@ class StripeOptions:
     min_chroma: float | None = None
     saturated_centre: bool = False
     backend: str = "numba"
+    local_width: bool = True
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
