@@ -107,3 +107,15 @@ def test_calibrate_plane_records_the_flatness_test(tmp_path):
     assert d["sheet_test"]["images"] == 5 and not d["sheet_test"]["curved"] and "sheet" not in d
     assert abs(d["sheet_test"]["z"]) < 3.0 and "the plane is enough" in r.stdout
     assert LightPlane.load(out).d == pytest.approx(d["d"])
+
+
+def test_sheet_file_record_round_trip_and_bad_record():
+    plane, fit = _calibration(5, TILT)
+    back = LightSheet.from_dict(plane, json.loads(json.dumps(fit.sheet.to_dict())))
+    field = sheet_field_points(TILT)
+    xy = field[:, :2] / field[:, 2:]
+    np.testing.assert_array_equal(triangulate_sheet(back, xy), triangulate_sheet(fit.sheet, xy))
+    np.testing.assert_array_equal(sheet_points_sigma_mm(back, xy), sheet_points_sigma_mm(fit.sheet, xy))
+    assert back.meta["flatness_test"]["curved"]
+    with pytest.raises(LightplaneError, match="'sheet'"):
+        LightSheet.from_dict(plane, {"origin_mm": [0, 0]})
