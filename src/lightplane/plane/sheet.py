@@ -488,6 +488,9 @@ def sheet_record(plane: LightPlane, points_mm: Sequence[np.ndarray],
         fit = fit_sheet(plane, points_mm, options)
     except LightplaneError as e:
         return {"sheet_test": {"skipped": str(e)}}, f"flatness of the sheet not tested: {e}"
+    except np.linalg.LinAlgError:
+        why = "the stripe lines do not determine the curvature (they are too short or all alike)"
+        return {"sheet_test": {"skipped": why}}, f"flatness of the sheet not tested: {why}"
     t = fit.test
     verdict = ("the sheet is curved: the curved sheet is written with the plane" if t.curved
                else "the plane is enough")
