@@ -19,6 +19,7 @@ from lightplane.plane.calibrate import ObserveOptions, PlaneCalibrationOptions, 
 from lightplane.plan.shares import LITTLE, information_shares
 from lightplane.plane.joint import JointCameraImages, calibrate_light_planes
 from lightplane.plane.ml import dispersion_factor
+from lightplane.plane.sheet import circle_stripe_points, sheet_record
 from lightplane.plane.uncertainty import (camera_param_names, camera_params, camera_uncertainty_summary,
     joint_dispersion_phrase)
 from lightplane.report.html import write_report
@@ -105,9 +106,11 @@ def calibrate_plane_cmd(
         assert camera_out is not None  # checked by _joint_inputs
         _save_joint_camera(run.joint, run.intrinsics, camera_out, force, prov)
     for name, cal in run.planes.items():
+        sheet, line = sheet_record(cal.plane, circle_stripe_points(cal))
+        console.print(f"  {line}")
         # report_inputs: what `lightplane report` needs to rebuild the report from this file alone
         extra = {**({"laser": name} if name is not None else {}), **cal.to_dict(), "uncertainty": results[name],
-                 "provenance": prov, "report_inputs": cal.report_inputs()}
+                 "provenance": prov, "report_inputs": cal.report_inputs(), **sheet}
         cal.plane.save(outputs[name], force=force, extra=extra)
         console.print(f"wrote {outputs[name]}")
     if report is not None:

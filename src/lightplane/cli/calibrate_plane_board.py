@@ -19,6 +19,7 @@ from lightplane.camera.model import Camera
 from lightplane.cli._common import err_console, frame_rotation
 from lightplane.core.io import try_read_image
 from lightplane.plane.zhou import BoardFrames, BoardPlaneOptions, calibrate_plane_boards
+from lightplane.plane.sheet import board_stripe_points, sheet_record
 from lightplane.report.calibrations import board_plane_report_inputs
 from lightplane.stripe.lasers import LaserSelector, output_paths, parse_lasers
 
@@ -243,7 +244,9 @@ def calibrate_plane_board_cmd(
         idx = chosen[lname]
         inputs = list(dict.fromkeys([*(lasers[k] for k in idx), *(patterns[k] for k in idx if patterns
                                                                     and patterns[k] is not None)]))
-        extra: dict = {"provenance": provenance(inputs, opts),
+        sheet, line = sheet_record(res.plane, board_stripe_points(res))
+        console.print(f"  {line}")
+        extra: dict = {"provenance": provenance(inputs, opts), **sheet,
                        "report_inputs": board_plane_report_inputs(res, cam)}  # lightplane report plane.json
         if lname is not None:
             extra = {"laser": lname, **extra}

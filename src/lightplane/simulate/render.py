@@ -59,6 +59,8 @@ __all__ = [
     "BoardOptions",
     "Dataset",
     "laser_source",
+    "curved_sheet",
+    "sheet_tilt_for_sag",
     "render_circle_image",
     "render_circle_dataset",
     "second_laser_plane",
@@ -163,18 +165,22 @@ class RenderOptions:
     ``difficulty``: one of :data:`DIFFICULTIES` (its :class:`Imaging`); ``noise=False`` leaves
     out shot and read noise (quantisation stays): for self-consistency checks;
     ``samples`` / ``edge_samples``: S x S stratified samples per pixel (>= 4), F x F on
-    material edges.
+    material edges; ``sheet_tilt_deg``: the (first) laser's fan lens tilted by this angle, so
+    that its sheet is a cone, not a plane (:func:`curved_sheet`; 0: the plane).
     """
 
     difficulty: str = "realistic"
     noise: bool = True
     samples: int = 4
     edge_samples: int = 16
+    sheet_tilt_deg: float = 0.0
 
     def __post_init__(self) -> None:
         _check_choice(self.difficulty, DIFFICULTIES, "difficulty")
         if int(self.samples) < 4:
             raise LightplaneError(f"samples must be >= 4 (4x4 per pixel), got {self.samples}")
+        if not (np.isfinite(self.sheet_tilt_deg) and abs(self.sheet_tilt_deg) <= 10.0):
+            raise LightplaneError(f"sheet_tilt_deg must be within +-10 degrees, got {self.sheet_tilt_deg}")
 
     @property
     def imaging(self) -> Imaging:
@@ -223,10 +229,70 @@ def laser_source(plane: LightPlane) -> np.ndarray:
     return p
 
 
-def _laser_row(plane: LightPlane, imaging: Imaging, power: float, rng: np.random.Generator) -> np.ndarray:
+def _fan_frame(plane: LightPlane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The laser's source ``L`` and the sheet's in-plane axes: ``e_x`` the fan's centre ray (from ``L``
+    to where the optical axis meets the plane), ``e_y = n x e_x`` across the fan."""
+    src = laser_source(plane)
+    centre = plane.point_on_axis()
+    if not np.all(np.isfinite(centre)):
+        raise LightplaneError("the light plane is parallel to the optical axis: no centre ray for a curved sheet")
+    ex = (centre - src) / np.linalg.norm(centre - src)
+    return src, ex, np.cross(plane.normal, ex)
+
+
+def curved_sheet(plane: LightPlane, tilt_deg: float, camera: Camera | None = None) -> dict | None:
+    """The cone a fan lens tilted by ``tilt_deg`` makes of the laser sheet (None for 0), as the truth records it.
+
+    The fan's rays leave the source ``L`` (:func:`laser_source`) and, with the lens tilted by
+    ``tau`` about the fan's centre ray's normal, make the constant angle ``pi/2 - tau`` with the
+    axis ``a = cos(tau) n + sin(tau) e_x`` (``n`` the plane's normal, ``e_x`` the centre ray): a
+    circular cone with its apex at ``L``, tangent to the plane along the centre ray.  A point at
+    ``x`` along the centre ray and ``y`` across the fan lies off the plane by
+    ``w = tau y² / (2 x)`` (to first order in ``tau``), towards ``n`` for ``tau > 0``.
+    ``sag_mm``: ``w`` at the field's edge, ``x`` from ``L`` to where the optical axis meets the
+    plane and ``y`` half the stripe's length visible in ``camera``'s image there (default camera).
+    """
+    if float(tilt_deg) == 0.0:
+        return None
+    tau = float(np.radians(tilt_deg))
+    src, ex, ey = _fan_frame(plane)
+    x0, half = _field_of_sheet(plane, camera)
+    return {"model": "cone", "tilt_rad": tau, "apex_mm": src, "axis": np.cos(tau) * plane.normal + np.sin(tau) * ex,
+            "centre_ray": ex, "across_fan": ey, "field_centre_mm": x0, "field_half_width_mm": half,
+            "sag_mm": tau * half**2 / (2.0 * x0),
+            "note": "sag_mm = tilt_rad * field_half_width_mm^2 / (2 field_centre_mm): the sheet's largest "
+                    "distance from its tangent plane at the field's edge"}
+
+
+def _field_of_sheet(plane: LightPlane, camera: Camera | None) -> tuple[float, float]:
+    """From the source to where the optical axis meets the plane (mm), and half the stripe's visible length there (mm)."""
+    camera = default_camera() if camera is None else camera
+    src, ex, ey = _fan_frame(plane)
+    centre = plane.point_on_axis()
+    y = np.linspace(-2000.0, 2000.0, 40001)
+    uv = camera.project(centre + y[:, None] * ey)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1)
+    if not inside.any():
+        raise LightplaneError("the stripe is not in the image: no field for a curved sheet")
+    return float(np.linalg.norm(centre - src)), 0.5 * float(y[inside].max() - y[inside].min())
+
+
+def sheet_tilt_for_sag(sag_mm: float, plane: LightPlane | None = None, camera: Camera | None = None) -> float:
+    """The fan lens's tilt (degrees) that bends the sheet by ``sag_mm`` at the field's edge (:func:`curved_sheet`)."""
+    plane = default_plane() if plane is None else plane
+    x0, half = _field_of_sheet(plane, camera)
+    return float(np.degrees(2.0 * x0 * float(sag_mm) / half**2))
+
+
+def _laser_row(plane: LightPlane, imaging: Imaging, power: float, rng: np.random.Generator,
+               tilt_deg: float = 0.0) -> np.ndarray:
+    cone = None
+    if tilt_deg != 0.0:
+        tau = float(np.radians(tilt_deg))
+        cone = (np.cos(tau) * plane.normal + np.sin(tau) * _fan_frame(plane)[1], tau)
     return rc.make_laser(
         plane.normal, plane.d, laser_source(plane), power=power, sigma_mm=imaging.sheet_sigma_mm,
-        speckle=imaging.speckle, corr_mm=imaging.speckle_corr_mm, seed=int(rng.integers(0, 2**31 - 1)),
+        speckle=imaging.speckle, corr_mm=imaging.speckle_corr_mm, seed=int(rng.integers(0, 2**31 - 1)), cone=cone,
     )
 
 
@@ -356,7 +422,8 @@ def _more_lasers_image(camera: Camera, plane: LightPlane, options: CircleOptions
     on, ``power_of()`` draws the next laser's power."""
     imaging = options.imaging
     S, F = options.samples, options.edge_samples
-    off = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), _laser_row(plane, imaging, 0.0, rng),
+    off = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)),
+                             _laser_row(plane, imaging, 0.0, rng, options.sheet_tilt_deg),
                              ambient, samples=S, edge_samples=F, salt=salt)
     stripes = [rad - off]
     powers = []
@@ -393,7 +460,7 @@ def _render_circle(camera: Camera, plane: LightPlane, placement: TargetPlacement
 
     power = power_of()
     patches = _circle_patches(placement, options.polarity, bg_z, items)
-    laser_row = _laser_row(plane, imaging, power, rng)
+    laser_row = _laser_row(plane, imaging, power, rng, options.sheet_tilt_deg)
     salt = int(rng.integers(0, 2**31 - 1))
     rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser_row, ambient,
                              samples=options.samples, edge_samples=options.edge_samples, salt=salt)
@@ -587,6 +654,7 @@ def _circle_truth(n: int, seed: int, plane: LightPlane, options: CircleOptions, 
         "frame": "camera",
         "plane": plane.to_dict(),
         "laser_source_mm": laser_source(plane),
+        "sheet": curved_sheet(plane, o.sheet_tilt_deg),
         **({"lasers": [{"name": f"laser{k}", "channel": ("red", "green", "blue")[k] if o.colour else "gray",
                         "plane": pl.to_dict(), "laser_source_mm": laser_source(pl)}
                        for k, pl in enumerate((plane, *o.more_planes))]} if o.more_planes else {}),
@@ -596,7 +664,7 @@ def _circle_truth(n: int, seed: int, plane: LightPlane, options: CircleOptions, 
         "seed": seed,
         "options": {"n": n, "seed": seed, "difficulty": o.difficulty, "polarity": o.polarity,
                     "diameter_mm": o.diameter_mm, "laser_off": o.laser_off, "lasers": 1 + len(o.more_planes),
-                    "colour": o.colour, "distance_mm": list(o.distance_mm)},
+                    "colour": o.colour, "distance_mm": list(o.distance_mm), "sheet_tilt_deg": o.sheet_tilt_deg},
         "images": per_image,
     }
 
@@ -865,10 +933,13 @@ class BoardOptions(RenderOptions):
         return STRIPE_CAPTURE if self.with_stripe else CALIBRATION_CAPTURE
 
 
-def _laser_truth(plane: LightPlane, with_stripe: bool, difficulty: str, imaging, seed: int) -> dict:
-    """The truth entries a board data set shares: the plane and its source (with the stripe), the imaging."""
+def _laser_truth(plane: LightPlane, with_stripe: bool, difficulty: str, imaging, seed: int,
+                 tilt_deg: float = 0.0) -> dict:
+    """The truth entries a board data set shares: the plane and its source (with the stripe), the
+    curved sheet (:func:`curved_sheet`, None for the plane), the imaging."""
     return {"plane": plane.to_dict() if with_stripe else None,
             "laser_source_mm": laser_source(plane) if with_stripe else None,
+            "sheet": curved_sheet(plane, tilt_deg) if with_stripe else None,
             "with_stripe": bool(with_stripe), "difficulty": difficulty, "imaging": imaging.__dict__, "seed": seed}
 
 
@@ -888,7 +959,7 @@ def _render_board_view(camera: Camera, plane: LightPlane, patches: np.ndarray, i
         variants.append(("_off", 0.0, 1.0))
     out = []
     for suffix, pw, amb in variants:
-        laser = _laser_row(plane, imaging, pw, img_rng)
+        laser = _laser_row(plane, imaging, pw, img_rng, options.sheet_tilt_deg)
         rad = rc.render_radiance(camera, patches, np.zeros((0, rc.SPHERE_COLS)), laser, ambient * amb,
                                  samples=options.samples, edge_samples=options.edge_samples, salt=salt, texels=texels)
         out.append((suffix, _finish(rad, camera, imaging, img_rng, noise=options.noise)))
@@ -983,8 +1054,8 @@ def _chessboard_truth(n: int, seed: int, plane: LightPlane, options: BoardOption
                   "first_square": "dark", "margin_mm": square_mm,
                   "corners_board_mm": obj, "corner_order": "(i * square_mm, j * square_mm, 0), i fastest (OpenCV order)",
                   "outline_board_mm": list(_board_outline((cols, rows), square_mm, square_mm))},
-        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed),
-        "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm,
+        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed, options.sheet_tilt_deg),
+        "options": {"n": n, "seed": seed, "board": [cols, rows], "square_mm": square_mm, "sheet_tilt_deg": options.sheet_tilt_deg,
                     "distance_mm": list(d.distance_mm), "tilt_deg": list(d.tilt_deg), "centre_frac": d.centre_frac,
                     "with_stripe": options.with_stripe, "laser_off": options.laser_off,
                     "difficulty": options.difficulty},
@@ -1361,7 +1432,7 @@ def render_target_dataset(target, n: int = 30, seed: int = 0, options: BoardOpti
         "units": "mm; pixels (OpenCV convention, pixel centre (0, 0))",
         "frame": "camera",
         "target": _target_info(spec, obj, outline, layout),
-        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed),
+        **_laser_truth(plane, options.with_stripe, options.difficulty, options.imaging, seed, options.sheet_tilt_deg),
         "options": {"target": spec.to_dict(), "n": n, "seed": seed, "difficulty": options.difficulty,
                     "distance_mm": list(d.distance_mm), "tilt_deg": list(d.tilt_deg), "centre_frac": d.centre_frac,
                     "spin_deg": d.spin_deg, "samples": options.samples, "edge_samples": options.edge_samples,

@@ -15,9 +15,10 @@ Every surface is Lambertian: radiance ``albedo * (E_ambient + E_laser)`` (grey
 levels before noise).  The laser sheet has a Gaussian thickness: at a surface
 point ``p`` with unit normal ``n`` (facing the camera)
 
-    E_laser = P * exp(-dist(p, plane)² / (2 s²)) * max(0, n·l) * (R0 / |L - p|) * speckle(p)
+    E_laser = P * exp(-dist(p, sheet)² / (2 s²)) * max(0, n·l) * (R0 / |L - p|) * speckle(p)
 
-with ``L`` the laser's source (a point of the plane beside the camera), ``l`` the
+with ``L`` the laser's source (a point of the plane beside the camera; the sheet a plane, or a
+cone with its apex at ``L``: a tilted fan lens, :func:`make_laser`), ``l`` the
 unit direction from ``p`` to ``L`` and a shadow test along ``p -> L`` (the disc
 shadows the background).  ``speckle(p)`` is ``max(0, 1 + c·noise(p))`` with a
 smooth 3-D value noise of unit variance and lattice spacing ``corr_mm``, so ``c`` is
@@ -47,7 +48,7 @@ from lightplane.core.errors import LightplaneError
 
 PATCH_COLS = 26
 SPHERE_COLS = 5
-LASER_COLS = 12
+LASER_COLS = 17
 
 # patch columns
 _O, _E1, _E2, _N = 0, 3, 6, 9
@@ -131,10 +132,17 @@ def make_sphere(center, radius_mm: float, albedo: float) -> np.ndarray:
 
 
 def make_laser(plane_normal, plane_d, source, *, power: float, sigma_mm: float, speckle: float = 0.0,
-               corr_mm: float = 0.12, seed: int = 0) -> np.ndarray:
+               corr_mm: float = 0.12, seed: int = 0, cone: tuple | None = None) -> np.ndarray:
     """Laser row: plane normal (3), d (mm), source (3, mm), power (grey levels at albedo 1, normal
-    incidence, 450 mm), sheet sigma_mm, speckle contrast, speckle corr_mm, speckle seed."""
+    incidence, 450 mm), sheet sigma_mm, speckle contrast, speckle corr_mm, speckle seed, and the
+    curved sheet: ``cone=(axis, tau)``, the sheet a circular cone with its apex at ``source``,
+    unit ``axis`` and half-angle ``pi/2 - tau`` (tau in radians; None or tau = 0: the plane)."""
     row = np.zeros(LASER_COLS)
+    if cone is not None and float(cone[1]) != 0.0:
+        axis = np.asarray(cone[0], dtype=np.float64)
+        row[12:15] = axis / np.linalg.norm(axis)
+        row[15] = np.sin(float(cone[1]))
+        row[16] = np.cos(float(cone[1]))
     row[0:3] = plane_normal
     row[3] = plane_d
     row[4:7] = source
@@ -340,6 +348,19 @@ def _ink(row, tex, u, v):
     return False
 
 
+@njit_cached(**_jit)
+def _cone_distance(laser, px, py, pz):
+    """Signed distance (mm) of a point to the curved sheet of :func:`make_laser`: ``v`` from the apex,
+    ``a`` the axis, ``sin tau``, ``cos tau``: ``(v.a) cos tau - |v x a| sin tau`` (exact near the sheet;
+    at tau = 0 the plane's ``n.p + d``)."""
+    vx = px - laser[4]
+    vy = py - laser[5]
+    vz = pz - laser[6]
+    va = vx * laser[12] + vy * laser[13] + vz * laser[14]
+    perp = np.sqrt(max(vx * vx + vy * vy + vz * vz - va * va, 0.0))
+    return va * laser[16] - perp * laser[15]
+
+
 @njit_cached(inline="always", **_jit)  # inlined where it is called: 0.7-0.75x the corner probe's time, the compile ~6 s longer once
 def _shade(patches, spheres, laser, ambient, x, y, tex):
     """Radiance and material id seen along the ray (x, y, 1)."""
@@ -400,6 +421,8 @@ def _shade(patches, spheres, laser, ambient, x, y, tex):
     e = ambient
     power = laser[7]
     dist = laser[0] * px + laser[1] * py + laser[2] * pz + laser[3]
+    if laser[15] != 0.0:
+        dist = _cone_distance(laser, px, py, pz)
     if power > 0.0:
         s = laser[8]
         if abs(dist) < 6.0 * s:
