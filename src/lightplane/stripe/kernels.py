@@ -375,77 +375,6 @@ def _fwhm_line(A, l, c, half, min_peak):
     return right - left, left, right, best, bg
 
 
-#: the width estimate takes a line's width with the background of the higher side of its peak where
-#: that is below this share of the width with the background of the whole window (see _fwhm_sided)
-SIDED_WIDTH = 0.7
-
-
-@njit_cached(error_model="numpy")
-def _half_crossings(A, l, k0, best, level, half):
-    """Sub-sample positions (right, left) where line ``l`` first falls below ``level`` on either side
-    of its peak ``k0`` (value ``best``), within ``half`` samples (NaN where it does not); borders
-    clamped."""
-    S = A.shape[0]
-    right = np.nan
-    prev = best
-    for k in range(k0 + 1, k0 + half + 1):
-        x = np.float64(A[_clamp(k, S), l])
-        if x < level:
-            right = (k - 1) + (prev - level) / (prev - x)
-            break
-        prev = x
-    left = np.nan
-    prev = best
-    for k in range(k0 - 1, k0 - half - 1, -1):
-        x = np.float64(A[_clamp(k, S), l])
-        if x < level:
-            left = (k + 1) - (prev - level) / (prev - x)
-            break
-        prev = x
-    return right, left
-
-
-@njit_cached(error_model="numpy")
-def _fwhm_sided(A, l, c, half, min_peak):
-    """The raw FWHM (samples) of line ``l`` around sample ``c`` for the width estimate:
-    :func:`_fwhm_line`'s, unless the half level taken above the higher of the two sides' lowest
-    samples (within ``half``) gives a width below :data:`SIDED_WIDTH` of it, which is then taken.
-
-    :func:`_fwhm_line`'s background is the lowest sample of the whole window.  A stripe on texture
-    or clutter sits on a local pedestal, and a dark speck or edge within ``half`` on one side puts
-    that minimum, and the half level with it, far below the pedestal: the crossings then lie out
-    on the pedestal and the width comes out 1.5-2.5x the stripe's (busy frames,
-    benchmarks/bench_busy.py), or there is no crossing at all.  On an even background both
-    sides' minima are alike and so are both widths: the number is :func:`_fwhm_line`'s."""
-    S = A.shape[0]
-    k0 = c
-    best = np.float64(A[_clamp(c, S), l])
-    for k in (c - 1, c + 1):
-        x = np.float64(A[_clamp(k, S), l])
-        if x > best:
-            best = x
-            k0 = k
-    bl = best
-    br = best
-    for k in range(c - half, c + half + 1):
-        x = np.float64(A[_clamp(k, S), l])
-        if k < k0:
-            bl = min(bl, x)
-        elif k > k0:
-            br = min(br, x)
-    bg = min(bl, br)
-    if best - bg < min_peak:
-        return np.nan
-    right, left = _half_crossings(A, l, k0, best, bg + 0.5 * (best - bg), half)
-    fw = right - left
-    hi = max(bl, br)
-    if not (fw == fw) or hi <= bg or best - hi < min_peak:
-        return fw
-    right, left = _half_crossings(A, l, k0, best, hi + 0.5 * (best - hi), half)
-    fs = right - left
-    return fs if fs < SIDED_WIDTH * fw else fw
-
-
 @njit_cached(nogil=True)
 def _peaks_across(A, every, n, p):
     """``p[j]`` = the first sample holding line ``j * every``'s maximum when the lines run
@@ -523,7 +452,7 @@ def _peaks_along(A, every, n, p):
 def fwhm_median(A, every, half, min_peak):
     """Median raw FWHM (samples) at the highest sample (first ``argmax``, the peak the
     candidates kernel finds) of every ``every``-th line of ``A[s, l]``, and the number of
-    lines with one (:func:`_fwhm_sided`); NaN, 0 when none.  One call, serial: ~160 lines
+    lines with one (:func:`_fwhm_line`); NaN, 0 when none.  One call, serial: ~160 lines
     are too little work to split over threads.  ``A`` row-major or the transposed view of
     a row-major image (the lines are then its rows: no transpose needed)."""
     L = A.shape[1]
@@ -536,7 +465,7 @@ def fwhm_median(A, every, half, min_peak):
     out = np.empty(n, np.float64)
     m = 0
     for j in range(n):
-        fw = _fwhm_sided(A, j * every, p[j], half, min_peak)
+        fw = _fwhm_line(A, j * every, p[j], half, min_peak)[0]
         if np.isfinite(fw):
             out[m] = fw
             m += 1
