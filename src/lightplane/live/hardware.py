@@ -97,7 +97,8 @@ class _SerialLine:
         import serial
 
         self.board, self.port = board, port
-        self._serial_error = serial.SerialException
+        # termios.error (a vanished pseudo-terminal or USB serial device, e.g. tcdrain's EIO) is not an OSError
+        self._errors: tuple[type[BaseException], ...] = (serial.SerialException, OSError, *_termios_errors())
         try:
             self._s = serial.Serial(port, baud, timeout=0.05, write_timeout=2.0)
         except (serial.SerialException, OSError, ValueError) as e:
@@ -110,29 +111,39 @@ class _SerialLine:
         try:
             self._s.write(data)
             self._s.flush()
-        except (self._serial_error, OSError) as e:
+        except self._errors as e:
             raise self.fail(f"is gone (writing failed: {_reason(e)})") from None
 
     def read(self, n: int = 256) -> bytes:
         try:
             return self._s.read(max(1, min(n, self._s.in_waiting or 1)))
-        except (self._serial_error, OSError, TypeError) as e:
+        except (*self._errors, TypeError) as e:
             raise self.fail(f"is gone (reading failed: {_reason(e)})") from None
 
     def discard_input(self) -> None:
         try:
             self._s.reset_input_buffer()
-        except (self._serial_error, OSError) as e:
+        except self._errors as e:
             raise self.fail(f"is gone ({_reason(e)})") from None
 
     def close(self) -> None:
         try:
             self._s.close()
-        except (self._serial_error, OSError):
+        except self._errors:
             pass
 
 
+def _termios_errors() -> tuple[type[BaseException], ...]:
+    try:
+        import termios
+    except ImportError:  # not on Windows
+        return ()
+    return (termios.error,)
+
+
 def _reason(e: BaseException) -> str:
+    if len(e.args) == 2 and isinstance(e.args[0], int) and isinstance(e.args[1], str):  # termios.error(errno, text)
+        return e.args[1]
     return str(e).strip().rstrip(".") or type(e).__name__
 
 
