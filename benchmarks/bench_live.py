@@ -5,8 +5,8 @@ Run: ``.venv/bin/python benchmarks/bench_live.py [--fps 60] [--seconds 8] [--rou
 
 Frames of the simulated turntable sensor (a sphere on the table, realistic image formation: speckle,
 noise, vignetting) are rendered first, then replayed from memory at a fixed rate
-(:class:`lightplane.live.sources.ArraySource`: a frame the loop is not ready for is dropped and counted,
-never waited for) through :class:`lightplane.live.engine.LiveEngine` with the simulated sensor's
+(:class:`lightplane.live.sources.ArraySource`, with a camera driver's queue of ``--queue`` frames, default
+4: a frame pushed out of the queue before the loop takes it is dropped and counted, never waited for) through :class:`lightplane.live.engine.LiveEngine` with the simulated sensor's
 calibration (profiles in mm).  Meanwhile a "page" asks for what the live page shows: the JPEG preview
 (640 px wide) at ``--preview-hz``, the status at 2 Hz, and one subscriber turns every profile event into
 JSON as a websocket would.  Per round: profiles/s (profiles made / the round's length), latency from the
@@ -29,7 +29,7 @@ import numpy as np
 
 from lightplane.live.engine import LiveEngine
 from lightplane.live.simulated import SimulatedSensor
-from lightplane.live.sources import ArraySource
+from lightplane.live.sources import REPLAY_QUEUE, ArraySource
 from lightplane.measure.profile import ProfileMeasurer
 from results import at_least, at_most, figure, record
 
@@ -88,8 +88,9 @@ class Page:
         self.engine.unsubscribe(self.q)
 
 
-def one_round(frames, sim: SimulatedSensor, fps: float, seconds: float, preview_hz: float) -> dict:
-    eng = LiveEngine(ArraySource(frames, fps=fps), sensor=sim.sensor)
+def one_round(frames, sim: SimulatedSensor, fps: float, seconds: float, preview_hz: float,
+              queue: int = REPLAY_QUEUE) -> dict:
+    eng = LiveEngine(ArraySource(frames, fps=fps, queue=queue), sensor=sim.sensor)
     page = Page(eng, preview_hz)
     eng.start()
     page.start()
@@ -126,6 +127,8 @@ def profile_alone(frames, sim: SimulatedSensor, repeat: int = 50) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fps", type=float, default=60.0, help="replay rate, frames/s")
+    ap.add_argument("--queue", type=int, default=REPLAY_QUEUE,
+                    help="frames the replay queues for a late loop, as a camera driver (1: only the newest)")
     ap.add_argument("--seconds", type=float, default=8.0, help="length of a round, s")
     ap.add_argument("--capacity-fps", type=float, default=120.0, help="replay rate of the capacity rounds, frames/s")
     ap.add_argument("--rounds", type=int, default=3)
@@ -142,7 +145,7 @@ def main() -> None:
     for r in range(args.rounds):
         alone.append(profile_alone(frames, sim))
         for fps, got in rounds.items():
-            res = one_round(frames, sim, fps, args.seconds, args.preview_hz)
+            res = one_round(frames, sim, fps, args.seconds, args.preview_hz, args.queue)
             got.append(res)
             loads.append(os.getloadavg()[0])
             print(f"round {r + 1}: {res['profiles_per_s']:.1f} profiles/s at {fps:g} frames/s offered, latency "
@@ -163,7 +166,8 @@ def figures(cam: dict, cap: dict, args, alone_ms: float, load: float) -> list[di
     ref = ("one profile alone (ProfileMeasurer, median of 50)", alone_ms, "ms")
 
     def stat(fps: float) -> str:
-        return (f"median of {args.rounds} rounds of {args.seconds:g} s at {fps:g} frames/s offered, page open "
+        return (f"median of {args.rounds} rounds of {args.seconds:g} s at {fps:g} frames/s offered (a queue of "
+                f"{args.queue} frame{'s' if args.queue > 1 else ''} for a late loop, as a camera driver's), page open "
                 f"(previews at {args.preview_hz:g} Hz, one subscriber); {os.cpu_count()} cores shared with other "
                 f"jobs: load average {load:.1f}")
 

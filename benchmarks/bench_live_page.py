@@ -9,7 +9,8 @@ Run: ``.venv/bin/python benchmarks/bench_live_page.py [--fps 60] [--seconds 8] [
 The frames are bench_live.py's (the simulated turntable, realistic image formation, pre-rendered and
 replayed from memory at a fixed rate; a frame the loop is not ready for is dropped and counted).  Each
 round runs the engine twice, interleaved: without any page (the reference) and with the served page
-open; same frames, same rate, same minute.  Bars: >= 60 profiles/s at a 60 frames/s camera with the page
+open; same frames, same rate, same minute.  The replay queues ``--queue`` frames for a late loop (default 4,
+a V4L2 capture's buffers; 1: only the newest frame waits, every hiccup of a frame period drops one).  Bars: >= 60 profiles/s at a 60 frames/s camera with the page
 open, no frame dropped, median latency <= 30 ms (2 cores).
 """
 
@@ -28,7 +29,7 @@ import numpy as np
 
 from lightplane.live.engine import LiveEngine
 from lightplane.live.server import ServerOptions, listen, serve_in_thread, url_of
-from lightplane.live.sources import ArraySource
+from lightplane.live.sources import REPLAY_QUEUE, ArraySource
 from bench_live import render_frames
 from results import at_least, at_most, figure, record
 
@@ -87,8 +88,8 @@ class OpenPage:
             self.proc.kill()
 
 
-def one_round(frames, sim, fps: float, seconds: float, page: str | None, tmp: Path) -> dict:
-    eng = LiveEngine(ArraySource(frames, fps=fps), sensor=sim.sensor)
+def one_round(frames, sim, fps: float, seconds: float, page: str | None, tmp: Path, queue: int = REPLAY_QUEUE) -> dict:
+    eng = LiveEngine(ArraySource(frames, fps=fps, queue=queue), sensor=sim.sensor)
     eng.start()
     stop_server, opened = None, None
     try:
@@ -120,6 +121,8 @@ def one_round(frames, sim, fps: float, seconds: float, page: str | None, tmp: Pa
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fps", type=float, default=60.0, help="replay rate, frames/s")
+    ap.add_argument("--queue", type=int, default=REPLAY_QUEUE,
+                    help="frames the replay queues for a late loop, as a camera driver (1: only the newest)")
     ap.add_argument("--seconds", type=float, default=8.0, help="length of a round, s")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--frames", type=int, default=12, help="distinct frames rendered (replayed in a loop)")
@@ -137,7 +140,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
             for mode in ("none", "page"):
-                res = one_round(frames, sim, args.fps, args.seconds, None if mode == "none" else client, Path(tmp))
+                res = one_round(frames, sim, args.fps, args.seconds, None if mode == "none" else client, Path(tmp),
+                                args.queue)
                 got[mode].append(res)
                 loads.append(os.getloadavg()[0])
                 print(f"round {r + 1}, {'page open' if mode == 'page' else 'no page  '}: "
@@ -156,7 +160,8 @@ def main() -> None:
 
 def figures(med: dict, args, client: str, load: float) -> list[dict]:
     page, ref = med["page"], med["none"]
-    stat = (f"median of {args.rounds} rounds of {args.seconds:g} s at {args.fps:g} frames/s offered, the page "
+    stat = (f"median of {args.rounds} rounds of {args.seconds:g} s at {args.fps:g} frames/s offered (a queue of "
+            f"{args.queue} frame{'s' if args.queue > 1 else ''} for a late loop, as a camera driver's), the page "
             f"served from the engine's process and open in {client} ({page['page_previews_per_s']:.1f} previews/s, "
             f"{page['page_profiles_per_s']:.1f} profiles/s drawn), interleaved with rounds without a page; "
             f"{os.cpu_count()} cores shared with other jobs: load average {load:.1f}")

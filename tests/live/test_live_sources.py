@@ -10,7 +10,7 @@ import pytest
 from lightplane.core.errors import LightplaneError
 from lightplane.live.simulated import SimulatedSensor
 from lightplane.live.source import Source
-from lightplane.live.sources import (SCHEMES, ArraySource, FolderSource, VideoSource, open_source, parse_options,
+from lightplane.live.sources import (REPLAY_QUEUE, SCHEMES, ArraySource, FolderSource, VideoSource, open_source, parse_options,
                                      register_scheme)
 
 
@@ -19,7 +19,7 @@ def frames(n: int = 5, shape=(24, 32)) -> list[np.ndarray]:
 
 
 def test_replay_at_its_rate_drops_what_a_slow_reader_misses():
-    src = ArraySource(frames(), fps=100.0)
+    src = ArraySource(frames(), fps=100.0, queue=1)
     assert isinstance(src, Source)
     src.start()
     a = src.read()
@@ -48,6 +48,25 @@ def test_replay_once_ends_and_without_a_rate_delivers_every_frame():
     out = [src.read(), src.read(), src.read(), src.read()]
     assert [int(f.image[0, 0]) for f in out[:3] if f is not None] == [0, 1, 2] and out[3] is None
     assert src.dropped == 0
+
+
+def test_replay_queues_frames_for_a_late_reader_as_a_camera_driver():
+    """With a queue of 4 (the default), a reader 2.5 periods late gets every frame, oldest first, each with its
+    own exposure time; 10 periods late, the frames pushed out of the queue are dropped and counted."""
+    assert REPLAY_QUEUE == 4
+    src = ArraySource(frames(), fps=50.0)
+    src.start()
+    a = src.read()
+    time.sleep(0.05)  # 2.5 periods: frames 1 and 2 are exposed and queued
+    got = [src.read() for _ in range(3)]
+    assert a is not None and [f.index for f in got] == [1, 2, 3] and src.dropped == 0
+    assert all(f.t_received - f.t_exposure >= 0 for f in got)
+    assert got[0].t_exposure == pytest.approx(a.t_exposure + 0.02, abs=1e-9)
+    time.sleep(0.2)  # 10 periods: only the newest 4 are still queued
+    b = src.read()
+    assert b is not None
+    newest = int(np.floor((b.t_received - a.t_exposure) * 50.0))  # frames exposed since frame 0, at most
+    assert newest - 4 <= b.index <= newest - 3 and src.dropped == b.index - 4
 
 
 def test_a_late_reader_of_a_finite_replay_counts_the_frames_it_never_got():

@@ -12,11 +12,18 @@ __all__ = ["Pacer"]
 
 
 class Pacer:
-    """Frame times of a fixed-rate stream and the frames a late reader skips."""
+    """Frame times of a fixed-rate stream and the frames a late reader skips.
 
-    def __init__(self, fps: float | None) -> None:
+    ``queue`` frames wait for the reader, as in a camera driver's queue of buffers: a reader that is late
+    gets the oldest frame still queued (its exposure time says how late), and only frames pushed out of the
+    queue are skipped.  ``queue=1`` keeps nothing but the newest frame."""
+
+    def __init__(self, fps: float | None, queue: int = 1) -> None:
         if fps is not None and not (np.isfinite(fps) and fps > 0):
             raise LightplaneError(f"fps must be a positive number of frames per second, got {fps!r}")
+        if not (isinstance(queue, (int, np.integer)) and 1 <= queue <= 1024):
+            raise LightplaneError(f"queue must be 1 to 1024 frames, got {queue!r}")
+        self.queue = int(queue)
         self.fps = None if fps is None else float(fps)
         self.t0: float | None = None
         self.next = 0
@@ -37,7 +44,7 @@ class Pacer:
             self.next += 1
             return k, now, 0
         due = int(np.floor((now - self.t0) * self.fps))
-        k = max(self.next, due)
+        k = max(self.next, due - self.queue + 1)
         t = self.t0 + k / self.fps
         if t > now:
             wait = t - now

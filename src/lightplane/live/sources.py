@@ -4,7 +4,9 @@ through OpenCV, and :func:`open_source`, which opens a source from a spec string
 A replay runs at a fixed frame rate: frame ``k`` is "exposed" at ``t0 + k / fps``.  A consumer that falls
 behind does not slow the replay down: when it asks for the next frame, the frames whose time has passed
 (all but the newest) are skipped and counted in ``dropped``, and the frame counter jumps by as many, as
-with a camera whose buffer overflows.  Without a frame rate (``fps=None``) every frame is delivered, as fast
+with a camera whose buffer overflows.  Like a camera's driver, a replay keeps a queue of ``queue`` frames
+(:data:`REPLAY_QUEUE`, the four buffers a V4L2 capture queues by default): a reader that is late by fewer
+frames gets them all, oldest first, each with its own exposure time (the latency shows the delay).  Without a frame rate (``fps=None``) every frame is delivered, as fast
 as it is asked for.
 
 Specs (:func:`open_source`): ``sim:KIND`` (the simulated sensor, :mod:`lightplane.live.simulated`),
@@ -31,20 +33,26 @@ from lightplane.live.source import Control, Frame, Source
 from lightplane.measure.scan import VIDEO_SUFFIXES
 
 __all__ = ["ReplaySource", "ArraySource", "FolderSource", "VideoSource", "UVCSource", "open_source", "SCHEMES",
-           "register_scheme", "parse_options"]
+           "register_scheme", "parse_options", "REPLAY_QUEUE"]
+
+
+#: frames a replay keeps for a late reader (a V4L2 capture's default number of buffers)
+REPLAY_QUEUE = 4
 
 
 class ReplaySource:
-    """Frames of a finite sequence replayed at ``fps`` (None: as fast as asked), looped or once.
+    """Frames of a finite sequence replayed at ``fps`` (None: as fast as asked), looped or once, with a
+    queue of ``queue`` frames for a late reader (1: only the newest frame waits).
 
     Subclasses give ``_count()`` and ``_load(i)``; ``_skip(i)`` for a frame not delivered (a video decodes
     it anyway).  ``read`` returns None after the last frame of a replay that does not loop."""
 
     nominal_fps: float | None
 
-    def __init__(self, name: str, fps: float | None = 30.0, loop: bool = True) -> None:
+    def __init__(self, name: str, fps: float | None = 30.0, loop: bool = True, queue: int = REPLAY_QUEUE) -> None:
         self.name = name
-        self._pacer = Pacer(fps)
+        self.queue = queue
+        self._pacer = Pacer(fps, queue)
         self.nominal_fps = self._pacer.fps
         self.loop = bool(loop)
         self.dropped = 0
@@ -86,7 +94,7 @@ class ReplaySource:
     def set_control(self, name: str, value: Any) -> None:
         if name != "fps":
             raise LightplaneError(f"{self.name}: no control {name!r} (it has: fps)")
-        self._pacer = Pacer(None if value is None else float(value))
+        self._pacer = Pacer(None if value is None else float(value), self.queue)
         self.nominal_fps = self._pacer.fps
 
 
@@ -94,10 +102,10 @@ class ArraySource(ReplaySource):
     """Frames in memory (a sequence of arrays or an (F, H, W[, 3]) array) replayed at ``fps``."""
 
     def __init__(self, frames: Sequence[np.ndarray] | np.ndarray, fps: float | None = 30.0, loop: bool = True,
-                 name: str = "frames in memory") -> None:
+                 name: str = "frames in memory", queue: int = REPLAY_QUEUE) -> None:
         if len(frames) == 0:
             raise LightplaneError("no frames to replay")
-        super().__init__(f"{name} ({len(frames)} frames)", fps, loop)
+        super().__init__(f"{name} ({len(frames)} frames)", fps, loop, queue)
         self._frames = frames
 
     def _count(self) -> int:
@@ -112,12 +120,12 @@ class FolderSource(ReplaySource):
     file raises :class:`LightplaneError` when its turn comes."""
 
     def __init__(self, inputs: str | os.PathLike | Sequence[str | os.PathLike], fps: float | None = 30.0,
-                 loop: bool = True) -> None:
+                 loop: bool = True, queue: int = REPLAY_QUEUE) -> None:
         items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
         self.paths = expand_inputs(items)
         if not self.paths:
             raise LightplaneError(f"no images found in {', '.join(map(str, items))}")
-        super().__init__(f"{items[0]} ({len(self.paths)} images)", fps, loop)
+        super().__init__(f"{items[0]} ({len(self.paths)} images)", fps, loop, queue)
 
     def _count(self) -> int:
         return len(self.paths)
@@ -132,7 +140,8 @@ class FolderSource(ReplaySource):
 class VideoSource(ReplaySource):
     """A video file decoded with ``cv2.VideoCapture``, replayed at ``fps`` (None: the file's own rate)."""
 
-    def __init__(self, path: str | os.PathLike, fps: float | None = None, loop: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike, fps: float | None = None, loop: bool = True,
+                 queue: int = REPLAY_QUEUE) -> None:
         import cv2
 
         self.path = Path(path)
@@ -146,7 +155,7 @@ class VideoSource(ReplaySource):
         if self._n <= 0:
             raise LightplaneError(f"{self.path}: the video does not say how many frames it has")
         rate = fps if fps is not None else (own if own > 0 else 30.0)
-        super().__init__(f"video {self.path.name} ({self._n} frames)", rate, loop)
+        super().__init__(f"video {self.path.name} ({self._n} frames)", rate, loop, queue)
         self._pos = 0
 
     def _count(self) -> int:
