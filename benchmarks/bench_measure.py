@@ -354,6 +354,7 @@ def profile_speed(repeats: int = 15) -> None:
 MEMORY_CHILD = r"""
 import os, resource, sys, threading, time, numpy as np, pickle
 from lightplane.plane.model import LightPlane
+from lightplane.measure.options import CloudOutput
 from lightplane.measure.scan import FrameSource, Motion, measure_scan
 
 def rss_mb(pid, key="VmRSS:"):
@@ -398,7 +399,7 @@ class Cycle(FrameSource):
             yield i, f"frame {i}", ds.images[i % len(ds.images)]
 t = time.perf_counter()
 s = measure_scan(Cycle(), ds.camera, LightPlane.from_dict(ds.truth["plane"]), sys.argv[2],
-                 motion=Motion.linear(0.1, [1, 0, 0]), workers=2, force=True)
+                 motion=Motion.linear(0.1, [1, 0, 0]), workers=2, output=CloudOutput(force=True))
 dt = time.perf_counter() - t
 stop = True
 time.sleep(0.2)
