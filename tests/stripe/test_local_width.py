@@ -86,3 +86,46 @@ def test_batches_equal_single_frames():
         one = extract_profile(f, options=opts)
         assert np.array_equal(one.uv, b.uv, equal_nan=True) and np.array_equal(one.status, b.status)
         assert b.line_width_px is not None and np.array_equal(one.line_width_px, b.line_width_px)
+
+
+def _numpy_blocks(flag, gap=3, min_lines=8, block_lines=48):
+    """The local-width pass's blocks stated with numpy (gaps bridged, runs cut by np.linspace)."""
+    idx = np.flatnonzero(flag)
+    bridged = flag.copy()
+    for i in np.flatnonzero((np.diff(idx) > 1) & (np.diff(idx) <= gap + 1)):
+        bridged[idx[i] + 1:idx[i + 1]] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], bridged.view(np.int8), [0]])))
+    out = []
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a >= min_lines:
+            cuts = np.linspace(a, b, -(-(b - a) // block_lines) + 1).round().astype(int).tolist()
+            out += [(c0, c1, int(a), int(b)) for c0, c1 in zip(cuts[:-1], cuts[1:])]
+    return out, bridged
+
+
+def test_the_compiled_screen_equals_its_numpy_statement():
+    """The local-width screen's kernels (``wide_line_counts``, ``wide_blocks``, ``block_peak_spread``) give what
+    numpy's count_nonzero, linspace().round(), argmax, median and percentile give, exactly (random cases,
+    runs whose cuts fall on halves included)."""
+    import lightplane.stripe.kernels as K
+
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        flag = rng.random(int(rng.integers(1, 400))) < rng.random()
+        blocks, bridged = K.wide_blocks(flag, 3, 8, 48)
+        ref, ref_bridged = _numpy_blocks(flag)
+        assert [tuple(b) for b in blocks.tolist()] == ref and np.array_equal(bridged, ref_bridged)
+    half = np.zeros(60, bool)
+    half[5:54] = True  # a run of 49 lines: two blocks cut at 5 + 24.5, rounded to even
+    assert K.wide_blocks(half, 3, 8, 48)[0].tolist() == [[5, 30, 5, 54], [30, 54, 5, 54]]
+    for _ in range(2000):
+        B = rng.integers(0, 6, (int(rng.integers(5, 120)), int(rng.integers(1, 60)))).astype(np.float32)
+        mid, spread, off = K.block_peak_spread(B)
+        peaks = np.argmax(B, axis=0)
+        assert mid == float(np.median(peaks)) and np.array_equal(off, np.abs(peaks - mid))
+        assert spread == float(np.percentile(off, 75))
+    status = rng.integers(0, 7, (40, 300)).astype(np.uint8)
+    width = rng.random((40, 300)) * 10
+    width[rng.random(width.shape) < 0.1] = np.nan
+    flag = (status == K.TOO_WIDE) | ((status == K.OK) & (width > 5.0))
+    assert np.array_equal(K.wide_line_counts(status, width, 5.0), np.count_nonzero(flag, axis=1))

@@ -99,6 +99,7 @@ class _SerialLine:
         self.board, self.port = board, port
         # termios.error (a vanished pseudo-terminal or USB serial device, e.g. tcdrain's EIO) is not an OSError
         self._errors: tuple[type[BaseException], ...] = (serial.SerialException, OSError, *_termios_errors())
+        self._read_errors: tuple[type[BaseException], ...] = (*self._errors, TypeError)
         try:
             self._s = serial.Serial(port, baud, timeout=0.05, write_timeout=2.0)
         except (serial.SerialException, OSError, ValueError) as e:
@@ -117,7 +118,7 @@ class _SerialLine:
     def read(self, n: int = 256) -> bytes:
         try:
             return self._s.read(max(1, min(n, self._s.in_waiting or 1)))
-        except (*self._errors, TypeError) as e:
+        except self._read_errors as e:
             raise self.fail(f"is gone (reading failed: {_reason(e)})") from None
 
     def discard_input(self) -> None:

@@ -454,33 +454,6 @@ def _scale_params(w: float, options: StripeOptions, min_peak: float, sigma_al: f
     return dict(w0=w0, w1=w1, w2=w2, params=params, sigma=sigma, sigma_al=sigma_al, w=w)
 
 
-def _bridge(flag: np.ndarray, gap: int) -> np.ndarray:
-    """``flag`` with every run of at most ``gap`` unflagged lines between flagged ones filled in."""
-    idx = np.flatnonzero(flag)
-    out = flag.copy()
-    if len(idx) > 1:
-        d = np.diff(idx)
-        for i in np.flatnonzero((d > 1) & (d <= gap + 1)):
-            out[idx[i] + 1:idx[i + 1]] = True
-    return out
-
-
-def _wide_runs(flag: np.ndarray) -> list[tuple[int, int, int, int]]:
-    """Blocks ``(a, b, run_a, run_b)`` of the runs ``[run_a, run_b)`` of flagged lines (gaps of up to
-    three lines bridged) that are at least :data:`LOCAL_MIN_LINES` long, each run cut into near-equal blocks
-    ``[a, b)`` of at most :data:`LOCAL_BLOCK_LINES`."""
-    f = _bridge(flag, 3)  # gaps of up to three lines (lines that found no crossing, say)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], f.view(np.int8), [0]])))
-    out: list[tuple[int, int, int, int]] = []
-    for a, b in zip(edges[::2], edges[1::2]):
-        if b - a < LOCAL_MIN_LINES:
-            continue
-        n = -(-(b - a) // LOCAL_BLOCK_LINES)
-        cuts = np.linspace(a, b, n + 1).round().astype(int).tolist()
-        out.extend((c0, c1, int(a), int(b)) for c0, c1 in zip(cuts[:-1], cuts[1:]))
-    return out
-
-
 def _local_widths(A: np.ndarray, raw: tuple, setup: dict, options: StripeOptions) -> np.ndarray | None:
     """Measure again, at their own width, the runs of lines where the stripe is much wider than the frame's
     (:data:`LOCAL_WIDTH_RATIO`): lines that were too wide for the frame's scale or found a stripe far wider
@@ -489,25 +462,22 @@ def _local_widths(A: np.ndarray, raw: tuple, setup: dict, options: StripeOptions
     no line needed it (then every line was measured at the frame's width)."""
     centre, normal, strength, intensity, width, status = raw
     w = float(setup["w"])
-    flag = (status == K.TOO_WIDE) | ((status == K.OK) & (width > LOCAL_WIDTH_RATIO * w))
-    if np.count_nonzero(flag) < LOCAL_MIN_LINES:
+    flag, n_wide = K.wide_line_flags(status, width, LOCAL_WIDTH_RATIO * w)
+    if n_wide < LOCAL_MIN_LINES:
         return None
-    blocks = _wide_runs(flag)
-    if not blocks:
+    blocks, bridged = K.wide_blocks(flag, 3, LOCAL_MIN_LINES, LOCAL_BLOCK_LINES)  # gaps of up to 3 lines bridged
+    if not len(blocks):
         return None
     mp = float(setup["params"]["min_peak"])
     L = len(status)
     scale = np.full(L, w)
     S = A.shape[0]
     # the lines a wide block measures again: its wide lines and the lines between them that found nothing
-    redo = flag | (_bridge(flag, 3) & (status != K.OK))
-    for a, b, ra, rb in blocks:
-        block = A[:, a:b]
-        peaks = np.argmax(block, axis=0)
-        mid = float(np.median(peaks))
-        off = np.abs(peaks - mid)
-        spread = float(np.percentile(off, 75))
-        wl, n = K.fwhm_median(np.ascontiguousarray(block), 1, LOCAL_HALF, mp)
+    redo = flag | (bridged & (status != K.OK))
+    for a, b, ra, rb in blocks.tolist():
+        block = np.ascontiguousarray(A[:, a:b])
+        mid, spread, off = K.block_peak_spread(block)  # the peaks' median and the 75th percentile of their offsets
+        wl, n = K.fwhm_median(block, 1, LOCAL_HALF, mp)
         # a stripe: wide enough to need it, its peaks line up (texture's do not)
         if not (np.isfinite(wl) and n >= LOCAL_MIN_LINES // 2 and wl >= LOCAL_WIDTH_RATIO * w and spread <= 2.0 * wl):
             continue
@@ -524,23 +494,10 @@ def _local_widths(A: np.ndarray, raw: tuple, setup: dict, options: StripeOptions
             r2 = _profile_numba(sub, st["w0"], st["w1"], st["w2"], st["params"], parallel=False)
         else:
             r2 = profile_numpy(sub, st["w0"], st["w1"], st["w2"], st["params"])
-        r2[0][:] += s0  # centres in the frame's samples
         # the block's wide lines (and those between them that found nothing) take the second pass's result,
         # found or not (the frame's scale was wrong for them); lines that were fine at the frame's scale keep it
-        take = redo[a:b]
-        if not np.any(r2[5][a - a0:b - a0][take] == K.OK):
-            continue
-        idx = np.flatnonzero(take) + a
-        found = r2[5][idx - a0] == K.OK
-        for dst, src in zip(raw, r2):  # a centre found: all of it
-            dst[idx[found]] = src[idx[found] - a0]
-        scale[idx[found]] = wl
-        # none found: a line that had a centre at the frame's scale keeps it; one that had none says why not
-        # at its own scale (the kernel wrote nothing more for it)
-        lost = idx[~found]
-        lost = lost[status[lost] != K.OK]
-        status[lost] = r2[5][lost - a0]
-        scale[lost] = wl
+        K.merge_local_width(centre, normal, strength, intensity, width, status, *r2, float(s0), redo, a, b, a0,
+                            float(wl), scale)
     return scale
 
 
@@ -803,8 +760,8 @@ def extract_profiles(frames, axis: str = "columns", options: StripeOptions = Str
 def _frames_to_widen(status: np.ndarray, width: np.ndarray, w: float) -> list[int]:
     """Frames of a batch (``status``, ``width``: (N, L)) with at least :data:`LOCAL_MIN_LINES` lines that
     :func:`_local_widths` would look at again (a cheap screen: most frames have none)."""
-    flag = (status == K.TOO_WIDE) | ((status == K.OK) & (width > LOCAL_WIDTH_RATIO * w))
-    return np.flatnonzero(np.count_nonzero(flag, axis=1) >= LOCAL_MIN_LINES).tolist()
+    counts = K.wide_line_counts(status, width, LOCAL_WIDTH_RATIO * w)
+    return np.flatnonzero(counts >= LOCAL_MIN_LINES).tolist()
 
 
 def _chroma(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -474,6 +474,144 @@ def fwhm_median(A, every, half, min_peak):
     return np.median(out[:m]), m
 
 
+@njit_cached(nogil=True)
+def wide_line_counts(status, width, thr):
+    """Per frame of a batch (``status``, ``width``: (N, L)): the lines that were too wide for the frame's
+    scale or found a stripe wider than ``thr`` px (the local-width screen, one pass)."""
+    N, L = status.shape
+    out = np.zeros(N, np.int64)
+    for f in range(N):
+        c = 0
+        for l in range(L):
+            st = status[f, l]
+            if st == TOO_WIDE or (st == OK and width[f, l] > thr):
+                c += 1
+        out[f] = c
+    return out
+
+
+@njit_cached(nogil=True)
+def wide_line_flags(status, width, thr):
+    """One frame's lines that were too wide for its scale or found a stripe wider than ``thr`` px, and how many."""
+    L = status.size
+    flag = np.zeros(L, np.bool_)
+    n = 0
+    for l in range(L):
+        st = status[l]
+        if st == TOO_WIDE or (st == OK and width[l] > thr):
+            flag[l] = True
+            n += 1
+    return flag, n
+
+
+@njit_cached(nogil=True)
+def merge_local_width(centre, normal, strength, intensity, width, status, c2, n2, s2, i2, w2, st2, s0, redo, a, b,
+                      a0, wl, scale):
+    """Take a wide block's second pass (``c2`` ... ``st2``: lines ``a0 ..`` of it, centres ``s0`` samples into the
+    frame) into the frame's outputs: lines ``[a, b)`` marked ``redo`` take all of a centre found at width ``wl``;
+    where none is found, a line that had a centre keeps it and one that had none takes the second pass's
+    reason.  Nothing changes and False is returned when no ``redo`` line found a centre."""
+    found_any = False
+    for l in range(a, b):
+        if redo[l] and st2[l - a0] == OK:
+            found_any = True
+            break
+    if not found_any:
+        return False
+    for l in range(a, b):
+        if not redo[l]:
+            continue
+        k = l - a0
+        if st2[k] == OK:
+            centre[l] = c2[k] + s0
+            normal[l, 0] = n2[k, 0]
+            normal[l, 1] = n2[k, 1]
+            strength[l] = s2[k]
+            intensity[l] = i2[k]
+            width[l] = w2[k]
+            status[l] = st2[k]
+            scale[l] = wl
+        elif status[l] != OK:
+            status[l] = st2[k]
+            scale[l] = wl
+    return True
+
+
+@njit_cached(nogil=True)
+def _round_half_even(x):
+    r = math.floor(x)
+    d = x - r
+    if d > 0.5 or (d == 0.5 and r % 2.0 == 1.0):
+        r += 1.0
+    return int(r)
+
+
+@njit_cached(nogil=True)
+def wide_blocks(flag, gap, min_lines, block_lines):
+    """The local-width pass's blocks: ``flag`` with every gap of at most ``gap`` unflagged lines between
+    flagged ones filled in (``bridged``), and ``(a, b, run_a, run_b)`` per block (K, 4): the bridged runs
+    ``[run_a, run_b)`` of at least ``min_lines`` lines, each cut into ``ceil(len / block_lines)``
+    near-equal blocks ``[a, b)`` (the cuts rounded half to even, as ``np.linspace(...).round()``)."""
+    L = flag.size
+    bridged = flag.copy()
+    last = -1
+    for i in range(L):
+        if flag[i]:
+            if last >= 0 and 1 < i - last <= gap + 1:
+                for j in range(last + 1, i):
+                    bridged[j] = True
+            last = i
+    out = np.empty((L, 4), np.int64)
+    k = 0
+    i = 0
+    while i < L:
+        if not bridged[i]:
+            i += 1
+            continue
+        a = i
+        while i < L and bridged[i]:
+            i += 1
+        b = i
+        if b - a < min_lines:
+            continue
+        m = -(-(b - a) // block_lines)
+        step = float(b - a) / m
+        prev = a
+        for j in range(1, m + 1):
+            c = b if j == m else _round_half_even(j * step + a)
+            out[k, 0] = prev
+            out[k, 1] = c
+            out[k, 2] = a
+            out[k, 3] = b
+            k += 1
+            prev = c
+    return out[:k], bridged
+
+
+@njit_cached(nogil=True)
+def block_peak_spread(B):
+    """For a block ``B[s, l]`` (row-major) of a wide run: the lines' peak samples (first maximum), their median
+    ``mid``, ``off = |peak - mid|`` and the 75th percentile of ``off`` (linear interpolation, as
+    ``np.percentile``): whether the block's peaks line up (a stripe) or scatter (texture)."""
+    n = B.shape[1]
+    p = np.empty(n, np.int64)
+    _peaks_across(B, 1, n, p)
+    q = np.sort(p)
+    h = n // 2
+    mid = float(q[h]) if n % 2 == 1 else (float(q[h - 1]) + float(q[h])) / 2.0
+    off = np.empty(n, np.float64)
+    for j in range(n):
+        off[j] = abs(p[j] - mid)
+    o = np.sort(off)
+    vi = (n - 1) * 0.75
+    lo = int(math.floor(vi))
+    hi = min(lo + 1, n - 1)
+    g = vi - lo
+    d = o[hi] - o[lo]
+    spread = o[hi] - d * (1.0 - g) if g >= 0.5 else o[lo] + d * g
+    return mid, spread, off
+
+
 @njit_cached(error_model="numpy")
 def _is_flat(A, l, p, fw, best, bg, half):
     """Whether line ``l`` has a flat (clipped) top at sample ``p`` (see FLAT_TOL)."""
