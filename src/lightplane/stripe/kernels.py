@@ -537,6 +537,19 @@ def merge_local_width(centre, normal, strength, intensity, width, status, c2, n2
     return True
 
 
+@njit_cached(inline="always")
+def _next_run(mask, i):
+    """The first run of True in ``mask`` at or after ``i``: ``(a, b)``, ``mask[a:b]`` all True; ``(n, n)`` when
+    there is none."""
+    n = mask.size
+    while i < n and not mask[i]:
+        i += 1
+    a = i
+    while i < n and mask[i]:
+        i += 1
+    return a, i
+
+
 @njit_cached(nogil=True)
 def _round_half_even(x):
     r = math.floor(x)
@@ -563,15 +576,11 @@ def wide_blocks(flag, gap, min_lines, block_lines):
             last = i
     out = np.empty((L, 4), np.int64)
     k = 0
-    i = 0
-    while i < L:
-        if not bridged[i]:
-            i += 1
-            continue
-        a = i
-        while i < L and bridged[i]:
-            i += 1
-        b = i
+    b = 0
+    while True:
+        a, b = _next_run(bridged, b)
+        if a >= L:
+            break
         if b - a < min_lines:
             continue
         m = -(-(b - a) // block_lines)
@@ -1940,13 +1949,10 @@ def saturated_core_runs(bgr, ch, min_chroma, bright_sum, bright_max, laser_min, 
             x = float(bgr[v, u, ch])
             laser[v] = (x >= hi) and (x >= laser_min) and (c >= min_chroma)
         v = 0
-        while v < H:
-            if not white[v]:
-                v += 1
-                continue
-            a = v
-            while v < H and white[v]:
-                v += 1
+        while True:
+            a, v = _next_run(white, v)
+            if a >= H:
+                break
             e = v - 1
             n = e - a + 1
             if n > max_len or a == 0 or e == H - 1:
