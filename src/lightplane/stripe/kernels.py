@@ -474,33 +474,35 @@ def fwhm_median(A, every, half, min_peak):
     return np.median(out[:m]), m
 
 
+@njit_cached(inline="always")
+def _is_wide(st, wd, thr):
+    """A line the local-width pass looks at again: too wide for the frame's scale, or a stripe wider than
+    ``thr`` px."""
+    return st == TOO_WIDE or (st == OK and wd > thr)
+
+
 @njit_cached(nogil=True)
 def wide_line_counts(status, width, thr):
-    """Per frame of a batch (``status``, ``width``: (N, L)): the lines that were too wide for the frame's
-    scale or found a stripe wider than ``thr`` px (the local-width screen, one pass)."""
+    """Per frame of a batch (``status``, ``width``: (N, L)): how many lines are wide (:func:`_is_wide`)."""
     N, L = status.shape
     out = np.zeros(N, np.int64)
     for f in range(N):
         c = 0
         for l in range(L):
-            st = status[f, l]
-            if st == TOO_WIDE or (st == OK and width[f, l] > thr):
-                c += 1
+            c += _is_wide(status[f, l], width[f, l], thr)
         out[f] = c
     return out
 
 
 @njit_cached(nogil=True)
 def wide_line_flags(status, width, thr):
-    """One frame's lines that were too wide for its scale or found a stripe wider than ``thr`` px, and how many."""
+    """One frame's wide lines (:func:`_is_wide`) and how many."""
     L = status.size
     flag = np.zeros(L, np.bool_)
     n = 0
     for l in range(L):
-        st = status[l]
-        if st == TOO_WIDE or (st == OK and width[l] > thr):
-            flag[l] = True
-            n += 1
+        flag[l] = _is_wide(status[l], width[l], thr)
+        n += flag[l]
     return flag, n
 
 
@@ -510,14 +512,14 @@ def merge_local_width(centre, normal, strength, intensity, width, status, c2, n2
     """Take a wide block's second pass (``c2`` ... ``st2``: lines ``a0 ..`` of it, centres ``s0`` samples into the
     frame) into the frame's outputs: lines ``[a, b)`` marked ``redo`` take all of a centre found at width ``wl``;
     where none is found, a line that had a centre keeps it and one that had none takes the second pass's
-    reason.  Nothing changes and False is returned when no ``redo`` line found a centre."""
+    reason.  Nothing changes when no ``redo`` line found a centre."""
     found_any = False
     for l in range(a, b):
         if redo[l] and st2[l - a0] == OK:
             found_any = True
             break
     if not found_any:
-        return False
+        return
     for l in range(a, b):
         if not redo[l]:
             continue
@@ -534,7 +536,6 @@ def merge_local_width(centre, normal, strength, intensity, width, status, c2, n2
         elif status[l] != OK:
             status[l] = st2[k]
             scale[l] = wl
-    return True
 
 
 @njit_cached(inline="always")
@@ -548,15 +549,6 @@ def _next_run(mask, i):
     while i < n and mask[i]:
         i += 1
     return a, i
-
-
-@njit_cached(nogil=True)
-def _round_half_even(x):
-    r = math.floor(x)
-    d = x - r
-    if d > 0.5 or (d == 0.5 and r % 2.0 == 1.0):
-        r += 1.0
-    return int(r)
 
 
 @njit_cached(nogil=True)
@@ -587,7 +579,7 @@ def wide_blocks(flag, gap, min_lines, block_lines):
         step = float(b - a) / m
         prev = a
         for j in range(1, m + 1):
-            c = b if j == m else _round_half_even(j * step + a)
+            c = b if j == m else round(j * step + a)   # half to even, as np.round
             out[k, 0] = prev
             out[k, 1] = c
             out[k, 2] = a
