@@ -226,7 +226,7 @@ def stages(img: np.ndarray, axis: str, rounds: int) -> dict[str, float]:
     S, L = A.shape
     cand = [np.empty(L, np.int64), np.empty(L), np.empty(L, np.int64), np.empty(L)]
     K._candidates_chunk(A, p["sep"], cand[0], cand[1], cand[2], cand[3], np.int64(0), L)
-    pos = K.choose_consistent(cand[0], cand[1], cand[2], cand[3], p["min_peak"], 5, p["tol"])
+    pos = K.choose_consistent(A, cand[0], cand[1], cand[2], cand[3], p["min_peak"], 5, p["tol"])
     out = [np.empty(L), np.empty((L, 2)), np.empty(L), np.empty(L), np.empty(L), np.empty(L, np.uint8)]
     raw = tuple(out)
 
@@ -239,7 +239,7 @@ def stages(img: np.ndarray, axis: str, rounds: int) -> dict[str, float]:
         "sample-major array": lambda: X._lines_array(gray, axis, None),
         "width estimate": lambda: X._profile_setup(img, axis, opts, None, parallel=False),
         "candidates": lambda: K._candidates_chunk(A, p["sep"], cand[0], cand[1], cand[2], cand[3], np.int64(0), L),
-        "continuity choice": lambda: K.choose_consistent(cand[0], cand[1], cand[2], cand[3], p["min_peak"], 5,
+        "continuity choice": lambda: K.choose_consistent(A, cand[0], cand[1], cand[2], cand[3], p["min_peak"], 5,
                                                          p["tol"]),
         "centres": centres,
         "image coordinates": lambda: X._profile_finish(img, axis, raw, setup, opts),

@@ -66,7 +66,7 @@ True
 
 from __future__ import annotations
 
-import math
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -100,10 +100,12 @@ class MLOptions:
       ``per_type``: rim points and stripe points have their own noise sigma, each
       estimated from its residuals (weights ``1/sigma_rim²``, ``1/sigma_stripe²``),
       in ``rounds`` rounds of solve / re-estimate (the first from a robust MAD start,
-      then ``Σ_in r² / (kappa (m_in − p_g))`` over the points within ``huber_c`` sigma,
-      ``kappa = E[u² | |u| <= c]`` of a standard normal (a truncated-Gaussian scale:
-      consistent for Gaussian noise, blind to gross outliers), with ``p_g`` the group's
-      share of the parameters, the trace of its part of the hat matrix).  A laser stripe's centres scatter
+      then ``Σ w r² / (kappa (Σ w − p_g))`` over the group's points, ``w`` 1 within ``huber_c``
+      of its previous sigma, 0 beyond ``huber_c + 1``, linear between, ``kappa`` the same
+      weighted mean of ``u²`` for a standard normal (a trimmed scale: consistent for Gaussian
+      noise, blind to gross outliers, and continuous in the residuals, so that the plane moves
+      smoothly with the intrinsics, as the camera's share assumes), with ``p_g`` the group's share of the parameters, the trace of its
+      part of the hat matrix).  A laser stripe's centres scatter
       2–4x more than the rim's edge points (speckle), so one shared sigma
       under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
       all points (the original model; no reweighting).  ``per_placement``: a sigma per type
@@ -748,7 +750,7 @@ class _RoundsFit:
     is_rim: np.ndarray  # rim rows
     tau_w: np.ndarray   # long-run variance factors used in the weights (rim, stripe)
     n_rounds: int
-    kappa: float        # E[u² | |u| <= huber_c] of a standard normal (1 without Huber)
+    kappa: float        # E[w u²] / E[w] of a standard normal, w of _scale_weight (1 without Huber)
 
 
 def _noise_groups(prob: "_Problem", noise: str) -> tuple[np.ndarray, np.ndarray]:
@@ -763,14 +765,32 @@ def _noise_groups(prob: "_Problem", noise: str) -> tuple[np.ndarray, np.ndarray]
     return is_rim, grp
 
 
+#: the points within ``huber_c`` sigma count fully in a group's sigma, those beyond ``huber_c + SCALE_TAPER`` not
+#: at all, with a linear taper between
+SCALE_TAPER = 1.0
+
+
+def _scale_weight(u: np.ndarray, huber_c: float | None) -> np.ndarray:
+    """How much each standardised residual ``u`` counts in its group's sigma: 1 within ``huber_c``, 0
+    beyond ``huber_c + SCALE_TAPER``, linear between (all 1 without Huber).  A trimmed scale, blind to
+    gross outliers, and, unlike a hard cut, continuous in the residuals: a point crossing the cut does
+    not jump the sigma, the weights and the solution with it (the camera's share differentiates it)."""
+    if huber_c is None:
+        return np.ones(np.shape(u))
+    c = float(huber_c)
+    return np.clip((c + SCALE_TAPER - np.abs(u)) / SCALE_TAPER, 0.0, 1.0)
+
+
+@functools.lru_cache(maxsize=8)
 def _truncated_kappa(huber_c: float | None) -> float:
-    """``E[u² | |u| <= c]`` of a standard normal (1 without Huber): the scale of the points within ``c`` sigma."""
+    """``E[w(u) u²] / E[w(u)]`` of a standard normal with the weights of :func:`_scale_weight` (1 without
+    Huber): the scale of the weighted squares, so that the sigma is consistent for Gaussian noise."""
     if huber_c is None:
         return 1.0
-    # a truncated Gaussian: E[u² | |u| <= c] = 1 − 2 c φ(c) / (2 Φ(c) − 1), 0.973 for c = 3, so that gross
-    # outliers do not inflate the scale
-    c = float(huber_c)
-    return 1.0 - 2 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) / math.erf(c / math.sqrt(2))
+    u = np.linspace(-(float(huber_c) + SCALE_TAPER), float(huber_c) + SCALE_TAPER, 200001)
+    pdf = np.exp(-0.5 * u * u)
+    w = _scale_weight(u, huber_c) * pdf
+    return float(np.sum(w * u * u) / np.sum(w))
 
 
 def _solve_rounds(prob: "_Problem", opts: MLOptions) -> _RoundsFit:
@@ -801,9 +821,9 @@ def _solve_rounds(prob: "_Problem", opts: MLOptions) -> _RoundsFit:
         r_w, Jb = prob.evaluate(x, want_jac=True)
         Hinv = prob.normal_equations(r_w, Jb).inverse()
         p_g = np.bincount(grp, _row_leverages(prob, Jb, Hinv), minlength=n_grp)
-        inl = hub >= 1.0
-        ss = np.bincount(grp, np.where(inl, r_raw**2, 0.0), minlength=n_grp)
-        nn = np.bincount(grp, inl.astype(float), minlength=n_grp)
+        ws = _scale_weight(r_raw / s_rows, huber_c)
+        ss = np.bincount(grp, ws * r_raw**2, minlength=n_grp)
+        nn = np.bincount(grp, ws, minlength=n_grp)
         sig = np.sqrt(ss / (kappa * np.maximum(nn - p_g, 1.0)))
     if n_rounds == 0:
         sig = np.full(n_grp, np.sqrt(np.sum(r_raw ** 2) / (prob.m - prob.p)))
@@ -837,9 +857,8 @@ def _covariances(prob: "_Problem", fit: _RoundsFit, opts: MLOptions) -> _Covaria
     sigma = float(np.sqrt(np.sum(r_raw ** 2) / dof))
     # per type: pooled over its groups (with their degrees of freedom)
     lev = _row_leverages(prob, Jb, Hinv)
-    inl = hub >= 1.0
-    sig_type = np.array([np.sqrt(np.sum(np.where(inl & t, r_raw**2, 0.0))
-                                 / (fit.kappa * max(np.sum(inl & t) - np.sum(lev[t]), 1.0)))
+    ws = _scale_weight(r_raw / s_rows, opts.huber_c)
+    sig_type = np.array([np.sqrt(np.sum((ws * r_raw**2)[t]) / (fit.kappa * max(np.sum(ws[t]) - np.sum(lev[t]), 1.0)))
                          for t in (is_rim, ~is_rim)])
     if fit.n_rounds == 0:
         sig_type[:] = fit.sig[0]

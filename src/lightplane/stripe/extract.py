@@ -359,7 +359,7 @@ def _profile_numba(A, w0, w1, w2, params, parallel=True):
     v1 = np.empty(L, np.float64)
     v2 = np.empty(L, np.float64)
     K.profile_candidates(A, params["sep"], p1, v1, p2, v2)
-    pos = K.choose_consistent(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
+    pos = K.choose_consistent(A, p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
     K.profile_centres(A, pos, w0, w1, w2, params["xw"], params["qpeak"], params["half"], params["min_peak"],
                       params["max_width"], params["min_cos"], centre, normal, strength, intensity, width, status)
     return centre, normal, strength, intensity, width, status

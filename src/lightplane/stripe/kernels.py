@@ -280,15 +280,22 @@ def profile_candidates(A, sep, p1, v1, p2, v2):
         _candidates_chunk(A, sep, p1, v1, p2, v2, ch * _CHUNK, min(L, ch * _CHUNK + _CHUNK))
 
 
+#: a line whose candidates both miss its neighbours' median takes its highest sample within ``tol`` of the
+#: median instead, when that is a local maximum at least this fraction of the line's highest sample
+NEAR_MEDIAN_SHARE = 0.5
+
+
 @njit_cached(nogil=True)
-def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
-    """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it."""
+def choose_consistent(A, p1, v1, p2, v2, min_peak, half_window, tol):
+    """Per line pick p1, or p2 when p1 is off the neighbours' median and p2 is on it, or else the
+    line's highest sample within ``tol`` of the median when that is a local maximum of at least
+    :data:`NEAR_MEDIAN_SHARE` of p1's (and ``min_peak``): the stripe, dimmed by speckle on this line,
+    under a brighter second line or reflection that is too close to be the far candidate ``p2``."""
+    S = A.shape[0]
     L = p1.shape[0]
     out = p1.copy()
     buf = np.empty(2 * half_window + 1, dtype=np.int64)
     for l in range(L):
-        if p2[l] < 0 or v2[l] < min_peak:
-            continue
         n = 0
         lo = np.iinfo(np.int64).max
         hi = np.iinfo(np.int64).min
@@ -301,12 +308,11 @@ def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
                 hi = max(hi, x)
         if n < 2:
             continue
-        # the median lies within [min, max] of the neighbours: where p1 is within tol of all of
-        # that range, or p2 outside it by more than tol, the choice is p1 whatever the median (on a
-        # continuous stripe nearly every line; the sort below is then skipped)
+        # the median lies within [min, max] of the neighbours: where p1 is within tol of all of that
+        # range the choice is p1 whatever the median (on a continuous stripe nearly every line; the
+        # sort below is then skipped)
         a = p1[l]
-        b = p2[l]
-        if (hi - a <= tol and a - lo <= tol) or b < lo - tol or b > hi + tol:
+        if hi - a <= tol and a - lo <= tol:
             continue
         # the median of the n neighbours (np.median's value): insertion sort of <= 2 half_window ints
         for i in range(1, n):
@@ -318,8 +324,28 @@ def choose_consistent(p1, v1, p2, v2, min_peak, half_window, tol):
             buf[j + 1] = x
         h = n // 2
         ref = np.float64(buf[h]) if n % 2 == 1 else 0.5 * (np.float64(buf[h - 1]) + np.float64(buf[h]))
-        if abs(a - ref) > tol and abs(b - ref) <= tol:
-            out[l] = b
+        if abs(a - ref) <= tol:
+            continue
+        b = p2[l]
+        if b >= 0 and v2[l] >= min_peak:
+            if abs(b - ref) <= tol:
+                out[l] = b
+                continue
+        # the highest sample within tol of the median (the first of equals), inside the line
+        s0 = max(1, int(math.ceil(ref - tol)))
+        s1 = min(S - 2, int(math.floor(ref + tol)))
+        if s1 < s0:
+            continue
+        q = s0
+        best = np.float64(A[s0, l])
+        for s in range(s0 + 1, s1 + 1):
+            x = np.float64(A[s, l])
+            if x > best:
+                best = x
+                q = s
+        if best >= min_peak and best >= NEAR_MEDIAN_SHARE * v1[l] and best >= np.float64(A[q - 1, l]) \
+                and best >= np.float64(A[q + 1, l]):
+            out[l] = q
     return out
 
 
@@ -1851,7 +1877,7 @@ def profile_frame(A, sep, min_peak, continuity, tol, w0, w1, w2, xw, qpeak, half
     # once more); np.int64(0), not 0: a literal argument would compile a variant of its own
     _candidates_chunk(A, sep, p1, v1, p2, v2, np.int64(0), L)
     if continuity:
-        pos = choose_consistent(p1, v1, p2, v2, min_peak, 5, tol)
+        pos = choose_consistent(A, p1, v1, p2, v2, min_peak, 5, tol)
     else:
         pos = p1
     _centres_range(A, pos, w0, w1, w2, xw, qpeak, half, min_peak, max_width, min_cos,

@@ -36,20 +36,35 @@ def candidates_numpy(A: np.ndarray, sep: int):
     return p1, v1, p2, v2
 
 
-def choose_numpy(p1, v1, p2, v2, min_peak, half_window, tol):
-    L = p1.size
+def choose_numpy(A, p1, v1, p2, v2, min_peak, half_window, tol):
+    """:func:`lightplane.stripe.kernels.choose_consistent` in numpy."""
+    S, L = A.shape
     out = p1.copy()
     ref_src = np.where(v1 >= min_peak, p1.astype(float), np.nan)
     pad = np.concatenate([np.full(half_window, np.nan), ref_src, np.full(half_window, np.nan)])
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half_window + 1).copy()
     win[:, half_window] = np.nan
     cnt = np.sum(np.isfinite(win), axis=1)
-    cand = (p2 >= 0) & (v2 >= min_peak) & (cnt >= 2)
-    if cand.any():
-        ref = np.full(L, np.nan)
-        ref[cand] = np.nanmedian(win[cand], axis=1)
-        sw = cand & (np.abs(p1 - ref) > tol) & (np.abs(p2 - ref) <= tol)
-        out[sw] = p2[sw]
+    cand = cnt >= 2
+    if not cand.any():
+        return out
+    ref = np.full(L, np.nan)
+    ref[cand] = np.nanmedian(win[cand], axis=1)
+    off = cand & (np.abs(p1 - ref) > tol)
+    second = off & (p2 >= 0) & (v2 >= min_peak) & (np.abs(p2 - ref) <= tol)
+    out[second] = p2[second]
+    # the rest: the highest sample within tol of the median, a local maximum of at least K.NEAR_MEDIAN_SHARE of p1's
+    for line in np.flatnonzero(off & ~second):
+        s0 = max(1, int(np.ceil(ref[line] - tol)))
+        s1 = min(S - 2, int(np.floor(ref[line] + tol)))
+        if s1 < s0:
+            continue
+        seg = A[s0:s1 + 1, line].astype(np.float64)
+        q = s0 + int(np.argmax(seg))
+        best = float(A[q, line])
+        if best >= min_peak and best >= K.NEAR_MEDIAN_SHARE * v1[line] and best >= A[q - 1, line] \
+                and best >= A[q + 1, line]:
+            out[line] = q
     return out
 
 
@@ -270,5 +285,5 @@ def flat_centre_numpy(A, lines, p, c, xw, re, qpeak, half):
 
 def profile_numpy(A, w0, w1, w2, params):
     p1, v1, p2, v2 = candidates_numpy(A, params["sep"])
-    pos = choose_numpy(p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
+    pos = choose_numpy(A, p1, v1, p2, v2, params["min_peak"], 5, params["tol"]) if params["continuity"] else p1
     return centres_numpy(A, pos, w0, w1, w2, params)
