@@ -104,9 +104,9 @@ class MLOptions:
       of its previous sigma, 0 beyond ``huber_c + 1``, linear between, ``kappa`` the same
       weighted mean of ``u²`` for a standard normal (a trimmed scale: consistent for Gaussian
       noise, blind to gross outliers, and continuous in the residuals, so that the plane moves
-      smoothly with the intrinsics, as the camera's share assumes), with ``p_g`` the group's share of the parameters, the trace of its
-      part of the hat matrix).  A laser stripe's centres scatter
-      2–4x more than the rim's edge points (speckle), so one shared sigma
+      smoothly with the intrinsics, as the camera's share assumes), with ``p_g`` the group's
+      share of the parameters, the trace of its part of the hat matrix).  A laser stripe's
+      centres scatter 2–4x more than the rim's edge points (speckle), so one shared sigma
       under-weights the rim and over-weights the stripe.  ``shared``: one sigma for
       all points (the original model; no reweighting).  ``per_placement``: a sigma per type
       *and* placement (stripes differ in brightness, width and speckle from image to image).
@@ -782,7 +782,7 @@ def _scale_weight(u: np.ndarray, huber_c: float | None) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _truncated_kappa(huber_c: float | None) -> float:
+def _scale_kappa(huber_c: float | None) -> float:
     """``E[w(u) u²] / E[w(u)]`` of a standard normal with the weights of :func:`_scale_weight` (1 without
     Huber): the scale of the weighted squares, so that the sigma is consistent for Gaussian noise."""
     if huber_c is None:
@@ -805,7 +805,7 @@ def _solve_rounds(prob: "_Problem", opts: MLOptions) -> _RoundsFit:
     hub = np.ones(prob.m)
     # robust start: MAD of each group's residuals (residuals have zero mean)
     sig = np.array([robust_sigma(r_raw[grp == g], center=False) for g in range(n_grp)])
-    kappa = _truncated_kappa(huber_c)
+    kappa = _scale_kappa(huber_c)
     tau_w = np.ones(2)  # long-run variance factors used in the weights (rim, stripe)
     for _round in range(n_rounds):
         sig = np.maximum(sig, 1e-9)

@@ -327,10 +327,9 @@ def choose_consistent(A, p1, v1, p2, v2, min_peak, half_window, tol):
         if abs(a - ref) <= tol:
             continue
         b = p2[l]
-        if b >= 0 and v2[l] >= min_peak:
-            if abs(b - ref) <= tol:
-                out[l] = b
-                continue
+        if b >= 0 and v2[l] >= min_peak and abs(b - ref) <= tol:
+            out[l] = b
+            continue
         # the highest sample within tol of the median (the first of equals), inside the line
         s0 = max(1, int(math.ceil(ref - tol)))
         s1 = min(S - 2, int(math.floor(ref + tol)))
