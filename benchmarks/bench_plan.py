@@ -201,12 +201,16 @@ def figures(runs: list[dict], target: float, n_runs: int) -> list[dict]:
                        statistic=f"RMS over the {len(stop)} stopped runs",
                        reference=("predicted RMS sigma", 1e3 * np.sqrt(np.mean([r["predicted_rms_mm"] ** 2
                                                                                  for r in stop])), "µm")))
-    for s in ("guided", "random"):
-        rr = [r for r in runs if r["rendered"] and r["strategy"] == s]
+    rendered = {s: [r for r in runs if r["rendered"] and r["strategy"] == s] for s in ("guided", "random")}
+    for s, rr in rendered.items():
         if rr:
+            # the guided figure against the random runs of the same renders (the bar of the exact model's runs)
+            ref = dict(reference=("random feasible placements, full renders",
+                                  float(np.median([r["n"] for r in rendered["random"]])), "placements"),
+                       target=at_most(0.6, "x", of="ratio")) if s == "guided" and rendered["random"] else {}
             figs.append(figure(f"plan_render_{s}_placements", f"{s} placements to the target, full renders",
                                float(np.median([r["n"] for r in rr])), "placements",
-                               statistic=f"median of {len(rr)} runs on realistic renders"))
+                               statistic=f"median of {len(rr)} runs on realistic renders", **ref))
             figs.append(figure(f"plan_render_{s}_actual_worst", f"{s}, full renders: actual error at the "
                                "predicted-worst point", 1e3 * np.sqrt(np.mean([r["actual_at_worst_mm"] ** 2
                                                                                for r in rr])), "µm",

@@ -11,7 +11,8 @@ from lightplane.plane.triangulate import triangulate_normalized
 from lightplane.plane.uncertainty import camera_param_names, point_error_basis, shape_error_basis
 from lightplane.plan.candidates import PoseLimits, feasible_placements, outline_px, tilt_deg
 from lightplane.plan.information import VolumeModel, covariance_from_information, information_from_covariance
-from lightplane.plan.planner import CalibrationPlanner, PlannerOptions
+from lightplane.plan.planner import (CalibrationPlanner, PlannerOptions, StripeNoiseTrend, _trend_features,
+                                     fit_stripe_trend)
 from lightplane.plan.volume import box_volume, parse_working_volume, region_volume
 from lightplane.simulate.scene import default_camera, default_plane, sample_placements, synthetic_observations
 
@@ -137,3 +138,44 @@ def test_camera_share_sets_a_floor_the_stop_names():
     assert floor.max() > 1e-4
     v = pl.stop()
     assert v.status == "unreachable" and "camera's own share" in v.message and f"{floor.max():.4f}" in v.message
+
+
+def _trend_data(rng, n, exponent, noise):
+    """``n`` placements at tilts 0-55 deg and their stripe noise per px: ``0.3 cos(tilt)^exponent`` times a
+    log-normal scatter of sd ``noise``; features as the planner computes them."""
+    ps = sample_placements(n, rng)
+    X = np.array([_trend_features(PLANE, p) for p in ps])
+    cos_tilt = np.exp(X[:, 0])
+    return ps, X, 0.3 * cos_tilt**exponent * np.exp(rng.normal(0.0, noise, n))
+
+
+def test_stripe_trend_found_where_there_is_one_and_not_otherwise():
+    """The stripe's noise per px fitted against the placements' features: a noise that grows with the
+    foreshortening (sigma ~ cos(tilt)^1.5, 3 % scatter) is found, shrunk towards no trend by its prior only
+    (the ratio of two placements' expected sigma between the truth and 1, nearer the truth); without a trend
+    (5 % scatter) every placement's factor stays within 4 sd of the prediction's scatter of 1."""
+    rng = np.random.default_rng(11)
+    ps, X, s = _trend_data(rng, 14, 1.5, 0.03)
+    tr = fit_stripe_trend(X, s)
+    i, j = int(np.argmin(X[:, 0])), int(np.argmax(X[:, 0]))    # the most and the least tilted
+    truth = float(np.exp(1.5 * (X[i, 0] - X[j, 0])))
+    got = tr.factor(X[i]) / tr.factor(X[j])
+    assert truth < 0.8 and truth <= got < 0.5 * (truth + 1.0)
+    ps, X, s = _trend_data(rng, 14, 0.0, 0.05)
+    f = np.array([fit_stripe_trend(X, s).factor(x) for x in X])
+    # a prediction's log has sd about 0.05 sqrt(p / n) (p = 3 slopes): 4 of them
+    assert np.all(np.abs(np.log(f)) < 4 * 0.05 * np.sqrt(3 / 14))
+    assert fit_stripe_trend(X[:3], s[:3]) is None     # too few placements: no trend
+
+
+def test_planner_weighs_candidates_by_the_stripe_trend():
+    """A candidate expected twice as noisy per px as the average placement counts a quarter of its chord."""
+    pl = CalibrationPlanner(CAM, PLANE, _volume(), PlannerOptions(PoseLimits(50.0, distance_mm=(380, 520))))
+    ps = sample_placements(2, np.random.default_rng(5))
+    plain = pl._counts(ps)[1]
+    X = np.array([_trend_features(PLANE, p) for p in ps])
+    slope = np.array([0.0, 0.0, 0.0])
+    slope[0] = np.log(2.0) / (X[0, 0] - X[1, 0])      # the first placement twice as noisy as the second
+    pl.trend = StripeNoiseTrend(slope, X[1])
+    weighted = pl._counts(ps)[1]
+    assert weighted[0] == pytest.approx(plain[0] / 4.0) and weighted[1] == pytest.approx(plain[1])

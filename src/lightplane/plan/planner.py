@@ -16,7 +16,15 @@ plane (the ML refinement, from two placements on) and states:
 :meth:`CalibrationPlanner.suggest` scores every feasible placement
 (:func:`lightplane.plan.candidates.feasible_placements`) by the objective after adding its
 expected information (the same model, at the current plane, with the noise estimated so far)
-and returns the best, with its outline in the image and the predicted sigma after it.
+and returns the best, with its outline in the image and the predicted sigma after it.  The
+stripe's noise per px of chord need not be the same for every placement (on the realistic
+renders it falls by half from a disc facing the camera to one tilted by 50°, and with the
+distance): from four placements on, a trend of its logarithm in the tilt, the distance and the
+angle to the light sheet is fitted on the placements taken (:func:`fit_stripe_trend`, each
+slope with a zero-mean prior, so data without a trend leave every placement as noisy as the
+average one), and each candidate's stripe counts as its chord divided by its expected noise
+over the average squared.  The state's sigma (the placements taken) keeps the ML refinement's
+single noise model.
 :meth:`CalibrationPlanner.stop` applies the stop rule; :meth:`CalibrationPlanner.plan` plays
 the greedy choice forward without images (the offline plan).
 """
@@ -29,17 +37,17 @@ import numpy as np
 
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import ray_plane
+from lightplane.core.geometry import ray_plane, robust_sigma, tls_line
 from lightplane.plane.circle_pose import circle_poses, fit_rim_conic
 from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import placement_information, refine_ml
 from lightplane.plane.solvers import calibrate_plane_from_points
 from lightplane.plane.uncertainty import WorkingVolume
-from lightplane.plan.candidates import PoseLimits, feasible_placements, outline_px, tilt_deg
+from lightplane.plan.candidates import PoseLimits, feasible_placements, outline_px, sheet_angle_deg, tilt_deg
 from lightplane.plan.information import FRAMES, VolumeModel, covariance_from_information
 from lightplane.simulate.scene import TargetPlacement
 
-__all__ = ["NoiseModel", "PlannerOptions", "Suggestion", "PlanState", "StopVerdict", "CalibrationPlanner",
+__all__ = ["NoiseModel", "PlannerOptions", "Suggestion", "PlanState", "StopVerdict", "CalibrationPlanner", "StripeNoiseTrend", "fit_stripe_trend",
            "COVERS"]
 
 #: What the planner's sigmas cover (one sentence, printed with them).
@@ -179,6 +187,65 @@ def _curve_lengths_px(camera: Camera, plane: LightPlane, placement: TargetPlacem
     return per, float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1)))
 
 
+#: the stripe-noise trend's prior: each exponent ~ N(0, TREND_PRIOR_SD²) (a factor e over a factor e of the feature)
+TREND_PRIOR_SD = 1.0
+#: placements needed before the trend is fitted (with fewer the stripe noise is the same for every placement)
+TREND_MIN_PLACEMENTS = 4
+
+
+def _trend_features(plane: LightPlane, placement: TargetPlacement) -> np.ndarray:
+    """What a placement's stripe noise per px may depend on: log of the foreshortening (cos of the tilt to the
+    line of sight), of the distance (mm) and of the sine of the angle between the disc and the light sheet
+    (the stripe's width on the disc grows as the sheet grazes it)."""
+    c = max(float(np.cos(np.radians(tilt_deg(placement)))), 0.05)
+    s = max(float(np.sin(np.radians(sheet_angle_deg(plane, placement)))), 0.05)
+    return np.array([np.log(c), np.log(float(np.linalg.norm(placement.center))), np.log(s)])
+
+
+@dataclass(frozen=True)
+class StripeNoiseTrend:
+    """How the stripe's noise per px of chord varies between placements (fitted on the placements taken).
+
+    ``log sigma = log sigma_mean + slope . (features - mean)`` (:func:`_trend_features`); the slopes have a
+    zero-mean prior of sd :data:`TREND_PRIOR_SD`, so on data without a trend they stay near 0 and every
+    placement is expected to be as noisy as the average one.  ``factor(x)`` is a placement's sigma over the
+    average placement's."""
+
+    slope: np.ndarray
+    mean: np.ndarray
+
+    def factor(self, x: np.ndarray) -> float:
+        return float(np.exp(np.clip(self.slope @ (x - self.mean), -np.log(4.0), np.log(4.0))))
+
+
+def _stripe_sigma_per_px(camera: Camera, stripe_uv: np.ndarray, chord_px: float) -> float:
+    """A placement's stripe noise per px of chord: the robust scatter of its points about their straight
+    line (the chord is straight in undistorted px) times the root of px per point."""
+    und = camera.undistort_points(stripe_uv)
+    if len(und) < 6 or chord_px <= 0:
+        return float("nan")
+    m, _, nrm = tls_line(und)
+    return robust_sigma((und - m) @ nrm) * float(np.sqrt(chord_px / len(und)))
+
+
+def fit_stripe_trend(features: np.ndarray, sigmas_px: np.ndarray) -> StripeNoiseTrend | None:
+    """:class:`StripeNoiseTrend` from each placement's features and stripe noise per px (Bayesian linear
+    regression of log sigma, the slopes' prior :data:`TREND_PRIOR_SD`, the residual scale estimated); None
+    with fewer than :data:`TREND_MIN_PLACEMENTS` usable placements."""
+    X = np.asarray(features, float).reshape(len(sigmas_px), -1)
+    y = np.log(np.asarray(sigmas_px, float))
+    ok = np.isfinite(y) & np.all(np.isfinite(X), axis=1)
+    if ok.sum() < TREND_MIN_PLACEMENTS:
+        return None
+    X, y = X[ok], y[ok]
+    mx = X.mean(axis=0)
+    Xc, yc = X - mx, y - y.mean()
+    s2 = max(float(np.var(yc)), 1e-6)      # the scatter about the mean: an upper bound of the residual's
+    lam = s2 / TREND_PRIOR_SD**2
+    slope = np.linalg.solve(Xc.T @ Xc + lam * np.eye(X.shape[1]), Xc.T @ yc)
+    return StripeNoiseTrend(slope, mx)
+
+
 class CalibrationPlanner:
     """Guided calibration of one light plane with a circular target (module docstring).
 
@@ -197,6 +264,7 @@ class CalibrationPlanner:
         self._infos = np.zeros((0, 3, 3))
         self._model: VolumeModel | None = None
         self._cands: tuple[list[TargetPlacement], np.ndarray] | None = None
+        self.trend: StripeNoiseTrend | None = None
         self._set_plane(plane)
 
     # ---------------------------------------------------------------- state
@@ -222,8 +290,14 @@ class CalibrationPlanner:
         return self._infos.sum(axis=0) + (0 if self.solved else self._prior())
 
     def _counts(self, placements: list[TargetPlacement]) -> tuple[np.ndarray, np.ndarray]:
+        """Each placement's rim and stripe length (px): the number of unit-density points it stands for, the
+        stripe's divided by its expected noise relative to the average placement's squared (:attr:`trend`)."""
         lengths = np.array([_curve_lengths_px(self.camera, self.plane, p) for p in placements]).reshape(-1, 2)
-        return np.maximum(lengths[:, 0], 8.0), np.maximum(lengths[:, 1], 2.0)
+        stripe = np.maximum(lengths[:, 1], 2.0)
+        if self.trend is not None:
+            f = np.array([self.trend.factor(_trend_features(self.plane, p)) for p in placements])
+            stripe = stripe / f**2
+        return np.maximum(lengths[:, 0], 8.0), stripe
 
     def _placement_infos(self, placements: list[TargetPlacement], observations=None) -> np.ndarray:
         if not placements:
@@ -329,6 +403,10 @@ class CalibrationPlanner:
         counts = np.array([[len(o[0]), len(o[1])] for _, o in keep], float)
         d = np.median(counts / np.maximum(lengths, 1.0), axis=0)
         self.noise = NoiseModel(per_point.sigma_rim_px / np.sqrt(d[0]), per_point.sigma_stripe_px / np.sqrt(d[1]))
+        # how the stripe's noise per px differs between placements (the tilt, the distance, the sheet's angle)
+        self.trend = fit_stripe_trend(np.array([_trend_features(self.plane, q) for q, _ in keep]),
+                                      np.array([_stripe_sigma_per_px(self.camera, o[1], ln[1])
+                                                for (_, o), ln in zip(keep, lengths)]))
 
     # ---------------------------------------------------------------- the next placement
     def candidates(self) -> tuple[list[TargetPlacement], np.ndarray]:
