@@ -47,8 +47,8 @@ from lightplane.plan.candidates import PoseLimits, feasible_placements, outline_
 from lightplane.plan.information import FRAMES, VolumeModel, covariance_from_information
 from lightplane.simulate.scene import TargetPlacement
 
-__all__ = ["NoiseModel", "PlannerOptions", "Suggestion", "PlanState", "StopVerdict", "CalibrationPlanner", "StripeNoiseTrend", "fit_stripe_trend",
-           "COVERS"]
+__all__ = ["NoiseModel", "PlannerOptions", "Suggestion", "PlanState", "StopVerdict", "CalibrationPlanner",
+           "StripeNoiseTrend", "fit_stripe_trend", "COVERS"]
 
 #: What the planner's sigmas cover (one sentence, printed with them).
 COVERS = ("the plane calibration's image noise (rim and stripe points: their sigmas and their correlation along the "
@@ -209,7 +209,8 @@ class StripeNoiseTrend:
     ``log sigma = log sigma_mean + slope . (features - mean)`` (:func:`_trend_features`); the slopes have a
     zero-mean prior of sd :data:`TREND_PRIOR_SD`, so on data without a trend they stay near 0 and every
     placement is expected to be as noisy as the average one.  ``factor(x)`` is a placement's sigma over the
-    average placement's."""
+    average placement's, held within 1/4 .. 4 (an extrapolation far outside the placements taken is not
+    trusted further)."""
 
     slope: np.ndarray
     mean: np.ndarray
