@@ -31,3 +31,18 @@ def test_plan_prints_draws_and_writes(tmp_path):
                      "-o", tmp_path / "other.png")
     one_error_line(bad, "working volume")
     assert not (tmp_path / "other.png").exists()
+
+
+def test_plan_refuses_infinite_distances_and_mismatched_file_names(tmp_path):
+    """An infinite far distance is not a working volume; the drawing is a PNG and the plan JSON: other file
+    names are refused before anything is written."""
+    cam = tmp_path / "cam.json"
+    default_camera().save(cam)
+    base = ("plan", "--camera", cam, "--diameter", "50")
+    one_error_line(lightplane(*base, "--working-volume", "distance:380,inf"), "finite")
+    one_error_line(lightplane(*base, "--working-volume", "distance:380,520", "--distance", "380,inf"), "finite")
+    one_error_line(lightplane(*base, "--working-volume", "distance:380,520", "-o", tmp_path / "plan.txt"), ".png")
+    one_error_line(lightplane(*base, "--working-volume", "distance:380,520", "--json", tmp_path / "plan.png"), ".json")
+    assert not any(tmp_path.glob("plan.*"))
+    huge = lightplane(*base, "--working-volume", "box:-1e308,-1e308,300,1e308,1e308,600")
+    one_error_line(huge, "too large")

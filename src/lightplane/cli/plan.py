@@ -69,15 +69,11 @@ def plan_cmd(
 ) -> None:
     """Plan where to put the circle target: each next placement lowers the point σ over the working volume most."""
     inputs = [camera] + ([plane] if plane is not None else [])
-    for out, option in ((out_png, "-o"), (json_out, "--json")):
+    for out, option, suffixes in ((out_png, "-o", (".png",)), (json_out, "--json", (".json",))):
         if out is not None:
-            output_file(out, force, inputs=inputs, option=option)
+            output_file(out, force, inputs=inputs, option=option, suffixes=suffixes)
     cams = CameraFiles.load(camera, allow_other_camera)
-    if plane is None:
-        rough = default_plane()
-        err_console.print("note: no --plane: planning for the default sensor's light plane (docs/conventions.md)")
-    else:
-        rough = cams.plane(plane)
+    rough = default_plane() if plane is None else cams.plane(plane)
     vol = parse_working_volume(working_volume, cams.camera, rough)
     limits = PoseLimits(diameter, distance_mm=_distance(distance), max_tilt_deg=max_tilt,
                         tilts_deg=tuple(t for t in (0.0, 25.0, 45.0, 55.0) if t <= max_tilt))
@@ -85,6 +81,8 @@ def plan_cmd(
                           max_placements=max(placements, 3))
     planner = CalibrationPlanner(cams.camera, rough, vol, opts)
     steps = planner.plan(None if target_sigma is not None else placements)
+    if plane is None:  # after every check: bad input gets its one line alone
+        err_console.print("note: no --plane: planning for the default sensor's light plane (docs/conventions.md)")
     console.print(f"working volume: {describe_volume(vol)}")
     console.print(_table(planner, steps))
     note = planner.model.camera_share_note

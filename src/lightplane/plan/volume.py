@@ -34,6 +34,10 @@ def _plane_basis(n: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(n, e1)])
 
 
+#: the most steps along a box's diagonal that :func:`box_volume` samples (a grid of about (2 x this)² points)
+MAX_BOX_STEPS = 500
+
+
 def box_volume(camera: Camera, plane: LightPlane, lo_mm, hi_mm, *, step_mm: float | None = None) -> WorkingVolume:
     """The light plane's part inside the camera-frame box ``lo_mm``..``hi_mm`` (mm, each (x, y, z)), seen in the image.
 
@@ -45,10 +49,16 @@ def box_volume(camera: Camera, plane: LightPlane, lo_mm, hi_mm, *, step_mm: floa
         raise LightplaneError(f"the box needs 3 finite lower and 3 larger upper bounds (mm), got {lo_mm} and {hi_mm}")
     if lo[2] <= 0:
         raise LightplaneError(f"the box must lie in front of the camera (z > 0 mm), got z from {lo[2]:g} mm")
-    diag = float(np.linalg.norm(hi - lo))
+    with np.errstate(over="ignore"):
+        diag = float(np.linalg.norm(hi - lo))
+    if not np.isfinite(diag):
+        raise LightplaneError(f"the box {lo.tolist()}..{hi.tolist()} mm is too large to sample (its diagonal overflows)")
     step = diag / 20.0 if step_mm is None else float(step_mm)
     if not step > 0:
         raise LightplaneError(f"step_mm must be positive, got {step_mm}")
+    if diag / step > MAX_BOX_STEPS:
+        raise LightplaneError(f"the box's diagonal ({diag:.6g} mm) is over {MAX_BOX_STEPS} steps of {step:g} mm: "
+                              "give a larger step or a smaller box")
     centre = 0.5 * (lo + hi)
     foot = centre - plane.signed_distance(centre[None])[0] * plane.normal
     B = _plane_basis(plane.normal)

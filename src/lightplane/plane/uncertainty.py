@@ -127,8 +127,8 @@ def working_volume_grid(camera: Camera, plane: LightPlane, *, distance_mm: tuple
     if step_px <= 0:
         raise LightplaneError(f"step_px must be positive, got {step_px}")
     lo, hi = float(distance_mm[0]), float(distance_mm[1])
-    if not (0 < lo < hi):
-        raise LightplaneError(f"distance_mm must be (near, far) with 0 < near < far, got {distance_mm}")
+    if not (0 < lo < hi < np.inf):
+        raise LightplaneError(f"distance_mm must be finite (near, far) with 0 < near < far, got {distance_mm}")
     us = np.arange(margin_px, camera.width - margin_px, step_px)
     vs = np.arange(margin_px, camera.height - margin_px, step_px)
     U, V = np.meshgrid(us, vs)
