@@ -173,3 +173,9 @@ def test_charuco_partial_views():
     assert p is not None and 6 <= len(p) < t.n_points
     np.testing.assert_allclose(p.object_mm, t.object_points(p.ids))
     assert t.detect(np.full_like(img, 128)) is None
+
+
+def test_a_board_beyond_an_image_is_refused():
+    """More corners along a side than any image holds is bad input (one line), not an OpenCV overflow."""
+    with pytest.raises(LightplaneError, match="at most 1000 along a side"):
+        Target("chessboard", 99999999999, 6, 10.0)

@@ -126,6 +126,9 @@ class Target:
         if self.cols < least or self.rows < least:
             what = "squares" if self.kind == "charuco" else ("inner corners" if self.kind == "chessboard" else "dots")
             raise LightplaneError(f"a {self.kind} board needs at least {least}x{least} {what}, got {self.cols}x{self.rows}")
+        if max(self.cols, self.rows) > MAX_BOARD_SIDE:
+            raise LightplaneError(f"a board of {self.cols}x{self.rows} is beyond what an image can hold (at most "
+                                  f"{MAX_BOARD_SIDE} along a side)")
         if not (np.isfinite(self.square_mm) and self.square_mm > 0):
             raise LightplaneError(f"the square size (--square) must be positive, got {self.square_mm} mm")
         if self.kind == "charuco":

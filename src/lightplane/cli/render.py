@@ -33,7 +33,7 @@ def render_cmd(
     out: Path = typer.Option(..., "--out", help="Output folder (created if its parent exists)."),
     n: Optional[int] = typer.Option(None, "--n", min=1, help="Number of images (scan: frames). Default: 12 circle, "
                                     "20 chessboard, 41 sphere / 21 step or plane frames."),
-    seed: int = typer.Option(0, "--seed", help="Random seed: same seed, same bytes."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed: same seed, same bytes."),
     difficulty: Optional[Literal["clean", "realistic", "hard"]] = typer.Option(None, "--difficulty", help="clean, realistic or hard "
                                              "(default: realistic; clean for chessboards)."),
     polarity: Literal["light", "dark"] = typer.Option("light", "--polarity", help="circle: light disc on dark background, or dark "

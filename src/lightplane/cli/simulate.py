@@ -23,7 +23,7 @@ def simulate_cmd(
     factor: Literal["placements", "noise", "diameter", "all"] = typer.Argument(..., help="Which study: placements, noise, diameter, or all."),
     out: Path = typer.Option(..., "--out", help="Output folder (created if missing) for CSV, PNG and study.json."),
     trials: int = typer.Option(100, "--trials", min=1, help="Random trials per level (fresh placements and noise)."),
-    seed: int = typer.Option(0, "--seed", help="Random seed (results are reproducible for a given seed)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed (results are reproducible for a given seed)."),
     n_rim: int = typer.Option(200, "--rim-points", min=5, help="Rim points per placement."),
     n_stripe: int = typer.Option(300, "--stripe-points", min=10, help="Stripe points per placement."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
