@@ -203,3 +203,11 @@ def test_bad_motion_input_one_line_exit_2_nothing_written(scan_dir, tmp_path, ca
                                  "--laser", f"b={d / 'frames'}", "-o", out))
         assert "no laser named 'b'" in msg and "a" in msg
     assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_a_linear_step_beyond_any_scan_is_refused():
+    """A step of 1e308 mm turned the second frame's points into inf in the cloud (float32): refused in one line."""
+    for bad in (1e308, -2e6, float("nan")):
+        with pytest.raises(LightplaneError, match="step must be a finite number of mm"):
+            Motion.linear(bad, [1, 0, 0])
+    assert Motion.linear(-1e6, [1, 0, 0]).step_mm == -1e6

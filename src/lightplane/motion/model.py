@@ -325,8 +325,8 @@ class Motion:
     def linear(cls, step_mm: float, direction) -> "Motion":
         """Constant ``step_mm`` between frames along ``direction`` (normalised here)."""
         step = float(step_mm)
-        if not np.isfinite(step):
-            raise LightplaneError(f"step must be a finite number of mm, got {step_mm!r}")
+        if not (np.isfinite(step) and abs(step) <= MAX_DISTANCE_MM):
+            raise LightplaneError(f"step must be a finite number of mm within ±{MAX_DISTANCE_MM:g}, got {step_mm!r}")
         return cls(step_mm=step, direction=unit_direction(direction))
 
     @classmethod
