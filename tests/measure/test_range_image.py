@@ -99,11 +99,15 @@ def test_gaps_are_not_bridged_and_bad_options_refused(scan):
     hole = (cols > -0.9) & (cols < 0.9)
     assert not np.isfinite(ri.heights[:, hole]).any() and np.isfinite(ri.heights[:, ~hole]).mean() > 0.8
     for kw in ({"across": "q"}, {"height": "z", "across": "z"}, {"step_mm": 0.0}, {"scale_mm": -1.0},
-               {"max_gap_steps": 0.5}):
+               {"max_gap_steps": 0.5}, {"scale_mm": 1e308}, {"step_mm": 1e308}):
         with pytest.raises(LightplaneError):
             RangeImageOptions(**kw)
     with pytest.raises(LightplaneError, match="65535 levels"):
         range_image(rec, RangeImageOptions(scale_mm=1e-6))
+    # a level coarser than the heights' whole span would write one flat value: refused
+    span = float(np.ptp(rec["z"]))
+    with pytest.raises(LightplaneError, match="less than one level"):
+        range_image(rec, RangeImageOptions(scale_mm=2.0 * span))
 
 
 def test_cli_writes_both_files_and_refuses_bad_input(scan, tmp_path):

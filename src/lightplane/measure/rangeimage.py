@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightplane.core.checks import MAX_DISTANCE_MM
 from lightplane.core.errors import LightplaneError
 from lightplane.core.io import atomic_write
 
@@ -75,8 +76,8 @@ class RangeImageOptions:
             raise LightplaneError(f"the columns and the height must be different coordinates, both {self.height}")
         for name in ("step_mm", "scale_mm"):
             v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise LightplaneError(f"{name} must be a positive number of mm, got {v}")
+            if v is not None and not (math.isfinite(v) and 0 < v <= MAX_DISTANCE_MM):
+                raise LightplaneError(f"{name} must be a positive number of mm up to {MAX_DISTANCE_MM:g}, got {v}")
         if not (math.isfinite(self.max_gap_steps) and self.max_gap_steps >= 1):
             raise LightplaneError(f"max_gap_steps must be >= 1, got {self.max_gap_steps}")
 
@@ -223,6 +224,9 @@ def range_image(records: np.ndarray, options: RangeImageOptions | None = None, *
     hmin, hmax = float(np.nanmin(h)), float(np.nanmax(h))
     scale = float(opts.scale_mm) if opts.scale_mm is not None else _nice_scale(hmax - hmin)
     offset = math.floor(hmin / scale) * scale - scale  # value 1 at (or just below) the lowest height
+    if hmax - hmin > 0 and (hmax - hmin) / scale < 1.0:
+        raise LightplaneError(f"heights {hmin:.3f}–{hmax:.3f} mm span less than one level of {scale:g} mm: "
+                              "give a finer scale")
     if (hmax - offset) / scale > 65535.5:
         raise LightplaneError(f"heights {hmin:.3f}–{hmax:.3f} mm need more than 65535 levels of {scale:g} mm: "
                               "give a coarser scale")
