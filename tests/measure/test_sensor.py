@@ -71,3 +71,20 @@ def test_bad_sensor_files(tmp_path):
     f.write_text(json.dumps(cfg))
     with pytest.raises(LightplaneError, match="no calibrated laser"):
         import_fabscan(f)
+
+
+@pytest.mark.parametrize("turntable", [None, {}, {"steps": None}, {"steps": 0}])
+def test_fabscan_config_without_turntable_steps_imports_in_the_cli(tmp_path, turntable):
+    """A configuration without the turntable's steps (or an empty one) imports; the command says the counts are
+    not given (it printed a traceback after writing the file)."""
+    import subprocess
+    import sys
+
+    cfg = _config()
+    cfg["turntable"] = turntable
+    f, out = tmp_path / "cfg.json", tmp_path / "s.json"
+    f.write_text(json.dumps(cfg))
+    r = subprocess.run([sys.executable, "-m", "lightplane", "import-fabscan", str(f), "-o", str(out)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "counts per turn not given" in r.stdout and Sensor.load(out).turntable.counts_per_rev is None

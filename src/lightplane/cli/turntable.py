@@ -206,6 +206,7 @@ def import_fabscan_cmd(
         console.print(f"plane {n}: {p!r}")
     if s.turntable is not None:
         tt = s.turntable
+        counts = "counts per turn not given" if tt.counts_per_rev is None else f"{tt.counts_per_rev:g} counts per turn"
         console.print(f"turntable axis: point {np.round(tt.point_mm, 3).tolist()} mm, direction "
-                      f"{np.round(tt.direction, 5).tolist()}, {tt.counts_per_rev:g} counts per turn")
+                      f"{np.round(tt.direction, 5).tolist()}, {counts}")
     console.print(f"wrote {output}")
