@@ -29,7 +29,7 @@ import numpy as np
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
 from lightplane.plane.model import LightPlane
-from lightplane.plane.uncertainty import WorkingVolume
+from lightplane.plane.uncertainty import WorkingVolume, check_distance_range
 from lightplane.simulate.scene import TargetPlacement
 
 __all__ = ["PoseLimits", "candidate_poses", "feasible_placements", "is_feasible", "outline_px", "sheet_angle_deg",
@@ -61,8 +61,8 @@ class PoseLimits:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.diameter_mm) and self.diameter_mm > 0):
             raise LightplaneError(f"the target diameter must be positive, got {self.diameter_mm} mm")
-        if self.distance_mm is not None and not (0 < float(self.distance_mm[0]) < float(self.distance_mm[1]) < np.inf):
-            raise LightplaneError(f"distance_mm must be finite (near, far) with 0 < near < far, got {self.distance_mm}")
+        if self.distance_mm is not None:
+            check_distance_range(self.distance_mm)
         if not (0 <= self.max_tilt_deg < 85):
             raise LightplaneError(f"max_tilt_deg must be in [0, 85), got {self.max_tilt_deg}")
         if not (0 <= self.min_sheet_deg < 90):

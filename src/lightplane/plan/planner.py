@@ -37,7 +37,8 @@ import numpy as np
 
 from lightplane.camera.model import Camera
 from lightplane.core.errors import LightplaneError
-from lightplane.core.geometry import ray_plane, robust_sigma, tls_line
+from lightplane.core.geometry import ray_plane
+from lightplane.plane.calibrate import stripe_line_scatter_px
 from lightplane.plane.circle_pose import circle_poses, fit_rim_conic
 from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import placement_information, refine_ml
@@ -221,12 +222,10 @@ class StripeNoiseTrend:
 
 def _stripe_sigma_per_px(camera: Camera, stripe_uv: np.ndarray, chord_px: float) -> float:
     """A placement's stripe noise per px of chord: the robust scatter of its points about their straight
-    line (the chord is straight in undistorted px) times the root of px per point."""
-    und = camera.undistort_points(stripe_uv)
-    if len(und) < 6 or chord_px <= 0:
+    line (:func:`lightplane.plane.calibrate.stripe_line_scatter_px`) times the root of px per point."""
+    if len(stripe_uv) < 6 or chord_px <= 0:
         return float("nan")
-    m, _, nrm = tls_line(und)
-    return robust_sigma((und - m) @ nrm) * float(np.sqrt(chord_px / len(und)))
+    return stripe_line_scatter_px(camera, stripe_uv) * float(np.sqrt(chord_px / len(stripe_uv)))
 
 
 def fit_stripe_trend(features: np.ndarray, sigmas_px: np.ndarray) -> StripeNoiseTrend | None:

@@ -62,7 +62,7 @@ from lightplane.core.threads import with_blas_limited
 
 __all__ = ["ObserveOptions", "PlaneCalibrationOptions", "ImageObservation", "ImagePlaneCalibration", "observe_image", "observe_image_lasers", "observe_images",
            "solve_observations", "calibrate_plane", "calibrate_planes", "stripe_width_along", "uncertainty_summary",
-           "default_workers", "propagate_camera", "placement_quality"]
+           "default_workers", "propagate_camera", "placement_quality", "stripe_line_scatter_px"]
 
 @dataclass(frozen=True, eq=False)
 class ImageObservation:
@@ -679,16 +679,21 @@ def _stripe_on_target(camera: Camera, crop: np.ndarray, off: np.ndarray, inside_
     return uv, fwhm
 
 
+def stripe_line_scatter_px(camera: Camera, uv: np.ndarray) -> float:
+    """Robust scatter (px) of a target's stripe centres (distorted px) about their straight line: the chord
+    of a flat target is straight in undistorted px, so the scatter is the centres' noise."""
+    und = camera.undistort_points(uv)
+    m, _, nrm = tls_line(und)
+    return robust_sigma((und - m) @ nrm)
+
+
 def _binned(camera: Camera, uv: np.ndarray, rim_rms_px: float, stripe_bin: int | str) -> tuple[np.ndarray, int]:
     """The solver's stripe points: averages of k consecutive centres (:func:`_bin_along_line`), k from
     ``stripe_bin`` (``"auto"``: the stripe's robust line scatter over the rim fit's RMS, squared)."""
     if len(uv) < 3:
         return uv, 1
     if stripe_bin == "auto":
-        und = camera.undistort_points(uv)
-        m, _, nrm = tls_line(und)
-        r = (und - m) @ nrm
-        s_stripe = robust_sigma(r)
+        s_stripe = stripe_line_scatter_px(camera, uv)
         k = int(np.clip(round((s_stripe / max(rim_rms_px, 1e-3)) ** 2), 1, 50))
     else:
         k = int(stripe_bin)

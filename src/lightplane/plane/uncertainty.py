@@ -44,7 +44,8 @@ from lightplane.plane.model import LightPlane
 from lightplane.plane.ml import dispersion_factor
 from lightplane.camera.lens import coeff_names
 
-__all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "rms_point_sigma_mm",
+__all__ = ["point_covariance", "point_sigma_mm", "WorkingVolume", "working_volume_grid", "check_distance_range",
+           "rms_point_sigma_mm",
            "rms_triangulation_error_mm", "camera_param_names", "camera_params", "camera_with_params", "camera_steps",
            "ray_sigma_rad", "camera_uncertainty_summary", "point_error_basis", "shape_error_basis",
            "rigid_motion_basis", "volume_sigma", "VolumeSigma", "camera_share_status", "plane_camera_jacobian",
@@ -117,6 +118,14 @@ class WorkingVolume:
     step_px: float
 
 
+def check_distance_range(distance_mm) -> tuple[float, float]:
+    """``(near, far)`` distances (mm) as floats, checked: finite, ``0 < near < far``."""
+    lo, hi = float(distance_mm[0]), float(distance_mm[1])
+    if not (0 < lo < hi < np.inf):
+        raise LightplaneError(f"distance_mm must be finite (near, far) with 0 < near < far, got {tuple(distance_mm)}")
+    return lo, hi
+
+
 def working_volume_grid(camera: Camera, plane: LightPlane, *, distance_mm: tuple[float, float] = (380.0, 520.0),
                         step_px: float = 16.0, margin_px: float = 0.0) -> WorkingVolume:
     """Sample the image on a grid and keep pixels whose ray meets the plane at a distance in ``distance_mm``.
@@ -126,9 +135,7 @@ def working_volume_grid(camera: Camera, plane: LightPlane, *, distance_mm: tuple
     """
     if step_px <= 0:
         raise LightplaneError(f"step_px must be positive, got {step_px}")
-    lo, hi = float(distance_mm[0]), float(distance_mm[1])
-    if not (0 < lo < hi < np.inf):
-        raise LightplaneError(f"distance_mm must be finite (near, far) with 0 < near < far, got {distance_mm}")
+    lo, hi = check_distance_range(distance_mm)
     us = np.arange(margin_px, camera.width - margin_px, step_px)
     vs = np.arange(margin_px, camera.height - margin_px, step_px)
     U, V = np.meshgrid(us, vs)
