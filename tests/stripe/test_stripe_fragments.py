@@ -57,6 +57,92 @@ def scene():
     return diff, board, back
 
 
+@pytest.fixture(scope="module")
+def pair():
+    """The same scene as a laser frame and its (moved) laser-off frame."""
+    ds = render_chessboard_dataset(1, 1, BoardOptions(difficulty="realistic", with_stripe=True, laser_off=True))
+    laser, off = ds.images
+    M = np.float32([[1, 0, SHIFT_PX[0]], [0, 1, SHIFT_PX[1]]])
+    moved = cv2.warpAffine(off, M, (off.shape[1], off.shape[0]), borderMode=cv2.BORDER_REPLICATE)
+    board, back = _true_stripe(ds)
+    return laser, moved, board, back
+
+
+def test_laser_off_frame_removes_fragments_by_default(pair, scene):
+    """Given the laser-off frame, ``extract_stripe``'s defaults return <= 0.5 % of points more than
+    1 px from the true stripe (its difference alone: most points are edge residuals), and keep the
+    stripe's samples on the board that lie away from printed edges: at least 70 % of those the
+    difference alone finds (the dropped ones lie within the stripe's reach of a square's edge)."""
+    laser, off, board, back = pair
+    diff = scene[0]
+    truth = cKDTree(np.concatenate([board, back]))
+    sp = extract_stripe(laser, background=off)
+    old = extract_stripe(diff)
+    false = np.mean(truth.query(sp.uv)[0] > OFF_PX)
+    false_old = np.mean(truth.query(old.uv)[0] > OFF_PX)
+    cov = np.mean(cKDTree(sp.uv).query(board)[0] < OFF_PX)
+    cov_old = np.mean(cKDTree(old.uv).query(board)[0] < OFF_PX)
+    print(f"false points {false:.4f} (difference alone {false_old:.4f}); coverage {cov:.3f} ({cov_old:.3f}); "
+          f"dropped on uneven reflectance {sp.meta['reflectance_dropped']}")
+    assert false_old > 0.5
+    assert false <= MAX_FALSE
+    assert cov >= 0.7 * cov_old
+    assert sp.meta["reflectance_dropped"] > 0
+
+
+def _stripe_scene(ambient: np.ndarray, rng, centre: float = 40.25, width_px: float = 5.0, power: float = 120.0):
+    """A horizontal stripe (Gaussian across, FWHM ``width_px``) at row ``centre`` on a surface whose
+    laser-off frame is ``ambient`` (reflectance times ambient light, grey levels): the laser frame
+    is that reflectance times (ambient + laser), both with 1 DN of noise, uint8."""
+    H, W = ambient.shape
+    s = width_px / 2.3548
+    lit = np.exp(-0.5 * ((np.arange(H) - centre) / s) ** 2)[:, None] * np.ones((1, W))
+    refl = ambient / max(float(ambient.max()), 1e-9)
+    on = ambient + power * refl * lit
+    to8 = lambda x: np.clip(np.round(x + rng.normal(0, 1.0, x.shape)), 0, 255).astype(np.uint8)  # noqa: E731
+    return to8(on), to8(ambient)
+
+
+def test_even_surface_keeps_every_centre():
+    """On an evenly reflecting surface, lit or dark (ambient 120 or 2 DN), no centre is dropped as
+    uneven, and the centres are those of the difference image (within 0.01 px)."""
+    rng = np.random.default_rng(3)
+    for level in (120.0, 2.0):
+        ambient = np.full((81, 200), level)
+        if level < 10:
+            on, off = _stripe_scene(np.full((81, 200), 60.0), rng)   # the laser as bright as on the lit surface
+            off = np.clip(np.round(ambient + rng.normal(0, 1.0, ambient.shape)), 0, 255).astype(np.uint8)
+            on = np.clip(on.astype(int) - 60 + off.astype(int), 0, 255).astype(np.uint8)
+        else:
+            on, off = _stripe_scene(ambient, rng)
+        sp = extract_stripe(on, background=off)
+        ref = extract_stripe(np.clip(on.astype(np.int16) - off, 0, 255).astype(np.uint8),
+                             StripePointsOptions(reject_fragments=True))
+        assert sp.meta["reflectance_dropped"] == 0
+        assert len(sp) == len(ref) > 150
+        assert np.max(np.abs(sp.uv - ref.uv)) < 0.01
+
+
+def test_centres_moved_by_a_printed_edge_are_dropped():
+    """A printed edge 1.5 px from the stripe's centre, along it (light 0.86 above, ink 0.1 below):
+    the difference's centres move towards the light side by more than 0.2 px; with the laser-off
+    frame none of them is returned.  Where the same stripe crosses the edge squarely instead
+    (the edge across the columns), centres away from the edge are kept and unbiased."""
+    rng = np.random.default_rng(4)
+    H, W, c = 81, 200, 40.25
+    refl = np.where(np.arange(H)[:, None] < c + 1.5, 0.86, 0.1) * np.ones((1, W))
+    on, off = _stripe_scene(cv2.GaussianBlur(150.0 * refl, (0, 0), 0.8), rng, centre=c)
+    diff = extract_stripe(np.clip(on.astype(np.int16) - off, 0, 255).astype(np.uint8))
+    assert len(diff) > 150 and np.median(diff.uv[:, 1]) < c - 0.2
+    assert len(extract_stripe(on, background=off)) == 0
+    refl = np.where(np.arange(W)[None, :] < 100, 0.86, 0.3) * np.ones((H, 1))
+    on, off = _stripe_scene(cv2.GaussianBlur(150.0 * refl, (0, 0), 0.8), rng, centre=c)
+    sp = extract_stripe(on, background=off)
+    far = np.abs(sp.uv[:, 0] - 99.5) > 8
+    assert np.count_nonzero(far) > 150
+    assert abs(float(np.median(sp.uv[far, 1])) - c) < 0.05
+
+
 def test_no_fragments_on_textured_render(scene):
     """``reject_fragments=True`` (opt-in: as default it drops real stripe rows on FabScan): <= 0.5 % of the points more than 1 px from the true stripe (the edge residuals
     return 80 % false points without the rule), and the stripe's own points stay: the true

@@ -96,3 +96,23 @@ def laser_difference(image: np.ndarray, background: np.ndarray, channel: str | N
     note = (f"stripe taken from {'+'.join(keep)}: {', '.join(sorted(left_out))} clipped in the laser-off frame "
             f"over {100 * max(left_out.values()):.0f} % of the stripe's region")
     return LaserDifference(np.clip(diff, 0, None), keep, left_out, note)
+
+
+def laser_off_level(background: np.ndarray, diff: LaserDifference, channel: str | None = None) -> np.ndarray:
+    """The laser-off frame in the channels that ``diff`` (:func:`laser_difference`) was taken from, float32:
+    the scene's reflectance times its ambient light, on the difference image's scale."""
+    bg = np.asarray(background)
+    if diff.clipped and bg.ndim == 3:
+        out = np.zeros(bg.shape[:2], np.float32)
+        for c in diff.channels:
+            out += bg[:, :, _INDEX[c]].astype(np.float32)
+        return out
+    return np.asarray(to_gray_float(bg, channel), dtype=np.float32)
+
+
+def difference_full_scale(image: np.ndarray, diff: LaserDifference, channel: str | None = None) -> float:
+    """The full scale of :func:`laser_difference`'s image: the input's, times the channels summed."""
+    fs = _full_scale(np.asarray(image))
+    if np.asarray(image).ndim == 3 and (diff.clipped or channel == "sum"):
+        fs *= max(1, len(diff.channels))
+    return fs

@@ -101,7 +101,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -991,7 +991,7 @@ class _CurvePoints:
 
 
 def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePointsOptions(),
-                   mask: np.ndarray | None = None) -> StripePoints:
+                   mask: np.ndarray | None = None, background: np.ndarray | None = None) -> StripePoints:
     """Centre points of all bright lines (Steger's method), linked into ordered curves.
 
     Five Gaussian-derivative images (``cv2.sepFilter2D``, pixel-integrated Gaussian
@@ -1008,13 +1008,32 @@ def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePoint
     options : :class:`~lightplane.stripe.options.StripePointsOptions`: width, channel,
         scales, thresholds, corrections, saturated cores.
     mask : (H, W) bool, points only where True (e.g. inside the target's ellipse).
+    background : the laser-off frame of the same view (same shape as ``image``), or None.  Given, the
+        stripe is taken from ``image - background`` in the channels that carry it
+        (:func:`lightplane.stripe.difference.laser_difference`), and with
+        ``options.drop_uneven_reflectance`` (the default) the centres where the laser-off frame's
+        reflectance changes across the stripe are dropped (:func:`on_even_reflectance`): a printed or
+        textured edge there moves the centre towards the lighter side, and the residual edges of a
+        camera that moved between the two frames lie there too.  ``meta["reflectance_dropped"]``
+        counts them.
 
     Returns
     -------
     :class:`StripePoints` (possibly empty).
     """
     ensure_configured()  # OpenMP settings before the first parallel kernel
-    img, fs = _channel_image(image, options.channel)
+    lit = None
+    if background is not None:
+        image, lit, fs = _laser_off_removed(image, background, options.channel, mask)
+        if options.reject_fragments is None:
+            options = replace(options, reject_fragments=True)
+        if fs is None:   # a colour difference: its channel as asked, saturated cores included
+            img, fs = _channel_image(image, options.channel)
+        else:            # channels summed (the laser's own is clipped in the laser-off frame)
+            options = replace(options, channel=None, saturated_centre=False)
+            img, _ = _channel_image(image, None)
+    else:
+        img, fs = _channel_image(image, options.channel)
     H, W = img.shape
     mask = _stripe_mask(mask, (H, W))
     sc = _stripe_scales(img, fs, options)
@@ -1037,6 +1056,12 @@ def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePoint
         return empty
     pts, is_core, core_len = _linked_points(img, strong[0], strong[1], maps, core_map, sc)
     pts = _stripe_curves(image, img, pts, is_core, core_len, sc, options)
+    if pts is not None and lit is not None and options.drop_uneven_reflectance:
+        # last, so that the stripe's tests (overshadowed curves, fragments) see its curves whole
+        even = on_even_reflectance(lit, pts.uv, pts.nrm, sc.w, sc.sigma, fs)
+        meta["reflectance_dropped"] = int(np.count_nonzero(~even))
+        kept = _split_runs(pts, even, int(options.min_length), False)
+        pts = None if kept is None else kept[0]
     if pts is None:
         return empty
     uv = pts.uv
@@ -1048,6 +1073,75 @@ def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePoint
         uv = _correct_curvature(uv, pts.nrm, pts.cid, sc.sigma)
     return StripePoints(uv=uv, normals=pts.nrm, strength=pts.st, width=pts.width, curve_id=pts.cid.astype(np.int64),
                         sigma_px=float(sc.sigma), meta=meta)
+
+
+#: a centre lies on uneven reflectance when the laser-off frame's level across the stripe's reach varies by
+#: more than this (max over min) ...
+REFLECTANCE_SPREAD_MAX = 1.5
+#: ... where levels below this share of the full scale count as this (a dark scene: no reflectance to read)
+REFLECTANCE_FLOOR = 4.0 / 255.0
+
+
+def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str | None,
+                       mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """The laser's light alone, the laser-off frame in the channels it is read in, and the full scale
+    of a summed difference.  Where no channel that ``channel`` reads is clipped in the laser-off frame:
+    ``image - background`` clipped at 0, in the input's type and channels, and full scale None (read as
+    any image); otherwise the sum of the channels that carry the stripe
+    (:func:`lightplane.stripe.difference.laser_difference`), float32, and its full scale."""
+    import cv2
+
+    from lightplane.stripe.difference import difference_full_scale, laser_difference, laser_off_level
+
+    if not isinstance(background, np.ndarray) or not isinstance(image, np.ndarray):
+        raise LightplaneError("image and background must be numpy arrays")
+    if background.shape != image.shape:
+        raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
+    region = None if mask is None else np.asarray(mask)
+    if region is not None and region.shape != image.shape[:2]:
+        raise LightplaneError(f"mask shape {region.shape} differs from the image's {image.shape[:2]}")
+    diff = laser_difference(image, background, channel, region=region)
+    lit = laser_off_level(background, diff, channel)
+    if not diff.clipped:
+        if image.dtype.kind in "ui":
+            return cv2.subtract(image, background), lit, None
+        return np.clip(image.astype(np.float32) - background.astype(np.float32), 0, None), lit, None
+    return np.ascontiguousarray(diff.image, dtype=np.float32), lit, difference_full_scale(image, diff, channel)
+
+
+def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, width_px: float, sigma_px: float,
+                        full_scale: float = 255.0) -> np.ndarray:
+    """(N,) bool: the stripe centres ``uv`` (N, 2, px) whose surface reflects evenly across the stripe.
+
+    The laser's light on a surface is its irradiance times the surface's reflectance, and the laser-off
+    frame ``lit`` (ambient light on the same surface) shows that reflectance.  Where it changes within
+    the stripe's reach, the product's peak moves towards the lighter side (by a good part of a pixel
+    when a printed edge runs along the stripe), and a difference image holds edge residuals there when
+    the camera moved between the frames.  Read on ``lit`` smoothed by 1 px: across the stripe
+    (``normals``) within half its width plus a pixel, along it within Steger's scale plus a pixel (the
+    derivative kernels reach that far).  A centre is kept when the largest level there is below
+    :data:`REFLECTANCE_SPREAD_MAX` times the smallest; levels under :data:`REFLECTANCE_FLOOR` of the
+    full scale count as that floor (a dark scene says nothing about reflectance; its noise must not
+    drop centres).  An edge that crosses the stripe squarely stays outside the reach across it and
+    moves no centre."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    nrm = np.asarray(normals, np.float64).reshape(-1, 2)
+    if uv.shape[0] == 0:
+        return np.zeros(0, bool)
+    import cv2
+    from scipy.ndimage import map_coordinates
+
+    lv = cv2.GaussianBlur(np.ascontiguousarray(lit, dtype=np.float32), (0, 0), 1.0)
+    across = 0.5 * float(width_px) + 1.0
+    along = float(sigma_px) + 1.0
+    t = np.linspace(-across, across, int(math.ceil(2.0 * across)) + 1)
+    a = np.linspace(-along, along, int(math.ceil(2.0 * along)) + 1)
+    tt, aa = (np.repeat(t, a.size), np.tile(a, t.size))
+    pu = uv[:, :1] + tt[None, :] * nrm[:, :1] - aa[None, :] * nrm[:, 1:]
+    pv = uv[:, 1:] + tt[None, :] * nrm[:, 1:] + aa[None, :] * nrm[:, :1]
+    s = map_coordinates(lv, [pv.ravel(), pu.ravel()], order=1, mode="nearest").reshape(pu.shape)
+    floor = REFLECTANCE_FLOOR * float(full_scale)
+    return s.max(axis=1) < REFLECTANCE_SPREAD_MAX * np.maximum(s.min(axis=1), floor)
 
 
 def _stripe_mask(mask, shape: tuple[int, int]) -> np.ndarray | None:
@@ -1221,7 +1315,7 @@ def _stripe_curves(image, gray, pts: _CurvePoints, is_core, core_len, sc: _Strip
             raise LightplaneError("min_chroma needs a colour (H, W, 3) image")
         keep &= (_chroma(image, rows, cols) >= float(options.min_chroma)) | is_core
     core = is_core if is_core.any() else None
-    kept = _split_runs(pts, keep, int(options.min_length), options.reject_fragments)
+    kept = _split_runs(pts, keep, int(options.min_length), bool(options.reject_fragments))
     if kept is None:
         return None
     pts, sel = kept

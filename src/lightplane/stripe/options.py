@@ -152,8 +152,13 @@ class StripePointsOptions:
         bright (B + G + R) as the stripe's typical peak in its channel, and flanked on
         both sides by laser-coloured pixels within ``w + 2`` px, so white ambient light
         on a raw frame does not qualify.  Chroma threshold: ``min_chroma`` or 0.5.
-    reject_fragments : (off by default: it still drops real stripe rows on FabScan's scans
-        and boards) a stripe is a long, continuous, consistently bright ridge; short
+    reject_fragments : None (the default): on when ``extract_stripe`` is given the laser-off frame
+        (``background=``), off otherwise.  Without a laser-off frame it drops real stripe rows where
+        a stripe is broken by dark print and bloomed where it is whole (FabScan's scans, boards);
+        with one, the print's edges are read from that frame and dropped first
+        (``drop_uneven_reflectance``), and what remains beside the stripe is laser light off its
+        line (glare, reflections), which this rule removes.  A stripe is a long, continuous,
+        consistently bright ridge; short
         responses on texture edges are not.  Curves split where their normal turns by more
         than 45 degrees at once (a texture edge that joins a stripe); curves that continue
         one another across gaps of up to ``max(3 w, 10)`` px (end tangents within 30 degrees)
@@ -162,7 +167,12 @@ class StripePointsOptions:
         by more than 20 degrees); then curves under 75 % of the reference's contrast are
         dropped when their chain is 30 % narrower than the reference (the thin edge residuals
         of a laser-minus-background frame) or holds fewer than a quarter of its points (short
-        fragments along a board's squares).  Saturated cores are kept.  Default True.
+        fragments along a board's squares).  Saturated cores are kept.
+    drop_uneven_reflectance : with a laser-off frame (``extract_stripe(..., background=)``), drop
+        the centres where the surface's reflectance changes across the stripe
+        (:func:`lightplane.stripe.extract.on_even_reflectance`): a printed or textured edge moves
+        them towards its lighter side, and the edge residuals of a camera that moved between the
+        frames lie there.  Default True; without a laser-off frame it has no effect.
     """
 
     width_px: float | None = None
@@ -179,7 +189,8 @@ class StripePointsOptions:
     sigma_along_px: float | None = None
     suppress_weaker: float | None = 0.5
     saturated_centre: bool | None = None
-    reject_fragments: bool = False
+    reject_fragments: bool | None = None
+    drop_uneven_reflectance: bool = True
 
     def __post_init__(self) -> None:
         _check_width(self.width_px)
