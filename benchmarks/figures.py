@@ -9,6 +9,10 @@ ratio to it, the target and whether it is met, the benchmark script, the machine
     python benchmarks/figures.py --check README.md    # exit 1 (with a diff) if it differs
     python benchmarks/figures.py --results DIR FILE   # another results folder
 
+``<!-- figures:begin targets -->`` instead of the first marker: only the figures that have a target;
+``<!-- figures:begin headline -->``: per results file its first figure with a target, and every
+figure whose target is not met.
+
 Exits 1 with a message when a file lacks the markers (or holds them out of order).
 """
 
@@ -23,6 +27,8 @@ from pathlib import Path
 
 BEGIN = "<!-- figures:begin -->"
 BEGIN_TARGETS = "<!-- figures:begin targets -->"  # only the figures that have a target
+# per results file its first figure with a target, and every figure whose target is not met
+BEGIN_HEADLINE = "<!-- figures:begin headline -->"
 END = "<!-- figures:end -->"
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -87,14 +93,19 @@ def target_text(t: dict | None) -> tuple[str, str]:
     return text, met
 
 
-def rows(doc: dict, targets_only: bool = False) -> list[str]:
-    """The table rows of one results file (only those with a target when ``targets_only``)."""
+def rows(doc: dict, targets_only: bool = False, headline: bool = False) -> list[str]:
+    """The table rows of one results file (only those with a target when ``targets_only``; with
+    ``headline``, the first figure with a target and every other whose target is not met)."""
     where = f"{machine_name(doc.get('machine', {}))}, {str(doc.get('date', ''))[:10]}"
     script = Path(doc.get("script") or f"{doc.get('bench', '?')}.py").name
     out = []
+    first = True
     for f in doc.get("figures", []):
-        if targets_only and not f.get("target"):
+        if (targets_only or headline) and not f.get("target"):
             continue
+        if headline and not first and f["target"].get("met") is not False:
+            continue
+        first = False
         value = quantity(f.get("value"), f.get("unit", ""))
         if "truth" in f and f.get("value") is not None:  # more digits, and the error against the truth
             err = f.get("error")
@@ -109,19 +120,20 @@ def rows(doc: dict, targets_only: bool = False) -> list[str]:
     return out
 
 
-def table(results: Path = RESULTS, targets_only: bool = False) -> str:
+def table(results: Path = RESULTS, targets_only: bool = False, headline: bool = False) -> str:
     """The whole table (header and one row per figure, the files in name order; only the figures with a
-    target when ``targets_only``), no trailing newline."""
+    target when ``targets_only``; the headline figures of :func:`rows` with ``headline``), no trailing
+    newline."""
     lines = [HEADER]
     for p in sorted(Path(results).glob("*.json")):
-        lines += rows(json.loads(p.read_text()), targets_only)
+        lines += rows(json.loads(p.read_text()), targets_only, headline)
     return "\n".join(lines)
 
 
 def _region(text: str) -> tuple[int, int]:
     """(the end of the BEGIN line, the start of the END line) in ``text``."""
     lines = text.splitlines(keepends=True)
-    b = [i for i, line in enumerate(lines) if line.strip() in (BEGIN, BEGIN_TARGETS)]
+    b = [i for i, line in enumerate(lines) if line.strip() in (BEGIN, BEGIN_TARGETS, BEGIN_HEADLINE)]
     e = [i for i, line in enumerate(lines) if line.strip() == END]
     if len(b) != 1 or len(e) != 1 or e[0] <= b[0]:
         raise MarkersMissing(f"needs the lines {BEGIN!r} and {END!r}, once each, in that order "
@@ -148,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     for md in args.markdown:
         text = md.read_text()
         try:
-            new = fill(text, table(args.results, targets_only=BEGIN_TARGETS in text.splitlines()))
+            marks = {line.strip() for line in text.splitlines()}
+            new = fill(text, table(args.results, targets_only=BEGIN_TARGETS in marks, headline=BEGIN_HEADLINE in marks))
         except MarkersMissing as e:
             print(f"{md}: {e}", file=sys.stderr)
             status = 1

@@ -82,6 +82,18 @@ def test_table(folder: Path):
     assert figures.quantity(1.04, "x") == "1.04x" and figures.quantity(0.963, "") == "0.963"
 
 
+def test_headline_rows(folder: Path):
+    """The headline table: the first figure with a target, then only the targets not met."""
+    lines = figures.table(folder, headline=True).splitlines()[2:]
+    assert [line.split(" | ")[0] for line in lines] == ["| demo speed", "| sphere radius", "| frames"]
+    doc = json.loads((folder / "bench_demo.json").read_text())
+    doc["figures"] = [results.figure("info", "informational", 1.0, "ms")] + [
+        results.figure(k, k, v, "ms", target=results.at_most(1.0, "ms")) for k, v in (("a", 2.0), ("b", 0.5), ("c", 3.0))]
+    (folder / "bench_demo.json").write_text(json.dumps(doc))
+    lines = figures.table(folder, headline=True).splitlines()[2:]
+    assert [line.split(" | ")[0] for line in lines] == ["| a", "| c"]
+
+
 def test_write_and_check(folder: Path, tmp_path: Path, capsys):
     md = tmp_path / "doc.md"
     md.write_text(f"# Title\n\n{figures.BEGIN}\nstale\n{figures.END}\n\nafter\n")
