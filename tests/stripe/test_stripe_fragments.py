@@ -161,3 +161,13 @@ def test_no_fragments_on_textured_render(scene):
     assert false <= MAX_FALSE
     assert cov >= 0.98 * cov_old
     assert cov >= 0.45                 # the white squares' share of the stripe, less their edges
+
+
+def test_laser_off_frame_that_does_not_match_is_refused():
+    """A laser-off frame of another size, type or colour layout, or an empty pair: one LightplaneError."""
+    from lightplane.core.errors import LightplaneError
+
+    a = np.zeros((60, 80), np.uint8)
+    for image, off in ((a, a[:50]), (a, a.astype(np.uint16)), (np.dstack([a] * 3), a), (a[:0], a[:0])):
+        with pytest.raises(LightplaneError):
+            extract_stripe(image, background=off)

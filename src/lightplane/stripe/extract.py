@@ -1097,6 +1097,10 @@ def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str |
         raise LightplaneError("image and background must be numpy arrays")
     if background.shape != image.shape:
         raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
+    if background.dtype != image.dtype:
+        raise LightplaneError(f"background image type {background.dtype} differs from the image's {image.dtype}")
+    if image.size == 0:
+        raise LightplaneError(f"image is empty (shape {image.shape})")
     region = None if mask is None else np.asarray(mask)
     if region is not None and region.shape != image.shape[:2]:
         raise LightplaneError(f"mask shape {region.shape} differs from the image's {image.shape[:2]}")
