@@ -154,3 +154,58 @@ def test_sigma_along_option(scan_dir, tmp_path):
     bad = tmp_path / "c.npy"
     one_error_line(run(scan_dir / "frames", *common, "-o", bad, "--sigma-along", "0.1"))
     assert not bad.exists()
+
+
+def _with_static_ridge(scan_dir: Path, d: Path) -> tuple[Path, Path]:
+    """The scan's frames with a static bright ridge added (a lamp's edge in the scene, brighter than the
+    stripe, at column 100), and the laser-off frame of that scene (ambient level and the ridge)."""
+    u = np.arange(CAM.width, dtype=float)[None, :]
+    ridge = 240.0 * np.exp(-0.5 * ((u - 100.0) / 1.5) ** 2) * np.ones((CAM.height, 1))
+    (d / "laser").mkdir()
+    for p in sorted((scan_dir / "frames").glob("*.png")):
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).astype(float)
+        cv2.imwrite(str(d / "laser" / p.name), np.clip(np.rint(img + ridge), 0, 255).astype(np.uint8))
+    off = d / "off.png"
+    cv2.imwrite(str(off), np.clip(np.rint(10.0 + ridge), 0, 255).astype(np.uint8))
+    return d / "laser", off
+
+
+def test_laser_off_frame_is_subtracted(scan_dir, tmp_path):
+    """``--background``: a static bright ridge beside the stripe takes the rows' centres without it,
+    and with its laser-off frame every centre is the clean scan's (within 0.02 px); the cloud
+    records the laser-off frames."""
+    laser, off = _with_static_ridge(scan_dir, tmp_path)
+    cam, pl = scan_dir / "camera.json", scan_dir / "plane.json"
+    clean = tmp_path / "clean.csv"
+    assert run(scan_dir / "frames", "--camera", cam, "--plane", pl, "-o", clean).returncode == 0
+    with_off = tmp_path / "off.csv"
+    r = run(laser, "--camera", cam, "--plane", pl, "-o", with_off, "--background", off)
+    assert r.returncode == 0, r.stderr
+    assert "laser-off frame" in r.stdout
+    a, b = read_cloud(clean), read_cloud(with_off)
+    assert a.size == b.size > N_FRAMES * 350
+    assert np.max(np.abs(a["u"].astype(float) - b["u"].astype(float))) < 0.02
+    assert "laser-off frames" in with_off.read_text().splitlines()[0] + with_off.read_text()[:2000]
+    without = tmp_path / "without.csv"
+    run(laser, "--camera", cam, "--plane", pl, "-o", without, "--keep-outliers")
+    w = read_cloud(without)
+    assert np.mean(np.abs(w["u"].astype(float) - 100.0) < 2.0) > 0.5     # the ridge wins without it
+
+
+def test_laser_off_frames_that_do_not_pair_are_refused(scan_dir, tmp_path):
+    """Laser-off frames neither one nor one per frame, a frame given as its own laser-off frame, or
+    --background with --sensor: one line, exit 2, nothing written."""
+    laser, off = _with_static_ridge(scan_dir, tmp_path)
+    cam, pl = scan_dir / "camera.json", scan_dir / "plane.json"
+    two = tmp_path / "two"
+    two.mkdir()
+    for k in range(2):
+        (two / f"o{k}.png").write_bytes(off.read_bytes())
+    out = tmp_path / "c.ply"
+    for extra, words in ((["--background", two], "2 laser-off frames for 5 frames"),
+                         (["--background", sorted(laser.glob("*.png"))[0]], "both as a frame and as a laser-off")):
+        r = run(laser, "--camera", cam, "--plane", pl, "-o", out, *extra)
+        assert r.returncode == 2 and words in one_error_line(r)
+    r = run(laser, "--sensor", cam, "-o", out, "--background", off)
+    assert r.returncode == 2 and "--background goes with --camera/--plane" in one_error_line(r)
+    assert not out.exists()

@@ -209,14 +209,20 @@ def measure_cmd(
                               "the depth range of the plane's calibration points exactly (by default twice as wide "
                               "each way), the others dropped and counted."),
     allow_other_camera: bool = allow_other_camera_option,
+    background: Optional[str] = typer.Option(None, "--background", help="Laser-off frames (a file, folder or "
+                                             "quoted glob): one for every frame, or one per frame in name order; "
+                                             "each is subtracted from its frame (ambient light, a static scene)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     inputs = list(inputs or [])
+    if background is not None and sensor is not None:
+        raise LightplaneError("--background goes with --camera/--plane; with --sensor, subtract the laser-off "
+                              "frames before measuring")
     if crop and keep_outliers:
         raise LightplaneError("--crop drops the points outside the working volume, --keep-outliers keeps them: "
                               "give one")
     output_file(output, force, inputs=[camera, plane, sensor, positions, turntable, turntable_angles, poses, flange,
-                                       *inputs, *(parse_laser(t)[1] for t in laser or [])])
+                                       *inputs, *(parse_laser(t)[1] for t in laser or []), background])
     CloudOutput(fmt=fmt, ascii=ascii_ply, force=force).target(output)  # the format, before any work
     sens: Sensor | None = None
     lasers: list[tuple[str, str | None]] = []
@@ -253,7 +259,10 @@ def measure_cmd(
         console.print(f"wrote {ls.path} ({ls.format}{' ascii' if ascii_ply else ''})")
         return
 
-    source = open_frames(inputs, rot)
+    source = open_frames(inputs, rot, background=None if background is None else [background])
+    if background is not None:
+        output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force,
+                                  comments=(*cams.comments(), f"laser-off frames: {background}"))
     with progress_bar("measuring frames", source.n_frames) as update:
         s = measure_scan(source, cam, pl, out, options, motion=motion, output=output_opts, workers=workers,
                          progress=lambda done, tot: update(done, total=tot))

@@ -55,6 +55,7 @@ __all__ = [
     "VideoFrames",
     "ArrayFrames",
     "open_frames",
+    "PairedPath",
     "FrameProcessor",
     "FrameResult",
     "iter_scan",
@@ -105,6 +106,8 @@ def try_load_frame(payload) -> tuple[np.ndarray | None, str]:
     if isinstance(payload, np.ndarray):
         return payload, ""
 
+    if isinstance(payload, PairedPath):
+        return payload.read()
     if isinstance(payload, RotatedPath):
         return try_read_image(payload.path, rotate_deg=payload.rotate_deg)
     return try_read_image(payload)
@@ -122,10 +125,44 @@ class RotatedPath:
         return self.path
 
 
-class ImageFiles(FrameSource):
-    """Image files in the given order (use :func:`lightplane.core.io.expand_inputs` for folders/globs)."""
+@dataclass(frozen=True)
+class PairedPath:
+    """A laser frame read less its laser-off frame (both rotated clockwise by ``rotate_deg``):
+    ``laser - background`` per pixel and channel, clipped at 0, in the frames' own type."""
 
-    def __init__(self, paths: Sequence[str | os.PathLike], rotate_deg: int = 0) -> None:
+    path: str
+    background: str
+    rotate_deg: int = 0
+
+    def __str__(self) -> str:
+        return self.path
+
+    def read(self) -> tuple[np.ndarray | None, str]:
+        import cv2
+
+        img, reason = try_read_image(self.path, rotate_deg=self.rotate_deg)
+        if img is None:
+            return None, reason
+        bg, reason = try_read_image(self.background, rotate_deg=self.rotate_deg)
+        if bg is None:
+            return None, f"laser-off frame {self.background}: {reason}"
+        if bg.shape != img.shape or bg.dtype != img.dtype:
+            return None, (f"laser-off frame {self.background} is {_describe(bg)}, the frame {_describe(img)}")
+        return cv2.subtract(img, bg), ""
+
+
+def _describe(img: np.ndarray) -> str:
+    return f"{img.shape[1]}x{img.shape[0]} {img.dtype}" + (f" x{img.shape[2]}" if img.ndim == 3 else "")
+
+
+class ImageFiles(FrameSource):
+    """Image files in the given order (use :func:`lightplane.core.io.expand_inputs` for folders/globs).
+
+    ``backgrounds``: laser-off frames, one for all frames or one per frame (same order); each frame is
+    then read less its laser-off frame (:class:`PairedPath`)."""
+
+    def __init__(self, paths: Sequence[str | os.PathLike], rotate_deg: int = 0,
+                 backgrounds: Sequence[str | os.PathLike] | None = None) -> None:
         rotation_code(rotate_deg)  # 0, 90, 180 or 270
         self.rotate_deg = int(rotate_deg)
         self.paths = [Path(p) for p in paths]
@@ -136,10 +173,27 @@ class ImageFiles(FrameSource):
             raise LightplaneError(f"{missing[0]}: no such file" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
         self.n_frames = len(self.paths)
         self.description = f"{len(self.paths)} image files"
+        self.backgrounds: list[Path] | None = None
+        if backgrounds is not None:
+            bgs = [Path(p) for p in backgrounds]
+            if len(bgs) not in (1, len(self.paths)):
+                raise LightplaneError(f"{len(bgs)} laser-off frames for {len(self.paths)} frames: give one for all "
+                                      "frames or one per frame")
+            gone = [str(p) for p in bgs if not p.exists()]
+            if gone:
+                raise LightplaneError(f"{gone[0]}: no such file")
+            same = {p.resolve() for p in bgs} & {p.resolve() for p in self.paths}
+            if same:
+                raise LightplaneError(f"{sorted(same)[0]} is given both as a frame and as a laser-off frame")
+            self.backgrounds = bgs if len(bgs) > 1 else bgs * len(self.paths)
+            self.description += (f" less {len(bgs)} laser-off frame" + ("s" if len(bgs) > 1 else ""))
 
     def items(self):
         for i, p in enumerate(self.paths):
-            yield i, str(p), (RotatedPath(str(p), self.rotate_deg) if self.rotate_deg else str(p))
+            if self.backgrounds is not None:
+                yield i, str(p), PairedPath(str(p), str(self.backgrounds[i]), self.rotate_deg)
+            else:
+                yield i, str(p), (RotatedPath(str(p), self.rotate_deg) if self.rotate_deg else str(p))
 
 
 class ArrayFrames(FrameSource):
@@ -224,9 +278,12 @@ class VideoFrames(FrameSource):
         self.cap.release()
 
 
-def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0) -> FrameSource:
+def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0,
+                background: Sequence[str | os.PathLike] | None = None) -> FrameSource:
     """A frame source for CLI-style inputs: one video file, or image files / folders / globs
-    (image files read rotated clockwise by ``rotate_deg``; videos are not rotated)."""
+    (image files read rotated clockwise by ``rotate_deg``; videos are not rotated).  ``background``:
+    laser-off frames (files / folders / globs; one for all frames or one per frame, in name order),
+    subtracted from the image files' frames."""
     items = [str(x) for x in inputs]
     if not items:
         raise LightplaneError("no input given (image files, a folder, a glob or a video file)")
@@ -236,11 +293,19 @@ def open_frames(inputs: Sequence[str | os.PathLike], rotate_deg: int = 0) -> Fra
             raise LightplaneError("give either one video file or image files, not both / several videos")
         if rotate_deg:
             raise LightplaneError("frames of a video are not rotated; give image files with a rotation")
+        if background is not None:
+            raise LightplaneError("laser-off frames go with image files, not with a video")
         return VideoFrames(videos[0])
     paths = expand_inputs(items)
     if not paths:
         raise LightplaneError(f"no images found in {', '.join(items)}")
-    return ImageFiles(paths, rotate_deg)
+    bgs = None
+    if background is not None:
+        bg_items = [str(x) for x in background]
+        bgs = expand_inputs(bg_items)
+        if not bgs:
+            raise LightplaneError(f"no laser-off frames found in {', '.join(bg_items)}")
+    return ImageFiles(paths, rotate_deg, backgrounds=bgs)
 
 
 # ----------------------------------------------------------------------------- processing
