@@ -315,3 +315,30 @@ def test_extract_stripe_with_laser_off_frame(frames, frame, channel):
               f"({np.sum(np.abs(r_old) < 1.0)})")
         assert within >= MIN_INLIER_FRACTION
         assert np.sum(np.abs(r) < 1.0) >= 0.7 * np.sum(np.abs(r_old) < 1.0)
+
+
+def test_measure_reads_the_object_scan_less_its_laser_off_frame():
+    """The Ciclop bust in a lit room (laser_segmentation_object): ``measure --background``'s frame
+    reader subtracts the laser-off frame, and the grey profile then finds the stripe in >= 1,000 of
+    the 1,280 rows (the laser frame alone: under 650, the lit bust and room compete), every centre
+    within 2 px of the red channel's centre of the laser frame alone where that has one (an
+    independent reading: the laser is red, the bust white)."""
+    from lightplane.measure.scan import load_frame, open_frames
+    from lightplane.stripe.extract import extract_profile
+    from lightplane.stripe.options import StripeOptions
+
+    obj = DATA.parent / "laser_segmentation_object"
+    source = open_frames([obj / "laser.png"], background=[obj / "laser_background.png"])
+    (_, _, payload), = list(source.items())
+    diff = load_frame(payload)
+    laser = read_image(obj / "laser.png")
+    pair = extract_profile(diff, "rows", StripeOptions())
+    alone = extract_profile(laser, "rows", StripeOptions())
+    red = extract_profile(laser, "rows", StripeOptions(channel="red"))
+    v_pair, v_alone, v_red = (np.asarray(p.valid) for p in (pair, alone, red))
+    print(f"rows with a centre: laser-off frame subtracted {v_pair.sum()}, laser frame alone {v_alone.sum()}, "
+          f"red channel alone {v_red.sum()}")
+    assert v_pair.sum() >= max(900, 1.5 * v_alone.sum())
+    both = v_pair & v_red
+    assert both.sum() >= 900
+    assert np.max(np.abs(np.asarray(pair.uv)[both, 0] - np.asarray(red.uv)[both, 0])) < 2.0
