@@ -104,7 +104,7 @@ import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import median_filter
+from scipy.ndimage import map_coordinates, median_filter
 
 from lightplane.stripe import kernels as K
 from lightplane.core.errors import LightplaneError
@@ -112,6 +112,7 @@ from lightplane.core.threads import ensure_configured, in_serial_context, profil
 from lightplane.core.io import to_gray_float
 from lightplane.stripe.options import StripeOptions, StripePointsOptions, _check_width
 from lightplane.stripe.reference import profile_numpy
+from lightplane.stripe.difference import difference_full_scale, laser_difference, laser_off_level
 
 __all__ = [
     "StripePoints",
@@ -1091,8 +1092,6 @@ def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str |
     (:func:`lightplane.stripe.difference.laser_difference`), float32, and its full scale."""
     import cv2
 
-    from lightplane.stripe.difference import difference_full_scale, laser_difference, laser_off_level
-
     if not isinstance(background, np.ndarray) or not isinstance(image, np.ndarray):
         raise LightplaneError("image and background must be numpy arrays")
     if background.shape != image.shape:
@@ -1133,7 +1132,6 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     if uv.shape[0] == 0:
         return np.zeros(0, bool)
     import cv2
-    from scipy.ndimage import map_coordinates
 
     lv = cv2.GaussianBlur(np.ascontiguousarray(lit, dtype=np.float32), (0, 0), 1.0)
     across = 0.5 * float(width_px) + 1.0
