@@ -32,6 +32,8 @@ STRIPE_MIN_ELONGATION = 5.0
 #: a point whose pixel the camera model does not give back (px) is outside the model's field (past the
 #: fold of its distortion)
 ROUND_TRIP_PX = 0.05
+#: the grid (px) on which a measurer checks once that the camera model is one-to-one over its roi
+ROUND_TRIP_GRID_PX = 8
 #: why points are dropped (:attr:`Profile.dropped`), in this order
 DROP_REASONS = ("no stripe", "outside the camera model", "outside the working volume", "sigma beyond the bound")
 
@@ -179,7 +181,9 @@ class ProfileMeasurer:
 
     # ---------------------------------------------------------------- the screen
     def _screen_limits(self) -> None:
-        """The depth range and σ bound of :meth:`screen` from the plane's working volume."""
+        """The depth range and σ bound of :meth:`screen` from the plane's working volume, and whether
+        the camera's model is one-to-one over the whole roi (:meth:`_round_trip_everywhere`)."""
+        self.round_trip_everywhere = self._round_trip_everywhere()
         depth, centre = working_depth(self.plane)
         k = float(self.options.depth_factor)
         if depth is not None and np.isfinite(k):
@@ -189,6 +193,26 @@ class ProfileMeasurer:
             s = float(self.from_stripe(uv, np.ones(1, bool)).sigma_mm[0]) if np.all(np.isfinite(uv)) else np.nan
             if np.isfinite(s) and s > 0:
                 self.sigma_bound = float(self.options.max_sigma_ratio) * s
+
+    def _round_trip_everywhere(self) -> bool:
+        """Whether every pixel of the roi comes back onto itself through the undistortion and the
+        projection, with room to spare: checked once on a grid of every :data:`ROUND_TRIP_GRID_PX`-th
+        pixel and every pixel of the roi's border (the largest radii, where a lens model folds), each
+        within a fifth of :data:`ROUND_TRIP_PX`.  Then :meth:`screen` need not project every frame's
+        points back (the error is a smooth function of the pixel); else it does."""
+        x, y, w, h = self.roi
+        us, vs = np.arange(x, x + w, dtype=float), np.arange(y, y + h, dtype=float)
+        gu, gv = np.meshgrid(us[::ROUND_TRIP_GRID_PX], vs[::ROUND_TRIP_GRID_PX])
+        uv = np.concatenate([np.column_stack([gu.ravel(), gv.ravel()]),
+                             np.column_stack([us, np.full_like(us, vs[0])]),
+                             np.column_stack([us, np.full_like(us, vs[-1])]),
+                             np.column_stack([np.full_like(vs, us[0]), vs]),
+                             np.column_stack([np.full_like(vs, us[-1]), vs])])
+        with np.errstate(invalid="ignore", over="ignore"):
+            xy = self.camera.undistort_points(uv, normalized=True)
+            back = self.camera.project(np.column_stack([xy, np.ones(len(xy))]))
+            err = np.linalg.norm(back - uv, axis=1)
+        return bool(np.all(err < 0.2 * ROUND_TRIP_PX))
 
     def screen(self, prof: Profile) -> Profile:
         """Drop what is not a measured point, counting why (:attr:`Profile.dropped`).
@@ -215,7 +239,8 @@ class ProfileMeasurer:
             idx = np.flatnonzero(valid)
             p = prof.points[idx]
             with np.errstate(invalid="ignore"):
-                off = np.linalg.norm(self.camera.project(p) - prof.uv[idx], axis=1) > ROUND_TRIP_PX
+                off = np.zeros(len(idx), bool) if self.round_trip_everywhere else \
+                    np.linalg.norm(self.camera.project(p) - prof.uv[idx], axis=1) > ROUND_TRIP_PX
                 far = np.zeros(len(idx), bool) if self.depth_range is None else \
                     (p[:, 2] < self.depth_range[0]) | (p[:, 2] > self.depth_range[1])
                 wide = np.zeros(len(idx), bool) if self.sigma_bound is None else prof.sigma_mm[idx] > self.sigma_bound
