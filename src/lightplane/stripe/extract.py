@@ -1125,8 +1125,9 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     derivative kernels reach that far).  A centre is kept when the largest level there is below
     :data:`REFLECTANCE_SPREAD_MAX` times the smallest; levels under :data:`REFLECTANCE_FLOOR` of the
     full scale count as that floor (a dark scene says nothing about reflectance; its noise must not
-    drop centres).  An edge that crosses the stripe squarely stays outside the reach across it and
-    moves no centre."""
+    drop centres).  An edge that crosses the stripe squarely moves no centre (the reflectance is the
+    same on both sides of the stripe there), but the test does not tell the edge's direction: the
+    centres within the reach along the stripe of such an edge are dropped too."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, np.float64).reshape(-1, 2)
     if uv.shape[0] == 0:
