@@ -1121,13 +1121,13 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     the stripe's reach, the product's peak moves towards the lighter side (by a good part of a pixel
     when a printed edge runs along the stripe), and a difference image holds edge residuals there when
     the camera moved between the frames.  Read on ``lit`` smoothed by 1 px: across the stripe
-    (``normals``) within half its width plus a pixel, along it within Steger's scale plus a pixel (the
-    derivative kernels reach that far).  A centre is kept when the largest level there is below
-    :data:`REFLECTANCE_SPREAD_MAX` times the smallest; levels under :data:`REFLECTANCE_FLOOR` of the
-    full scale count as that floor (a dark scene says nothing about reflectance; its noise must not
-    drop centres).  An edge that crosses the stripe squarely moves no centre (the reflectance is the
-    same on both sides of the stripe there), but the test does not tell the edge's direction: the
-    centres within the reach along the stripe of such an edge are dropped too."""
+    (``normals``) within half its width plus a pixel, on lines across it up to Steger's scale plus a
+    pixel along it (the derivative kernels reach that far).  A centre is kept when on every such line
+    the largest level is below :data:`REFLECTANCE_SPREAD_MAX` times the smallest; levels under
+    :data:`REFLECTANCE_FLOOR` of the full scale count as that floor (a dark scene says nothing about
+    reflectance; its noise must not drop centres).  An edge that crosses the stripe squarely leaves
+    each line on one side of it and moves no centre (the profile across is scaled, not skewed): the
+    centres next to it are kept."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, np.float64).reshape(-1, 2)
     if uv.shape[0] == 0:
@@ -1144,7 +1144,10 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     pv = uv[:, 1:] + tt[None, :] * nrm[:, 1:] + aa[None, :] * nrm[:, :1]
     s = map_coordinates(lv, [pv.ravel(), pu.ravel()], order=1, mode="nearest").reshape(pu.shape)
     floor = REFLECTANCE_FLOOR * float(full_scale)
-    return s.max(axis=1) < REFLECTANCE_SPREAD_MAX * np.maximum(s.min(axis=1), floor)
+    # the spread across the stripe at each step along it: an edge that crosses the stripe squarely
+    # leaves every such line on one side of it
+    s3 = s.reshape(len(uv), t.size, a.size)
+    return np.all(s3.max(axis=1) < REFLECTANCE_SPREAD_MAX * np.maximum(s3.min(axis=1), floor), axis=1)
 
 
 def _stripe_mask(mask, shape: tuple[int, int]) -> np.ndarray | None:
