@@ -32,7 +32,7 @@ from lightplane.plane.quality import (PlaneQuality, check_plane_quality, plane_g
 from lightplane.camera.targets import as_target
 from lightplane.core.io import to_gray_float, too_few_images_message
 from lightplane.stripe.difference import laser_difference
-from lightplane.stripe.extract import extract_stripe
+from lightplane.stripe.extract import REFLECTANCE_SPREAD_MAX, extract_stripe, on_even_reflectance, sigma_for_width
 from lightplane.stripe.options import StripePointsOptions
 from lightplane.core.threads import with_blas_limited
 
@@ -395,7 +395,7 @@ def straight_stripe_inliers(uv_undist: np.ndarray, *, tol_px: float = 1.0, min_t
 #: ``EVEN_LEVEL_MIN`` and its max over min within the stripe's reach stays under ``EVEN_SPREAD_MAX``
 #: (:func:`even_reflectance`).
 EVEN_LEVEL_MIN = 0.5
-EVEN_SPREAD_MAX = 1.5
+EVEN_SPREAD_MAX = REFLECTANCE_SPREAD_MAX
 
 
 def laser_light(image: np.ndarray, lit: np.ndarray, mask: np.ndarray,
@@ -419,7 +419,7 @@ def laser_light(image: np.ndarray, lit: np.ndarray, mask: np.ndarray,
     return np.clip(g - k * p, 0, None), p / white
 
 
-def even_reflectance(level: np.ndarray, uv: np.ndarray, width_px: float) -> np.ndarray:
+def even_reflectance(level: np.ndarray, uv: np.ndarray, width_px: float, normals: np.ndarray) -> np.ndarray:
     """(N,) bool: the stripe centres ``uv`` (N, 2, px) that lie on light, even print.
 
     A stripe on paper is the laser's irradiance times the paper's reflectance; where a printed
@@ -427,19 +427,13 @@ def even_reflectance(level: np.ndarray, uv: np.ndarray, width_px: float) -> np.n
     moves towards the lighter side, by a good part of a pixel when the edge runs along the stripe,
     and every centre along it moves alike (no number of centres averages it out).  Dividing by
     the lit frame does not undo it: the blur spreads the edge over both frames differently.  Kept:
-    the centres whose ``level`` (:func:`laser_light`) is at least :data:`EVEN_LEVEL_MIN` (not on
-    ink: the stripe there is dim and next to the edges) and varies by less than
-    :data:`EVEN_SPREAD_MAX` (max over min) within the stripe's half-width plus a pixel (the blur).
+    the centres whose ``level`` (:func:`laser_light`: the lit board over its white) is at least
+    :data:`EVEN_LEVEL_MIN` (not on ink: the stripe there is dim and next to the edges) and, on every
+    line across the stripe (``normals``) within its reach, varies by less than :data:`EVEN_SPREAD_MAX`
+    (max over min): :func:`lightplane.stripe.extract.on_even_reflectance`.
     """
-    import cv2
-
-    r = max(1, int(np.ceil(float(width_px) / 2 + 1)))
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    lv = np.ascontiguousarray(level, dtype=np.float32)
-    ij = np.clip(np.round(as_points(uv, 2, "uv")).astype(int), 0, [lv.shape[1] - 1, lv.shape[0] - 1])
-    hi = cv2.dilate(lv, k)[ij[:, 1], ij[:, 0]]
-    lo = cv2.erode(lv, k)[ij[:, 1], ij[:, 0]]
-    return (lo >= EVEN_LEVEL_MIN) & (hi < EVEN_SPREAD_MAX * np.maximum(lo, 1e-6))
+    return on_even_reflectance(level, uv, normals, float(width_px), sigma_for_width(float(width_px)),
+                               full_scale=1.0, min_level=EVEN_LEVEL_MIN)
 
 
 def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, background: np.ndarray | None,
@@ -495,7 +489,7 @@ def _stripe_in_mask(camera: Camera, image: np.ndarray, mask: np.ndarray, backgro
         if lit is not None:
             fwhm = np.asarray(sp.width, float).ravel()
             w = width_px if width_px is not None else (float(np.nanmedian(fwhm)) if np.any(np.isfinite(fwhm)) else 3.0)
-            keep &= even_reflectance(level, uv, w)
+            keep &= even_reflectance(level, uv, w, np.asarray(sp.normals, float).reshape(-1, 2))
         uv = uv[keep]
     if len(uv) and grid is not None and spacing is not None:
         # X-junction responses at the corners line up along the corner rows: drop them

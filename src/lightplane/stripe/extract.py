@@ -1113,7 +1113,7 @@ def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str |
 
 
 def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, width_px: float, sigma_px: float,
-                        full_scale: float = 255.0) -> np.ndarray:
+                        full_scale: float = 255.0, min_level: float = 0.0) -> np.ndarray:
     """(N,) bool: the stripe centres ``uv`` (N, 2, px) whose surface reflects evenly across the stripe.
 
     The laser's light on a surface is its irradiance times the surface's reflectance, and the laser-off
@@ -1127,7 +1127,8 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     :data:`REFLECTANCE_FLOOR` of the full scale count as that floor (a dark scene says nothing about
     reflectance; its noise must not drop centres).  An edge that crosses the stripe squarely leaves
     each line on one side of it and moves no centre (the profile across is scaled, not skewed): the
-    centres next to it are kept."""
+    centres next to it are kept.  ``min_level``: also drop the centres where the level anywhere on
+    those lines is below it (a board's ink, in units of its white)."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, np.float64).reshape(-1, 2)
     if uv.shape[0] == 0:
@@ -1147,7 +1148,9 @@ def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, wi
     # the spread across the stripe at each step along it: an edge that crosses the stripe squarely
     # leaves every such line on one side of it
     s3 = s.reshape(len(uv), t.size, a.size)
-    return np.all(s3.max(axis=1) < REFLECTANCE_SPREAD_MAX * np.maximum(s3.min(axis=1), floor), axis=1)
+    lo = s3.min(axis=1)
+    return np.all(s3.max(axis=1) < REFLECTANCE_SPREAD_MAX * np.maximum(lo, floor), axis=1) & \
+        (lo.min(axis=1) >= min_level)
 
 
 def _stripe_mask(mask, shape: tuple[int, int]) -> np.ndarray | None:
