@@ -51,17 +51,6 @@ def data(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
-    c = Client(cluster)
-    yield c
-    c.close()
-    cluster.close()
-
-
-@pytest.fixture(scope="module")
 def reference(data, tmp_path_factory):
     """The single-process, threaded `measure` path (2 threads), as NPY records."""
     out = tmp_path_factory.mktemp("ref")

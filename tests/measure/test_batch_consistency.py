@@ -50,17 +50,6 @@ def frames(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
-    c = Client(cluster)
-    yield c
-    c.close()
-    cluster.close()
-
-
-@pytest.fixture(scope="module")
 def reference(frames, tmp_path_factory):
     """`measure`'s points of the frames with each plane (single process)."""
     out = tmp_path_factory.mktemp("ref")
