@@ -219,7 +219,7 @@ def stages(img: np.ndarray, axis: str, rounds: int) -> dict[str, float]:
     from lightplane.stripe.options import StripeOptions
 
     opts = StripeOptions()
-    gray, _ = X._channel_image(img, None)
+    gray, _ = X.channel_image(img, None)
     A, setup = X._profile_setup(img, axis, opts, None, parallel=False)
     p = setup["params"]
     w0, w1, w2 = setup["w0"], setup["w1"], setup["w2"]

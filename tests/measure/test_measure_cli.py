@@ -209,3 +209,44 @@ def test_laser_off_frames_that_do_not_pair_are_refused(scan_dir, tmp_path):
     r = run(laser, "--sensor", cam, "-o", out, "--background", off)
     assert r.returncode == 2 and "--background goes with --camera/--plane" in one_error_line(r)
     assert not out.exists()
+
+
+def test_laser_off_frame_drops_centres_on_uneven_reflectance(tmp_path):
+    """A printed edge along the stripe, 1.5 px beside it, over rows 100-199 (light 1.0 on the stripe's
+    side, ink 0.15 beyond; ambient 60 grey levels): the difference alone puts those rows' centres
+    more than 0.1 px towards the light side; with ``--background`` they are dropped and counted
+    ("on uneven reflectance", per frame in the cloud's comments), every other row's centre is the
+    clean stripe's within 0.02 px."""
+    from _measure_synth import stripe_image, surface
+
+    CAM.save_json(tmp_path / "camera.json")
+    PLANE.save(tmp_path / "plane.json")
+    img, u_c = stripe_image(*surface())
+    u = np.arange(CAM.width, dtype=float)[None, :]
+    refl = np.ones(img.shape)
+    rows = np.arange(100, 200)
+    refl[rows] = np.where(u < u_c[rows, None] + 1.5, 1.0, 0.15)
+    refl = cv2.GaussianBlur(refl, (0, 0), 0.7)
+    to8 = lambda x: np.clip(np.rint(x), 0, 255).astype(np.uint8)  # noqa: E731
+    (tmp_path / "f").mkdir()
+    cv2.imwrite(str(tmp_path / "f" / "a.png"), to8(60.0 * refl + (img - 10.0) * refl))
+    cv2.imwrite(str(tmp_path / "off.png"), to8(60.0 * refl))
+    cv2.imwrite(str(tmp_path / "clean.png"), to8(img - 10.0))
+    args = ("--camera", tmp_path / "camera.json", "--plane", tmp_path / "plane.json")
+    assert run(tmp_path / "clean.png", *args, "-o", tmp_path / "clean.csv").returncode == 0
+    r = run(tmp_path / "f", *args, "-o", tmp_path / "off.csv", "--background", tmp_path / "off.png")
+    assert r.returncode == 0, r.stderr
+    diff = tmp_path / "diff.png"
+    cv2.imwrite(str(diff), cv2.subtract(cv2.imread(str(tmp_path / "f" / "a.png"), 0), cv2.imread(str(tmp_path / "off.png"), 0)))
+    assert run(diff, *args, "-o", tmp_path / "diff.csv").returncode == 0
+    clean, off, alone = (read_cloud(tmp_path / f"{n}.csv") for n in ("clean", "off", "diff"))
+    row = lambda rec: np.rint(rec["v"].astype(float)).astype(int)  # noqa: E731
+    u_clean = dict(zip(row(clean), clean["u"].astype(float)))
+    in_band = np.isin(row(alone), rows)
+    assert np.median([u_clean[v] - uu for v, uu in zip(row(alone)[in_band], alone["u"][in_band])]) > 0.1
+    kept = row(off)
+    assert not np.isin(kept, rows[3:-3]).any()            # the band's rows are dropped ...
+    outside = ~np.isin(kept, np.arange(90, 210))
+    assert outside.sum() > 250 and max(abs(u_clean[v] - uu) for v, uu in zip(kept[outside], off["u"][outside])) < 0.02
+    text = (tmp_path / "off.csv").read_text()
+    assert "on uneven reflectance" in text and "on uneven reflectance" in r.stderr + r.stdout  # ... and counted

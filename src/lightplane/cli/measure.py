@@ -211,7 +211,8 @@ def measure_cmd(
     allow_other_camera: bool = allow_other_camera_option,
     background: Optional[str] = typer.Option(None, "--background", help="Laser-off frames (a file, folder or "
                                              "quoted glob): one for every frame, or one per frame in name order; "
-                                             "each is subtracted from its frame (ambient light, a static scene)."),
+                                             "each is subtracted from its frame (ambient light, a static scene), and centres next to a "
+                                             "printed edge along the stripe are dropped and counted."),
     force: bool = typer.Option(False, "--force", help="Overwrite the output file."),
 ) -> None:
     inputs = list(inputs or [])

@@ -20,7 +20,8 @@ from lightplane.plane.triangulate import points_sigma_mm, profile_axis, triangul
 from lightplane.measure._kernels import DONE, NOT_BUILT, OFF_GRID, hermite_lookup, median_where
 from lightplane.plane.uncertainty import camera_share_status, point_error_basis
 from lightplane.measure.options import MAX_WIDTH_RATIO, MIN_WIDTH_RATIO, MeasureOptions
-from lightplane.stripe.extract import check_roi, extract_profile, extract_profiles
+from lightplane.stripe.extract import (channel_image, check_roi, extract_profile, extract_profiles, on_even_reflectance,
+                                       sigma_for_width)
 
 #: fewer valid lines than this in a frame: no width filter (the median would mean little)
 WIDTH_FILTER_MIN_LINES = 20
@@ -35,7 +36,8 @@ ROUND_TRIP_PX = 0.05
 #: the grid (px) on which a measurer checks once that the camera model is one-to-one over its roi
 ROUND_TRIP_GRID_PX = 8
 #: why points are dropped (:attr:`Profile.dropped`), in this order
-DROP_REASONS = ("no stripe", "outside the camera model", "outside the working volume", "sigma beyond the bound")
+DROP_REASONS = ("no stripe", "outside the camera model", "outside the working volume", "sigma beyond the bound",
+                "on uneven reflectance")
 
 
 # ======================================================================================
@@ -389,16 +391,44 @@ class ProfileMeasurer:
 
     # --------------------------------------------------------------------- measure
     def __call__(self, image: np.ndarray) -> Profile:
-        """Measure one frame: ``image`` (H, W) or (H, W, 3), the camera's size."""
+        """Measure one frame: ``image`` (H, W) or (H, W, 3), the camera's size.  A frame that carries
+        its laser-off frame (``image.lit``: :class:`lightplane.measure.scan.LaserOnly`) has its
+        centres on uneven reflectance dropped too (:meth:`reflectance_screen`)."""
         if not isinstance(image, np.ndarray):
             raise LightplaneError(f"image must be a numpy array, got {type(image).__name__}")
+        lit, image = getattr(image, "lit", None), np.asarray(image)
         self.camera.check_image(image)
         x, y, w, h = self.roi
         roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
         sp = extract_profile(image, self.axis, self.stripe, roi=roi, parallel=self.options.parallel)
         uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
         prof = self.from_stripe(uv, sp.valid, sp.intensity, sp.width, sp.line_width_px)
-        return self.screen(width_filter(prof, self.min_width_ratio, self.max_width_ratio))
+        prof = self.screen(width_filter(prof, self.min_width_ratio, self.max_width_ratio))
+        return prof if lit is None else self.reflectance_screen(prof, lit, image, sp)
+
+    def reflectance_screen(self, prof: Profile, lit: np.ndarray, image: np.ndarray, sp) -> Profile:
+        """``prof`` without its points whose centre lies on uneven reflectance in the laser-off frame
+        ``lit`` (:func:`lightplane.stripe.extract.on_even_reflectance`, the stripe's normals and width
+        of ``sp``, the stripe options' channel), counted as "on uneven reflectance".  A printed or
+        textured edge along the stripe moves its centre towards the lighter side."""
+        lit = np.asarray(lit)
+        if lit.shape != image.shape:
+            raise LightplaneError(f"laser-off frame shape {lit.shape} differs from the frame's {image.shape}")
+        idx = np.flatnonzero(prof.valid)
+        if idx.size == 0:
+            return prof
+        level, fs = channel_image(lit, self.stripe.channel if self.stripe.channel != "gray" else None)
+        w = float(sp.width_px) if np.isfinite(sp.width_px) else float(np.nanmedian(prof.width_px[idx]))
+        even = on_even_reflectance(level, prof.uv[idx], np.asarray(sp.normals)[idx], w, sigma_for_width(w), fs)
+        if even.all():
+            return prof
+        drop = idx[~even]
+        pts, sig = prof.points.copy(), prof.sigma_mm.copy()
+        pts[drop], sig[drop] = np.nan, np.nan
+        valid = prof.valid.copy()
+        valid[drop] = False
+        return replace(prof, points=pts, sigma_mm=sig, valid=valid,
+                       dropped={**prof.dropped, DROP_REASONS[4]: int(drop.size)})
 
     #: regions of interest with at most this many samples per line (rows for ``axis="columns"``) are
     #: profiled a batch of frames per call (:meth:`measure_many`): there the per-call costs dominate
@@ -427,11 +457,13 @@ class ProfileMeasurer:
         x, y, w, h = self.roi
         roi = None if (w, h) == (self.camera.width, self.camera.height) else (x, y, w, h)
         out = []
-        for sp in extract_profiles(images, self.axis, self.stripe, roi=roi):
+        lits = [getattr(im, "lit", None) for im in images]
+        images = [np.asarray(im) for im in images]
+        for sp, lit, im in zip(extract_profiles(images, self.axis, self.stripe, roi=roi), lits, images):
             uv = smooth_centres(sp.uv, sp.valid, self.axis, self.smooth_lines) if self.smooth_lines else sp.uv
-            out.append(self.screen(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width,
-                                                                 sp.line_width_px),
-                                                self.min_width_ratio, self.max_width_ratio)))
+            prof = self.screen(width_filter(self.from_stripe(uv, sp.valid, sp.intensity, sp.width, sp.line_width_px),
+                                            self.min_width_ratio, self.max_width_ratio))
+            out.append(prof if lit is None else self.reflectance_screen(prof, lit, im, sp))
         return out
 
     def from_stripe(self, uv: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None = None,

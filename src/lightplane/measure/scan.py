@@ -56,6 +56,7 @@ __all__ = [
     "ArrayFrames",
     "open_frames",
     "PairedPath",
+    "LaserOnly",
     "FrameProcessor",
     "FrameResult",
     "iter_scan",
@@ -148,7 +149,24 @@ class PairedPath:
             return None, f"laser-off frame {self.background}: {reason}"
         if bg.shape != img.shape or bg.dtype != img.dtype:
             return None, (f"laser-off frame {self.background} is {_describe(bg)}, the frame {_describe(img)}")
-        return cv2.subtract(img, bg), ""
+        return LaserOnly.of(cv2.subtract(img, bg), bg), ""
+
+
+class LaserOnly(np.ndarray):
+    """A laser frame less its laser-off frame, which it carries as ``lit`` (the scene's reflectance
+    times its ambient light): :class:`~lightplane.measure.profile.ProfileMeasurer` drops the centres
+    on uneven reflectance with it.  Anything else reads it as the plain difference image."""
+
+    lit: np.ndarray | None
+
+    @classmethod
+    def of(cls, diff: np.ndarray, lit: np.ndarray) -> "LaserOnly":
+        out = np.asarray(diff).view(cls)
+        out.lit = lit
+        return out
+
+    def __array_finalize__(self, obj) -> None:
+        self.lit = getattr(obj, "lit", None)
 
 
 def _describe(img: np.ndarray) -> str:
@@ -658,7 +676,7 @@ def _first_frame(source: FrameSource) -> tuple[np.ndarray, FrameSource]:
     for _, name, payload in source.items():  # nothing usable is fatal: say why for each frame
         img, reason = try_load_frame(payload)
         if img is not None:
-            return img, source
+            return np.asarray(img), source   # a LaserOnly frame as its plain difference
         skipped.append((name, reason))
     raise LightplaneError(too_few_images_message("frames", 0, 1, skipped))
 

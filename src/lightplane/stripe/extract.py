@@ -126,6 +126,8 @@ __all__ = [
     "PROFILE_STATUS",
     "KERNEL_PIXEL_TYPES",
     "kernel_pixels",
+    "channel_image",
+    "on_even_reflectance",
 ]
 
 #: meaning of :attr:`StripeProfile.status`
@@ -237,7 +239,7 @@ def kernel_pixels(image: np.ndarray) -> np.ndarray:
     return image if image.dtype == np.uint8 else image.astype(np.float32, copy=False)
 
 
-def _channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
+def channel_image(image: np.ndarray, channel: str | None, name: str = "image") -> tuple[np.ndarray, float]:
     """2-D uint8 or float32 array (:func:`kernel_pixels`) from gray or BGR input, and its full scale.
 
     ``channel``: None / ``"gray"`` (weighted gray), ``"red"``, ``"green"``,
@@ -297,7 +299,7 @@ def estimate_width(image: np.ndarray, *, channel: str | None = None, axis: str |
     an angle ``theta`` the result is then at most ``sqrt(2)`` times too large).
     NaN when no line has a peak above ``min_peak``.
     """
-    img, fs = _channel_image(image, channel)
+    img, fs = channel_image(image, channel)
     mp = _default_min_peak(fs) if min_peak is None else float(min_peak)
     res = []
     if axis in (None, "columns"):
@@ -507,7 +509,7 @@ def _profile_setup(image, axis, options: StripeOptions, roi, parallel=None, prep
 
     ``prepared``: ``(A, full_scale, line0, sample0)`` already made (a stack's frame)."""
     if prepared is None:
-        img, fs = _channel_image(image, options.channel)
+        img, fs = channel_image(image, options.channel)
         A, line0, sample0 = _lines_array(img, axis, roi)
     else:
         A, fs, line0, sample0 = prepared
@@ -580,7 +582,7 @@ def _stack_lines(frames, axis: str, channel, roi):
 
     A 2-D-per-frame stack of uint8, uint16 or float32 (no channel) is cut and, for
     ``axis="rows"``, transposed in one go; anything else goes frame by frame through
-    :func:`_channel_image` (the same conversions as :func:`extract_profile`).
+    :func:`channel_image` (the same conversions as :func:`extract_profile`).
     """
     if isinstance(frames, np.ndarray) and frames.ndim == 3 and channel in (None, "gray") \
             and frames.dtype in (np.uint8, np.uint16, np.float32):
@@ -601,7 +603,7 @@ def _stack_lines(frames, axis: str, channel, roi):
             fs = np.full(N, 255.0)
         else:
             top = frames.reshape(N, -1).max(axis=1).astype(np.float64) if N else np.zeros(0)
-            if frames.dtype == np.uint16:   # as _channel_image: the smallest of 10/12/14/16 bits that holds it
+            if frames.dtype == np.uint16:   # as channel_image: the smallest of 10/12/14/16 bits that holds it
                 fs = np.select([top <= 1023, top <= 4095, top <= 16383], [1023.0, 4095.0, 16383.0], 65535.0)
             else:
                 fs = np.where(top <= 1.0, 1.0, 255.0)
@@ -611,7 +613,7 @@ def _stack_lines(frames, axis: str, channel, roi):
     fss: list[float] = []
     offs: tuple[int, int] | None = None
     for img in seq:
-        g, fs_img = _channel_image(img, channel, "frame")
+        g, fs_img = channel_image(img, channel, "frame")
         A, line0, sample0 = _lines_array(g, axis, roi)
         if arrays and (A.shape != arrays[0].shape or A.dtype != arrays[0].dtype):
             raise LightplaneError("frames must all have the same size and type")
@@ -1029,12 +1031,12 @@ def extract_stripe(image: np.ndarray, options: StripePointsOptions = StripePoint
         if options.reject_fragments is None:
             options = replace(options, reject_fragments=True)
         if fs is None:   # a colour difference: its channel as asked, saturated cores included
-            img, fs = _channel_image(image, options.channel)
+            img, fs = channel_image(image, options.channel)
         else:            # channels summed (the laser's own is clipped in the laser-off frame)
             options = replace(options, channel=None, saturated_centre=False)
-            img, _ = _channel_image(image, None)
+            img, _ = channel_image(image, None)
     else:
-        img, fs = _channel_image(image, options.channel)
+        img, fs = channel_image(image, options.channel)
     H, W = img.shape
     mask = _stripe_mask(mask, (H, W))
     sc = _stripe_scales(img, fs, options)
