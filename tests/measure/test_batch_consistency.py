@@ -431,3 +431,47 @@ def test_second_process_is_refused_and_a_terminated_command_releases_the_lock(fr
     assert err.strip().splitlines()[-1] == "lightplane: error: interrupted"
     assert not (out / LOCK_NAME).exists()
     assert manifest_json(out)["status"] == "failed"
+
+
+# ----------------------------------------------------------------------------- laser-off frames
+def test_background_column_pairs_laser_off_frames_like_measure(frames, client, tmp_path):
+    """A ``background`` column: each chunk reads its frames less their laser-off frames, the points
+    bitwise those of ``measure --background`` (a static bright ridge that would take the rows
+    without them); the laser-off frames are in the partitions' fingerprint (one touched: measured
+    again); counts that do not pair fail the scan with the reason."""
+    import cv2
+
+    u = np.arange(CAM.width, dtype=float)[None, :]
+    ridge = 240.0 * np.exp(-0.5 * ((u - 100.0) / 1.5) ** 2) * np.ones((CAM.height, 1))
+    (tmp_path / "laser").mkdir()
+    (tmp_path / "off").mkdir()
+    for k, p in enumerate(sorted((frames / "f").glob("*.png"))):
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).astype(float)
+        cv2.imwrite(str(tmp_path / "laser" / p.name), np.clip(np.rint(img + ridge), 0, 255).astype(np.uint8))
+        cv2.imwrite(str(tmp_path / "off" / f"o{k}.png"), np.clip(np.rint(10.0 + ridge), 0, 255).astype(np.uint8))
+    PLANE.save(tmp_path / "plane.json", force=True)
+    m = tmp_path / "m.csv"
+    m.write_text("id,input,camera,plane,background\n"
+                 f"a,laser,{frames / 'camera.json'},plane.json,off\n"
+                 f"b,laser,{frames / 'camera.json'},plane.json,{tmp_path / 'off' / 'o0.png'}\n")
+    ref = tmp_path / "ref.npy"
+    measure_scan(open_frames([tmp_path / "laser"], background=[tmp_path / "off"]), CAM, PLANE, ref,
+                 motion=Motion.none(), workers=1)
+    out = tmp_path / "out"
+    r = measure_batch(m, out, batch=BatchOptions(chunk_frames=2), client=client)
+    assert r.status == "ok"
+    pts = read_points(out, "a")
+    assert same(pts, np.load(ref)) and pts.size > N_FRAMES * 300
+    assert np.all(np.abs(pts["u"] - 100.0) > 20)            # not the ridge
+    assert same(read_points(out, "b"), pts)                  # one laser-off frame for all: the same here
+    fp = partition_fingerprints(out)
+    assert all("laser_off_frames" in f for f in fp.values())
+    off0 = tmp_path / "off" / "o0.png"
+    st = off0.stat()
+    os.utime(off0, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    r = measure_batch(m, out, batch=BatchOptions(chunk_frames=2), client=client)
+    assert r.partitions_written >= 1
+    (tmp_path / "off" / "o1.png").unlink()
+    r = measure_batch(m, out, batch=BatchOptions(chunk_frames=2), client=client)
+    failed = {e["id"]: e for e in manifest_json(out)["scans"]}
+    assert failed["a"]["status"] == "failed" and "3 laser-off frames for 4 frames" in failed["a"]["error"]

@@ -26,7 +26,7 @@ MAX_SCAN_BARS = 12
 @app.command("measure-batch")
 @handles_errors
 def measure_batch_cmd(
-    manifest: Path = typer.Argument(..., help="Manifest CSV: header id,input,camera,plane[,step,direction,positions]; "
+    manifest: Path = typer.Argument(..., help="Manifest CSV: header id,input,camera,plane[,step,direction,positions,background]; "
                                     "direction written x;y;z; relative paths from the manifest's folder."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder: points/scan=<id>/part-<k>.parquet, "
                                 "manifest.json (created; re-running resumes; one run at a time)."),

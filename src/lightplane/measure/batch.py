@@ -1,7 +1,7 @@
 """Batch measurement of many scans on a Dask cluster (``lightplane measure-batch``).
 
 A *manifest* (CSV with a header) names the scans: ``id,input,camera,plane`` and the
-optional ``step,direction,positions`` (direction written ``x;y;z``), with the meaning
+optional ``step,direction,positions,background`` (direction written ``x;y;z``), with the meaning
 they have in ``lightplane measure``.  Relative paths are taken relative to the
 manifest's folder.  Each scan's frames are listed on the client (a folder listing, no
 image is read there) and cut into *chunks* of consecutive frames; one Dask task per
@@ -80,7 +80,8 @@ from lightplane.measure.scan import FrameSource
 from lightplane.camera.model import Camera
 from lightplane.core.io import IMAGE_SUFFIXES, atomic_write, expand_inputs, provenance, versions, write_json
 from lightplane.measure.pointcloud import PointSpool, write_cloud
-from lightplane.measure.scan import Dropped, FrameProcessor, ImageFiles, VIDEO_SUFFIXES, VideoFrames, _prepare, iter_scan
+from lightplane.measure.scan import (Dropped, FrameProcessor, ImageFiles, PairedPath, VIDEO_SUFFIXES, VideoFrames, _prepare,
+                                     iter_scan)
 from lightplane.motion.model import Motion
 from lightplane.plane.model import LightPlane, check_camera
 from lightplane.core.threads import frames_across_threads, with_blas_limited
@@ -91,7 +92,7 @@ __all__ = ["BatchScan", "BatchOptions", "read_manifest", "plan_chunks", "measure
 
 DEFAULT_CHUNK_FRAMES = 200
 REQUIRED_COLUMNS = ("id", "input", "camera", "plane")
-OPTIONAL_COLUMNS = ("step", "direction", "positions")
+OPTIONAL_COLUMNS = ("step", "direction", "positions", "background")
 _ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _META_KEY = b"lightplane"
 #: bump when the partition layout or the meaning of its metadata changes
@@ -117,6 +118,7 @@ class BatchScan:
     direction: str = ""
     positions: str = ""
     row: int = 0
+    background: str = ""
 
 
 def _resolve(cell: str, base: Path) -> str:
@@ -198,7 +200,8 @@ def read_manifest(path: str | os.PathLike) -> list[BatchScan]:
                 raise LightplaneError(f"{p}: row {n} (scan {sid}) has no {c}")
         scans.append(BatchScan(sid, _resolve(cells["input"], base), _resolve(cells["camera"], base),
                                _resolve(cells["plane"], base), cells.get("step", ""), cells.get("direction", ""),
-                               _resolve(cells.get("positions", ""), base), n))
+                               _resolve(cells.get("positions", ""), base), n,
+                               _resolve(cells.get("background", ""), base)))
     if not scans:
         raise LightplaneError(f"{p}: manifest has a header but no scans")
     return scans
@@ -246,6 +249,7 @@ class _Plan:
     fingerprint: dict = field(default_factory=dict)  # the scan's (every partition's, but its chunk)
     scan_token: str = ""
     stats: list | None = None  # remote frames: (size, modification stamp) from the listing
+    backgrounds: list | None = None  # laser-off frame paths, one per frame (``background`` column)
     error: str | None = None
 
 
@@ -268,17 +272,28 @@ def _plan(scan: BatchScan, chunk_frames: int, record: dict) -> _Plan:
         if _is_url(scan.input):
             if Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
                 raise LightplaneError(f"{scan.input}: a video must be a local (shared) path, not a URL")
+            if scan.background:
+                raise LightplaneError("laser-off frames (background) go with local image files, not with a URL")
             pl.frames, pl.stats = _list_url_frames(scan.input)
             pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
         elif Path(scan.input).suffix.lower() in VIDEO_SUFFIXES:
             if not Path(scan.input).is_file():
                 raise LightplaneError(f"{scan.input}: no such video file")
+            if scan.background:
+                raise LightplaneError("laser-off frames (background) go with image files, not with a video")
             pl.video, pl.frames, pl.chunks = True, [scan.input], [(0, 0, None)]  # a video is decoded in one task
         else:
             paths = expand_inputs([scan.input])
             if not paths:
                 raise LightplaneError(f"no images found in {scan.input}")
-            ImageFiles(paths)  # every listed file exists (as measure checks)
+            if scan.background:
+                bgs = expand_inputs([scan.background]) if not _is_url(scan.background) else []
+                if not bgs:
+                    raise LightplaneError(f"no laser-off frames found in {scan.background} (local image files)")
+                files = ImageFiles(paths, backgrounds=bgs)  # paired as measure --background pairs them
+                pl.backgrounds = [str(q) for q in (files.backgrounds or [])]
+            else:
+                ImageFiles(paths)  # every listed file exists (as measure checks)
             pl.frames = [str(q) for q in paths]
             pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
     except LightplaneError as e:
@@ -321,8 +336,12 @@ def _scan_fingerprint(pl: _Plan, record: dict) -> dict:
     files = {"camera": _file_sha256(s.camera), "plane": _file_sha256(s.plane)}
     if s.positions:
         files["positions"] = _file_sha256(s.positions)
-    return {"layout": _LAYOUT, "frames": {"count": len(pl.frames), "sha256": _sha256_json([pl.frames, stats])},
-            "calibration_sha256": files, "motion": motion, "options": record, "code": _code_versions()}
+    out = {"layout": _LAYOUT, "frames": {"count": len(pl.frames), "sha256": _sha256_json([pl.frames, stats])},
+           "calibration_sha256": files, "motion": motion, "options": record, "code": _code_versions()}
+    if pl.backgrounds:
+        out["laser_off_frames"] = {"count": len(set(pl.backgrounds)),
+                                   "sha256": _sha256_json([pl.backgrounds, [_stat(q) for q in pl.backgrounds]])}
+    return out
 
 
 def _is_url(text: str) -> bool:
@@ -417,15 +436,17 @@ def _code_versions() -> dict:
 
 # ----------------------------------------------------------------------------- worker side
 class _ChunkFrames(FrameSource):
-    """Frames ``start..stop`` of a scan's image list, with their global indices."""
+    """Frames ``start..stop`` of a scan's image list, with their global indices (each read less its
+    laser-off frame where ``backgrounds`` gives them, one per frame)."""
 
-    def __init__(self, paths: Sequence[str], start: int) -> None:
+    def __init__(self, paths: Sequence[str], start: int, backgrounds: Sequence[str] | None = None) -> None:
         self.paths, self.start = list(paths), int(start)
+        self.backgrounds = None if not backgrounds else list(backgrounds)
         self.n_frames = len(self.paths)
 
     def items(self):
         for i, p in enumerate(self.paths):
-            yield self.start + i, p, p
+            yield self.start + i, p, (p if self.backgrounds is None else PairedPath(p, self.backgrounds[i]))
 
     def close(self) -> None:
         pass
@@ -445,12 +466,14 @@ class _VideoChunk(FrameSource):
         self.src.close()
 
 
-def _prepare_task(frames: list, video: bool, camera, plane, motion, options: MeasureOptions) -> dict:
+def _prepare_task(frames: list, video: bool, camera, plane, motion, options: MeasureOptions,
+                  backgrounds: list | None = None) -> dict:
     """Per scan, on a worker: the first readable frame checked against the camera, the
     profile axis and the stripe width, exactly as ``measure`` prepares a scan."""
     src = None
     try:  # a worker that does not see the files says so here, for the scan
-        src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else ImageFiles(frames)
+        src = VideoFrames(frames[0]) if video else _RemoteFrames(frames) if _is_url(frames[0]) else \
+            ImageFiles(frames, backgrounds=backgrounds)
         _, _, opts = _prepare(src, camera, plane, motion, options)
     except LightplaneError as e:
         return {"error": str(e)}
@@ -510,7 +533,7 @@ def _chunk_task(spec: dict, camera, plane, motion, prep: dict, options: MeasureO
     elif _is_url(spec["frames"][0]):
         src = _RemoteFrames(spec["frames"], start)
     else:
-        src = _ChunkFrames(spec["frames"], start)
+        src = _ChunkFrames(spec["frames"], start, spec.get("backgrounds"))
 
     # remote frames that could not be fetched (filled while the frames are read)
     fetch_errors: dict = src.errors if isinstance(src, _RemoteFrames) else {}
@@ -996,12 +1019,14 @@ def _submit_scan(client, pl: _Plan, todo: list, out: Path, options: MeasureOptio
     retries, lock = settings
     s = pl.scan
     common = (pl.camera, pl.plane, pl.motion)
-    prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, retries=retries, pure=False,
+    prep = client.submit(_prepare_task, pl.frames, pl.video, *common, options, pl.backgrounds, retries=retries,
+                         pure=False,
                          key=f"prepare-{s.id}-{pl.scan_token[:12]}-{run}")
     futs = [prep]
     for k, a, b in todo:
         spec = {"scan": s.id, "chunk": (k, a, b), "video": pl.video,
                 "frames": pl.frames if pl.video else pl.frames[a:b], "token": pl.tokens[k],
+                "backgrounds": None if pl.backgrounds is None else pl.backgrounds[a:b],
                 "fingerprint": {**pl.fingerprint, "chunk": [k, a, b]}, "lock": lock,
                 "proc_key": pl.scan_token, "path": str(_partition_path(out, s.id, k))}
         futs.append(client.submit(_chunk_task, spec, *common, prep, options, retries=retries, pure=False,
