@@ -243,7 +243,8 @@ def measure_cmd(
                                             turntable_step=turntable_step, turntable_angles=turntable_angles,
                                             turntable_start=turntable_start, counts_per_rev=counts_per_rev,
                                             poses=poses, flange=flange), cams, sens)
-    output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force, comments=cams.comments())
+    laser_off = () if background is None else (f"laser-off frames: {background}",)
+    output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force, comments=(*cams.comments(), *laser_off))
     out = Path(output)
     options = MeasureOptions(StripeOptions(width_px=stripe_width, channel=channel, sigma_along_px=sigma_along),
                              axis=axis, roi=parse_roi(roi) if roi is not None else None, smooth_lines=smooth,
@@ -261,9 +262,6 @@ def measure_cmd(
         return
 
     source = open_frames(inputs, rot, background=None if background is None else [background])
-    if background is not None:
-        output_opts = CloudOutput(fmt=fmt, ascii=ascii_ply, force=force,
-                                  comments=(*cams.comments(), f"laser-off frames: {background}"))
     with progress_bar("measuring frames", source.n_frames) as update:
         s = measure_scan(source, cam, pl, out, options, motion=motion, output=output_opts, workers=workers,
                          progress=lambda done, tot: update(done, total=tot))

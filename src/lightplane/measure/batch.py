@@ -286,14 +286,15 @@ def _plan(scan: BatchScan, chunk_frames: int, record: dict) -> _Plan:
             paths = expand_inputs([scan.input])
             if not paths:
                 raise LightplaneError(f"no images found in {scan.input}")
+            bgs = None
             if scan.background:
                 bgs = expand_inputs([scan.background]) if not _is_url(scan.background) else []
                 if not bgs:
                     raise LightplaneError(f"no laser-off frames found in {scan.background} (local image files)")
-                files = ImageFiles(paths, backgrounds=bgs)  # paired as measure --background pairs them
-                pl.backgrounds = [str(q) for q in (files.backgrounds or [])]
-            else:
-                ImageFiles(paths)  # every listed file exists (as measure checks)
+            # every listed file exists, the laser-off frames paired, as measure checks and pairs them
+            files = ImageFiles(paths, backgrounds=bgs)
+            if files.backgrounds is not None:
+                pl.backgrounds = [str(q) for q in files.backgrounds]
             pl.frames = [str(q) for q in paths]
             pl.chunks = plan_chunks(len(pl.frames), chunk_frames)
     except LightplaneError as e:

@@ -417,7 +417,7 @@ class ProfileMeasurer:
         idx = np.flatnonzero(prof.valid)
         if idx.size == 0:
             return prof
-        level, fs = channel_image(lit, self.stripe.channel if self.stripe.channel != "gray" else None)
+        level, fs = channel_image(lit, self.stripe.channel)
         w = float(sp.width_px) if np.isfinite(sp.width_px) else float(np.nanmedian(prof.width_px[idx]))
         even = on_even_reflectance(level, prof.uv[idx], np.asarray(sp.normals)[idx], w, sigma_for_width(w), fs)
         if even.all():

@@ -54,20 +54,18 @@ def _full_scale(image: np.ndarray) -> float:
     return 1.0 if image.size == 0 or float(np.max(image)) <= 1.0 else 255.0
 
 
-def laser_difference(image: np.ndarray, background: np.ndarray, channel: str | None = None,
-                     region: np.ndarray | None = None) -> LaserDifference:
-    """``max(image - background, 0)`` in the channels that carry the stripe (module doc).
-
-    ``channel``: the user's choice (None / ``"gray"``, ``"red"``, ``"green"``, ``"blue"``, ``"sum"``);
-    ``region``: where the stripe is looked for (a mask of the image's size; default the whole image), over
-    which clipping is judged.  A grey image pair gives the plain difference.  With no channel clipped the
-    result is what :func:`lightplane.core.io.to_gray_float` gives for ``channel``, difference taken."""
+def difference_channels(image: np.ndarray, background: np.ndarray, channel: str | None = None,
+                        region: np.ndarray | None = None) -> tuple[tuple[str, ...], dict, str]:
+    """Which channels :func:`laser_difference` reads: ``(channels, left_out, note)``.  ``left_out``
+    (channel -> share of the region clipped in the laser-off frame) is empty when the request is
+    read as it is (a grey pair; nothing it reads is clipped; every channel clipped, with a note);
+    otherwise ``channels`` are the ones summed.  Checks the pair's shapes, the request and the
+    region (one line each)."""
     img, bg = np.asarray(image), np.asarray(background)
     if img.shape != bg.shape:
         raise LightplaneError(f"background image shape {bg.shape} differs from image shape {img.shape}")
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
-        diff = to_gray_float(img, channel) - to_gray_float(bg, channel)
-        return LaserDifference(np.clip(diff, 0, None), (), {}, "")
+        return (), {}, ""
     if channel not in _REQUEST:
         raise LightplaneError(f"channel must be red, green, blue, sum or gray, got {channel!r}")
     fs = max(_full_scale(img), _full_scale(bg))
@@ -80,22 +78,36 @@ def laser_difference(image: np.ndarray, background: np.ndarray, channel: str | N
     wanted = _REQUEST[channel]
     keep = tuple(c for c in wanted if c not in clipped)
     if not (clipped & set(wanted)):  # nothing clipped that the request reads: the request as it is
-        diff = to_gray_float(img, channel) - to_gray_float(bg, channel)
-        return LaserDifference(np.clip(diff, 0, None), wanted, {}, "")
+        return wanted, {}, ""
     if not keep:
         keep = tuple(c for c in ("blue", "green", "red") if c not in clipped)
     if not keep:  # every channel clipped: nothing better to offer than the request
-        diff = to_gray_float(img, channel) - to_gray_float(bg, channel)
-        return LaserDifference(np.clip(diff, 0, None), wanted, {},
-                               "every colour channel is clipped in the laser-off frame; the stripe may be lost")
-    diff = np.zeros(img.shape[:2], np.float32)
-    for c in keep:
-        i = _INDEX[c]
-        diff += img[:, :, i].astype(np.float32) - bg[:, :, i].astype(np.float32)
+        return wanted, {}, "every colour channel is clipped in the laser-off frame; the stripe may be lost"
     left_out = {c: round(share[c], 3) for c in wanted if c in clipped}
     note = (f"stripe taken from {'+'.join(keep)}: {', '.join(sorted(left_out))} clipped in the laser-off frame "
             f"over {100 * max(left_out.values()):.0f} % of the stripe's region")
-    return LaserDifference(np.clip(diff, 0, None), keep, left_out, note)
+    return keep, left_out, note
+
+
+def laser_difference(image: np.ndarray, background: np.ndarray, channel: str | None = None,
+                     region: np.ndarray | None = None) -> LaserDifference:
+    """``max(image - background, 0)`` in the channels that carry the stripe (module doc;
+    :func:`difference_channels`).
+
+    ``channel``: the user's choice (None / ``"gray"``, ``"red"``, ``"green"``, ``"blue"``, ``"sum"``);
+    ``region``: where the stripe is looked for (a mask of the image's size; default the whole image), over
+    which clipping is judged.  A grey image pair gives the plain difference.  With no channel clipped the
+    result is what :func:`lightplane.core.io.to_gray_float` gives for ``channel``, difference taken."""
+    img, bg = np.asarray(image), np.asarray(background)
+    channels, left_out, note = difference_channels(img, bg, channel, region)
+    if not left_out:
+        diff = to_gray_float(img, channel) - to_gray_float(bg, channel)
+        return LaserDifference(np.clip(diff, 0, None), channels, {}, note)
+    diff = np.zeros(img.shape[:2], np.float32)
+    for c in channels:
+        i = _INDEX[c]
+        diff += img[:, :, i].astype(np.float32) - bg[:, :, i].astype(np.float32)
+    return LaserDifference(np.clip(diff, 0, None), channels, left_out, note)
 
 
 def laser_off_level(background: np.ndarray, diff: LaserDifference, channel: str | None = None) -> np.ndarray:

@@ -112,7 +112,7 @@ from lightplane.core.threads import ensure_configured, in_serial_context, profil
 from lightplane.core.io import to_gray_float
 from lightplane.stripe.options import StripeOptions, StripePointsOptions, _check_width
 from lightplane.stripe.reference import profile_numpy
-from lightplane.stripe.difference import difference_full_scale, laser_difference, laser_off_level
+from lightplane.stripe.difference import difference_channels, difference_full_scale, laser_difference, laser_off_level
 
 __all__ = [
     "StripePoints",
@@ -1096,8 +1096,6 @@ def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str |
 
     if not isinstance(background, np.ndarray) or not isinstance(image, np.ndarray):
         raise LightplaneError("image and background must be numpy arrays")
-    if background.shape != image.shape:
-        raise LightplaneError(f"background image shape {background.shape} differs from image shape {image.shape}")
     if background.dtype != image.dtype:
         raise LightplaneError(f"background image type {background.dtype} differs from the image's {image.dtype}")
     if image.size == 0:
@@ -1105,13 +1103,15 @@ def _laser_off_removed(image: np.ndarray, background: np.ndarray, channel: str |
     region = None if mask is None else np.asarray(mask)
     if region is not None and region.shape != image.shape[:2]:
         raise LightplaneError(f"mask shape {region.shape} differs from the image's {image.shape[:2]}")
-    diff = laser_difference(image, background, channel, region=region)
-    lit = laser_off_level(background, diff, channel)
-    if not diff.clipped:
+    _, left_out, _ = difference_channels(image, background, channel, region)
+    if not left_out:  # the request as it is: the plain difference, no summed image made to be thrown away
+        lit = np.asarray(to_gray_float(background, channel), dtype=np.float32)
         if image.dtype.kind in "ui":
             return cv2.subtract(image, background), lit, None
         return np.clip(image.astype(np.float32) - background.astype(np.float32), 0, None), lit, None
-    return np.ascontiguousarray(diff.image, dtype=np.float32), lit, difference_full_scale(image, diff, channel)
+    diff = laser_difference(image, background, channel, region=region)
+    return (np.ascontiguousarray(diff.image, dtype=np.float32), laser_off_level(background, diff, channel),
+            difference_full_scale(image, diff, channel))
 
 
 def on_even_reflectance(lit: np.ndarray, uv: np.ndarray, normals: np.ndarray, width_px: float, sigma_px: float,
